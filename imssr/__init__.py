@@ -1,0 +1,13 @@
+"""imssr: Intrinsically Motivated Self-Supervised learning in RL (IM-SSR).
+
+The GL backend is configured here, before anything can import OpenGL.
+"""
+from imssr._gl import configure_gl as _configure_gl
+
+GL_BACKEND = _configure_gl()
+
+from imssr.errors import ImssrError  # noqa: E402
+from imssr.envs import make_env, list_tasks  # noqa: E402
+
+__version__ = "0.1.0"
+__all__ = ["make_env", "list_tasks", "ImssrError", "GL_BACKEND", "__version__"]

@@ -1,0 +1,5 @@
+import sys
+
+from imssr.cli import main
+
+sys.exit(main())

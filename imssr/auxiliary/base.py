@@ -1,0 +1,111 @@
+"""The interface an auxiliary self-supervised task implements.
+
+An auxiliary task owns its parameters and optimiser, reads the agent's shared
+encoders, and exposes *unreduced per-sample* losses: the mean of
+:meth:`per_sample_loss` is what it trains on, and :meth:`intrinsic_loss` is the
+same loss for the next observation, which IM-SSR turns into a reward.  The
+agent knows only this interface, so a new task plugs in by registering a class
+in :data:`imssr.auxiliary.AUX_TASKS`.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import ClassVar, Optional
+
+import torch
+from torch import nn
+
+from imssr.config import AgentConfig, AuxConfig
+
+
+@dataclass
+class Batch:
+    """One sampled batch on the agent's device.
+
+    ``obs`` / ``next_obs`` are the RL views (random crops); ``raw_*`` are the
+    uncropped stacks from which a task draws further views with ``generator``.
+    """
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    discount: torch.Tensor
+    next_obs: torch.Tensor
+    raw_obs: torch.Tensor
+    raw_next_obs: torch.Tensor
+    generator: torch.Generator
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+
+@dataclass
+class NextObsContext:
+    """What the critic's Bellman target already computed for ``o'``, for reuse.
+
+    ``online_trunk`` is the online trunk's output on ``next_view`` (computed for
+    the actor's next action) and ``target_latent`` the target encoder's latent of
+    ``next_view`` (computed for the target Q).  Both are free for the intrinsic loss.
+    """
+
+    raw_next_obs: torch.Tensor
+    next_view: torch.Tensor
+    online_trunk: torch.Tensor
+    target_latent: torch.Tensor
+    generator: torch.Generator
+    view: str = "independent"
+
+
+@dataclass
+class SharedNetworks:
+    """The agent's networks an auxiliary task may read or train."""
+
+    encoder: nn.Module
+    """The critic's encoder (trunk + projection), trained by the critic."""
+    target_encoder: nn.Module
+    """Its EMA copy (the critic target's encoder)."""
+    action_dim: int
+
+
+class AuxiliaryTask(nn.Module, abc.ABC):
+    """Base class of auxiliary tasks."""
+
+    name: ClassVar[str]
+    uses_rl_batch: ClassVar[bool] = True
+    """True: trains on the RL batch; False: the agent samples it a batch of ``cfg.batch_size``."""
+
+    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+        super().__init__()
+        # Plain attribute (not a registered submodule): the agent owns and saves these.
+        self.__dict__["shared"] = shared
+        self.cfg = cfg
+        self.agent_cfg = agent_cfg
+        self.optimizer: Optional[torch.optim.Optimizer] = None
+
+    @abc.abstractmethod
+    def per_sample_loss(self, batch: Batch) -> torch.Tensor:
+        """Training loss of each sample, shape ``(B,)``, with gradients."""
+
+    @abc.abstractmethod
+    def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
+        """The same loss for each next observation, shape ``(B,)``, without gradients."""
+
+    def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
+        """One optimisation step on the mean of :meth:`per_sample_loss`."""
+        loss = self.per_sample_loss(batch).mean()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.after_step(step)
+        return {"aux_loss": loss.detach()}
+
+    def after_step(self, step: int) -> None:
+        """Hook for momentum updates of the task's own target networks."""
+
+    def full_state_dict(self) -> dict:
+        return {"module": self.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_full_state_dict(self, state: dict) -> None:
+        self.load_state_dict(state["module"])
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -1,0 +1,60 @@
+"""CURL: contrastive unsupervised representations (Srinivas et al. 2020).
+
+InfoNCE with a bilinear similarity (the paper's Eq. infonce):
+``logits_ij = z_i^T W k_j`` between queries ``z`` from the online encoder on
+one crop and keys ``k`` from the momentum (critic-target) encoder on an
+independent crop; the positive of row ``i`` is column ``i``.  The per-sample
+loss is the row-wise cross-entropy.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from imssr.augmentations import random_crop
+from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
+from imssr.config import AgentConfig, AuxConfig
+
+
+class CURL(AuxiliaryTask):
+    name = "curl"
+    uses_rl_batch = True  # same batch as the RL update; the anchor is the RL crop
+
+    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+        super().__init__(shared, cfg, agent_cfg)
+        dim = shared.encoder.out_dim
+        self.W = nn.Parameter(torch.rand(dim, dim))
+        # One optimiser over W and the online encoder: the contrastive loss
+        # trains the encoder that the critic uses.
+        self.optimizer = torch.optim.Adam([self.W, *shared.encoder.parameters()], lr=cfg.lr)
+
+    def logits(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
+        logits = z_query @ (self.W @ z_key.T)
+        # Subtracting the row max leaves the softmax unchanged and keeps exp() finite.
+        return logits - logits.max(dim=1, keepdim=True).values
+
+    def loss_from_latents(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
+        labels = torch.arange(z_query.shape[0], device=z_query.device)
+        return F.cross_entropy(self.logits(z_query, z_key), labels, reduction="none")
+
+    def per_sample_loss(self, batch: Batch) -> torch.Tensor:
+        positive = random_crop(batch.raw_obs, self.agent_cfg.crop_size, batch.generator)
+        z_query = self.shared.encoder(batch.obs)
+        with torch.no_grad():
+            z_key = self.shared.target_encoder(positive)
+        return self.loss_from_latents(z_query, z_key)
+
+    @torch.no_grad()
+    def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
+        # Query: the online encoder on the Bellman target's crop (its trunk output
+        # is reused); key: the momentum encoder on an independent crop, exactly
+        # as the training loss pairs views.  ``shared`` reuses the target's
+        # latent of the same crop instead: no encoder pass at all.
+        z_query = self.shared.encoder.projection(ctx.online_trunk)
+        if ctx.view == "shared":
+            z_key = ctx.target_latent
+        else:
+            positive = random_crop(ctx.raw_next_obs, self.agent_cfg.crop_size, ctx.generator)
+            z_key = self.shared.target_encoder(positive)
+        return self.loss_from_latents(z_query, z_key)

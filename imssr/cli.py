@@ -1,0 +1,273 @@
+"""Command-line interface: ``imssr {train,demo,evaluate,plot,tasks,algos,config}``."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Optional
+
+from imssr.errors import ImssrError
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _nonneg_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
+def _nonneg_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from imssr.presets import ALGOS
+
+    p = argparse.ArgumentParser(prog="imssr", description="IM-SSR: self-supervised losses as "
+                                "intrinsic rewards for pixel-based SAC on DeepMind Control.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add_run_options(t: argparse.ArgumentParser) -> None:
+        t.add_argument("--algo", choices=list(ALGOS), help="algorithm (imssr algos)")
+        t.add_argument("--task", help="task name, e.g. cartpole_swingup_sparse (imssr tasks)")
+        t.add_argument("--seed", type=_nonneg_int, help="seed (default 0)")
+        t.add_argument("--frames", type=_positive_int, help="budget in environment frames (paper: 500000)")
+        t.add_argument("--out", help="run directory (default runs/<task>/<algo>/seed_<n>)")
+        t.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+        t.add_argument("--eval-every", type=_nonneg_int, metavar="FRAMES",
+                       help="environment frames between evaluations (0: only at the end)")
+        t.add_argument("--eval-episodes", type=_positive_int, metavar="K", help="episodes per evaluation")
+        t.add_argument("--beta0", type=_nonneg_float, help="initial intrinsic coefficient beta_0 (im- algos)")
+        t.add_argument("--device", help="cpu (default), cuda, cuda:N or auto")
+        t.add_argument("--batch-size", type=_positive_int, help="RL (and CURL) batch size")
+        t.add_argument("--seed-steps", type=_nonneg_int, metavar="STEPS",
+                       help="agent steps of random actions before learning")
+        t.add_argument("--replay-capacity", type=_positive_int, metavar="TRANSITIONS")
+        t.add_argument("--checkpoint-every", type=_nonneg_int, metavar="FRAMES")
+        t.add_argument("--no-buffer-in-checkpoint", action="store_true",
+                       help="do not save the replay buffer (smaller checkpoints, inexact resume)")
+        t.add_argument("--no-tensorboard", action="store_true")
+        t.add_argument("--no-progress", action="store_true")
+        t.add_argument("--config", metavar="FILE", help="JSON config to start from instead of the preset")
+        t.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                       help="override any config field, e.g. --set intrinsic.normalization=minmax")
+
+    t = sub.add_parser("train", help="train one run")
+    add_run_options(t)
+    d = sub.add_parser("demo", help="a short IM-CURL run on cartpole_swingup_sparse (~15 min on 2 CPU cores)")
+    add_run_options(d)
+
+    e = sub.add_parser("evaluate", help="evaluate the latest checkpoint of a run")
+    e.add_argument("--run", required=True, help="run directory")
+    e.add_argument("--episodes", type=_positive_int, default=10)
+    e.add_argument("--seed", type=_nonneg_int, help="eval env seed (default: run seed + 20000)")
+    e.add_argument("--device", default="cpu")
+
+    pl = sub.add_parser("plot", help="learning-curve PNG of a run")
+    pl.add_argument("--run", required=True)
+    pl.add_argument("--out", help="PNG path (default RUN/learning_curve.png)")
+
+    sub.add_parser("tasks", help="list task names")
+    sub.add_parser("algos", help="list algorithms")
+    c = sub.add_parser("config", help="print the preset config of an algorithm on a task")
+    c.add_argument("--algo", choices=list(ALGOS), required=True)
+    c.add_argument("--task", required=True)
+    return p
+
+
+def _run_config(args, demo: bool):
+    from imssr.config import apply_overrides, load_config
+    from imssr.presets import demo_config, get_algo, make_config
+    from imssr.envs import get_task
+    from imssr.config import RunConfig
+
+    saved_path = os.path.join(args.out, "config.json") if args.out else None
+    if args.config:
+        cfg = load_config(args.config)
+    elif args.resume:
+        if not args.out:
+            raise ImssrError("--resume needs --out RUN_DIR")
+        if not os.path.exists(saved_path):
+            raise ImssrError(f"nothing to resume: {saved_path} does not exist")
+        cfg = load_config(saved_path)
+    else:
+        algo = args.algo or ("im-curl" if demo else None)
+        task = args.task or ("cartpole_swingup_sparse" if demo else None)
+        if algo is None or task is None:
+            raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
+        get_algo(algo)
+        get_task(task)
+        cfg = demo_config(algo, task) if demo else make_config(algo, task)
+    if args.resume or args.config:
+        # Explicit --algo/--task must agree with the loaded config.
+        if args.algo and args.algo != cfg.algo:
+            raise ImssrError(f"--algo {args.algo} differs from the run's algo {cfg.algo}")
+        if args.task and args.task != cfg.env.task:
+            raise ImssrError(f"--task {args.task} differs from the run's task {cfg.env.task}")
+    assert isinstance(cfg, RunConfig)
+    t = cfg.train
+    if args.seed is not None:
+        t.seed = args.seed
+    if args.frames is not None:
+        t.frames = args.frames
+    if args.eval_every is not None:
+        t.eval_every_frames = args.eval_every
+    if args.eval_episodes is not None:
+        t.eval_episodes = args.eval_episodes
+    if args.device is not None:
+        t.device = args.device
+    if args.seed_steps is not None:
+        t.seed_steps = args.seed_steps
+    if args.replay_capacity is not None:
+        t.replay_capacity = args.replay_capacity
+    if args.checkpoint_every is not None:
+        t.checkpoint_every_frames = args.checkpoint_every
+    if args.no_buffer_in_checkpoint:
+        t.save_buffer = False
+    if args.no_tensorboard:
+        t.tensorboard = False
+    if args.no_progress:
+        t.progress = False
+    if args.batch_size is not None:
+        cfg.agent.batch_size = args.batch_size
+        if cfg.aux.name == "curl":
+            cfg.aux.batch_size = args.batch_size
+    if args.beta0 is not None:
+        if not cfg.intrinsic.enabled:
+            raise ImssrError(f"--beta0 applies to im- algorithms, not {cfg.algo}")
+        cfg.intrinsic.beta0 = args.beta0
+    apply_overrides(cfg, args.set)
+    return cfg.validate()
+
+
+def cmd_train(args, demo: bool = False) -> int:
+    from imssr.experiments import plot_learning_curve
+    from imssr.training import Trainer
+
+    cfg = _run_config(args, demo)
+    out = args.out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
+    trainer = Trainer(cfg, out, resume=args.resume)
+    print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.train.frames} frames = "
+          f"{cfg.total_steps} agent steps (action repeat {cfg.env.action_repeat}) -> {out}", flush=True)
+    try:
+        trainer.train()
+    finally:
+        trainer.close()
+    png = plot_learning_curve(out)
+    print(f"imssr: done; {os.path.join(out, 'eval.csv')}, {png}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    import numpy as np
+
+    from imssr.config import load_config
+    from imssr.envs import make_env
+    from imssr.training import build_agent, evaluate, resolve_device
+    from imssr.training.checkpoint import latest_path, load_checkpoint
+    from imssr.training.logger import CSVLog, EVAL_COLUMNS, EVAL_EPISODE_COLUMNS
+
+    if not os.path.isdir(args.run):
+        raise ImssrError(f"run directory not found: {args.run}")
+    cfg = load_config(os.path.join(args.run, "config.json"))
+    ckpt = load_checkpoint(latest_path(args.run))
+    device = resolve_device(args.device)
+    e = cfg.env
+    seed = cfg.train.seed + 20_000 if args.seed is None else args.seed
+    env = make_env(e.task, seed=seed, mode=e.mode, action_repeat=e.action_repeat,
+                   image_size=e.image_size, frame_stack=e.frame_stack)
+    agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
+    try:
+        agent.load_state_dict(ckpt["agent"])
+    except (RuntimeError, KeyError, ValueError) as exc:
+        raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
+    returns = evaluate(agent, env, args.episodes)
+    env.close()
+    row = {"frame": ckpt["frame"], "step": ckpt["step"], "mode": e.mode,
+           "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
+           "episodes": len(returns), "return_min": float(np.min(returns)),
+           "return_max": float(np.max(returns))}
+    CSVLog(os.path.join(args.run, "evaluate.csv"), EVAL_COLUMNS).write(row)
+    per_ep = CSVLog(os.path.join(args.run, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS)
+    for i, r in enumerate(returns):
+        per_ep.write({"frame": ckpt["frame"], "step": ckpt["step"], "mode": e.mode, "episode": i, "return": r})
+    print(f"{e.mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
+          f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
+    return 0
+
+
+def cmd_tasks(_args) -> int:
+    from imssr.envs import PAPER_TASKS, get_task, list_tasks
+
+    print("# paper tasks (action repeat)")
+    for name in PAPER_TASKS:
+        print(f"{name}\t{get_task(name).action_repeat}")
+    print("# all tasks")
+    for name in list_tasks():
+        print(name)
+    return 0
+
+
+def cmd_algos(_args) -> int:
+    from imssr.presets import ALGOS
+
+    for spec in ALGOS.values():
+        print(f"{spec.name}\t{spec.description}")
+    return 0
+
+
+def cmd_config(args) -> int:
+    from imssr.presets import make_config
+
+    print(make_config(args.algo, args.task).to_json())
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from imssr.experiments import plot_learning_curve
+
+    if not os.path.isdir(args.run):
+        raise ImssrError(f"run directory not found: {args.run}")
+    print(plot_learning_curve(args.run, args.out))
+    return 0
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    handlers = {"train": cmd_train, "demo": lambda a: cmd_train(a, demo=True),
+                "evaluate": cmd_evaluate, "tasks": cmd_tasks, "algos": cmd_algos,
+                "config": cmd_config, "plot": cmd_plot}
+    try:
+        return handlers[args.command](args)
+    except ImssrError as exc:
+        print(f"imssr: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("imssr: interrupted; `imssr train --resume --out RUN` continues from the last checkpoint",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

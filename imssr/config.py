@@ -1,0 +1,266 @@
+"""Typed configuration.  Every field documents itself; counters say their unit.
+
+Units: an *agent step* is one action chosen by the agent; it advances the
+simulator by ``action_repeat`` *environment frames*.  The paper's T = 500k
+counts environment frames.  Replay capacity counts transitions (agent steps).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field, fields
+from typing import Any, Optional
+
+from imssr.errors import ImssrError
+
+
+@dataclass
+class EnvConfig:
+    task: str = "cartpole_swingup_sparse"
+    """Task name, paper-style ``domain_task`` (``imssr tasks`` lists them)."""
+    mode: str = "training"
+    """Scene the agent trains in."""
+    action_repeat: int = 8
+    """Environment frames per agent step (Table III: 2 finger_spin, 8 cartpole/pendulum, else 4)."""
+    image_size: int = 100
+    """Rendered frame height and width in pixels."""
+    frame_stack: int = 3
+    """Frames stacked (channels first) into one observation."""
+
+
+@dataclass
+class AgentConfig:
+    encoder_layers: int = 4
+    """Convolutional layers of the shared pixel encoder (4 CURL, 11 SODA/PAD/SVEA)."""
+    encoder_filters: int = 32
+    """Filters per convolutional layer."""
+    feature_dim: int = 50
+    """Size of the encoder's projection (Linear + LayerNorm) output."""
+    hidden_dim: int = 1024
+    """Width of the two hidden layers of the actor and of each Q head."""
+    crop_size: int = 84
+    """Random crop (training) / centre crop (acting) size from ``image_size``."""
+    discount: float = 0.99
+    """Discount factor gamma."""
+    batch_size: int = 128
+    """RL batch size N."""
+    critic_lr: float = 1e-3
+    """Adam learning rate of the critic (including the encoder)."""
+    critic_beta1: float = 0.9
+    """Adam beta1 of the critic."""
+    actor_lr: float = 1e-3
+    """Adam learning rate of the actor (its head; the convs belong to the critic)."""
+    actor_beta1: float = 0.9
+    """Adam beta1 of the actor."""
+    alpha_lr: float = 1e-4
+    """Adam learning rate of the log temperature."""
+    alpha_beta1: float = 0.5
+    """Adam beta1 of the log temperature."""
+    init_temperature: float = 0.1
+    """Initial SAC temperature alpha."""
+    critic_tau: float = 0.01
+    """EMA rate of the target Q heads."""
+    encoder_tau: float = 0.05
+    """EMA rate of the target encoder (also CURL's key encoder)."""
+    actor_update_every: int = 2
+    """Agent steps between actor and temperature updates."""
+    critic_update_every: int = 1
+    """Agent steps between critic updates."""
+    target_update_every: int = 2
+    """Agent steps between target-network soft updates."""
+    log_std_min: float = -10.0
+    """Lower bound of the actor's log standard deviation."""
+    log_std_max: float = 2.0
+    """Upper bound of the actor's log standard deviation."""
+
+
+@dataclass
+class AuxConfig:
+    name: str = "curl"
+    """Auxiliary self-supervised task (``imssr algos`` lists them)."""
+    lr: float = 1e-3
+    """Adam learning rate of the auxiliary loss (CURL 1e-3, SODA 3e-4)."""
+    update_every: int = 1
+    """Agent steps between auxiliary updates."""
+    batch_size: int = 128
+    """Auxiliary batch size (CURL reuses the RL batch, so it equals the RL batch)."""
+
+
+@dataclass
+class IntrinsicConfig:
+    enabled: bool = False
+    """Add ``beta_t * r_int`` from the auxiliary task's per-sample loss (IM-SSR)."""
+    beta0: float = 0.0
+    """Initial coefficient beta_0 of the intrinsic reward (paper Table V)."""
+    schedule: str = "step"
+    """``constant`` (beta_t = beta_0) or ``step`` (beta_0 * decay^floor(step / decay_every_steps))."""
+    decay: float = 0.8
+    """Multiplicative decay of the ``step`` schedule."""
+    decay_every_steps: int = 100_000
+    """Agent steps between decays of the ``step`` schedule."""
+    normalization: str = "zscore"
+    """In-batch normalisation of the per-sample losses: zscore, minmax, mean or none."""
+    view: str = "independent"
+    """``independent``: the online branch sees a fresh crop of o' (as the SSL loss is
+    trained); ``shared``: reuse the crop of the Bellman target (no extra encoder pass)."""
+
+
+@dataclass
+class TrainConfig:
+    frames: int = 500_000
+    """Training budget in environment frames (the paper's T)."""
+    seed_steps: int = 1000
+    """Agent steps of uniform random actions before learning starts."""
+    burst_updates: int = 0
+    """Extra updates when the seed phase ends (DMC-GB runs 1000; CURL none)."""
+    replay_capacity: int = 100_000
+    """Replay capacity in transitions (CURL 100k, DMC-GB 500k)."""
+    eval_every_frames: int = 10_000
+    """Environment frames between evaluations (0 disables periodic evaluation)."""
+    eval_episodes: int = 10
+    """Episodes per evaluation."""
+    checkpoint_every_frames: int = 50_000
+    """Environment frames between checkpoints (taken at the next episode end)."""
+    save_buffer: bool = True
+    """Save the replay buffer with each checkpoint (needed for an exact resume)."""
+    keep_checkpoints: int = 1
+    """Numbered checkpoints kept besides ``latest``."""
+    seed: int = 0
+    """Seed of the agent, the replay sampler and the training env (eval env uses seed + 10_000)."""
+    device: str = "cpu"
+    """Torch device: cpu, cuda, cuda:N, or auto."""
+    tensorboard: bool = True
+    """Write TensorBoard event files besides the CSV logs."""
+    progress: bool = True
+    """Show a progress bar with frames per second."""
+    torch_threads: int = 0
+    """torch intra-op threads (0 leaves torch's default)."""
+
+
+@dataclass
+class RunConfig:
+    algo: str = "im-curl"
+    """Algorithm name (``imssr algos``)."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    agent: AgentConfig = field(default_factory=AgentConfig)
+    aux: AuxConfig = field(default_factory=AuxConfig)
+    intrinsic: IntrinsicConfig = field(default_factory=IntrinsicConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    @property
+    def total_steps(self) -> int:
+        """Training budget in agent steps."""
+        return -(-self.train.frames // self.env.action_repeat)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
+        sections = {f.name: f.type for f in fields(cls)}
+        kwargs: dict[str, Any] = {}
+        classes = {"env": EnvConfig, "agent": AgentConfig, "aux": AuxConfig,
+                   "intrinsic": IntrinsicConfig, "train": TrainConfig}
+        for key, value in data.items():
+            if key not in sections:
+                raise ImssrError(f"unknown config section {key!r}")
+            if key in classes:
+                kwargs[key] = _build(classes[key], value, key)
+            else:
+                kwargs[key] = value
+        return cls(**kwargs)
+
+    def validate(self) -> "RunConfig":
+        """Reject bad values with one-line errors."""
+        e, a, x, i, t = self.env, self.agent, self.aux, self.intrinsic, self.train
+        checks = [
+            (e.action_repeat >= 1, "env.action_repeat must be >= 1"),
+            (e.frame_stack >= 1, "env.frame_stack must be >= 1"),
+            (0 < a.crop_size <= e.image_size, "agent.crop_size must be in (0, env.image_size]"),
+            (a.encoder_layers >= 1, "agent.encoder_layers must be >= 1"),
+            (a.batch_size >= 2, "agent.batch_size must be >= 2"),
+            (0.0 <= a.discount <= 1.0, "agent.discount must be in [0, 1]"),
+            (x.update_every >= 1, "aux.update_every must be >= 1"),
+            (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
+            (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
+            (i.normalization in NORMALIZATIONS,
+             f"intrinsic.normalization must be one of {', '.join(NORMALIZATIONS)}"),
+            (i.view in ("independent", "shared"), "intrinsic.view must be independent or shared"),
+            (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
+            (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
+            (t.frames >= 1, "train.frames must be >= 1"),
+            (t.seed_steps >= 0, "train.seed_steps must be >= 0"),
+            (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
+            (t.eval_every_frames >= 0, "train.eval_every_frames must be >= 0"),
+            (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
+            (t.checkpoint_every_frames >= 0, "train.checkpoint_every_frames must be >= 0"),
+            (t.seed >= 0, "train.seed must be >= 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ImssrError(message)
+        return self
+
+
+SCHEDULES = ("constant", "step")
+NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
+
+
+def _build(cls, values: dict[str, Any], section: str):
+    names = {f.name for f in fields(cls)}
+    unknown = set(values) - names
+    if unknown:
+        raise ImssrError(f"unknown {section} setting(s): {', '.join(sorted(unknown))}")
+    return cls(**values)
+
+
+def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
+    """Apply ``section.field=value`` strings (values parsed as JSON, else strings)."""
+    for item in overrides:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise ImssrError(f"override {item!r} must look like section.field=value")
+        key, raw = item.split("=", 1)
+        section, name = key.split(".", 1)
+        target = getattr(cfg, section, None)
+        if target is None or not dataclasses.is_dataclass(target):
+            raise ImssrError(f"unknown config section {section!r} in override {item!r}")
+        ftypes = {f.name: f.type for f in fields(target)}
+        if name not in ftypes:
+            raise ImssrError(
+                f"unknown setting {key!r}; {section} has: {', '.join(sorted(ftypes))}")
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        current = getattr(target, name)
+        if isinstance(current, bool):
+            if not isinstance(value, bool):
+                raise ImssrError(f"{key} expects true or false, got {raw!r}")
+        elif isinstance(current, int):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
+                raise ImssrError(f"{key} expects an integer, got {raw!r}")
+            value = int(value)
+        elif isinstance(current, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ImssrError(f"{key} expects a number, got {raw!r}")
+            value = float(value)
+        elif isinstance(current, str) and not isinstance(value, str):
+            value = raw
+        setattr(target, name, value)
+    return cfg
+
+
+def load_config(path: str) -> RunConfig:
+    try:
+        with open(path) as fh:
+            data = json.load(fh)
+    except FileNotFoundError:
+        raise ImssrError(f"config file not found: {path}") from None
+    except json.JSONDecodeError as exc:
+        raise ImssrError(f"config file {path} is not valid JSON: {exc}") from None
+    return RunConfig.from_dict(data)
+
+

@@ -1,0 +1,173 @@
+"""A direct dm_control wrapper with the gymnasium API and pixel observations.
+
+Design choices, each for speed or faithfulness:
+* one ``mujoco.engine.Camera`` is built per environment and reused for every
+  frame (``physics.render`` builds and frees a scene per call); each frame is
+  copied because the camera reuses its output buffer;
+* only the last physics sub-step of an action repeat is rendered;
+* rewards are summed per sub-step (after the task's reward transform);
+* the frame stack is channels-first and repeats the first frame after reset.
+"""
+from __future__ import annotations
+
+from collections import deque
+from typing import Any, Optional
+
+import gymnasium as gym
+import numpy as np
+
+from imssr._gl import check_gl
+from imssr.envs.tasks import TaskSpec, get_task
+from imssr.errors import ImssrError
+
+MODES = ("training",)
+
+
+class DMCEnv(gym.Env):
+    """Pixel-based DeepMind Control task.
+
+    Observations are ``uint8`` arrays of shape ``(3 * frame_stack, H, W)``;
+    actions live in ``[-1, 1]^|A|`` and are rescaled to the task's bounds.
+    An episode ends by time limit (``truncated``), never by ``terminated``
+    unless the task itself reports a zero discount.
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(
+        self,
+        task: str | TaskSpec,
+        seed: int = 0,
+        mode: str = "training",
+        action_repeat: Optional[int] = None,
+        image_size: int = 100,
+        frame_stack: int = 3,
+        camera_id: Optional[int] = None,
+    ):
+        if mode not in MODES:
+            raise ImssrError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
+        spec = task if isinstance(task, TaskSpec) else get_task(task)
+        if action_repeat is not None and action_repeat < 1:
+            raise ImssrError(f"action_repeat must be >= 1, got {action_repeat}")
+        if image_size < 16:
+            raise ImssrError(f"image_size must be >= 16, got {image_size}")
+        if frame_stack < 1:
+            raise ImssrError(f"frame_stack must be >= 1, got {frame_stack}")
+        check_gl()
+        try:
+            from dm_control import suite
+            from dm_control.mujoco.engine import Camera
+        except (ImportError, OSError, RuntimeError) as exc:  # GL or mujoco load failure
+            raise ImssrError(f"cannot load dm_control/mujoco: {exc}") from None
+
+        self.spec_task = spec
+        self.task_name = spec.name
+        self.mode = mode
+        self.action_repeat = action_repeat or spec.action_repeat
+        self.image_size = image_size
+        self.frame_stack = frame_stack
+        self.camera_id = spec.camera_id if camera_id is None else camera_id
+        self._env = suite.load(spec.domain, spec.suite_task, task_kwargs={"random": seed})
+        try:
+            self._camera = Camera(self._env.physics, image_size, image_size, self.camera_id)
+        except Exception as exc:  # noqa: BLE001 - GL context failures surface here
+            raise ImssrError(
+                f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()}: {exc}".splitlines()[0]
+            ) from None
+
+        aspec = self._env.action_spec()
+        self._act_low = aspec.minimum.astype(np.float64)
+        self._act_high = aspec.maximum.astype(np.float64)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=aspec.shape, dtype=np.float32)
+        self.observation_space = gym.spaces.Box(
+            0, 255, shape=(3 * frame_stack, image_size, image_size), dtype=np.uint8
+        )
+        self._frames: deque[np.ndarray] = deque(maxlen=frame_stack)
+        # Simulator steps per episode (1000 for every task of the paper).
+        self.episode_sim_steps = int(round(self._env._step_limit))
+        self.max_episode_steps = -(-self.episode_sim_steps // self.action_repeat)
+        self.action_space.seed(seed)
+
+    # -- gymnasium API -------------------------------------------------------
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        if seed is not None:
+            self.seed_task(seed)
+        self._env.reset()
+        frame = self._render()
+        self._frames.clear()
+        for _ in range(self.frame_stack):
+            self._frames.append(frame)
+        return self._observation(), {"frame": frame}
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != self.action_space.shape:
+            raise ImssrError(f"action shape {action.shape} != {self.action_space.shape}")
+        action = np.clip(action, -1.0, 1.0)
+        scaled = self._act_low + (action + 1.0) * 0.5 * (self._act_high - self._act_low)
+        reward = 0.0
+        sim_steps = 0
+        time_step = None
+        for _ in range(self.action_repeat):
+            time_step = self._env.step(scaled)
+            sim_steps += 1
+            r = time_step.reward or 0.0
+            if self.spec_task.reward_fn is not None:
+                r = self.spec_task.reward_fn(r)
+            reward += r
+            if time_step.last():
+                break
+        frame = self._render()
+        self._frames.append(frame)
+        terminated = bool(time_step.last() and time_step.discount == 0.0)
+        truncated = bool(time_step.last() and not terminated)
+        info = {"frame": frame, "sim_steps": sim_steps, "discount": float(time_step.discount)}
+        return self._observation(), float(reward), terminated, truncated, info
+
+    def render(self):
+        return np.moveaxis(self._frames[-1], 0, -1).copy()
+
+    def close(self):
+        cam = getattr(self, "_camera", None)
+        if cam is not None:
+            cam._scene.free()  # release the MuJoCo scene held by the reused camera
+            self._camera = None
+
+    # -- reproducibility -------------------------------------------------------
+    def seed_task(self, seed: int) -> None:
+        """Reseed the task's random state (initial states of later resets)."""
+        self._env.task._random = np.random.RandomState(seed)
+
+    def get_rng_state(self) -> dict[str, Any]:
+        return {"task": self._env.task.random.get_state()}
+
+    def set_rng_state(self, state: dict[str, Any]) -> None:
+        self._env.task.random.set_state(state["task"])
+
+    # -- internals -------------------------------------------------------------
+    @property
+    def physics(self):
+        return self._env.physics
+
+    def _render(self) -> np.ndarray:
+        # (H, W, 3) -> (3, H, W); the camera reuses its buffer, so copy.
+        return np.ascontiguousarray(self._camera.render().transpose(2, 0, 1))
+
+    def _observation(self) -> np.ndarray:
+        return np.concatenate(self._frames, axis=0)
+
+
+def _gl_backend() -> str:
+    import os
+
+    return os.environ.get("MUJOCO_GL", "egl")
+
+
+def make_env(task: str, seed: int = 0, mode: str = "training", **kwargs) -> DMCEnv:
+    """Build a pixel DeepMind Control environment by the paper's task name.
+
+    ``kwargs`` go to :class:`DMCEnv` (``action_repeat``, ``image_size``,
+    ``frame_stack``, ``camera_id``).  The action repeat defaults to the paper's
+    per-task value.
+    """
+    return DMCEnv(task, seed=seed, mode=mode, **kwargs)

@@ -1,0 +1,77 @@
+"""Task names, their defaults from the paper, and per-sub-step reward transforms.
+
+Names follow the paper (``domain_task``).  Besides the suite's own tasks there is
+``walker_walk_sparse``: the dense ``walker_walk`` reward of each physics sub-step
+thresholded at 0.5 (the paper's appendix, "Sparse Reward Settings").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+from imssr.errors import ImssrError
+
+# The tasks the paper reports, in its table order.
+PAPER_TASKS = (
+    "cartpole_swingup_sparse",
+    "finger_spin",
+    "pendulum_swingup",
+    "reacher_easy",
+    "walker_walk",
+    "walker_walk_sparse",
+)
+
+# Table III: action repeat 2 for finger_spin, 8 for cartpole_swingup_sparse and
+# pendulum_swingup, 4 otherwise.
+_ACTION_REPEAT = {"finger_spin": 2, "cartpole_swingup_sparse": 8, "pendulum_swingup": 8}
+DEFAULT_ACTION_REPEAT = 4
+
+
+def _walker_sparse(dense: float) -> float:
+    return 1.0 if dense > 0.5 else 0.0
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """How a task name maps onto the suite."""
+
+    name: str
+    domain: str
+    suite_task: str
+    action_repeat: int
+    reward_fn: Optional[Callable[[float], float]] = None
+    """Applied to each physics sub-step's reward before the action-repeat sum."""
+
+    @property
+    def camera_id(self) -> int:
+        # The suite's camera 0 looks at quadrupeds from too far; DMC-GB uses 2.
+        return 2 if self.domain == "quadruped" else 0
+
+
+_CUSTOM = {"walker_walk_sparse": ("walker", "walk", _walker_sparse)}
+
+
+def _suite_tasks() -> list[tuple[str, str]]:
+    from dm_control import suite
+
+    return list(suite.ALL_TASKS)
+
+
+def list_tasks() -> list[str]:
+    """Every task name accepted by :func:`imssr.make_env`, sorted."""
+    names = {f"{d}_{t}" for d, t in _suite_tasks()} | set(_CUSTOM)
+    return sorted(names)
+
+
+def get_task(name: str) -> TaskSpec:
+    """Resolve a task name; unknown names raise a one-line :class:`ImssrError`."""
+    if name in _CUSTOM:
+        domain, task, fn = _CUSTOM[name]
+        return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT), fn)
+    for domain, task in _suite_tasks():
+        if f"{domain}_{task}" == name:
+            return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT))
+    raise ImssrError(
+        f"unknown task {name!r}; paper tasks: {', '.join(PAPER_TASKS)} "
+        f"(`imssr tasks` lists all {len(list_tasks())})"
+    )

@@ -1,0 +1,5 @@
+"""The one exception type that the CLI turns into a one-line error message."""
+
+
+class ImssrError(Exception):
+    """A user-facing error: bad input, missing file, corrupt checkpoint, missing library."""

@@ -1,0 +1,49 @@
+"""Learning-curve figures from a run's ``eval.csv``."""
+from __future__ import annotations
+
+import os
+
+from imssr.errors import ImssrError
+from imssr.training.logger import read_csv
+
+
+def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
+    """Plot evaluation return (mean ± std over episodes) against environment frames."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = read_csv(os.path.join(run_dir, "eval.csv"))
+    if not rows:
+        raise ImssrError(f"no evaluations in {os.path.join(run_dir, 'eval.csv')}")
+    out_path = out_path or os.path.join(run_dir, "learning_curve.png")
+    title = os.path.basename(os.path.abspath(run_dir))
+    cfg_path = os.path.join(run_dir, "config.json")
+    if os.path.exists(cfg_path):
+        import json
+
+        with open(cfg_path) as fh:
+            cfg = json.load(fh)
+        title = f"{cfg['algo']} on {cfg['env']['task']} (seed {cfg['train']['seed']})"
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    for mode in sorted({r["mode"] for r in rows}):
+        pts = sorted((int(r["frame"]), float(r["return_mean"]), float(r["return_std"]))
+                     for r in rows if r["mode"] == mode)
+        x = [p[0] for p in pts]
+        m = [p[1] for p in pts]
+        s = [p[2] for p in pts]
+        ax.plot(x, m, marker="o", label=mode)
+        ax.fill_between(x, [a - b for a, b in zip(m, s)], [a + b for a, b in zip(m, s)], alpha=0.2)
+    ax.set_xlabel("environment frames")
+    ax.set_ylabel("evaluation return")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    from imssr.utils import atomic_path
+
+    with atomic_path(out_path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return out_path

@@ -1,0 +1,83 @@
+"""Pixel encoder: a convolutional trunk shared by critic and actor, and projections.
+
+Following the CURL / DMC-GB code bases, the critic owns the convolutional trunk
+and a ``Linear -> LayerNorm`` projection; the actor reads the trunk's output with
+gradients stopped and trains only its own projection.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def conv_output_size(size: int, num_layers: int) -> int:
+    # First layer: 3x3, stride 2; the others 3x3, stride 1; no padding.
+    size = (size - 3) // 2 + 1
+    return size - 2 * (num_layers - 1)
+
+
+class ConvTrunk(nn.Module):
+    """``num_layers`` 3x3 convolutions of ``filters`` channels, ReLU after each.
+
+    Input: uint8 or float pixels in [0, 255], ``(B, C, S, S)``; output: the
+    flattened feature map ``(B, filters * s * s)``.
+    """
+
+    def __init__(self, in_channels: int, image_size: int, num_layers: int = 4, filters: int = 32):
+        super().__init__()
+        out = conv_output_size(image_size, num_layers)
+        if out < 1:
+            raise ValueError(f"{num_layers} conv layers leave no pixels of a {image_size}px input")
+        layers: list[nn.Module] = [nn.Conv2d(in_channels, filters, 3, stride=2), nn.ReLU()]
+        for _ in range(num_layers - 1):
+            layers += [nn.Conv2d(filters, filters, 3, stride=1), nn.ReLU()]
+        self.convs = nn.Sequential(*layers)
+        self.out_dim = filters * out * out
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        x = obs.float() / 255.0
+        return self.convs(x).flatten(1)
+
+
+class Projection(nn.Module):
+    """``Linear -> LayerNorm`` (``-> tanh`` optionally) from trunk features to latents."""
+
+    def __init__(self, in_dim: int, out_dim: int, tanh: bool = False):
+        super().__init__()
+        self.fc = nn.Linear(in_dim, out_dim)
+        self.ln = nn.LayerNorm(out_dim)
+        self.tanh = tanh
+        self.out_dim = out_dim
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        z = self.ln(self.fc(h))
+        return torch.tanh(z) if self.tanh else z
+
+
+class Encoder(nn.Module):
+    """Trunk followed by a projection: pixels -> latent ``z``."""
+
+    def __init__(self, trunk: ConvTrunk, feature_dim: int):
+        super().__init__()
+        self.trunk = trunk
+        self.projection = Projection(trunk.out_dim, feature_dim)
+        self.out_dim = feature_dim
+
+    def forward(self, obs: torch.Tensor, detach_trunk: bool = False) -> torch.Tensor:
+        h = self.trunk(obs)
+        if detach_trunk:
+            h = h.detach()
+        return self.projection(h)
+
+
+def weight_init(m: nn.Module) -> None:
+    """Orthogonal init for linear layers, delta-orthogonal for convolutions (as CURL)."""
+    if isinstance(m, nn.Linear):
+        nn.init.orthogonal_(m.weight.data)
+        m.bias.data.fill_(0.0)
+    elif isinstance(m, nn.Conv2d):
+        m.weight.data.fill_(0.0)
+        m.bias.data.fill_(0.0)
+        mid = m.weight.size(2) // 2
+        gain = nn.init.calculate_gain("relu")
+        nn.init.orthogonal_(m.weight.data[:, :, mid, mid], gain)

@@ -1,0 +1,71 @@
+"""SAC heads: the tanh-Gaussian actor and the twin-Q critic."""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import torch
+from torch import nn
+
+from imssr.networks.encoder import Encoder, Projection
+
+
+def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(),
+                         nn.Linear(hidden, hidden), nn.ReLU(),
+                         nn.Linear(hidden, out_dim))
+
+
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian policy on the (detached) trunk features.
+
+    ``log_std`` is squashed into ``[log_std_min, log_std_max]``; the squashing
+    correction of the log-probability is SAC's (Haarnoja et al. 2018, App. C).
+    """
+
+    def __init__(self, trunk_dim: int, feature_dim: int, action_dim: int, hidden_dim: int,
+                 log_std_min: float, log_std_max: float):
+        super().__init__()
+        self.projection = Projection(trunk_dim, feature_dim)
+        self.net = mlp(feature_dim, hidden_dim, 2 * action_dim)
+        self.log_std_min, self.log_std_max = log_std_min, log_std_max
+
+    def forward(self, trunk_features: torch.Tensor, generator: Optional[torch.Generator] = None,
+                sample: bool = True):
+        mu, log_std = self.net(self.projection(trunk_features)).chunk(2, dim=-1)
+        log_std = torch.tanh(log_std)
+        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1)
+        if not sample:
+            return torch.tanh(mu), None, None, log_std
+        noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+        pi = mu + noise * log_std.exp()
+        log_pi = (-0.5 * noise.pow(2) - log_std).sum(-1, keepdim=True) \
+            - 0.5 * math.log(2 * math.pi) * mu.shape[-1]
+        mu, pi = torch.tanh(mu), torch.tanh(pi)
+        log_pi = log_pi - torch.log(torch.relu(1 - pi.pow(2)) + 1e-6).sum(-1, keepdim=True)
+        return mu, pi, log_pi, log_std
+
+
+class QHeads(nn.Module):
+    """Two independent Q networks on ``[z, a]``."""
+
+    def __init__(self, feature_dim: int, action_dim: int, hidden_dim: int):
+        super().__init__()
+        self.q1 = mlp(feature_dim + action_dim, hidden_dim, 1)
+        self.q2 = mlp(feature_dim + action_dim, hidden_dim, 1)
+
+    def forward(self, z: torch.Tensor, action: torch.Tensor):
+        za = torch.cat([z, action], dim=-1)
+        return self.q1(za), self.q2(za)
+
+
+class Critic(nn.Module):
+    """Encoder (trunk + projection) and twin Q heads."""
+
+    def __init__(self, encoder: Encoder, action_dim: int, hidden_dim: int):
+        super().__init__()
+        self.encoder = encoder
+        self.q = QHeads(encoder.out_dim, action_dim, hidden_dim)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_trunk: bool = False):
+        return self.q(self.encoder(obs, detach_trunk=detach_trunk), action)

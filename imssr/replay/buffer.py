@@ -1,0 +1,216 @@
+"""Replay buffer that stores every rendered frame once and stacks at sample time.
+
+Layout: one *slot* per observation.  Slot ``i`` holds the newest frame of
+observation ``o_i`` (``3 x H x W`` uint8), the action taken from it, the reward
+and discount that followed, and ``step_in_episode[i]``.  A transition
+``(o_i, a_i, r_i, o_{i+1})`` is therefore the slot pair ``(i, i+1)`` and costs one
+frame plus a few scalars (about 30 KB at 100x100) instead of two stacked
+observations (180 KB).  The stack of ``o_i`` is the frames of slots
+``i-k+1 .. i``, with offsets clamped at the episode's first slot so a stack
+never mixes episodes (the first frame repeats, as the env does on reset).
+
+Slots are written in a ring.  A slot ``i`` can start a transition when ``i+1``
+is live (not the write head) and every frame of its stack is still live.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Optional
+
+import numpy as np
+
+from imssr.errors import ImssrError
+from imssr.utils import atomic_path
+
+
+def available_memory_bytes() -> Optional[int]:
+    """``MemAvailable`` from /proc/meminfo, or None where it cannot be read."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+class FrameReplayBuffer:
+    """Preallocated uint8 ring of frames with per-slot transition fields.
+
+    Args:
+        capacity: number of slots (stored observations).  An episode of ``n``
+            transitions uses ``n + 1`` slots.
+        frame_shape: ``(C, H, W)`` of one rendered frame.
+        action_dim: size of the action vector.
+        frame_stack: frames per observation.
+        seed: seed of the sampling generator.
+    """
+
+    def __init__(self, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,
+                 frame_stack: int = 3, seed: int = 0, warn_memory: bool = True):
+        if capacity < 2:
+            raise ImssrError(f"replay capacity must be >= 2, got {capacity}")
+        self.capacity = int(capacity)
+        self.frame_shape = tuple(frame_shape)
+        self.action_dim = int(action_dim)
+        self.frame_stack = int(frame_stack)
+        if warn_memory:
+            need, avail = self.nbytes_expected(), available_memory_bytes()
+            if avail is not None and need > avail:
+                warnings.warn(
+                    f"replay buffer of {capacity} slots needs {need / 2**30:.1f} GiB but only "
+                    f"{avail / 2**30:.1f} GiB is available; lower the replay capacity",
+                    ResourceWarning, stacklevel=2)
+        # np.empty/zeros map pages lazily: memory is committed as frames arrive.
+        self.frames = np.zeros((self.capacity, *self.frame_shape), dtype=np.uint8)
+        self.actions = np.zeros((self.capacity, self.action_dim), dtype=np.float32)
+        self.rewards = np.zeros((self.capacity,), dtype=np.float32)
+        self.discounts = np.ones((self.capacity,), dtype=np.float32)
+        self.step_in_episode = np.zeros((self.capacity,), dtype=np.int32)
+        self.head = 0  # next slot to write
+        self.size = 0  # live slots
+        self.rng = np.random.default_rng(seed)
+        self._open_episode = False
+
+    # -- memory ----------------------------------------------------------------
+    def bytes_per_slot(self) -> int:
+        return int(np.prod(self.frame_shape)) + 4 * self.action_dim + 4 + 4 + 4
+
+    def nbytes_expected(self) -> int:
+        return self.capacity * self.bytes_per_slot()
+
+    # -- writing ---------------------------------------------------------------
+    def add_first(self, frame: np.ndarray) -> None:
+        """Start an episode with the newest frame of its first observation."""
+        self._write(frame, step=0)
+        self._open_episode = True
+
+    def add(self, action: np.ndarray, reward: float, discount: float, next_frame: np.ndarray) -> None:
+        """Record the transition out of the newest observation and the next frame.
+
+        ``discount`` is 0 for a true terminal state and 1 otherwise (a time
+        limit is not terminal: the critic keeps bootstrapping).
+        """
+        if not self._open_episode:
+            raise RuntimeError("add_first() must start an episode before add()")
+        last = (self.head - 1) % self.capacity
+        self.actions[last] = action
+        self.rewards[last] = reward
+        self.discounts[last] = discount
+        self._write(next_frame, step=int(self.step_in_episode[last]) + 1)
+
+    def _write(self, frame: np.ndarray, step: int) -> None:
+        self.frames[self.head] = frame
+        self.step_in_episode[self.head] = step
+        self.head = (self.head + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    # -- sampling --------------------------------------------------------------
+    def _valid(self, idx: np.ndarray) -> np.ndarray:
+        oldest = (self.head - self.size) % self.capacity
+        age = (idx - oldest) % self.capacity  # 0 = oldest live slot
+        newest = self.size - 1
+        history = np.minimum(self.frame_stack - 1, self.step_in_episode[idx])
+        nxt = (idx + 1) % self.capacity
+        same_episode = self.step_in_episode[nxt] == self.step_in_episode[idx] + 1
+        return (age < newest) & (age >= history) & same_episode
+
+    def num_transitions(self) -> int:
+        if self.size < 2:
+            return 0
+        idx = (self.head - self.size + np.arange(self.size)) % self.capacity
+        return int(self._valid(idx).sum())
+
+    def sample_indices(self, batch_size: int) -> np.ndarray:
+        """Uniform over valid transitions (rejection sampling over live slots)."""
+        if self.size < 2:
+            raise ImssrError("replay buffer holds no complete transition yet")
+        oldest = (self.head - self.size) % self.capacity
+        out = np.empty(0, dtype=np.int64)
+        rounds = 0
+        # Almost every live slot starts a valid transition, so this loops once.
+        while out.size < batch_size:
+            cand = (oldest + self.rng.integers(0, self.size, size=2 * batch_size)) % self.capacity
+            out = np.concatenate([out, cand[self._valid(cand)]])
+            rounds += 1
+            if rounds == 8 and out.size < batch_size and self.num_transitions() == 0:
+                raise ImssrError("replay buffer holds no complete transition yet")
+        return out[:batch_size]
+
+    def stack_indices(self, idx: np.ndarray) -> np.ndarray:
+        """Slots of the frames of ``o_i`` and ``o_{i+1}``: shape ``(B, frame_stack + 1)``.
+
+        Offsets below the episode's first slot are clamped to it.  The same
+        clamp serves ``o_{i+1}`` because its episode starts at the same slot.
+        """
+        k = np.arange(-(self.frame_stack - 1), 2)  # e.g. -2, -1, 0, +1
+        offs = np.maximum(k[None, :], -self.step_in_episode[idx][:, None])
+        return (idx[:, None] + offs) % self.capacity
+
+    def sample(self, batch_size: int) -> dict[str, np.ndarray]:
+        """A batch of stacked transitions as numpy arrays (``obs`` is uint8)."""
+        idx = self.sample_indices(batch_size)
+        return self.gather(idx)
+
+    def gather(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        window = self.frames[self.stack_indices(idx)]  # (B, k+1, C, H, W), one copy
+        b, _, c, h, w = window.shape
+        obs = window[:, :-1].reshape(b, self.frame_stack * c, h, w)
+        next_obs = window[:, 1:].reshape(b, self.frame_stack * c, h, w)
+        return {
+            "obs": obs,
+            "action": self.actions[idx],
+            "reward": self.rewards[idx],
+            "discount": self.discounts[idx],
+            "next_obs": next_obs,
+        }
+
+    # -- persistence -------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"head": self.head, "size": self.size, "open": self._open_episode,
+                "rng": self.rng.bit_generator.state}
+
+    def save(self, path: str) -> None:
+        """Write the live contents atomically (``.npz``, uncompressed)."""
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, frames=self.frames[: self._extent()],
+                         actions=self.actions[: self._extent()],
+                         rewards=self.rewards[: self._extent()],
+                         discounts=self.discounts[: self._extent()],
+                         step_in_episode=self.step_in_episode[: self._extent()],
+                         meta=np.array([self.capacity, self.head, self.size, int(self._open_episode)]),
+                         frame_shape=np.array(self.frame_shape))
+
+    def _extent(self) -> int:
+        # Slots ever written: a prefix until the ring wraps, then all of it.
+        return self.capacity if self.size == self.capacity else self.head
+
+    def load(self, path: str, rng_state: Optional[dict] = None) -> None:
+        if not os.path.exists(path):
+            raise ImssrError(f"replay buffer file not found: {path}")
+        try:
+            with np.load(path) as data:
+                capacity, head, size, open_ = (int(x) for x in data["meta"])
+                if capacity != self.capacity or tuple(data["frame_shape"]) != self.frame_shape:
+                    raise ImssrError(
+                        f"replay buffer {path} has capacity {capacity} and frames "
+                        f"{tuple(data['frame_shape'])}, expected {self.capacity} and {self.frame_shape}")
+                n = data["frames"].shape[0]
+                self.frames[:n] = data["frames"]
+                self.actions[:n] = data["actions"]
+                self.rewards[:n] = data["rewards"]
+                self.discounts[:n] = data["discounts"]
+                self.step_in_episode[:n] = data["step_in_episode"]
+        except ImssrError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - zip/npz corruption has many faces
+            raise ImssrError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
+        self.head, self.size, self._open_episode = head, size, bool(open_)
+        if rng_state is not None:
+            self.rng.bit_generator.state = rng_state
+
+    def __len__(self) -> int:
+        return self.size

@@ -1,0 +1,111 @@
+"""CSV logs (always) and TensorBoard (optional), both resumable.
+
+Every row carries ``frame`` (environment frames) and ``step`` (agent steps).
+On resume, rows newer than the checkpoint are dropped so that a killed run
+continued from its checkpoint leaves the same files as an uninterrupted one.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+from typing import Iterable, Optional
+
+from imssr.utils import atomic_write_text
+
+TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
+                 "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
+                 "aux_loss", "ssl_next_loss", "r_int_mean", "r_int_std", "beta", "updates", "wall_time"]
+EVAL_COLUMNS = ["frame", "step", "mode", "return_mean", "return_std", "episodes",
+                "return_min", "return_max", "wall_time"]
+EVAL_EPISODE_COLUMNS = ["frame", "step", "mode", "episode", "return"]
+
+
+class CSVLog:
+    """Append-only CSV file with a fixed header; values are written as given."""
+
+    def __init__(self, path: str, columns: list[str]):
+        self.path, self.columns = path, columns
+        if not os.path.exists(path):
+            atomic_write_text(path, ",".join(columns) + "\n")
+
+    def write(self, row: dict) -> None:
+        with open(self.path, "a", newline="") as fh:
+            csv.DictWriter(fh, self.columns, extrasaction="ignore").writerow(
+                {k: _fmt(row.get(k)) for k in self.columns})
+            fh.flush()
+
+    def truncate_after(self, frame: int) -> None:
+        """Keep only rows with ``frame <= frame`` (used on resume)."""
+        rows = read_csv(self.path)
+        kept = [r for r in rows if int(float(r["frame"])) <= frame]
+        lines = [",".join(self.columns)]
+        for r in kept:
+            lines.append(",".join(_quote(r.get(c, "")) for c in self.columns))
+        atomic_write_text(self.path, "\n".join(lines) + "\n")
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        if math.isnan(v):
+            return ""
+        return f"{v:.3f}" if abs(v) >= 1e5 else f"{v:.6g}"
+    return str(v)
+
+
+def _quote(v: str) -> str:
+    return f'"{v}"' if ("," in v or '"' in v) else v
+
+
+def read_csv(path: str) -> list[dict]:
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+class Logger:
+    """``train.csv``, ``eval.csv``, ``eval_episodes.csv`` and TensorBoard under ``out_dir``."""
+
+    def __init__(self, out_dir: str, tensorboard: bool = True, resume_frame: Optional[int] = None):
+        self.train = CSVLog(os.path.join(out_dir, "train.csv"), TRAIN_COLUMNS)
+        self.eval = CSVLog(os.path.join(out_dir, "eval.csv"), EVAL_COLUMNS)
+        self.eval_episodes = CSVLog(os.path.join(out_dir, "eval_episodes.csv"), EVAL_EPISODE_COLUMNS)
+        if resume_frame is not None:
+            for log in (self.train, self.eval, self.eval_episodes):
+                log.truncate_after(resume_frame)
+        self.tb = None
+        if tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+            except ImportError:  # tensorboard is a dependency, but keep CSV logs working
+                SummaryWriter = None
+            if SummaryWriter is not None:
+                # purge_step drops events newer than the checkpoint on resume.
+                self.tb = SummaryWriter(os.path.join(out_dir, "tb"), purge_step=resume_frame)
+
+    def log_train(self, row: dict) -> None:
+        self.train.write(row)
+        self._tb("train", row, skip=("frame", "step", "episode"))
+
+    def log_eval(self, row: dict, returns: Iterable[float]) -> None:
+        self.eval.write(row)
+        for i, ret in enumerate(returns):
+            self.eval_episodes.write({"frame": row["frame"], "step": row["step"], "mode": row["mode"],
+                                      "episode": i, "return": ret})
+        self._tb(f"eval/{row['mode']}", row, skip=("frame", "step", "mode", "episodes"))
+
+    def _tb(self, prefix: str, row: dict, skip: tuple) -> None:
+        if self.tb is None:
+            return
+        for k, v in row.items():
+            if k in skip or v is None or isinstance(v, str):
+                continue
+            self.tb.add_scalar(f"{prefix}/{k}", float(v), global_step=int(row["frame"]))
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.flush()
+            self.tb.close()

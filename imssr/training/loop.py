@@ -1,0 +1,257 @@
+"""The training loop: seed phase, updates, evaluation, logging, checkpoints.
+
+Counters: ``frame`` counts environment (simulator) frames, ``step`` counts
+agent steps (``frame = step * action_repeat``).  Budgets in the config say which.
+Checkpoints are taken at episode ends, where the next thing the loop does is a
+reset from the saved task RNG, so ``--resume`` reproduces the uninterrupted run.
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections import defaultdict
+from typing import Optional
+
+import numpy as np
+import torch
+
+from imssr.agents import SACAgent
+from imssr.config import RunConfig
+from imssr.envs import make_env
+from imssr.errors import ImssrError
+from imssr.presets import get_algo
+from imssr.replay import FrameReplayBuffer
+from imssr.training.checkpoint import checkpoint_dir, latest_path, load_checkpoint, save_checkpoint
+from imssr.training.evaluate import evaluate
+from imssr.training.logger import Logger
+from imssr.utils import atomic_write_text, rng_states, seed_everything, set_rng_states
+
+# Settings that may change between a run and its resume.
+RESUMABLE_CHANGES = {"train.frames", "train.device", "train.progress", "train.tensorboard",
+                     "train.torch_threads", "train.eval_episodes", "train.eval_every_frames",
+                     "train.checkpoint_every_frames"}
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ImssrError(f"unknown device {name!r}; use cpu, cuda, cuda:N or auto") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ImssrError(f"device {name!r} requested but CUDA is not available; use --device cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise ImssrError(f"unsupported device {name!r}; use cpu, cuda, cuda:N or auto")
+    return device
+
+
+def build_agent(cfg: RunConfig, obs_shape, action_dim: int, device) -> SACAgent:
+    algo = get_algo(cfg.algo)
+    return SACAgent(obs_shape, action_dim, cfg.agent, aux_cfg=cfg.aux if algo.aux else None,
+                    intrinsic_cfg=cfg.intrinsic, device=device, seed=cfg.train.seed)
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        out.update(_flatten(v, key + ".") if isinstance(v, dict) else {key: v})
+    return out
+
+
+class Trainer:
+    """Trains one run into ``out_dir``.
+
+    Args:
+        cfg: the run's configuration.
+        out_dir: run directory (config.json, CSV logs, checkpoints, tb/).
+        resume: continue from ``out_dir/checkpoints/latest.pt``.
+    """
+
+    def __init__(self, cfg: RunConfig, out_dir: str, resume: bool = False):
+        cfg.validate()
+        get_algo(cfg.algo)
+        self.cfg, self.out_dir = cfg, out_dir
+        self.device = resolve_device(cfg.train.device)
+        ckpt = None
+        if resume:
+            ckpt = self._check_resume()
+        elif os.path.exists(latest_path(out_dir)):
+            raise ImssrError(f"{out_dir} already holds a run; pass --resume to continue it "
+                             "or choose another --out")
+        if cfg.train.torch_threads:
+            torch.set_num_threads(cfg.train.torch_threads)
+        seed_everything(cfg.train.seed)
+        e = cfg.env
+        env_kwargs = dict(mode=e.mode, action_repeat=e.action_repeat, image_size=e.image_size,
+                          frame_stack=e.frame_stack)
+        self.env = make_env(e.task, seed=cfg.train.seed, **env_kwargs)
+        self.eval_env = make_env(e.task, seed=cfg.train.seed + 10_000, **env_kwargs)
+        self.action_dim = self.env.action_space.shape[0]
+        self.agent = build_agent(cfg, self.env.observation_space.shape, self.action_dim, self.device)
+        self.replay = FrameReplayBuffer(cfg.train.replay_capacity, (3, e.image_size, e.image_size),
+                                        self.action_dim, e.frame_stack, seed=cfg.train.seed)
+        self.action_rng = np.random.default_rng(cfg.train.seed)
+        self.frame = self.step = self.episode = 0
+        self.next_eval_frame = cfg.train.eval_every_frames or None
+        self.next_ckpt_frame = cfg.train.checkpoint_every_frames or None
+        self.last_eval_frame = -1
+        os.makedirs(out_dir, exist_ok=True)
+        if ckpt is not None:
+            self._restore(ckpt)
+        atomic_write_text(os.path.join(out_dir, "config.json"), cfg.to_json() + "\n")
+        self.logger = Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if ckpt else None)
+
+    # -- resume ------------------------------------------------------------------
+    def _check_resume(self) -> dict:
+        path = latest_path(self.out_dir)
+        if not os.path.exists(path):
+            raise ImssrError(f"nothing to resume: {path} does not exist")
+        ckpt = load_checkpoint(path)
+        saved = _flatten(ckpt["config"])
+        now = _flatten(self.cfg.to_dict())
+        diff = sorted(k for k in saved.keys() | now.keys()
+                      if saved.get(k) != now.get(k) and k not in RESUMABLE_CHANGES)
+        if diff:
+            raise ImssrError(f"checkpoint {path} was made with a different config ({', '.join(diff[:5])}"
+                             f"{', ...' if len(diff) > 5 else ''}); resume with the run's own settings")
+        return ckpt
+
+    def _restore(self, ckpt: dict) -> None:
+        try:
+            self.agent.load_state_dict(ckpt["agent"])
+        except (RuntimeError, KeyError, ValueError) as exc:
+            raise ImssrError(f"checkpoint does not match this agent: {str(exc).splitlines()[0]}") from None
+        self.frame, self.step, self.episode = ckpt["frame"], ckpt["step"], ckpt["episode"]
+        self.next_eval_frame = ckpt["next_eval_frame"]
+        self.next_ckpt_frame = ckpt["next_ckpt_frame"]
+        self.last_eval_frame = ckpt["last_eval_frame"]
+        if self.cfg.train.eval_every_frames and self.next_eval_frame is None:
+            self.next_eval_frame = self.frame + self.cfg.train.eval_every_frames
+        self.env.set_rng_state(ckpt["env_rng"])
+        self.eval_env.set_rng_state(ckpt["eval_env_rng"])
+        self.action_rng.bit_generator.state = ckpt["action_rng"]
+        set_rng_states(ckpt["global_rng"])
+        if ckpt.get("replay_file"):
+            path = os.path.join(checkpoint_dir(self.out_dir), ckpt["replay_file"])
+            self.replay.load(path, ckpt["replay_state"]["rng"])
+            if self.replay.state_dict()["head"] != ckpt["replay_state"]["head"]:
+                raise ImssrError(f"replay buffer {path} does not match the checkpoint")
+        else:
+            print("warning: checkpoint holds no replay buffer; resuming with an empty one")
+
+    def save(self) -> None:
+        replay_file = None
+        if self.cfg.train.save_buffer:
+            replay_file = f"replay-{self.step:09d}.npz"
+            self.replay.save(os.path.join(checkpoint_dir(self.out_dir), replay_file))
+        state = {
+            "config": self.cfg.to_dict(), "frame": self.frame, "step": self.step,
+            "episode": self.episode, "agent": self.agent.state_dict(),
+            "next_eval_frame": self.next_eval_frame, "next_ckpt_frame": self.next_ckpt_frame,
+            "last_eval_frame": self.last_eval_frame,
+            "env_rng": self.env.get_rng_state(), "eval_env_rng": self.eval_env.get_rng_state(),
+            "action_rng": self.action_rng.bit_generator.state, "global_rng": rng_states(),
+            "replay_file": replay_file, "replay_state": self.replay.state_dict(),
+        }
+        save_checkpoint(self.out_dir, state, keep=self.cfg.train.keep_checkpoints)
+
+    # -- the loop ----------------------------------------------------------------
+    def run_eval(self) -> dict:
+        returns = evaluate(self.agent, self.eval_env, self.cfg.train.eval_episodes)
+        row = {"frame": self.frame, "step": self.step, "mode": self.cfg.env.mode,
+               "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
+               "episodes": len(returns), "return_min": float(np.min(returns)),
+               "return_max": float(np.max(returns)), "wall_time": time.time()}
+        self.logger.log_eval(row, returns)
+        self.last_eval_frame = self.frame
+        return row
+
+    def train(self, stop_at_frame: Optional[int] = None) -> None:
+        """Train to ``cfg.train.frames``.  ``stop_at_frame`` stops early after the
+        first checkpoint at or past it, as a killed process would (for tests)."""
+        cfg, t = self.cfg, self.cfg.train
+        total_steps = cfg.total_steps
+        try:
+            from tqdm import tqdm
+            bar = tqdm(total=t.frames, initial=min(self.frame, t.frames), unit="frame",
+                       disable=None if t.progress else True, dynamic_ncols=True,
+                       desc=f"{cfg.algo} {cfg.env.task} s{t.seed}")
+        except ImportError:  # pragma: no cover - tqdm is a dependency
+            bar = None
+        need_reset, obs = True, None
+        ep_return, ep_frames, ep_start = 0.0, 0, time.time()
+        sums: dict[str, float] = defaultdict(float)
+        counts: dict[str, int] = defaultdict(int)
+        try:
+            while self.step < total_steps:
+                if need_reset:
+                    obs, info = self.env.reset()
+                    self.replay.add_first(info["frame"])
+                    need_reset, ep_return, ep_frames, ep_start = False, 0.0, 0, time.time()
+                    sums.clear(); counts.clear()
+                if self.step < t.seed_steps:
+                    action = self.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+                else:
+                    action = self.agent.act(obs, deterministic=False)
+                if self.step >= t.seed_steps:
+                    n_updates = 1 + (t.burst_updates if self.step == t.seed_steps else 0)
+                    for _ in range(n_updates):
+                        for k, v in self.agent.update(self.replay, self.step).items():
+                            sums[k] += float(v); counts[k] += 1
+                obs, reward, terminated, truncated, info = self.env.step(action)
+                self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"])
+                self.step += 1
+                self.frame += info["sim_steps"]
+                ep_return += reward
+                ep_frames += info["sim_steps"]
+                if bar is not None:
+                    bar.update(info["sim_steps"])
+                if self.next_eval_frame is not None and self.frame >= self.next_eval_frame:
+                    row = self.run_eval()
+                    self.next_eval_frame += t.eval_every_frames
+                    _say(bar, f"eval frame {self.frame} step {self.step}: return "
+                              f"{row['return_mean']:.1f} ± {row['return_std']:.1f}")
+                if terminated or truncated:
+                    dt = max(time.time() - ep_start, 1e-9)
+                    row = {"frame": self.frame, "step": self.step, "episode": self.episode,
+                           "episode_return": ep_return, "episode_frames": ep_frames,
+                           "fps": ep_frames / dt, "updates": counts.get("critic_loss", 0),
+                           "wall_time": time.time()}
+                    row.update({k: sums[k] / counts[k] for k in sums})
+                    self.logger.log_train(row)
+                    if bar is not None:
+                        bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}")
+                    self.episode += 1
+                    need_reset = True
+                    last = self.step >= total_steps
+                    if last and self.last_eval_frame != self.frame:
+                        row = self.run_eval()
+                        _say(bar, f"final eval frame {self.frame}: return {row['return_mean']:.1f}")
+                    if last or (self.next_ckpt_frame is not None and self.frame >= self.next_ckpt_frame):
+                        while self.next_ckpt_frame is not None and self.next_ckpt_frame <= self.frame:
+                            self.next_ckpt_frame += t.checkpoint_every_frames
+                        self.save()
+                        if stop_at_frame is not None and self.frame >= stop_at_frame and not last:
+                            return
+            if not need_reset:
+                # Budget ended mid-episode: evaluate and checkpoint what we have.
+                if self.last_eval_frame != self.frame:
+                    self.run_eval()
+                self.save()
+        finally:
+            if bar is not None:
+                bar.close()
+            self.logger.close()
+
+    def close(self) -> None:
+        self.env.close()
+        self.eval_env.close()
+
+
+def _say(bar, text: str) -> None:
+    if bar is not None and not bar.disable:
+        bar.write(text)
+    else:
+        print(text, flush=True)
