@@ -79,15 +79,15 @@ def make_config(algo: str, task: str) -> RunConfig:
 def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse") -> RunConfig:
     """A short run that shows the whole pipeline in ~15 minutes on 2 CPU cores.
 
-    Paper architecture and optimiser; smaller batch, shorter seed phase and a
-    budget of 12 episodes.  It is a smoke run, not a result.
+    Paper architecture and optimiser; batch 64, a 250-step seed phase and a
+    budget of 10 episodes (10k frames).  It is a smoke run, not a result.
     """
     cfg = make_config(algo, task)
     cfg.agent.batch_size = 64
     cfg.aux.batch_size = 64
-    cfg.train.frames = 12_000
+    cfg.train.frames = 10_000
     cfg.train.seed_steps = 250
-    cfg.train.eval_every_frames = 4000
+    cfg.train.eval_every_frames = 2000
     cfg.train.eval_episodes = 3
-    cfg.train.checkpoint_every_frames = 4000
+    cfg.train.checkpoint_every_frames = 5000
     return cfg

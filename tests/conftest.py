@@ -1,0 +1,50 @@
+"""Shared fixtures: tiny configurations that exercise the real code paths quickly."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import imssr  # noqa: F401 - configures MUJOCO_GL before dm_control loads
+from imssr.presets import make_config
+from imssr.replay import FrameReplayBuffer
+
+torch.set_num_threads(2)
+
+
+def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **train):
+    """The paper's preset shrunk: small MLPs and batches, short budgets."""
+    cfg = make_config(algo, task)
+    cfg.agent.hidden_dim = 32
+    cfg.agent.feature_dim = 16
+    cfg.agent.batch_size = 8
+    cfg.aux.batch_size = 8
+    cfg.train.replay_capacity = 5000
+    cfg.train.seed_steps = 60
+    cfg.train.frames = 2000
+    cfg.train.eval_every_frames = 1000
+    cfg.train.eval_episodes = 1
+    cfg.train.checkpoint_every_frames = 1000
+    cfg.train.tensorboard = False
+    cfg.train.progress = False
+    for k, v in train.items():
+        setattr(cfg.train, k, v)
+    return cfg
+
+
+def filled_buffer(n_steps: int = 200, action_dim: int = 1, seed: int = 0, episode_len: int = 50,
+                  capacity: int = 1000, size: int = 100) -> FrameReplayBuffer:
+    """A buffer of random frames in episodes of ``episode_len`` transitions."""
+    rng = np.random.default_rng(seed)
+    buf = FrameReplayBuffer(capacity, (3, size, size), action_dim, seed=seed)
+    for t in range(n_steps):
+        if t % episode_len == 0:
+            buf.add_first(rng.integers(0, 256, (3, size, size), dtype=np.uint8))
+        buf.add(rng.uniform(-1, 1, action_dim), float(rng.normal()), 1.0,
+                rng.integers(0, 256, (3, size, size), dtype=np.uint8))
+    return buf
+
+
+@pytest.fixture
+def tiny_cfg():
+    return tiny_config

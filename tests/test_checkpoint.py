@@ -1,0 +1,101 @@
+"""Checkpoints: round trip, exact resume after a kill, corrupt and mismatched files."""
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import tiny_config
+from imssr.errors import ImssrError
+from imssr.training import Trainer
+from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.training.logger import read_csv
+
+
+def _cfg():
+    # 3 episodes of cartpole (125 agent steps each), checkpoints after each.
+    return tiny_config("im-curl", frames=3000, seed_steps=60, eval_every_frames=1000,
+                       checkpoint_every_frames=1000)
+
+
+def _train(out, stop_at_frame=None, resume=False):
+    t = Trainer(_cfg(), str(out), resume=resume)
+    try:
+        t.train(stop_at_frame=stop_at_frame)
+        return t
+    finally:
+        t.close()
+
+
+def _strip(rows, drop=("wall_time", "fps")):
+    return [{k: v for k, v in r.items() if k not in drop} for r in rows]
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    return out, _train(out)
+
+
+def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
+    full_dir, full = full_run
+    # "Kill" after the checkpoint at frame 1000, then resume in a new Trainer.
+    part = _train(tmp_path, stop_at_frame=1000)
+    assert part.frame == 1000
+    resumed = _train(tmp_path, resume=True)
+    assert resumed.frame == full.frame == 3000 and resumed.step == full.step
+    a, b = full.agent.state_dict(), resumed.agent.state_dict()
+    for k, v in a["nets"].items():
+        assert torch.equal(v, b["nets"][k]), k
+    assert torch.equal(a["aux"]["module"]["W"], b["aux"]["module"]["W"])
+    for name in ("train.csv", "eval.csv", "eval_episodes.csv"):
+        assert _strip(read_csv(full_dir / name)) == _strip(read_csv(tmp_path / name)), name
+
+
+def test_checkpoint_contents_and_round_trip(full_run):
+    full_dir, full = full_run
+    state = load_checkpoint(latest_path(str(full_dir)))
+    assert state["frame"] == 3000 and state["step"] == 375 and state["episode"] == 3
+    assert os.path.exists(full_dir / "checkpoints" / state["replay_file"])
+    cfg = _cfg()
+    cfg.train.frames = 3000
+    t = Trainer(cfg, str(full_dir), resume=True)  # loads everything, nothing left to do
+    try:
+        obs, _ = t.eval_env.reset()
+        assert np.array_equal(t.agent.act(obs, True), full.agent.act(obs, True))
+        assert t.replay.size == full.replay.size
+        assert np.array_equal(t.replay.frames[: t.replay.size], full.replay.frames[: full.replay.size])
+    finally:
+        t.close()
+
+
+def test_fresh_run_refuses_to_overwrite(full_run):
+    full_dir, _ = full_run
+    with pytest.raises(ImssrError, match="already holds a run"):
+        Trainer(_cfg(), str(full_dir))
+
+
+def test_corrupt_checkpoint_gives_clear_error(tmp_path):
+    path = tmp_path / "checkpoints" / "latest.pt"
+    path.parent.mkdir()
+    path.write_bytes(b"\x00garbage")
+    with pytest.raises(ImssrError, match="corrupt checkpoint"):
+        load_checkpoint(str(path))
+    with pytest.raises(ImssrError, match="corrupt checkpoint"):
+        Trainer(_cfg(), str(tmp_path), resume=True)
+    torch.save({"something": 1}, str(path))
+    with pytest.raises(ImssrError, match="not an imssr checkpoint"):
+        load_checkpoint(str(path))
+
+
+def test_mismatched_checkpoint_gives_clear_error(full_run):
+    full_dir, _ = full_run
+    cfg = _cfg()
+    cfg.agent.hidden_dim = 64
+    with pytest.raises(ImssrError, match="different config .*agent.hidden_dim"):
+        Trainer(cfg, str(full_dir), resume=True)
+
+
+def test_nothing_to_resume(tmp_path):
+    with pytest.raises(ImssrError, match="nothing to resume"):
+        Trainer(_cfg(), str(tmp_path), resume=True)

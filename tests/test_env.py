@@ -1,0 +1,115 @@
+"""Environment wrapper: shapes, determinism, action repeat, sparse walker, errors."""
+import numpy as np
+import pytest
+from dm_control import suite
+
+import imssr
+from imssr.envs import PAPER_TASKS, get_task
+
+
+def test_observation_shape_dtype_and_stack_on_reset():
+    env = imssr.make_env("cartpole_swingup_sparse", seed=0)
+    obs, info = env.reset()
+    assert obs.shape == (9, 100, 100) and obs.dtype == np.uint8
+    assert env.observation_space.contains(obs)
+    # On reset the stack repeats the first frame.
+    assert np.array_equal(obs[0:3], obs[3:6]) and np.array_equal(obs[3:6], obs[6:9])
+    assert np.array_equal(info["frame"], obs[6:9])
+    obs2, *_ = env.step(np.ones(1, dtype=np.float32))
+    assert np.array_equal(obs2[0:6], obs[3:9])  # stack shifts by one frame
+    assert not np.array_equal(obs2[6:9], obs[6:9])
+    env.close()
+
+
+def test_paper_action_repeats_and_episode_length():
+    assert {t: get_task(t).action_repeat for t in PAPER_TASKS} == {
+        "cartpole_swingup_sparse": 8, "finger_spin": 2, "pendulum_swingup": 8,
+        "reacher_easy": 4, "walker_walk": 4, "walker_walk_sparse": 4}
+    env = imssr.make_env("pendulum_swingup", seed=0)
+    assert env.max_episode_steps == 125 and env.episode_sim_steps == 1000
+    env.close()
+
+
+def test_same_seed_same_actions_same_observations_and_rewards():
+    def rollout(seed):
+        env = imssr.make_env("walker_walk", seed=seed)
+        obs, _ = env.reset()
+        rng = np.random.default_rng(123)
+        out = [obs]
+        rewards = []
+        for _ in range(5):
+            obs, r, *_ = env.step(rng.uniform(-1, 1, 6).astype(np.float32))
+            out.append(obs)
+            rewards.append(r)
+        env.close()
+        return np.stack(out), rewards
+
+    a, ra = rollout(3)
+    b, rb = rollout(3)
+    c, _ = rollout(4)
+    assert np.array_equal(a, b) and ra == rb
+    assert not np.array_equal(a, c)
+
+
+def test_action_repeat_sums_rewards_of_each_substep():
+    env = imssr.make_env("walker_walk", seed=7)
+    raw = suite.load("walker", "walk", task_kwargs={"random": 7})
+    env.reset()
+    raw.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        action = rng.uniform(-1, 1, 6)
+        _, reward, *_ = env.step(action)
+        expected = sum(raw.step(action).reward for _ in range(4))
+        assert reward == pytest.approx(expected, abs=1e-9)
+    env.close()
+
+
+def test_walker_walk_sparse_is_thresholded_dense_reward_per_substep():
+    sparse = imssr.make_env("walker_walk_sparse", seed=5)
+    dense = suite.load("walker", "walk", task_kwargs={"random": 5})
+    sparse.reset()
+    dense.reset()
+    rng = np.random.default_rng(1)
+    for _ in range(30):
+        action = rng.uniform(-1, 1, 6)
+        _, reward, *_ = sparse.step(action)
+        subs = [dense.step(action).reward for _ in range(4)]
+        assert reward == sum(1.0 if r > 0.5 else 0.0 for r in subs)
+    sparse.close()
+    # The threshold itself, at and around 0.5 (a random walker rarely scores > 0.5).
+    fn = get_task("walker_walk_sparse").reward_fn
+    assert [fn(x) for x in (0.0, 0.5, 0.5000001, 0.9, 1.0)] == [0.0, 0.0, 1.0, 1.0, 1.0]
+
+
+def test_any_suite_task_and_unknown_task_error():
+    env = imssr.make_env("ball_in_cup_catch", seed=0)
+    assert env.action_repeat == 4
+    env.close()
+    with pytest.raises(imssr.ImssrError, match="unknown task 'cartpole_swingup_sparce'"):
+        imssr.make_env("cartpole_swingup_sparce")
+    with pytest.raises(imssr.ImssrError, match="unknown mode"):
+        imssr.make_env("finger_spin", mode="video_hard_typo")
+
+
+def test_time_limit_truncates_not_terminates():
+    env = imssr.make_env("cartpole_swingup_sparse", seed=0, action_repeat=8)
+    env.reset()
+    steps, frames = 0, 0
+    while True:
+        _, _, terminated, truncated, info = env.step(np.zeros(1, dtype=np.float32))
+        steps += 1
+        frames += info["sim_steps"]
+        assert not terminated
+        if truncated:
+            break
+    assert steps == 125 and frames == 1000
+    env.close()
+
+
+def test_gl_backend_variables_agree():
+    import os
+
+    assert os.environ["MUJOCO_GL"] == imssr.GL_BACKEND
+    if imssr.GL_BACKEND != "glfw":
+        assert os.environ["PYOPENGL_PLATFORM"] == imssr.GL_BACKEND
