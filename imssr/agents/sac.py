@@ -191,6 +191,9 @@ class SACAgent:
         return state
 
     def load_state_dict(self, state: dict) -> None:
+        # Optimisers adopt loaded state tensors without copying them; copy so that
+        # an in-memory state (e.g. another live agent's) is never shared.
+        state = copy.deepcopy(state)
         self.nets.load_state_dict(state["nets"])
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.actor_opt.load_state_dict(state["actor_opt"])

@@ -1,0 +1,96 @@
+"""The command line: tiny end-to-end runs per algorithm, evaluate, kill + resume, errors."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from imssr.presets import ALGOS
+from imssr.training.logger import read_csv
+
+TINY = ["--frames", "2000", "--seed-steps", "60", "--batch-size", "8", "--eval-every", "1000",
+        "--eval-episodes", "1", "--replay-capacity", "3000", "--no-progress",
+        "--set", "agent.hidden_dim=32", "--set", "agent.feature_dim=16"]
+
+
+def imssr(*args, check=True, **kw):
+    proc = subprocess.run([sys.executable, "-m", "imssr", *args], capture_output=True, text=True, **kw)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"imssr {' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+def test_train_end_to_end_then_evaluate(algo, tmp_path):
+    out = tmp_path / algo
+    imssr("train", "--algo", algo, "--task", "cartpole_swingup_sparse", "--seed", "1", "--out", str(out), *TINY)
+    for name in ("config.json", "train.csv", "eval.csv", "learning_curve.png", "checkpoints/latest.pt"):
+        assert (out / name).exists(), name
+    rows = read_csv(out / "eval.csv")
+    assert [(r["frame"], r["step"], r["mode"]) for r in rows] == [("1000", "125", "training"),
+                                                                    ("2000", "250", "training")]
+    assert {"frame", "step", "mode", "return_mean", "return_std", "episodes"} <= set(rows[0])
+    train = read_csv(out / "train.csv")
+    assert len(train) == 2 and float(train[1]["critic_loss"]) > 0
+    if algo.startswith("im-"):
+        assert float(train[1]["beta"]) > 0 and float(train[1]["r_int_std"]) > 0
+    proc = imssr("evaluate", "--run", str(out), "--episodes", "1")
+    assert "return" in proc.stdout
+    assert len(read_csv(out / "evaluate.csv")) == 1
+
+
+def test_killed_run_resumes_to_completion(tmp_path):
+    out = tmp_path / "killed"
+    args = ["train", "--algo", "im-curl", "--task", "cartpole_swingup_sparse", "--out", str(out),
+            *TINY, "--frames", "3000", "--checkpoint-every", "1000"]
+    proc = subprocess.Popen([sys.executable, "-m", "imssr", *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    latest = out / "checkpoints" / "latest.pt"
+    deadline = time.time() + 240
+    while not latest.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert latest.exists()
+    imssr("train", "--out", str(out), "--resume", "--no-progress")
+    rows = read_csv(out / "eval.csv")
+    frames = [int(r["frame"]) for r in rows]
+    assert frames == sorted(set(frames)) and frames[-1] == 3000
+    assert [int(r["frame"]) for r in read_csv(out / "train.csv")] == [1000, 2000, 3000]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "--algo", "im-curl", "--task", "cartpole_swingup_sparce"], "unknown task 'cartpole_swingup_sparce'"),
+    (["train", "--algo", "drq", "--task", "walker_walk"], "invalid choice: 'drq'"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--frames", "-5"], "expected a positive integer"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--beta0", "0.1"], "--beta0 applies to im-"),
+    (["train", "--algo", "curl"], "needs --algo and --task"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--set", "agent.bogus=1"], "unknown setting"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--device", "cuda:0"], "CUDA is not available"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--config", "/no/such.json"], "config file not found"),
+    (["train", "--out", "/no/such/run", "--resume"], "nothing to resume"),
+    (["evaluate", "--run", "/no/such/run"], "run directory not found"),
+])
+def test_errors_are_one_line(args, message, tmp_path):
+    if "--device" in args:
+        import torch
+
+        if torch.cuda.is_available():
+            pytest.skip("CUDA present")
+    proc = imssr(*args, "--out", str(tmp_path / "x"), check=False) if args[0] == "train" and "--out" not in args \
+        else imssr(*args, check=False)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
+    assert message in lines[-1], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_tasks_and_algos_listings():
+    tasks = imssr("tasks").stdout
+    for name in ("cartpole_swingup_sparse", "walker_walk_sparse", "finger_spin", "ball_in_cup_catch"):
+        assert name in tasks
+    algos = imssr("algos").stdout
+    assert "curl" in algos and "im-curl" in algos
+    assert '"beta0": 0.05' in imssr("config", "--algo", "im-curl", "--task", "pendulum_swingup").stdout
