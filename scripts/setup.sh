@@ -6,11 +6,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 need_pkgs=()
-have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
-have_lib 'libEGL.so.1' || need_pkgs+=(libegl1)
-have_lib 'libOpenGL.so.0' || need_pkgs+=(libopengl0)
-ls /usr/lib/*/dri/swrast_dri.so /usr/lib/*/dri/libgallium*.so >/dev/null 2>&1 || need_pkgs+=(libgl1-mesa-dri)
-if [ "${MUJOCO_GL:-egl}" = "osmesa" ]; then have_lib 'libOSMesa.so' || need_pkgs+=(libosmesa6); fi
+installed() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
+if command -v dpkg-query >/dev/null; then
+  pkgs=(libegl1 libopengl0 libgl1-mesa-dri)
+  [ "${MUJOCO_GL:-egl}" = "osmesa" ] && pkgs+=(libosmesa6)
+  for p in "${pkgs[@]}"; do installed "$p" || need_pkgs+=("$p"); done
+fi
 if [ ${#need_pkgs[@]} -gt 0 ]; then
   echo "setup: installing Debian packages: ${need_pkgs[*]}"
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
@@ -26,7 +27,10 @@ fi
 if ! .venv/bin/python -c "import imssr, pytest" >/dev/null 2>&1 \
    || [ pyproject.toml -nt .venv/.imssr-installed ]; then
   echo "setup: installing imssr and its test extras into .venv"
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+  # (grep drops pip's notes about local wheel folders that this machine lacks)
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]" 2>&1 \
+    | { grep -v "is ignored: it is neither a file nor a directory" || true; }
+  [ "${PIPESTATUS[0]}" -eq 0 ] || { echo "setup: pip install failed" >&2; exit 1; }
   touch .venv/.imssr-installed
 fi
 echo "setup: ready (.venv/bin/imssr)"

@@ -113,3 +113,21 @@ def test_gl_backend_variables_agree():
     assert os.environ["MUJOCO_GL"] == imssr.GL_BACKEND
     if imssr.GL_BACKEND != "glfw":
         assert os.environ["PYOPENGL_PLATFORM"] == imssr.GL_BACKEND
+
+
+def test_missing_gl_library_names_the_debian_package(monkeypatch):
+    import ctypes.util
+
+    from imssr._gl import check_gl
+
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)
+    with pytest.raises(imssr.ImssrError, match=r"apt-get install libegl1") as err:
+        check_gl()
+    assert "\n" not in str(err.value)
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    with pytest.raises(imssr.ImssrError, match="libosmesa6"):
+        check_gl()
+    monkeypatch.setenv("MUJOCO_GL", "vulkan")
+    with pytest.raises(imssr.ImssrError, match="not supported"):
+        check_gl()

@@ -1,0 +1,60 @@
+"""Cost of one agent update: IM-CURL against CURL (beta = 0 path absent), same process.
+
+    python bench/update_cost.py [--batch 128] [--steps 30] [--threads 2]
+
+Prints the median seconds per update of each variant, interleaved in rounds so
+machine noise hits both alike, and the ratio IM / base.  Timings never go in tests.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+import imssr  # noqa: F401
+from imssr.agents import SACAgent
+from imssr.presets import make_config
+from imssr.replay import FrameReplayBuffer
+
+
+def filled(n=600, seed=0):
+    rng = np.random.default_rng(seed)
+    buf = FrameReplayBuffer(n + 10, (3, 100, 100), 1, seed=seed)
+    buf.add_first(rng.integers(0, 256, (3, 100, 100), dtype=np.uint8))
+    for _ in range(n):
+        buf.add(rng.uniform(-1, 1, 1), 0.0, 1.0, rng.integers(0, 256, (3, 100, 100), dtype=np.uint8))
+    return buf
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--batch", type=int, default=128)
+    p.add_argument("--steps", type=int, default=30)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--view", default="independent", choices=["independent", "shared"])
+    a = p.parse_args()
+    torch.set_num_threads(a.threads)
+    agents = {}
+    for algo in ("curl", "im-curl"):
+        cfg = make_config(algo, "cartpole_swingup_sparse")
+        cfg.agent.batch_size = cfg.aux.batch_size = a.batch
+        cfg.intrinsic.view = a.view
+        agents[algo] = (SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic), filled())
+    times = {k: [] for k in agents}
+    for step in range(a.steps + 3):
+        for name, (agent, buf) in agents.items():
+            t0 = time.perf_counter()
+            agent.update(buf, step)
+            if step >= 3:  # warm-up
+                times[name].append(time.perf_counter() - t0)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    for k, v in med.items():
+        print(f"{k:8s} median {v:.3f} s/update (batch {a.batch}, {a.threads} threads)")
+    print(f"ratio im-curl / curl = {med['im-curl'] / med['curl']:.3f} (intrinsic view: {a.view})")
+
+
+if __name__ == "__main__":
+    main()
