@@ -99,3 +99,15 @@ def test_mismatched_checkpoint_gives_clear_error(full_run):
 def test_nothing_to_resume(tmp_path):
     with pytest.raises(ImssrError, match="nothing to resume"):
         Trainer(_cfg(), str(tmp_path), resume=True)
+
+
+def test_resume_drops_a_partially_written_log_line(tmp_path):
+    from imssr.training.logger import CSVLog, TRAIN_COLUMNS
+
+    log = CSVLog(str(tmp_path / "train.csv"), TRAIN_COLUMNS)
+    log.write({"frame": 1000, "step": 125, "episode": 0})
+    log.write({"frame": 2000, "step": 250, "episode": 1})
+    with open(tmp_path / "train.csv", "a") as fh:
+        fh.write("3000,37")  # killed mid-line
+    log.truncate_after(1000)
+    assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]

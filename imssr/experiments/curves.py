@@ -19,6 +19,7 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
         raise ImssrError(f"no evaluations in {os.path.join(run_dir, 'eval.csv')}")
     out_path = out_path or os.path.join(run_dir, "learning_curve.png")
     title = os.path.basename(os.path.abspath(run_dir))
+    action_repeat = None
     cfg_path = os.path.join(run_dir, "config.json")
     if os.path.exists(cfg_path):
         import json
@@ -26,6 +27,7 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
         with open(cfg_path) as fh:
             cfg = json.load(fh)
         title = f"{cfg['algo']} on {cfg['env']['task']} (seed {cfg['train']['seed']})"
+        action_repeat = cfg["env"]["action_repeat"]
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     for mode in sorted({r["mode"] for r in rows}):
         pts = sorted((int(r["frame"]), float(r["return_mean"]), float(r["return_std"]))
@@ -36,6 +38,10 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
         ax.plot(x, m, marker="o", label=mode)
         ax.fill_between(x, [a - b for a, b in zip(m, s)], [a + b for a, b in zip(m, s)], alpha=0.2)
     ax.set_xlabel("environment frames")
+    if action_repeat:
+        # Both counters, as every log carries them: agent steps = frames / action repeat.
+        top = ax.secondary_xaxis("top", functions=(lambda f: f / action_repeat, lambda s: s * action_repeat))
+        top.set_xlabel(f"agent steps (action repeat {action_repeat})")
     ax.set_ylabel("evaluation return")
     ax.set_title(title)
     ax.grid(alpha=0.3)

@@ -38,7 +38,9 @@ class CSVLog:
     def truncate_after(self, frame: int) -> None:
         """Keep only rows with ``frame <= frame`` (used on resume)."""
         rows = read_csv(self.path)
-        kept = [r for r in rows if int(float(r["frame"])) <= frame]
+        # A process killed mid-write can leave a partial last line: drop it.
+        complete = [r for r in rows if None not in r.values() and None not in r and _is_number(r.get("frame"))]
+        kept = [r for r in complete if int(float(r["frame"])) <= frame]
         lines = [",".join(self.columns)]
         for r in kept:
             lines.append(",".join(_quote(r.get(c, "")) for c in self.columns))
@@ -53,6 +55,14 @@ def _fmt(v) -> str:
             return ""
         return f"{v:.3f}" if abs(v) >= 1e5 else f"{v:.6g}"
     return str(v)
+
+
+def _is_number(v) -> bool:
+    try:
+        float(v)
+        return True
+    except (TypeError, ValueError):
+        return False
 
 
 def _quote(v: str) -> str:
