@@ -92,7 +92,7 @@ def test_warns_when_memory_is_short(monkeypatch):
     import imssr.replay.buffer as mod
 
     monkeypatch.setattr(mod, "available_memory_bytes", lambda: 1000)
-    with pytest.warns(ResourceWarning, match="needs"):
+    with pytest.warns(mod.ReplayMemoryWarning, match="needs"):
         FrameReplayBuffer(100, (3, 10, 10), 1)
 
 

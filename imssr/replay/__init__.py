@@ -1,4 +1,4 @@
 """Replay storage."""
-from imssr.replay.buffer import FrameReplayBuffer, available_memory_bytes
+from imssr.replay.buffer import FrameReplayBuffer, ReplayMemoryWarning, available_memory_bytes
 
-__all__ = ["FrameReplayBuffer", "available_memory_bytes"]
+__all__ = ["FrameReplayBuffer", "ReplayMemoryWarning", "available_memory_bytes"]

@@ -24,6 +24,10 @@ from imssr.errors import ImssrError
 from imssr.utils import atomic_path
 
 
+class ReplayMemoryWarning(UserWarning):
+    """The replay buffer may not fit in memory (shown by default, unlike ResourceWarning)."""
+
+
 def available_memory_bytes() -> Optional[int]:
     """``MemAvailable`` from /proc/meminfo, or None where it cannot be read."""
     try:
@@ -62,9 +66,14 @@ class FrameReplayBuffer:
                 warnings.warn(
                     f"replay buffer of {capacity} slots needs {need / 2**30:.1f} GiB but only "
                     f"{avail / 2**30:.1f} GiB is available; lower the replay capacity",
-                    ResourceWarning, stacklevel=2)
+                    ReplayMemoryWarning, stacklevel=2)
         # np.empty/zeros map pages lazily: memory is committed as frames arrive.
-        self.frames = np.zeros((self.capacity, *self.frame_shape), dtype=np.uint8)
+        try:
+            self.frames = np.zeros((self.capacity, *self.frame_shape), dtype=np.uint8)
+        except MemoryError:
+            raise ImssrError(
+                f"cannot allocate a replay buffer of {self.nbytes_expected() / 2**30:.1f} GiB "
+                f"({capacity} transitions); lower the replay capacity (--replay-capacity)") from None
         self.actions = np.zeros((self.capacity, self.action_dim), dtype=np.float32)
         self.rewards = np.zeros((self.capacity,), dtype=np.float32)
         self.discounts = np.ones((self.capacity,), dtype=np.float32)
