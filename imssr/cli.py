@@ -188,7 +188,7 @@ def cmd_evaluate(args) -> int:
                    image_size=e.image_size, frame_stack=e.frame_stack)
     agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
     try:
-        agent.load_state_dict(ckpt["agent"])
+        agent.load_state_dict(ckpt["agent"], restore_rng=False)
     except (RuntimeError, KeyError, ValueError) as exc:
         raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
     returns = evaluate(agent, env, args.episodes)
@@ -252,6 +252,9 @@ def main(argv: Optional[list[str]] = None) -> int:
         return handlers[args.command](args)
     except ImssrError as exc:
         print(f"imssr: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unwritable --out, full disk, ...
+        print(f"imssr: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("imssr: interrupted; `imssr train --resume --out RUN` continues from the last checkpoint",

@@ -112,9 +112,10 @@ class TrainConfig:
     seed_steps: int = 1000
     """Agent steps of uniform random actions before learning starts."""
     burst_updates: int = 0
-    """Extra updates when the seed phase ends (DMC-GB runs 1000; CURL none)."""
+    """Updates run at the agent step the seed phase ends (DMC-GB: 1000); 0 or 1: the usual one."""
     replay_capacity: int = 100_000
-    """Replay capacity in transitions (CURL 100k, DMC-GB 500k)."""
+    """Replay capacity in stored observations, about one per transition (CURL 100k, DMC-GB 500k);
+    an episode of n transitions uses n + 1 slots."""
     eval_every_frames: int = 10_000
     """Environment frames between evaluations (0 disables periodic evaluation)."""
     eval_episodes: int = 10
@@ -160,6 +161,8 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
+        if not isinstance(data, dict):
+            raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
         sections = {f.name: f.type for f in fields(cls)}
         kwargs: dict[str, Any] = {}
         classes = {"env": EnvConfig, "agent": AgentConfig, "aux": AuxConfig,
@@ -175,12 +178,28 @@ class RunConfig:
 
     def validate(self) -> "RunConfig":
         """Reject bad values with one-line errors."""
+        for section in (self.env, self.agent, self.aux, self.intrinsic, self.train):
+            _check_types(section)
         e, a, x, i, t = self.env, self.agent, self.aux, self.intrinsic, self.train
+        from imssr.networks.encoder import conv_output_size
+
         checks = [
             (e.action_repeat >= 1, "env.action_repeat must be >= 1"),
             (e.frame_stack >= 1, "env.frame_stack must be >= 1"),
             (0 < a.crop_size <= e.image_size, "agent.crop_size must be in (0, env.image_size]"),
             (a.encoder_layers >= 1, "agent.encoder_layers must be >= 1"),
+            (a.encoder_filters >= 1, "agent.encoder_filters must be >= 1"),
+            (a.crop_size < 3 or conv_output_size(a.crop_size, a.encoder_layers) >= 1,
+             f"agent.encoder_layers={a.encoder_layers} leaves no pixels of a {a.crop_size}px crop"),
+            (a.feature_dim >= 1, "agent.feature_dim must be >= 1"),
+            (a.hidden_dim >= 1, "agent.hidden_dim must be >= 1"),
+            (a.log_std_min < a.log_std_max, "agent.log_std_min must be < agent.log_std_max"),
+            (0.0 < a.critic_tau <= 1.0 and 0.0 < a.encoder_tau <= 1.0, "agent taus must be in (0, 1]"),
+            (min(a.critic_lr, a.actor_lr, a.alpha_lr, x.lr) > 0, "learning rates must be > 0"),
+            (a.init_temperature > 0, "agent.init_temperature must be > 0"),
+            (min(a.actor_update_every, a.critic_update_every, a.target_update_every) >= 1,
+             "agent update intervals must be >= 1"),
+            (x.batch_size >= 2, "aux.batch_size must be >= 2"),
             (a.batch_size >= 2, "agent.batch_size must be >= 2"),
             (0.0 <= a.discount <= 1.0, "agent.discount must be in [0, 1]"),
             (x.update_every >= 1, "aux.update_every must be >= 1"),
@@ -192,7 +211,10 @@ class RunConfig:
             (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
             (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
             (t.frames >= 1, "train.frames must be >= 1"),
-            (t.seed_steps >= 0, "train.seed_steps must be >= 0"),
+            (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
+            (t.burst_updates >= 0, "train.burst_updates must be >= 0"),
+            (t.torch_threads >= 0, "train.torch_threads must be >= 0"),
+            (t.keep_checkpoints >= 0, "train.keep_checkpoints must be >= 0"),
             (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
             (t.eval_every_frames >= 0, "train.eval_every_frames must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
@@ -202,6 +224,12 @@ class RunConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
+        from imssr.presets import get_algo
+
+        algo = get_algo(self.algo)
+        if algo.aux != x.name or algo.intrinsic != i.enabled:
+            raise ImssrError(f"algo {self.algo} means aux.name={algo.aux} and intrinsic.enabled="
+                             f"{str(algo.intrinsic).lower()}; choose the algo instead of overriding these")
         return self
 
 
@@ -209,7 +237,26 @@ SCHEDULES = ("constant", "step")
 NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 
 
+def _check_types(section) -> None:
+    """Reject values of the wrong type (e.g. from a hand-edited JSON file)."""
+    name = type(section).__name__.replace("Config", "").lower()
+    for f in fields(section):
+        value, default = getattr(section, f.name), getattr(type(section)(), f.name)
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(default, int):
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif isinstance(default, float):
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        else:
+            ok = isinstance(value, type(default))
+        if not ok:
+            raise ImssrError(f"{name}.{f.name} must be a {type(default).__name__}, got {value!r}")
+
+
 def _build(cls, values: dict[str, Any], section: str):
+    if not isinstance(values, dict):
+        raise ImssrError(f"config section {section!r} must be an object, got {type(values).__name__}")
     names = {f.name for f in fields(cls)}
     unknown = set(values) - names
     if unknown:

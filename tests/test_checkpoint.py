@@ -111,3 +111,51 @@ def test_resume_drops_a_partially_written_log_line(tmp_path):
         fh.write("3000,37")  # killed mid-line
     log.truncate_after(1000)
     assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
+
+
+def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
+    cfg = _cfg()
+    cfg.train.save_buffer = False
+    t = Trainer(cfg, str(tmp_path))
+    try:
+        t.train(stop_at_frame=1000)
+    finally:
+        t.close()
+    cfg = _cfg()
+    cfg.train.save_buffer = False
+    cfg.train.eval_every_frames = 0  # changed on resume: no per-step evaluations, no hang
+    cfg.train.checkpoint_every_frames = 0
+    t = Trainer(cfg, str(tmp_path), resume=True)
+    try:
+        assert t.next_eval_frame is None and t.next_ckpt_frame is None
+        assert t.learning_starts == 125 + 60  # refill the empty buffer with random actions first
+        t.train()
+    finally:
+        t.close()
+    assert t.frame == 3000 and t.agent.updates > 0
+    assert [int(r["frame"]) for r in read_csv(tmp_path / "eval.csv")] == [1000, 3000]
+
+
+def test_fresh_run_replaces_logs_of_a_run_that_never_checkpointed(tmp_path):
+    (tmp_path / "train.csv").write_text("frame,step\n5000,625\n")
+    (tmp_path / "eval.csv").write_text("frame,step\n5000,625\n")
+    t = Trainer(tiny_config("curl", frames=1000, eval_every_frames=0), str(tmp_path))
+    try:
+        t.train()
+    finally:
+        t.close()
+    assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
+    assert [r["frame"] for r in read_csv(tmp_path / "eval.csv")] == ["1000"]
+
+
+def test_agent_state_from_another_device_type_loads(full_run):
+    _, full = full_run
+    state = full.agent.state_dict()
+    state["noise_gen"] = torch.zeros(16, dtype=torch.uint8)  # a CUDA generator's state size
+    from imssr.agents import SACAgent
+
+    cfg = _cfg()
+    other = SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic)
+    other.load_state_dict(state)
+    obs = np.zeros((9, 100, 100), np.uint8)
+    assert np.array_equal(other.act(obs, True), full.agent.act(obs, True))

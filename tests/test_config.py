@@ -64,3 +64,25 @@ def test_overrides_and_validation():
         cfg.validate()
     with pytest.raises(ImssrError, match="unknown algo"):
         make_config("drq", "walker_walk")
+
+
+def test_wrong_types_and_inconsistent_settings_are_one_line_errors(tmp_path):
+    from imssr.config import load_config
+
+    data = make_config("curl", "walker_walk").to_dict()
+    data["train"]["frames"] = "many"
+    with pytest.raises(ImssrError, match="train.frames must be a int"):
+        RunConfig.from_dict(data).validate()
+    with pytest.raises(ImssrError, match="must be an object"):
+        RunConfig.from_dict({"env": [1, 2]})
+    bad = tmp_path / "list.json"
+    bad.write_text("[1, 2]")
+    with pytest.raises(ImssrError, match="must be a JSON object"):
+        load_config(str(bad))
+    for override, msg in [("agent.encoder_layers=60", "leaves no pixels"),
+                          ("agent.feature_dim=0", "feature_dim must be >= 1"),
+                          ("train.torch_threads=-1", "torch_threads"),
+                          ("intrinsic.enabled=true", "choose the algo"),
+                          ("train.seed_steps=0", "seed_steps must be >= 1")]:
+        with pytest.raises(ImssrError, match=msg):
+            apply_overrides(make_config("curl", "walker_walk"), [override]).validate()

@@ -113,6 +113,7 @@ def test_load_errors(tmp_path):
         buf.load(str(tmp_path / "missing.npz"))
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip file")
+    (tmp_path / "bad.npz.frames.npy").write_bytes(b"nor an npy file")
     with pytest.raises(ImssrError, match="corrupt replay buffer"):
         buf.load(str(bad))
     other, _ = _fill(11, [3])
@@ -128,3 +129,11 @@ def test_empty_buffer_refuses_to_sample():
     buf.add_first(np.zeros((3, 6, 6), np.uint8))
     with pytest.raises(ImssrError, match="no complete transition"):
         buf.sample(4)
+
+
+def test_load_into_a_larger_preallocated_ring(tmp_path):
+    buf, _ = _fill(5000, [3, 4])  # only a prefix of the ring was ever written
+    buf.save(str(tmp_path / "r.npz"))
+    other = FrameReplayBuffer(5000, (3, 6, 6), 2)
+    other.load(str(tmp_path / "r.npz"))
+    assert np.array_equal(other.frames[: buf.head], buf.frames[: buf.head])

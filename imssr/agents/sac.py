@@ -138,7 +138,7 @@ class SACAgent:
                 # Algorithm 1: per-sample SSL loss of o', normalised in the batch,
                 # r <- r + beta_t * r_int (Eq. 1).
                 ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
-                                     self.intrinsic_gen, self.intrinsic.cfg.view)
+                                     self.intrinsic_gen, self.intrinsic.cfg.view, batch)
                 bonus, stats = self.intrinsic(self.aux.intrinsic_loss(ctx), step)
                 reward = reward + bonus
                 metrics.update(stats)
@@ -190,7 +190,13 @@ class SACAgent:
             state["aux"] = self.aux.full_state_dict()
         return state
 
-    def load_state_dict(self, state: dict) -> None:
+    def load_state_dict(self, state: dict, restore_rng: bool = True) -> None:
+        """Load weights, optimisers and (unless ``restore_rng`` is False) random states.
+
+        Evaluation passes ``restore_rng=False``; a checkpoint written on another
+        device type (CPU vs CUDA generator states differ) reseeds the policy-noise
+        generator instead, since bit-exact resume across devices is impossible anyway.
+        """
         # Optimisers adopt loaded state tensors without copying them; copy so that
         # an in-memory state (e.g. another live agent's) is never shared.
         state = copy.deepcopy(state)
@@ -198,10 +204,14 @@ class SACAgent:
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.alpha_opt.load_state_dict(state["alpha_opt"])
-        self.gen.set_state(state["gen"])
-        self.noise_gen.set_state(state["noise_gen"])
-        self.intrinsic_gen.set_state(state["intrinsic_gen"])
         self.updates = state["updates"]
+        if restore_rng:
+            self.gen.set_state(state["gen"])
+            self.intrinsic_gen.set_state(state["intrinsic_gen"])
+            try:
+                self.noise_gen.set_state(state["noise_gen"])
+            except RuntimeError:  # saved on another device type
+                self.noise_gen.manual_seed(int(self.gen.initial_seed()) + 1 + self.updates)
         if self.aux is not None:
             self.aux.load_full_state_dict(state["aux"])
 

@@ -55,6 +55,8 @@ class NextObsContext:
     target_latent: torch.Tensor
     generator: torch.Generator
     view: str = "independent"
+    batch: Optional["Batch"] = None
+    """The whole RL batch, for tasks whose loss of o' needs o or a (e.g. inverse dynamics)."""
 
 
 @dataclass

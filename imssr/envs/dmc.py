@@ -72,7 +72,9 @@ class DMCEnv(gym.Env):
             self._camera = Camera(self._env.physics, image_size, image_size, self.camera_id)
         except Exception as exc:  # noqa: BLE001 - GL context failures surface here
             raise ImssrError(
-                f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()}: {exc}".splitlines()[0]
+                f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} "
+                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); software rendering "
+                "needs the Debian package libgl1-mesa-dri (apt-get install libgl1-mesa-dri)"
             ) from None
 
         aspec = self._env.action_spec()

@@ -73,6 +73,9 @@ class IntrinsicReward:
         """Return the bonus to add to the reward, shape ``(B, 1)``, and log values."""
         r_int = normalize(losses.detach().flatten(), self.cfg.normalization)
         beta = self.schedule(step)
+        # r_int is normalised (zscore: mean 0, std 1 by construction), so the raw
+        # loss's spread and the bonus actually added are logged too.
         stats = {"r_int_mean": r_int.mean(), "r_int_std": r_int.std(unbiased=False),
-                 "ssl_next_loss": losses.mean(), "beta": beta}
+                 "ssl_next_loss": losses.mean(), "ssl_next_loss_std": losses.std(unbiased=False),
+                 "bonus_std": beta * r_int.std(unbiased=False), "beta": beta}
         return (beta * r_int).unsqueeze(-1), stats

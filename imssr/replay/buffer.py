@@ -24,6 +24,11 @@ from imssr.errors import ImssrError
 from imssr.utils import atomic_path
 
 
+def frames_path(path: str) -> str:
+    """Where :meth:`FrameReplayBuffer.save` puts the frames that go with ``path``."""
+    return path + ".frames.npy"
+
+
 class ReplayMemoryWarning(UserWarning):
     """The replay buffer may not fit in memory (shown by default, unlike ResourceWarning)."""
 
@@ -182,14 +187,16 @@ class FrameReplayBuffer:
                 "rng": self.rng.bit_generator.state}
 
     def save(self, path: str) -> None:
-        """Write the live contents atomically (``.npz``, uncompressed)."""
+        """Write the live contents atomically: ``path`` (small fields, ``.npz``) and
+        ``path + '.frames.npy'`` (frames, raw, so that loading can stream them)."""
+        n = self._extent()
+        with atomic_path(frames_path(path)) as tmp:
+            with open(tmp, "wb") as fh:
+                np.save(fh, self.frames[:n])  # a view: no copy of the frames in memory
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, frames=self.frames[: self._extent()],
-                         actions=self.actions[: self._extent()],
-                         rewards=self.rewards[: self._extent()],
-                         discounts=self.discounts[: self._extent()],
-                         step_in_episode=self.step_in_episode[: self._extent()],
+                np.savez(fh, actions=self.actions[:n], rewards=self.rewards[:n],
+                         discounts=self.discounts[:n], step_in_episode=self.step_in_episode[:n],
                          meta=np.array([self.capacity, self.head, self.size, int(self._open_episode)]),
                          frame_shape=np.array(self.frame_shape))
 
@@ -198,8 +205,9 @@ class FrameReplayBuffer:
         return self.capacity if self.size == self.capacity else self.head
 
     def load(self, path: str, rng_state: Optional[dict] = None) -> None:
-        if not os.path.exists(path):
-            raise ImssrError(f"replay buffer file not found: {path}")
+        for p in (path, frames_path(path)):
+            if not os.path.exists(p):
+                raise ImssrError(f"replay buffer file not found: {p}")
         try:
             with np.load(path) as data:
                 capacity, head, size, open_ = (int(x) for x in data["meta"])
@@ -207,15 +215,23 @@ class FrameReplayBuffer:
                     raise ImssrError(
                         f"replay buffer {path} has capacity {capacity} and frames "
                         f"{tuple(data['frame_shape'])}, expected {self.capacity} and {self.frame_shape}")
-                n = data["frames"].shape[0]
-                self.frames[:n] = data["frames"]
+                n = data["actions"].shape[0]
                 self.actions[:n] = data["actions"]
                 self.rewards[:n] = data["rewards"]
                 self.discounts[:n] = data["discounts"]
                 self.step_in_episode[:n] = data["step_in_episode"]
+            # Memory-mapped and copied in chunks: peak memory stays one buffer, not two.
+            frames = np.load(frames_path(path), mmap_mode="r")
+            if frames.shape != (n, *self.frame_shape):
+                raise ImssrError(f"replay frames {frames_path(path)} have shape {frames.shape}, "
+                                 f"expected {(n, *self.frame_shape)}")
+            for lo in range(0, n, 4096):
+                hi = min(lo + 4096, n)
+                self.frames[lo:hi] = frames[lo:hi]
+            del frames
         except ImssrError:
             raise
-        except Exception as exc:  # noqa: BLE001 - zip/npz corruption has many faces
+        except Exception as exc:  # noqa: BLE001 - zip/npy corruption has many faces
             raise ImssrError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
         self.head, self.size, self._open_episode = head, size, bool(open_)
         if rng_state is not None:

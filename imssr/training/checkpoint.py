@@ -42,11 +42,16 @@ def save_checkpoint(run_dir: str, state: dict[str, Any], keep: int = 1) -> str:
         os.link(path, numbered)
         for old in sorted(glob.glob(os.path.join(checkpoint_dir(run_dir), "step-*.pt")))[:-keep]:
             os.unlink(old)
-    # Replay files not named by the newest checkpoint are stale.
+    # Replay files not named by the newest checkpoint are stale (numbered
+    # checkpoints therefore hold weights for evaluation; exact resume uses latest),
+    # and so are temporary files left by a process killed mid-write.
     current = state.get("replay_file")
-    for old in glob.glob(os.path.join(checkpoint_dir(run_dir), "replay-*.npz")):
-        if os.path.basename(old) != current:
+    keep_files = {current, f"{current}.frames.npy"} if current else set()
+    for old in glob.glob(os.path.join(checkpoint_dir(run_dir), "replay-*")):
+        if os.path.basename(old) not in keep_files:
             os.unlink(old)
+    for tmp in glob.glob(os.path.join(checkpoint_dir(run_dir), ".tmp-*")):
+        os.unlink(tmp)
     return path
 
 

@@ -9,13 +9,14 @@ from __future__ import annotations
 import csv
 import math
 import os
+import shutil
 from typing import Iterable, Optional
 
 from imssr.utils import atomic_write_text
 
 TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
                  "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
-                 "aux_loss", "ssl_next_loss", "r_int_mean", "r_int_std", "beta", "updates", "wall_time"]
+                 "aux_loss", "ssl_next_loss", "ssl_next_loss_std", "r_int_mean", "r_int_std", "bonus_std", "beta", "updates", "wall_time"]
 EVAL_COLUMNS = ["frame", "step", "mode", "return_mean", "return_std", "episodes",
                 "return_min", "return_max", "wall_time"]
 EVAL_EPISODE_COLUMNS = ["frame", "step", "mode", "episode", "return"]
@@ -80,6 +81,12 @@ class Logger:
     """``train.csv``, ``eval.csv``, ``eval_episodes.csv`` and TensorBoard under ``out_dir``."""
 
     def __init__(self, out_dir: str, tensorboard: bool = True, resume_frame: Optional[int] = None):
+        if resume_frame is None:
+            # A fresh run: logs left by a run killed before its first checkpoint are stale.
+            for name in ("train.csv", "eval.csv", "eval_episodes.csv"):
+                if os.path.exists(os.path.join(out_dir, name)):
+                    os.unlink(os.path.join(out_dir, name))
+            shutil.rmtree(os.path.join(out_dir, "tb"), ignore_errors=True)
         self.train = CSVLog(os.path.join(out_dir, "train.csv"), TRAIN_COLUMNS)
         self.eval = CSVLog(os.path.join(out_dir, "eval.csv"), EVAL_COLUMNS)
         self.eval_episodes = CSVLog(os.path.join(out_dir, "eval_episodes.csv"), EVAL_EPISODE_COLUMNS)
@@ -94,7 +101,17 @@ class Logger:
                 SummaryWriter = None
             if SummaryWriter is not None:
                 # purge_step drops events newer than the checkpoint on resume.
-                self.tb = SummaryWriter(os.path.join(out_dir, "tb"), purge_step=resume_frame)
+                self.tb = SummaryWriter(os.path.join(out_dir, "tb"), purge_step=None if resume_frame is None else resume_frame + 1)
+
+    def rewrite_eval(self, history: list[dict]) -> None:
+        """Rewrite the evaluation CSVs from a checkpoint's history (``row`` + ``returns``)."""
+        for log in (self.eval, self.eval_episodes):
+            atomic_write_text(log.path, ",".join(log.columns) + "\n")
+        for item in history:
+            self.eval.write(item["row"])
+            for i, ret in enumerate(item["returns"]):
+                self.eval_episodes.write({"frame": item["row"]["frame"], "step": item["row"]["step"],
+                                          "mode": item["row"]["mode"], "episode": i, "return": ret})
 
     def log_train(self, row: dict) -> None:
         self.train.write(row)

@@ -90,18 +90,29 @@ class Trainer:
         self.eval_env = make_env(e.task, seed=cfg.train.seed + 10_000, **env_kwargs)
         self.action_dim = self.env.action_space.shape[0]
         self.agent = build_agent(cfg, self.env.observation_space.shape, self.action_dim, self.device)
+        # Independent streams for the replay sampler and the seed-phase actions.
+        replay_seq, action_seq = np.random.SeedSequence(cfg.train.seed).spawn(2)
         self.replay = FrameReplayBuffer(cfg.train.replay_capacity, (3, e.image_size, e.image_size),
-                                        self.action_dim, e.frame_stack, seed=cfg.train.seed)
-        self.action_rng = np.random.default_rng(cfg.train.seed)
+                                        self.action_dim, e.frame_stack, seed=replay_seq)
+        self.action_rng = np.random.default_rng(action_seq)
         self.frame = self.step = self.episode = 0
         self.next_eval_frame = cfg.train.eval_every_frames or None
         self.next_ckpt_frame = cfg.train.checkpoint_every_frames or None
         self.last_eval_frame = -1
+        # Agent step from which the agent acts and learns (later after a resume
+        # without a saved buffer: the buffer refills with random actions first).
+        self.learning_starts = cfg.train.seed_steps
+        self.eval_history: list[dict] = []
+        if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+            raise ImssrError(f"--out {out_dir} is a file, not a directory")
         os.makedirs(out_dir, exist_ok=True)
         if ckpt is not None:
             self._restore(ckpt)
         atomic_write_text(os.path.join(out_dir, "config.json"), cfg.to_json() + "\n")
         self.logger = Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if ckpt else None)
+        if ckpt is not None:
+            # The checkpoint's evaluation history is authoritative for eval logs.
+            self.logger.rewrite_eval(self.eval_history)
 
     # -- resume ------------------------------------------------------------------
     def _check_resume(self) -> dict:
@@ -124,11 +135,16 @@ class Trainer:
         except (RuntimeError, KeyError, ValueError) as exc:
             raise ImssrError(f"checkpoint does not match this agent: {str(exc).splitlines()[0]}") from None
         self.frame, self.step, self.episode = ckpt["frame"], ckpt["step"], ckpt["episode"]
-        self.next_eval_frame = ckpt["next_eval_frame"]
-        self.next_ckpt_frame = ckpt["next_ckpt_frame"]
+        self.learning_starts = ckpt.get("learning_starts", self.cfg.train.seed_steps)
         self.last_eval_frame = ckpt["last_eval_frame"]
-        if self.cfg.train.eval_every_frames and self.next_eval_frame is None:
-            self.next_eval_frame = self.frame + self.cfg.train.eval_every_frames
+        self.eval_history = list(ckpt.get("eval_history", []))
+        saved_train, t = ckpt["config"]["train"], self.cfg.train
+        # Intervals may change on resume: keep the saved schedule only when they did not.
+        self.next_eval_frame = (ckpt["next_eval_frame"] if saved_train["eval_every_frames"] == t.eval_every_frames
+                                else _next_multiple(self.frame, t.eval_every_frames))
+        self.next_ckpt_frame = (ckpt["next_ckpt_frame"]
+                                if saved_train["checkpoint_every_frames"] == t.checkpoint_every_frames
+                                else _next_multiple(self.frame, t.checkpoint_every_frames))
         self.env.set_rng_state(ckpt["env_rng"])
         self.eval_env.set_rng_state(ckpt["eval_env_rng"])
         self.action_rng.bit_generator.state = ckpt["action_rng"]
@@ -139,7 +155,9 @@ class Trainer:
             if self.replay.state_dict()["head"] != ckpt["replay_state"]["head"]:
                 raise ImssrError(f"replay buffer {path} does not match the checkpoint")
         else:
-            print("warning: checkpoint holds no replay buffer; resuming with an empty one")
+            self.learning_starts = self.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
+            print("imssr: warning: checkpoint holds no replay buffer; refilling it with random "
+                  f"actions until agent step {self.learning_starts} (the resume is not exact)", flush=True)
 
     def save(self) -> None:
         replay_file = None
@@ -150,7 +168,8 @@ class Trainer:
             "config": self.cfg.to_dict(), "frame": self.frame, "step": self.step,
             "episode": self.episode, "agent": self.agent.state_dict(),
             "next_eval_frame": self.next_eval_frame, "next_ckpt_frame": self.next_ckpt_frame,
-            "last_eval_frame": self.last_eval_frame,
+            "last_eval_frame": self.last_eval_frame, "learning_starts": self.learning_starts,
+            "eval_history": self.eval_history,
             "env_rng": self.env.get_rng_state(), "eval_env_rng": self.eval_env.get_rng_state(),
             "action_rng": self.action_rng.bit_generator.state, "global_rng": rng_states(),
             "replay_file": replay_file, "replay_state": self.replay.state_dict(),
@@ -165,6 +184,7 @@ class Trainer:
                "episodes": len(returns), "return_min": float(np.min(returns)),
                "return_max": float(np.max(returns)), "wall_time": time.time()}
         self.logger.log_eval(row, returns)
+        self.eval_history.append({"row": row, "returns": returns})
         self.last_eval_frame = self.frame
         return row
 
@@ -191,15 +211,14 @@ class Trainer:
                     self.replay.add_first(info["frame"])
                     need_reset, ep_return, ep_frames, ep_start = False, 0.0, 0, time.time()
                     sums.clear(); counts.clear()
-                if self.step < t.seed_steps:
+                if self.step < self.learning_starts:
                     action = self.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
                 else:
                     action = self.agent.act(obs, deterministic=False)
-                if self.step >= t.seed_steps:
-                    n_updates = 1 + (t.burst_updates if self.step == t.seed_steps else 0)
+                    n_updates = max(1, t.burst_updates) if self.step == self.learning_starts else 1
                     for _ in range(n_updates):
                         for k, v in self.agent.update(self.replay, self.step).items():
-                            sums[k] += float(v); counts[k] += 1
+                            sums[k] += v; counts[k] += 1
                 obs, reward, terminated, truncated, info = self.env.step(action)
                 self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"])
                 self.step += 1
@@ -219,7 +238,8 @@ class Trainer:
                            "episode_return": ep_return, "episode_frames": ep_frames,
                            "fps": ep_frames / dt, "updates": counts.get("critic_loss", 0),
                            "wall_time": time.time()}
-                    row.update({k: sums[k] / counts[k] for k in sums})
+                    # One host sync per episode, not one per metric per update.
+                    row.update({k: float(sums[k]) / counts[k] for k in sums})
                     self.logger.log_train(row)
                     if bar is not None:
                         bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}")
@@ -248,6 +268,10 @@ class Trainer:
     def close(self) -> None:
         self.env.close()
         self.eval_env.close()
+
+
+def _next_multiple(frame: int, every: int) -> Optional[int]:
+    return None if not every else (frame // every + 1) * every
 
 
 def _say(bar, text: str) -> None:
