@@ -115,29 +115,18 @@ def _run_config(args, demo: bool):
         if args.task and args.task != cfg.env.task:
             raise ImssrError(f"--task {args.task} differs from the run's task {cfg.env.task}")
     assert isinstance(cfg, RunConfig)
-    t = cfg.train
-    if args.seed is not None:
-        t.seed = args.seed
-    if args.frames is not None:
-        t.frames = args.frames
-    if args.eval_every is not None:
-        t.eval_every_frames = args.eval_every
-    if args.eval_episodes is not None:
-        t.eval_episodes = args.eval_episodes
-    if args.device is not None:
-        t.device = args.device
-    if args.seed_steps is not None:
-        t.seed_steps = args.seed_steps
-    if args.replay_capacity is not None:
-        t.replay_capacity = args.replay_capacity
-    if args.checkpoint_every is not None:
-        t.checkpoint_every_frames = args.checkpoint_every
-    if args.no_buffer_in_checkpoint:
-        t.save_buffer = False
-    if args.no_tensorboard:
-        t.tensorboard = False
-    if args.no_progress:
-        t.progress = False
+    # Flag -> train field, for flags that set a value when given.
+    for flag, field_name in (("seed", "seed"), ("frames", "frames"), ("eval_every", "eval_every_frames"),
+                             ("eval_episodes", "eval_episodes"), ("device", "device"),
+                             ("seed_steps", "seed_steps"), ("replay_capacity", "replay_capacity"),
+                             ("checkpoint_every", "checkpoint_every_frames")):
+        if getattr(args, flag) is not None:
+            setattr(cfg.train, field_name, getattr(args, flag))
+    # Switches that turn a default-on feature off.
+    for flag, field_name in (("no_buffer_in_checkpoint", "save_buffer"), ("no_tensorboard", "tensorboard"),
+                             ("no_progress", "progress")):
+        if getattr(args, flag):
+            setattr(cfg.train, field_name, False)
     if args.batch_size is not None:
         cfg.agent.batch_size = args.batch_size
         if cfg.aux.name == "curl":
