@@ -158,13 +158,11 @@ def cmd_train(args, demo: bool = False) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    import numpy as np
-
     from imssr.config import load_config
     from imssr.envs import make_env
-    from imssr.training import build_agent, evaluate, resolve_device
+    from imssr.training import build_agent, eval_row, evaluate, resolve_device
     from imssr.training.checkpoint import latest_path, load_checkpoint
-    from imssr.training.logger import CSVLog, EVAL_COLUMNS, EVAL_EPISODE_COLUMNS
+    from imssr.training.logger import CSVLog, EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, write_eval
 
     if not os.path.isdir(args.run):
         raise ImssrError(f"run directory not found: {args.run}")
@@ -182,14 +180,9 @@ def cmd_evaluate(args) -> int:
         raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
     returns = evaluate(agent, env, args.episodes)
     env.close()
-    row = {"frame": ckpt["frame"], "step": ckpt["step"], "mode": e.mode,
-           "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
-           "episodes": len(returns), "return_min": float(np.min(returns)),
-           "return_max": float(np.max(returns))}
-    CSVLog(os.path.join(args.run, "evaluate.csv"), EVAL_COLUMNS).write(row)
-    per_ep = CSVLog(os.path.join(args.run, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS)
-    for i, r in enumerate(returns):
-        per_ep.write({"frame": ckpt["frame"], "step": ckpt["step"], "mode": e.mode, "episode": i, "return": r})
+    row = eval_row(ckpt["frame"], ckpt["step"], e.mode, returns)
+    write_eval(CSVLog(os.path.join(args.run, "evaluate.csv"), EVAL_COLUMNS),
+               CSVLog(os.path.join(args.run, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS), row, returns)
     print(f"{e.mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
           f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
     return 0

@@ -240,8 +240,9 @@ NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 def _check_types(section) -> None:
     """Reject values of the wrong type (e.g. from a hand-edited JSON file)."""
     name = type(section).__name__.replace("Config", "").lower()
+    defaults = type(section)()
     for f in fields(section):
-        value, default = getattr(section, f.name), getattr(type(section)(), f.name)
+        value, default = getattr(section, f.name), getattr(defaults, f.name)
         if isinstance(default, bool):
             ok = isinstance(value, bool)
         elif isinstance(default, int):

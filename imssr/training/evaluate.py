@@ -16,3 +16,11 @@ def evaluate(agent, env, episodes: int) -> list[float]:
             done = terminated or truncated
         returns.append(total)
     return [float(r) for r in np.asarray(returns)]
+
+
+def eval_row(frame: int, step: int, mode: str, returns: list[float]) -> dict:
+    """The ``eval.csv`` summary of one evaluation."""
+    return {"frame": frame, "step": step, "mode": mode,
+            "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
+            "episodes": len(returns), "return_min": float(np.min(returns)),
+            "return_max": float(np.max(returns))}

@@ -77,6 +77,14 @@ def read_csv(path: str) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+def write_eval(summary: CSVLog, episodes: CSVLog, row: dict, returns: Iterable[float]) -> None:
+    """Append one evaluation: its summary row and one row per episode."""
+    summary.write(row)
+    for i, ret in enumerate(returns):
+        episodes.write({"frame": row["frame"], "step": row["step"], "mode": row["mode"],
+                        "episode": i, "return": ret})
+
+
 class Logger:
     """``train.csv``, ``eval.csv``, ``eval_episodes.csv`` and TensorBoard under ``out_dir``."""
 
@@ -108,20 +116,14 @@ class Logger:
         for log in (self.eval, self.eval_episodes):
             atomic_write_text(log.path, ",".join(log.columns) + "\n")
         for item in history:
-            self.eval.write(item["row"])
-            for i, ret in enumerate(item["returns"]):
-                self.eval_episodes.write({"frame": item["row"]["frame"], "step": item["row"]["step"],
-                                          "mode": item["row"]["mode"], "episode": i, "return": ret})
+            write_eval(self.eval, self.eval_episodes, item["row"], item["returns"])
 
     def log_train(self, row: dict) -> None:
         self.train.write(row)
         self._tb("train", row, skip=("frame", "step", "episode"))
 
     def log_eval(self, row: dict, returns: Iterable[float]) -> None:
-        self.eval.write(row)
-        for i, ret in enumerate(returns):
-            self.eval_episodes.write({"frame": row["frame"], "step": row["step"], "mode": row["mode"],
-                                      "episode": i, "return": ret})
+        write_eval(self.eval, self.eval_episodes, row, returns)
         self._tb(f"eval/{row['mode']}", row, skip=("frame", "step", "mode", "episodes"))
 
     def _tb(self, prefix: str, row: dict, skip: tuple) -> None:

@@ -22,7 +22,7 @@ from imssr.errors import ImssrError
 from imssr.presets import get_algo
 from imssr.replay import FrameReplayBuffer
 from imssr.training.checkpoint import checkpoint_dir, latest_path, load_checkpoint, save_checkpoint
-from imssr.training.evaluate import evaluate
+from imssr.training.evaluate import eval_row, evaluate
 from imssr.training.logger import Logger
 from imssr.utils import atomic_write_text, rng_states, seed_everything, set_rng_states
 
@@ -179,10 +179,7 @@ class Trainer:
     # -- the loop ----------------------------------------------------------------
     def run_eval(self) -> dict:
         returns = evaluate(self.agent, self.eval_env, self.cfg.train.eval_episodes)
-        row = {"frame": self.frame, "step": self.step, "mode": self.cfg.env.mode,
-               "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
-               "episodes": len(returns), "return_min": float(np.min(returns)),
-               "return_max": float(np.max(returns)), "wall_time": time.time()}
+        row = dict(eval_row(self.frame, self.step, self.cfg.env.mode, returns), wall_time=time.time())
         self.logger.log_eval(row, returns)
         self.eval_history.append({"row": row, "returns": returns})
         self.last_eval_frame = self.frame
