@@ -1,9 +1,10 @@
-"""Image augmentations on whole uint8 batches (one gather, no Python loop)."""
+"""Image augmentations on whole batches (vectorised, no Python loop over samples)."""
 from __future__ import annotations
 
 from typing import Optional
 
 import torch
+import torch.nn.functional as F
 
 
 def random_crop(x: torch.Tensor, size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
@@ -35,3 +36,34 @@ def center_crop(x: torch.Tensor, size: int) -> torch.Tensor:
     h, w = x.shape[-2:]
     top, left = (h - size) // 2, (w - size) // 2
     return x[..., top:top + size, left:left + size]
+
+
+def random_overlay(x: torch.Tensor, images: torch.Tensor, alpha: float = 0.5,
+                   generator: Optional[torch.Generator] = None) -> torch.Tensor:
+    """SODA's random overlay ``(1 - alpha) * o + alpha * image`` (paper, Appendix, Eq. overlay).
+
+    ``x``: ``(B, 3k, S, S)`` pixels in [0, 255] (k stacked RGB frames); ``images``:
+    a pool ``(N, 3, S, S)`` uint8 on ``x``'s device.  One image per sample, shared
+    by its k frames (as DMC-GB does).  Returns float pixels in [0, 255].
+    """
+    b, c = x.shape[:2]
+    idx = torch.randint(0, images.shape[0], (b,), generator=generator).to(x.device)
+    chosen = images[idx].float().repeat(1, c // 3, 1, 1)
+    return torch.lerp(x.float(), chosen, alpha)
+
+
+def random_conv(x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+    """SVEA's random convolution: one random 3x3 RGB->RGB kernel per sample.
+
+    Each sample's k frames share its kernel; edges are replicate-padded and the
+    output squashed with a sigmoid, as in DMC-GB, but all samples run as one
+    grouped convolution instead of a Python loop.  Returns float pixels in [0, 255].
+    """
+    b, c, h, w = x.shape
+    k = c // 3
+    weights = torch.randn((b * 3, 3, 3, 3), generator=generator).to(x.device)
+    # (B, k, 3, H, W) -> (k, B*3, H, W): frames as the batch, samples as groups.
+    frames = (x.float() / 255.0).reshape(b, k, 3, h, w).transpose(0, 1).reshape(k, b * 3, h, w)
+    out = F.conv2d(F.pad(frames, (1, 1, 1, 1), mode="replicate"), weights, groups=b)
+    out = torch.sigmoid(out) * 255.0
+    return out.reshape(k, b, 3, h, w).transpose(0, 1).reshape(b, c, h, w)

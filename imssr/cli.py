@@ -47,9 +47,14 @@ def build_parser() -> argparse.ArgumentParser:
         t.add_argument("--eval-every", type=_nonneg_int, metavar="FRAMES",
                        help="environment frames between evaluations (0: only at the end)")
         t.add_argument("--eval-episodes", type=_positive_int, metavar="K", help="episodes per evaluation")
-        t.add_argument("--beta0", type=_nonneg_float, help="initial intrinsic coefficient beta_0 (im- algos)")
+        t.add_argument("--beta0", type=_nonneg_float,
+                       help="initial intrinsic coefficient beta_0 (im-, +rnd, +re3 algos)")
         t.add_argument("--device", help="cpu (default), cuda, cuda:N or auto")
-        t.add_argument("--batch-size", type=_positive_int, help="RL (and CURL) batch size")
+        t.add_argument("--batch-size", type=_positive_int,
+                       help="RL batch size (and the auxiliary batch of tasks that train on it)")
+        t.add_argument("--image-dir", metavar="DIR",
+                       help="natural images (jpg/png tree, e.g. Places365) for SODA's overlay "
+                            "(default: $IMSSR_IMAGE_DIR, else built-in photographs)")
         t.add_argument("--seed-steps", type=_nonneg_int, metavar="STEPS",
                        help="agent steps of random actions before learning")
         t.add_argument("--replay-capacity", type=_positive_int, metavar="TRANSITIONS")
@@ -129,11 +134,15 @@ def _run_config(args, demo: bool):
             setattr(cfg.train, field_name, False)
     if args.batch_size is not None:
         cfg.agent.batch_size = args.batch_size
-        if cfg.aux.name == "curl":
-            cfg.aux.batch_size = args.batch_size
+        from imssr.auxiliary import AUX_TASKS
+
+        if cfg.aux.name in AUX_TASKS and AUX_TASKS[cfg.aux.name].uses_rl_batch:
+            cfg.aux.batch_size = args.batch_size  # the task trains on the RL batch
+    if args.image_dir is not None:
+        cfg.aux.image_dir = args.image_dir
     if args.beta0 is not None:
         if not cfg.intrinsic.enabled:
-            raise ImssrError(f"--beta0 applies to im- algorithms, not {cfg.algo}")
+            raise ImssrError(f"--beta0 applies to algorithms with an intrinsic reward, not {cfg.algo}")
         cfg.intrinsic.beta0 = args.beta0
     apply_overrides(cfg, args.set)
     return cfg.validate()

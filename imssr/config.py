@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from dataclasses import dataclass, field, fields
 from typing import Any, Optional
 
@@ -32,10 +33,15 @@ class EnvConfig:
 class AgentConfig:
     encoder_layers: int = 4
     """Convolutional layers of the shared pixel encoder (4 CURL, 11 SODA/PAD/SVEA)."""
+    encoder_head_layers: int = 0
+    """Of ``encoder_layers``, how many (the last) form the RL head; an auxiliary task with a
+    head of its own (PAD: 3 of 11) shares only the first ``encoder_layers - encoder_head_layers``."""
     encoder_filters: int = 32
     """Filters per convolutional layer."""
     feature_dim: int = 50
-    """Size of the encoder's projection (Linear + LayerNorm) output."""
+    """Size of the encoder's projection (Linear + LayerNorm) output (CURL 50, DMC-GB 100)."""
+    projection_tanh: bool = False
+    """Apply tanh after the LayerNorm of the critic's and actor's projections (DMC-GB: true)."""
     hidden_dim: int = 1024
     """Width of the two hidden layers of the actor and of each Q head."""
     crop_size: int = 84
@@ -83,13 +89,31 @@ class AuxConfig:
     update_every: int = 1
     """Agent steps between auxiliary updates."""
     batch_size: int = 128
-    """Auxiliary batch size (CURL reuses the RL batch, so it equals the RL batch)."""
+    """Auxiliary batch size for tasks that sample their own batch (SODA: 256); tasks trained on
+    the RL batch (CURL, PAD) ignore it."""
+    tau: float = 0.005
+    """EMA rate of the task's own target network (SODA's target encoder and projection)."""
+    overlay_alpha: float = 0.5
+    """Random overlay ``(1 - alpha) * o + alpha * image`` (SODA)."""
+    image_dir: str = ""
+    """Folder of natural images (any tree of jpg/png, e.g. Places365) for the overlay; empty:
+    ``$IMSSR_IMAGE_DIR`` if set, else the built-in pool made from installed packages' photos."""
+    image_pool_size: int = 1024
+    """Natural images held in memory for the overlay, drawn from the folder with a fixed seed."""
+    svea_alpha: float = 0.5
+    """SVEA: weight of the critic loss on the clean observation."""
+    svea_beta: float = 0.5
+    """SVEA: weight of the critic loss on the random-conv augmented observation."""
 
 
 @dataclass
 class IntrinsicConfig:
     enabled: bool = False
-    """Add ``beta_t * r_int`` from the auxiliary task's per-sample loss (IM-SSR)."""
+    """Add ``beta_t * r_int`` to the reward."""
+    source: str = "ssl"
+    """Where ``r_int`` comes from: ``ssl`` the auxiliary task's per-sample loss of o' (IM-SSR),
+    ``rnd`` random network distillation error of o', ``re3`` k-NN distance of o' in a fixed
+    random encoder's space.  Chosen by the algo name (``im-X``, ``X+rnd``, ``X+re3``)."""
     beta0: float = 0.0
     """Initial coefficient beta_0 of the intrinsic reward (paper Table V)."""
     schedule: str = "step"
@@ -100,6 +124,14 @@ class IntrinsicConfig:
     """Agent steps between decays of the ``step`` schedule."""
     normalization: str = "zscore"
     """In-batch normalisation of the per-sample losses: zscore, minmax, mean or none."""
+    rnd_lr: float = 1e-4
+    """Adam learning rate of RND's predictor."""
+    rnd_dim: int = 128
+    """Output size of RND's target and predictor networks."""
+    re3_k: int = 3
+    """RE3: the k of the k-nearest-neighbour distance within the batch."""
+    re3_dim: int = 50
+    """RE3: size of the fixed random encoder's output."""
     view: str = "independent"
     """``independent``: the online branch sees a fresh crop of o' (as the SSL loss is
     trained); ``shared``: reuse the crop of the Bellman target (no extra encoder pass)."""
@@ -189,6 +221,8 @@ class RunConfig:
             (0 < a.crop_size <= e.image_size, "agent.crop_size must be in (0, env.image_size]"),
             (a.encoder_layers >= 1, "agent.encoder_layers must be >= 1"),
             (a.encoder_filters >= 1, "agent.encoder_filters must be >= 1"),
+            (0 <= a.encoder_head_layers < a.encoder_layers,
+             "agent.encoder_head_layers must be in [0, agent.encoder_layers)"),
             (a.crop_size < 3 or conv_output_size(a.crop_size, a.encoder_layers) >= 1,
              f"agent.encoder_layers={a.encoder_layers} leaves no pixels of a {a.crop_size}px crop"),
             (a.feature_dim >= 1, "agent.feature_dim must be >= 1"),
@@ -203,6 +237,16 @@ class RunConfig:
             (a.batch_size >= 2, "agent.batch_size must be >= 2"),
             (0.0 <= a.discount <= 1.0, "agent.discount must be in [0, 1]"),
             (x.update_every >= 1, "aux.update_every must be >= 1"),
+            (0.0 < x.tau <= 1.0, "aux.tau must be in (0, 1]"),
+            (0.0 <= x.overlay_alpha <= 1.0, "aux.overlay_alpha must be in [0, 1]"),
+            (x.image_pool_size >= 1, "aux.image_pool_size must be >= 1"),
+            (x.svea_alpha >= 0.0 and x.svea_beta >= 0.0 and x.svea_alpha + x.svea_beta > 0,
+             "aux.svea_alpha and aux.svea_beta must be >= 0 and not both 0"),
+            (i.source in SOURCES, f"intrinsic.source must be one of {', '.join(SOURCES)}"),
+            (i.rnd_lr > 0 and i.rnd_dim >= 1, "intrinsic.rnd_lr must be > 0 and rnd_dim >= 1"),
+            (i.re3_k >= 1 and i.re3_dim >= 1, "intrinsic.re3_k and re3_dim must be >= 1"),
+            (not (i.enabled and i.source == "re3") or a.batch_size > i.re3_k,
+             "agent.batch_size must exceed intrinsic.re3_k"),
             (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
             (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
             (i.normalization in NORMALIZATIONS,
@@ -224,17 +268,23 @@ class RunConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
+        if x.image_dir and not os.path.isdir(os.path.expanduser(x.image_dir)):
+            raise ImssrError(f"image folder not found: {x.image_dir} (aux.image_dir / --image-dir)")
         from imssr.presets import get_algo
 
         algo = get_algo(self.algo)
-        if algo.aux != x.name or algo.intrinsic != i.enabled:
-            raise ImssrError(f"algo {self.algo} means aux.name={algo.aux} and intrinsic.enabled="
-                             f"{str(algo.intrinsic).lower()}; choose the algo instead of overriding these")
+        if algo.aux != x.name or algo.intrinsic_enabled != i.enabled or \
+                (algo.intrinsic_enabled and algo.intrinsic != i.source):
+            raise ImssrError(f"algo {self.algo} means aux.name={algo.aux}, intrinsic.enabled="
+                             f"{str(algo.intrinsic_enabled).lower()}"
+                             + (f", intrinsic.source={algo.intrinsic}" if algo.intrinsic_enabled else "")
+                             + "; choose the algo instead of overriding these")
         return self
 
 
 SCHEDULES = ("constant", "step")
 NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
+SOURCES = ("ssl", "rnd", "re3")
 
 
 def _check_types(section) -> None:

@@ -21,6 +21,7 @@ def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **
     cfg.aux.batch_size = 8
     cfg.train.replay_capacity = 5000
     cfg.train.seed_steps = 60
+    cfg.train.burst_updates = 0  # DMC-GB presets: 1000
     cfg.train.frames = 2000
     cfg.train.eval_every_frames = 1000
     cfg.train.eval_episodes = 1

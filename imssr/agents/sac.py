@@ -1,11 +1,13 @@
 """Pixel SAC with a pluggable auxiliary task and an optional intrinsic reward.
 
 One agent step's update (order as in the CURL / DMC-GB code bases):
-  1. critic, every ``critic_update_every`` steps, on ``r + beta_t * r_int``;
+  1. critic, every ``critic_update_every`` steps, on ``r + beta_t * r_int``, over
+     the observation views the auxiliary task asks for (SVEA: clean + augmented);
   2. actor and temperature, every ``actor_update_every`` steps;
   3. soft update of the target Q heads (``critic_tau``) and target encoder
      (``encoder_tau``), every ``target_update_every`` steps;
-  4. the auxiliary task, every ``aux.update_every`` steps.
+  4. the auxiliary task, every ``aux.update_every`` steps;
+  5. the intrinsic signal's own networks, if it has any (RND's predictor).
 The time limit is not terminal: ``discount`` is 0 only for true terminal states.
 """
 from __future__ import annotations
@@ -22,7 +24,7 @@ from torch import nn
 from imssr.augmentations import center_crop, random_crop
 from imssr.auxiliary import AuxiliaryTask, Batch, NextObsContext, SharedNetworks, make_aux
 from imssr.config import AgentConfig, AuxConfig, IntrinsicConfig
-from imssr.intrinsic import IntrinsicReward
+from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
 from imssr.networks import Actor, ConvTrunk, Critic, Encoder, weight_init
 from imssr.replay import FrameReplayBuffer
 
@@ -32,10 +34,11 @@ class SACNetworks(nn.Module):
 
     def __init__(self, obs_channels: int, action_dim: int, cfg: AgentConfig):
         super().__init__()
-        trunk = ConvTrunk(obs_channels, cfg.crop_size, cfg.encoder_layers, cfg.encoder_filters)
-        self.critic = Critic(Encoder(trunk, cfg.feature_dim), action_dim, cfg.hidden_dim)
+        trunk = ConvTrunk(obs_channels, cfg.crop_size, cfg.encoder_layers, cfg.encoder_filters,
+                          cfg.encoder_head_layers)
+        self.critic = Critic(Encoder(trunk, cfg.feature_dim, cfg.projection_tanh), action_dim, cfg.hidden_dim)
         self.actor = Actor(trunk.out_dim, cfg.feature_dim, action_dim, cfg.hidden_dim,
-                           cfg.log_std_min, cfg.log_std_max)
+                           cfg.log_std_min, cfg.log_std_max, cfg.projection_tanh)
         self.apply(weight_init)
         self.critic_target = copy.deepcopy(self.critic)
         for p in self.critic_target.parameters():
@@ -67,9 +70,11 @@ class SACAgent:
         if aux_cfg is not None:
             shared = SharedNetworks(n.critic.encoder, n.critic_target.encoder, action_dim)
             self.aux = make_aux(aux_cfg.name, shared, aux_cfg, cfg).to(self.device)
-        self.intrinsic = IntrinsicReward(intrinsic_cfg) if intrinsic_cfg and intrinsic_cfg.enabled else None
-        if self.intrinsic is not None and self.aux is None:
-            raise ValueError("the intrinsic reward needs an auxiliary task")
+        self.intrinsic: Optional[IntrinsicReward] = None
+        self.signal: Optional[IntrinsicSignal] = None
+        if intrinsic_cfg is not None and intrinsic_cfg.enabled:
+            self.intrinsic = IntrinsicReward(intrinsic_cfg)
+            self.signal = make_signal(intrinsic_cfg, self.obs_shape, cfg, self.aux).to(self.device)
         # Separate generators: augmentations/policy noise, and the intrinsic
         # reward's extra views, so that computing r_int never shifts the
         # random stream of the base algorithm (beta = 0 is the baseline exactly).
@@ -118,9 +123,11 @@ class SACAgent:
             metrics.update(self.update_actor_and_alpha(batch))
         if step % c.target_update_every == 0:
             self.soft_update_targets()
-        if self.aux is not None and step % self.aux.cfg.update_every == 0:
+        if self.aux is not None and self.aux.trains and step % self.aux.cfg.update_every == 0:
             aux_batch = batch if self.aux.uses_rl_batch else self.to_batch(replay.sample(self.aux.cfg.batch_size))
             metrics.update(self.aux.update(aux_batch, step))
+        if self.signal is not None:
+            metrics.update(self.signal.update(batch, step))
         self.updates += 1
         return metrics
 
@@ -139,16 +146,22 @@ class SACAgent:
                 # r <- r + beta_t * r_int (Eq. 1).
                 ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
                                      self.intrinsic_gen, self.intrinsic.cfg.view, batch)
-                bonus, stats = self.intrinsic(self.aux.intrinsic_loss(ctx), step)
+                bonus, stats = self.intrinsic(self.signal(ctx), step)
                 reward = reward + bonus
                 metrics.update(stats)
             target_q = reward + batch.discount * c.discount * target_v
-        q1, q2 = n.critic(batch.obs, batch.action)
-        loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
+        views = self.aux.critic_views(batch) if self.aux is not None else [(batch.obs, 1.0)]
+        # All views in one forward pass; each is regressed to the same (clean) target.
+        obs = views[0][0] if len(views) == 1 else torch.cat([v for v, _ in views])
+        action = batch.action.repeat(len(views), 1)
+        q1_all, q2_all = n.critic(obs, action)
+        loss = 0.0
+        for q1, q2, (_, weight) in zip(q1_all.chunk(len(views)), q2_all.chunk(len(views)), views):
+            loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
         self.critic_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.critic_opt.step()
-        metrics.update(critic_loss=loss.detach(), q_mean=q1.detach().mean())
+        metrics.update(critic_loss=loss.detach(), q_mean=q1_all[:len(batch)].detach().mean())
         return metrics
 
     def update_actor_and_alpha(self, batch: Batch) -> dict[str, torch.Tensor]:
@@ -188,6 +201,8 @@ class SACAgent:
         }
         if self.aux is not None:
             state["aux"] = self.aux.full_state_dict()
+        if self.signal is not None:
+            state["signal"] = self.signal.full_state_dict()
         return state
 
     def load_state_dict(self, state: dict, restore_rng: bool = True) -> None:
@@ -214,6 +229,8 @@ class SACAgent:
                 self.noise_gen.manual_seed(int(self.gen.initial_seed()) + 1 + self.updates)
         if self.aux is not None:
             self.aux.load_full_state_dict(state["aux"])
+        if self.signal is not None:
+            self.signal.load_full_state_dict(state["signal"])
 
 
 def _ema(src: nn.Module, dst: nn.Module, tau: float) -> None:

@@ -1,9 +1,12 @@
 """Auxiliary self-supervised tasks, one module each, registered by name."""
 from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
 from imssr.auxiliary.curl import CURL
+from imssr.auxiliary.pad import PAD
+from imssr.auxiliary.soda import SODA
+from imssr.auxiliary.svea import SVEA
 from imssr.errors import ImssrError
 
-AUX_TASKS: dict[str, type[AuxiliaryTask]] = {CURL.name: CURL}
+AUX_TASKS: dict[str, type[AuxiliaryTask]] = {t.name: t for t in (CURL, SODA, PAD, SVEA)}
 
 
 def make_aux(name: str, shared: SharedNetworks, cfg, agent_cfg) -> AuxiliaryTask:
@@ -12,4 +15,5 @@ def make_aux(name: str, shared: SharedNetworks, cfg, agent_cfg) -> AuxiliaryTask
     return AUX_TASKS[name](shared, cfg, agent_cfg)
 
 
-__all__ = ["AuxiliaryTask", "Batch", "NextObsContext", "SharedNetworks", "CURL", "AUX_TASKS", "make_aux"]
+__all__ = ["AuxiliaryTask", "Batch", "NextObsContext", "SharedNetworks", "CURL", "SODA", "PAD", "SVEA",
+           "AUX_TASKS", "make_aux"]

@@ -3,7 +3,8 @@
 An auxiliary task owns its parameters and optimiser, reads the agent's shared
 encoders, and exposes *unreduced per-sample* losses: the mean of
 :meth:`per_sample_loss` is what it trains on, and :meth:`intrinsic_loss` is the
-same loss for the next observation, which IM-SSR turns into a reward.  The
+same loss for the next observation, which IM-SSR turns into a reward.  A task
+may also change what the critic regresses (:meth:`critic_views`, SVEA).  The
 agent knows only this interface, so a new task plugs in by registering a class
 in :data:`imssr.auxiliary.AUX_TASKS`.
 """
@@ -76,6 +77,8 @@ class AuxiliaryTask(nn.Module, abc.ABC):
     name: ClassVar[str]
     uses_rl_batch: ClassVar[bool] = True
     """True: trains on the RL batch; False: the agent samples it a batch of ``cfg.batch_size``."""
+    trains: ClassVar[bool] = True
+    """False for tasks without an auxiliary loss of their own (SVEA acts through the critic)."""
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__()
@@ -93,6 +96,10 @@ class AuxiliaryTask(nn.Module, abc.ABC):
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         """The same loss for each next observation, shape ``(B,)``, without gradients."""
 
+    def critic_views(self, batch: Batch) -> list[tuple[torch.Tensor, float]]:
+        """Observations the critic regresses to the same target, with their loss weights."""
+        return [(batch.obs, 1.0)]
+
     def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
         """One optimisation step on the mean of :meth:`per_sample_loss`."""
         loss = self.per_sample_loss(batch).mean()
@@ -106,8 +113,12 @@ class AuxiliaryTask(nn.Module, abc.ABC):
         """Hook for momentum updates of the task's own target networks."""
 
     def full_state_dict(self) -> dict:
-        return {"module": self.state_dict(), "optimizer": self.optimizer.state_dict()}
+        state = {"module": self.state_dict()}
+        if self.optimizer is not None:
+            state["optimizer"] = self.optimizer.state_dict()
+        return state
 
     def load_full_state_dict(self, state: dict) -> None:
         self.load_state_dict(state["module"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        if self.optimizer is not None:
+            self.optimizer.load_state_dict(state["optimizer"])

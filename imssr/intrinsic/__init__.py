@@ -1,4 +1,28 @@
-"""Intrinsic rewards (IM-SSR): normalisation and beta schedule."""
-from imssr.intrinsic.reward import BetaSchedule, IntrinsicReward, normalize
+"""Intrinsic rewards: the raw signal of o' (IM-SSR's SSL loss, RND, RE3), then
+in-batch normalisation and the beta schedule (:class:`IntrinsicReward`)."""
+from __future__ import annotations
 
-__all__ = ["BetaSchedule", "IntrinsicReward", "normalize"]
+from imssr.config import AgentConfig, IntrinsicConfig
+from imssr.errors import ImssrError
+from imssr.intrinsic.base import IntrinsicSignal, SSLSignal
+from imssr.intrinsic.re3 import RE3
+from imssr.intrinsic.reward import BetaSchedule, IntrinsicReward, normalize
+from imssr.intrinsic.rnd import RND
+
+
+def make_signal(cfg: IntrinsicConfig, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
+                aux=None) -> IntrinsicSignal:
+    """The signal named by ``cfg.source``; ``ssl`` needs the auxiliary task."""
+    if cfg.source == "ssl":
+        if aux is None:
+            raise ImssrError("intrinsic.source=ssl needs an auxiliary task")
+        return SSLSignal(aux)
+    if cfg.source == "rnd":
+        return RND(obs_shape[0], agent_cfg.crop_size, cfg)
+    if cfg.source == "re3":
+        return RE3(obs_shape[0], agent_cfg, cfg)
+    raise ImssrError(f"unknown intrinsic source {cfg.source!r}; valid: ssl, rnd, re3")
+
+
+__all__ = ["BetaSchedule", "IntrinsicReward", "IntrinsicSignal", "SSLSignal", "RND", "RE3",
+           "make_signal", "normalize"]

@@ -76,6 +76,6 @@ class IntrinsicReward:
         # r_int is normalised (zscore: mean 0, std 1 by construction), so the raw
         # loss's spread and the bonus actually added are logged too.
         stats = {"r_int_mean": r_int.mean(), "r_int_std": r_int.std(unbiased=False),
-                 "ssl_next_loss": losses.mean(), "ssl_next_loss_std": losses.std(unbiased=False),
+                 "r_int_raw": losses.mean(), "r_int_raw_std": losses.std(unbiased=False),
                  "bonus_std": beta * r_int.std(unbiased=False), "beta": beta}
         return (beta * r_int).unsqueeze(-1), stats

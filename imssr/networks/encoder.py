@@ -16,27 +16,44 @@ def conv_output_size(size: int, num_layers: int) -> int:
     return size - 2 * (num_layers - 1)
 
 
+def conv_stack(filters: int, num_layers: int) -> nn.Sequential:
+    """``num_layers`` stride-1 3x3 convolutions of ``filters`` channels, ReLU after each."""
+    layers: list[nn.Module] = []
+    for _ in range(num_layers):
+        layers += [nn.Conv2d(filters, filters, 3, stride=1), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
 class ConvTrunk(nn.Module):
     """``num_layers`` 3x3 convolutions of ``filters`` channels, ReLU after each.
 
+    The first ``num_layers - head_layers`` (``convs``) may be shared with an
+    auxiliary task that builds a head of its own (PAD); the last ``head_layers``
+    (``head``) belong to the RL encoder only (DMC-GB's shared / head CNN split).
     Input: uint8 or float pixels in [0, 255], ``(B, C, S, S)``; output: the
     flattened feature map ``(B, filters * s * s)``.
     """
 
-    def __init__(self, in_channels: int, image_size: int, num_layers: int = 4, filters: int = 32):
+    def __init__(self, in_channels: int, image_size: int, num_layers: int = 4, filters: int = 32,
+                 head_layers: int = 0):
         super().__init__()
         out = conv_output_size(image_size, num_layers)
         if out < 1:
             raise ValueError(f"{num_layers} conv layers leave no pixels of a {image_size}px input")
-        layers: list[nn.Module] = [nn.Conv2d(in_channels, filters, 3, stride=2), nn.ReLU()]
-        for _ in range(num_layers - 1):
-            layers += [nn.Conv2d(filters, filters, 3, stride=1), nn.ReLU()]
-        self.convs = nn.Sequential(*layers)
+        if not 0 <= head_layers < num_layers:
+            raise ValueError(f"head_layers must be in [0, {num_layers}), got {head_layers}")
+        self.convs = nn.Sequential(nn.Conv2d(in_channels, filters, 3, stride=2), nn.ReLU(),
+                                   *conv_stack(filters, num_layers - 1 - head_layers))
+        self.head = conv_stack(filters, head_layers)
+        self.filters, self.head_layers = filters, head_layers
         self.out_dim = filters * out * out
 
+    def shared_features(self, obs: torch.Tensor) -> torch.Tensor:
+        """Output of the shared layers, ``(B, filters, s', s')``, before the RL head."""
+        return self.convs(obs.float() / 255.0)
+
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        x = obs.float() / 255.0
-        return self.convs(x).flatten(1)
+        return self.head(self.shared_features(obs)).flatten(1)
 
 
 class Projection(nn.Module):
@@ -57,10 +74,10 @@ class Projection(nn.Module):
 class Encoder(nn.Module):
     """Trunk followed by a projection: pixels -> latent ``z``."""
 
-    def __init__(self, trunk: ConvTrunk, feature_dim: int):
+    def __init__(self, trunk: ConvTrunk, feature_dim: int, tanh: bool = False):
         super().__init__()
         self.trunk = trunk
-        self.projection = Projection(trunk.out_dim, feature_dim)
+        self.projection = Projection(trunk.out_dim, feature_dim, tanh)
         self.out_dim = feature_dim
 
     def forward(self, obs: torch.Tensor, detach_trunk: bool = False) -> torch.Tensor:

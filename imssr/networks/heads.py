@@ -24,9 +24,9 @@ class Actor(nn.Module):
     """
 
     def __init__(self, trunk_dim: int, feature_dim: int, action_dim: int, hidden_dim: int,
-                 log_std_min: float, log_std_max: float):
+                 log_std_min: float, log_std_max: float, projection_tanh: bool = False):
         super().__init__()
-        self.projection = Projection(trunk_dim, feature_dim)
+        self.projection = Projection(trunk_dim, feature_dim, projection_tanh)
         self.net = mlp(feature_dim, hidden_dim, 2 * action_dim)
         self.log_std_min, self.log_std_max = log_std_min, log_std_max
 

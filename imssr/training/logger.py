@@ -16,7 +16,7 @@ from imssr.utils import atomic_write_text
 
 TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
                  "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
-                 "aux_loss", "ssl_next_loss", "ssl_next_loss_std", "r_int_mean", "r_int_std", "bonus_std", "beta", "updates", "wall_time"]
+                 "aux_loss", "rnd_loss", "r_int_raw", "r_int_raw_std", "r_int_mean", "r_int_std", "bonus_std", "beta", "updates", "wall_time"]
 EVAL_COLUMNS = ["frame", "step", "mode", "return_mean", "return_std", "episodes",
                 "return_min", "return_max", "wall_time"]
 EVAL_EPISODE_COLUMNS = ["frame", "step", "mode", "episode", "return"]

@@ -1,0 +1,48 @@
+"""PAD's inverse-dynamics task (Hansen et al. 2021): predict a_t from s_t and s_{t+1}.
+
+``L_PAD = MSE(a_t, f(s_t, s_{t+1}))`` (paper, Appendix).  As in DMC-GB, the task
+shares the first ``encoder_layers - encoder_head_layers`` convolutions with the
+critic and has its own head convolutions and projection, then an MLP
+``2 * feature_dim -> hidden -> hidden -> |A|``.  It trains on the RL batch every
+step.  IM-PAD's intrinsic reward is the per-sample inverse-dynamics error of the
+RL batch's own transitions ``(o, a, o')``: how poorly the model explains the
+step that reached ``o'``.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
+from imssr.config import AgentConfig, AuxConfig
+from imssr.networks import Projection, mlp, weight_init
+from imssr.networks.encoder import conv_stack
+
+
+class PAD(AuxiliaryTask):
+    name = "pad"
+    uses_rl_batch = True
+
+    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+        super().__init__(shared, cfg, agent_cfg)
+        trunk = shared.encoder.trunk
+        self.head = conv_stack(trunk.filters, trunk.head_layers)
+        self.projection = Projection(trunk.out_dim, agent_cfg.feature_dim, agent_cfg.projection_tanh)
+        self.mlp = mlp(2 * agent_cfg.feature_dim, agent_cfg.hidden_dim, shared.action_dim)
+        self.apply(weight_init)
+        # The shared convolutions (not the critic's head) and the task's own layers.
+        self.optimizer = torch.optim.Adam([*trunk.convs.parameters(), *self.parameters()], lr=cfg.lr)
+
+    def predict_action(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        # One encoder pass over both observations.
+        h = self.head(self.shared.encoder.trunk.shared_features(torch.cat([obs, next_obs])))
+        z, z_next = self.projection(h.flatten(1)).chunk(2)
+        return self.mlp(torch.cat([z, z_next], dim=1))
+
+    def per_sample_loss(self, batch: Batch) -> torch.Tensor:
+        return (self.predict_action(batch.obs, batch.next_obs) - batch.action).pow(2).mean(dim=1)
+
+    @torch.no_grad()
+    def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
+        b = ctx.batch
+        return (self.predict_action(b.obs, ctx.next_view) - b.action).pow(2).mean(dim=1)

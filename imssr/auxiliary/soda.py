@@ -1,0 +1,84 @@
+"""SODA: soft data augmentation (Hansen & Wang 2021), BYOL-style consistency.
+
+The online branch (shared trunk -> projection MLP -> predictor) sees an
+overlaid view, the EMA target branch (its own copies of trunk and projection,
+tau = ``aux.tau``) the clean view of the same crop; the loss is the squared L2
+distance of the L2-normalised outputs (paper, Appendix, Eq. sodaloss):
+``||h(g(f(o_aug)))/|.| - g*(f*(o))/|.|||^2``.  Per sample it is averaged over
+the latent dimensions, so the batch mean is exactly ``F.mse_loss`` as DMC-GB trains.
+
+SODA trains on a batch of its own (``aux.batch_size``, every ``aux.update_every``
+steps), so IM-SODA's intrinsic reward is the same per-sample loss computed on
+the RL batch's next observations.
+"""
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from imssr.augmentations import random_overlay
+from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
+from imssr.config import AgentConfig, AuxConfig
+from imssr.data import image_pool
+from imssr.networks import weight_init
+
+
+def bn_mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    # BatchNorm always uses batch statistics: DMC-GB's SODA never leaves training
+    # mode, so running statistics would never be used; keeping none makes the
+    # no-grad intrinsic pass free of side effects.
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.BatchNorm1d(hidden, track_running_stats=False),
+                         nn.ReLU(), nn.Linear(hidden, out_dim))
+
+
+class SODA(AuxiliaryTask):
+    name = "soda"
+    uses_rl_batch = False
+
+    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+        super().__init__(shared, cfg, agent_cfg)
+        trunk = shared.encoder.trunk
+        dim = agent_cfg.feature_dim
+        self.projection = bn_mlp(trunk.out_dim, dim, dim)
+        self.predictor = bn_mlp(dim, dim, dim)
+        self.projection.apply(weight_init)
+        self.predictor.apply(weight_init)
+        # The target's own copy of the trunk: SODA's EMA (tau 0.005) is separate
+        # from the critic target's (encoder_tau 0.05).
+        self.target_trunk = copy.deepcopy(trunk)
+        self.target_projection = copy.deepcopy(self.projection)
+        for p in [*self.target_trunk.parameters(), *self.target_projection.parameters()]:
+            p.requires_grad_(False)
+        self.optimizer = torch.optim.Adam(
+            [*trunk.parameters(), *self.projection.parameters(), *self.predictor.parameters()], lr=cfg.lr)
+        pool = image_pool(agent_cfg.crop_size, cfg.image_dir, cfg.image_pool_size)
+        # A buffer (moves with .to(device)) but not state: it is rebuilt from its source.
+        self.register_buffer("images", torch.from_numpy(pool), persistent=False)
+
+    def overlay(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        return random_overlay(x, self.images, self.cfg.overlay_alpha, generator)
+
+    def pair_loss(self, augmented: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
+        h = self.predictor(self.projection(self.shared.encoder.trunk(augmented)))
+        with torch.no_grad():
+            target = self.target_projection(self.target_trunk(clean))
+        return (F.normalize(h, dim=1) - F.normalize(target, dim=1)).pow(2).mean(dim=1)
+
+    def per_sample_loss(self, batch: Batch) -> torch.Tensor:
+        # Same crop for both branches; only the online one is overlaid.
+        return self.pair_loss(self.overlay(batch.obs, batch.generator), batch.obs)
+
+    @torch.no_grad()
+    def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
+        return self.pair_loss(self.overlay(ctx.next_view, ctx.generator), ctx.next_view)
+
+    @torch.no_grad()
+    def after_step(self, step: int) -> None:
+        tau = self.cfg.tau
+        online = [*self.shared.encoder.trunk.parameters(), *self.projection.parameters()]
+        target = [*self.target_trunk.parameters(), *self.target_projection.parameters()]
+        for p, tp in zip(online, target):
+            tp.lerp_(p, tau)

@@ -1,0 +1,126 @@
+"""Pools of natural images for random overlay (SODA) and, later, distracting scenes.
+
+Two sources:
+
+* a user-supplied folder (any tree of ``.jpg`` / ``.jpeg`` / ``.png``, e.g. a
+  Places365 download), given as ``aux.image_dir`` or ``$IMSSR_IMAGE_DIR``;
+* a built-in pool that works offline: the colour photographs that installed
+  packages ship (scikit-image's ``skimage/data``, scikit-learn's sample images,
+  matplotlib's sample data), cut into many square patches at random positions
+  and scales.  Nothing is downloaded and no image is stored in this repository.
+
+A pool is a uint8 array ``(N, 3, size, size)``; pools are cached per process.
+"""
+from __future__ import annotations
+
+import functools
+import importlib.util
+import os
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from imssr.errors import ImssrError
+
+IMAGE_DIR_ENV = "IMSSR_IMAGE_DIR"
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+# Colour photographs (package, path inside it).  Grey-scale or synthetic images
+# (camera, text, chessboard, ...) are left out: the overlay should look like
+# the natural scenes of Places365.
+_PHOTOS = (
+    ("skimage", "data/astronaut.png"), ("skimage", "data/chelsea.png"),
+    ("skimage", "data/coffee.png"), ("skimage", "data/rocket.jpg"),
+    ("skimage", "data/motorcycle_left.png"), ("skimage", "data/hubble_deep_field.jpg"),
+    ("skimage", "data/retina.jpg"), ("skimage", "data/ihc.png"),
+    ("skimage", "data/grass.png"), ("skimage", "data/gravel.png"), ("skimage", "data/brick.png"),
+    ("sklearn", "datasets/images/china.jpg"), ("sklearn", "datasets/images/flower.jpg"),
+    ("matplotlib", "mpl-data/sample_data/grace_hopper.jpg"),
+)
+
+
+def _package_file(package: str, relative: str) -> Optional[Path]:
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    path = Path(list(spec.submodule_search_locations)[0]) / relative
+    return path if path.is_file() else None
+
+
+def photograph_files() -> list[Path]:
+    """Paths of the colour photographs that installed packages ship."""
+    return [p for p in (_package_file(pkg, rel) for pkg, rel in _PHOTOS) if p is not None]
+
+
+def _read_rgb(path: Path):
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.convert("RGB")
+    except (OSError, ValueError) as exc:
+        raise ImssrError(f"cannot read image {path}: {exc}") from None
+
+
+def _square_resize(image, size: int, box: Optional[tuple[int, int, int, int]] = None) -> np.ndarray:
+    from PIL import Image
+
+    if box is None:  # centre square
+        w, h = image.size
+        s = min(w, h)
+        box = ((w - s) // 2, (h - s) // 2, (w - s) // 2 + s, (h - s) // 2 + s)
+    patch = image.resize((size, size), Image.BILINEAR, box=box)
+    return np.asarray(patch, dtype=np.uint8).transpose(2, 0, 1)
+
+
+@functools.lru_cache(maxsize=8)
+def builtin_photographs(size: int, count: int = 512, seed: int = 0) -> np.ndarray:
+    """``count`` square patches (random position, 30-100% of the short side) of the shipped photos."""
+    files = photograph_files()
+    if not files:
+        raise ImssrError("no built-in photographs found (install scikit-image); "
+                         f"or point aux.image_dir / ${IMAGE_DIR_ENV} at a folder of jpg/png images")
+    images = [_read_rgb(p) for p in files]
+    rng = np.random.default_rng(seed)
+    out = np.empty((count, 3, size, size), dtype=np.uint8)
+    for i in range(count):
+        im = images[i % len(images)]
+        w, h = im.size
+        s = int(min(w, h) * rng.uniform(0.3, 1.0))
+        x, y = int(rng.integers(0, w - s + 1)), int(rng.integers(0, h - s + 1))
+        patch = _square_resize(im, size, (x, y, x + s, y + s))
+        out[i] = patch[:, :, ::-1] if rng.random() < 0.5 else patch  # horizontal flip
+    return out
+
+
+def _image_files(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+
+
+@functools.lru_cache(maxsize=8)
+def load_image_folder(path: str, size: int, max_images: int = 1024, seed: int = 0) -> np.ndarray:
+    """Up to ``max_images`` images under ``path`` (recursively), centre-square resized to ``size``.
+
+    Large folders (Places365 has 1.8M files) are subsampled with ``seed``.
+    """
+    root = Path(path).expanduser()
+    if not root.exists():
+        raise ImssrError(f"image folder not found: {root} (aux.image_dir or ${IMAGE_DIR_ENV})")
+    if not root.is_dir():
+        raise ImssrError(f"image folder is not a directory: {root}")
+    files = _image_files(root)
+    if not files:
+        raise ImssrError(f"no .jpg/.jpeg/.png images under {root}")
+    if len(files) > max_images:
+        pick = np.random.default_rng(seed).choice(len(files), max_images, replace=False)
+        files = [files[i] for i in sorted(pick)]
+    return np.stack([_square_resize(_read_rgb(p), size) for p in files])
+
+
+def image_pool(size: int, image_dir: str = "", max_images: int = 1024) -> np.ndarray:
+    """The overlay pool: ``image_dir``, else ``$IMSSR_IMAGE_DIR``, else the built-in photographs."""
+    folder = image_dir or os.environ.get(IMAGE_DIR_ENV, "")
+    if folder:
+        return load_image_folder(folder, size, max_images)
+    return builtin_photographs(size, min(max_images, 512))

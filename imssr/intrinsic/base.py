@@ -1,0 +1,59 @@
+"""Where the raw intrinsic signal of o' comes from, before normalisation and beta.
+
+IM-SSR's signal is the auxiliary task's per-sample loss of o' (:class:`SSLSignal`);
+RND and RE3 are exploration peers that plug into the same slot, so one setting
+(``intrinsic.source``) swaps the signal while normalisation, the beta schedule
+and everything else stay the same.
+"""
+from __future__ import annotations
+
+import abc
+from typing import ClassVar, Optional
+
+import torch
+from torch import nn
+
+from imssr.auxiliary import AuxiliaryTask, Batch, NextObsContext
+
+
+class IntrinsicSignal(nn.Module, abc.ABC):
+    """A per-sample novelty signal of the next observation."""
+
+    name: ClassVar[str]
+
+    def __init__(self):
+        super().__init__()
+        self.optimizer: Optional[torch.optim.Optimizer] = None
+
+    @abc.abstractmethod
+    def forward(self, ctx: NextObsContext) -> torch.Tensor:
+        """Raw signal per sample, shape ``(B,)``, without gradients."""
+
+    def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
+        """Train the signal's own networks, if any, once per agent update."""
+        return {}
+
+    def full_state_dict(self) -> dict:
+        state = {"module": self.state_dict()}
+        if self.optimizer is not None:
+            state["optimizer"] = self.optimizer.state_dict()
+        return state
+
+    def load_full_state_dict(self, state: dict) -> None:
+        self.load_state_dict(state["module"])
+        if self.optimizer is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
+
+
+class SSLSignal(IntrinsicSignal):
+    """IM-SSR (Algorithm 1): the auxiliary task's per-sample loss of o'."""
+
+    name = "ssl"
+
+    def __init__(self, aux: AuxiliaryTask):
+        super().__init__()
+        self.__dict__["aux"] = aux  # the agent owns and saves the task
+
+    @torch.no_grad()
+    def forward(self, ctx: NextObsContext) -> torch.Tensor:
+        return self.aux.intrinsic_loss(ctx)

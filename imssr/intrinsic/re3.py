@@ -1,0 +1,37 @@
+"""RE3: random encoders for efficient exploration (Seo et al. 2021).
+
+A randomly initialised encoder with the agent's architecture, never trained,
+embeds o'; the signal is ``log(1 + ||y_i - y_i^{kNN}||)``, the distance to the
+k-th nearest neighbour within the batch: a particle estimate of state entropy.
+It has no parameters to learn, so it costs one no-grad encoder pass.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from imssr.auxiliary import NextObsContext
+from imssr.config import AgentConfig, IntrinsicConfig
+from imssr.intrinsic.base import IntrinsicSignal
+from imssr.networks import ConvTrunk, Projection, weight_init
+
+
+class RE3(IntrinsicSignal):
+    name = "re3"
+
+    def __init__(self, channels: int, agent_cfg: AgentConfig, cfg: IntrinsicConfig):
+        super().__init__()
+        trunk = ConvTrunk(channels, agent_cfg.crop_size, agent_cfg.encoder_layers, agent_cfg.encoder_filters)
+        self.encoder = nn.Sequential(trunk, Projection(trunk.out_dim, cfg.re3_dim))
+        self.encoder.apply(weight_init)
+        for p in self.encoder.parameters():
+            p.requires_grad_(False)
+        self.k = cfg.re3_k
+
+    @torch.no_grad()
+    def forward(self, ctx: NextObsContext) -> torch.Tensor:
+        y = self.encoder(ctx.next_view)
+        dist = torch.cdist(y, y)
+        # The 0-th smallest distance is the sample to itself.
+        kth = dist.kthvalue(self.k + 1, dim=1).values
+        return torch.log1p(kth)

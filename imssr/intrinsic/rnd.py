@@ -1,0 +1,67 @@
+"""Random network distillation (Burda et al. 2019) on the next observation.
+
+A fixed, randomly initialised target network embeds o'; a predictor learns to
+match it online (MSE on the RL batch's next observations each update).  The
+per-sample prediction error is the novelty signal: it stays high for rarely
+seen observations.  Unlike IM-SSR it needs networks and an optimiser of its
+own, which is the contrast the paper draws.  The original normalises pixels and
+rewards with running statistics; here the signal goes through the same
+in-batch normalisation as every other source.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from imssr.auxiliary import Batch, NextObsContext
+from imssr.config import IntrinsicConfig
+from imssr.intrinsic.base import IntrinsicSignal
+
+
+def rnd_convs(channels: int) -> nn.Sequential:
+    # RND's convolutional stack (8x8/4, 4x4/2, 3x3/1), LeakyReLU as in the original.
+    return nn.Sequential(nn.Conv2d(channels, 32, 8, stride=4), nn.LeakyReLU(),
+                         nn.Conv2d(32, 64, 4, stride=2), nn.LeakyReLU(),
+                         nn.Conv2d(64, 64, 3, stride=1), nn.LeakyReLU(), nn.Flatten())
+
+
+def _flat_dim(net: nn.Module, channels: int, size: int) -> int:
+    with torch.no_grad():
+        return net(torch.zeros(1, channels, size, size)).shape[1]
+
+
+class RND(IntrinsicSignal):
+    name = "rnd"
+
+    def __init__(self, channels: int, size: int, cfg: IntrinsicConfig):
+        super().__init__()
+        conv_t, conv_p = rnd_convs(channels), rnd_convs(channels)
+        flat = _flat_dim(conv_t, channels, size)
+        self.target = nn.Sequential(conv_t, nn.Linear(flat, cfg.rnd_dim))
+        self.predictor = nn.Sequential(conv_p, nn.Linear(flat, 512), nn.ReLU(),
+                                       nn.Linear(512, 512), nn.ReLU(), nn.Linear(512, cfg.rnd_dim))
+        for m in self.modules():
+            if isinstance(m, (nn.Conv2d, nn.Linear)):
+                nn.init.orthogonal_(m.weight, gain=2 ** 0.5)
+                nn.init.zeros_(m.bias)
+        for p in self.target.parameters():
+            p.requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.predictor.parameters(), lr=cfg.rnd_lr)
+
+    def error(self, obs: torch.Tensor) -> torch.Tensor:
+        x = obs.float() / 255.0
+        with torch.no_grad():
+            target = self.target(x)
+        return (self.predictor(x) - target).pow(2).mean(dim=1)
+
+    @torch.no_grad()
+    def forward(self, ctx: NextObsContext) -> torch.Tensor:
+        return self.error(ctx.next_view)
+
+    def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
+        loss = self.error(batch.next_obs).mean()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return {"rnd_loss": loss.detach()}
+
