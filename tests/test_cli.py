@@ -22,10 +22,19 @@ def imssr(*args, check=True, **kw):
     return proc
 
 
-@pytest.mark.parametrize("algo", sorted(ALGOS))
+# Every algorithm trains in-process in test_algorithms.py; the CLI runs one of each family.
+@pytest.mark.parametrize("algo", ["curl", "im-curl", "im-soda"])
 def test_train_end_to_end_then_evaluate(algo, tmp_path):
     out = tmp_path / algo
-    imssr("train", "--algo", algo, "--task", "cartpole_swingup_sparse", "--seed", "1", "--out", str(out), *TINY)
+    extra = []
+    if algo == "im-soda":  # overlay images from a user folder
+        from test_images import _make_folder
+
+        _make_folder(tmp_path / "images")
+        extra = ["--image-dir", str(tmp_path / "images"), "--set", "aux.batch_size=8",
+                 "--set", "train.burst_updates=0"]
+    imssr("train", "--algo", algo, "--task", "cartpole_swingup_sparse", "--seed", "1", "--out", str(out),
+          *TINY, *extra)
     for name in ("config.json", "train.csv", "eval.csv", "learning_curve.png", "checkpoints/latest.pt"):
         assert (out / name).exists(), name
     rows = read_csv(out / "eval.csv")
@@ -34,7 +43,7 @@ def test_train_end_to_end_then_evaluate(algo, tmp_path):
     assert {"frame", "step", "mode", "return_mean", "return_std", "episodes"} <= set(rows[0])
     train = read_csv(out / "train.csv")
     assert len(train) == 2 and float(train[1]["critic_loss"]) > 0
-    if algo.startswith("im-"):
+    if ALGOS[algo].intrinsic_enabled:
         assert float(train[1]["beta"]) > 0 and float(train[1]["r_int_std"]) > 0
     proc = imssr("evaluate", "--run", str(out), "--episodes", "1")
     assert "return" in proc.stdout
@@ -65,7 +74,8 @@ def test_killed_run_resumes_to_completion(tmp_path):
     (["train", "--algo", "im-curl", "--task", "cartpole_swingup_sparce"], "unknown task 'cartpole_swingup_sparce'"),
     (["train", "--algo", "drq", "--task", "walker_walk"], "invalid choice: 'drq'"),
     (["train", "--algo", "curl", "--task", "walker_walk", "--frames", "-5"], "expected a positive integer"),
-    (["train", "--algo", "curl", "--task", "walker_walk", "--beta0", "0.1"], "--beta0 applies to im-"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--beta0", "0.1"], "--beta0 applies to algorithms with an intrinsic"),
+    (["train", "--algo", "soda", "--task", "walker_walk", "--image-dir", "/no/such/dir"], "image folder not found"),
     (["train", "--algo", "curl"], "needs --algo and --task"),
     (["train", "--algo", "curl", "--task", "walker_walk", "--set", "agent.bogus=1"], "unknown setting"),
     (["train", "--algo", "curl", "--task", "walker_walk", "--device", "cuda:0"], "CUDA is not available"),
@@ -92,5 +102,7 @@ def test_tasks_and_algos_listings():
     for name in ("cartpole_swingup_sparse", "walker_walk_sparse", "finger_spin", "ball_in_cup_catch"):
         assert name in tasks
     algos = imssr("algos").stdout
-    assert "curl" in algos and "im-curl" in algos
+    names = {line.split("\t")[0] for line in algos.splitlines()}
+    assert names == {f"{p}{b}{s}" for b in ("curl", "soda", "pad", "svea")
+                     for p, s in (("", ""), ("im-", ""), ("", "+rnd"), ("", "+re3"))}
     assert '"beta0": 0.05' in imssr("config", "--algo", "im-curl", "--task", "pendulum_swingup").stdout

@@ -59,12 +59,17 @@ def _run(algo, beta0=None, steps=6, seed=0):
 def _params(agent):
     state = {f"nets.{k}": v for k, v in agent.nets.state_dict().items()}
     state.update({f"aux.{k}": v for k, v in agent.aux.state_dict().items()})
+    for i, st in agent.critic_opt.state_dict()["state"].items():
+        state.update({f"critic_opt.{i}.{k}": v for k, v in st.items()})
     return state
 
 
-def test_beta_zero_is_the_baseline_update_for_update():
-    base, _ = _run("curl")
-    im0, metrics = _run("im-curl", beta0=0.0)
+@pytest.mark.parametrize("base_algo,variant", [
+    ("curl", "im-curl"), ("soda", "im-soda"), ("pad", "im-pad"), ("svea", "im-svea"),
+    ("curl", "curl+rnd"), ("pad", "pad+re3")])
+def test_beta_zero_is_the_baseline_update_for_update(base_algo, variant):
+    base, _ = _run(base_algo)
+    im0, metrics = _run(variant, beta0=0.0)
     assert "r_int_mean" in metrics[0]  # the intrinsic path really ran
     a, b = _params(base), _params(im0)
     assert a.keys() == b.keys()

@@ -1,0 +1,53 @@
+"""Natural-image pools: a user folder, the built-in photographs, clear errors."""
+import numpy as np
+import pytest
+from PIL import Image
+
+from imssr.data import IMAGE_DIR_ENV, builtin_photographs, image_pool, load_image_folder
+from imssr.errors import ImssrError
+
+
+def _make_folder(root, n=5):
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        sub = root / f"class_{i % 2}" / "deeper"
+        sub.mkdir(parents=True, exist_ok=True)
+        size = (40 + 7 * i, 30 + 5 * i)
+        arr = rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
+        Image.fromarray(arr).save(sub / (f"img{i}.jpg" if i % 2 else f"img{i}.PNG"))
+    (root / "notes.txt").write_text("not an image")
+
+
+def test_folder_loader_reads_a_tree_of_jpg_and_png(tmp_path):
+    _make_folder(tmp_path)
+    pool = load_image_folder(str(tmp_path), 16)
+    assert pool.shape == (5, 3, 16, 16) and pool.dtype == np.uint8
+    assert pool.std() > 10  # real content, not a constant fill
+    sub = load_image_folder(str(tmp_path), 16, max_images=3)
+    assert sub.shape == (3, 3, 16, 16)
+
+
+def test_folder_errors_are_one_line(tmp_path):
+    with pytest.raises(ImssrError, match="image folder not found"):
+        load_image_folder(str(tmp_path / "missing"), 16)
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "readme.txt").write_text("x")
+    with pytest.raises(ImssrError, match="no .jpg/.jpeg/.png images"):
+        load_image_folder(str(tmp_path / "empty"), 16)
+
+
+def test_environment_variable_selects_the_folder(tmp_path, monkeypatch):
+    _make_folder(tmp_path, n=3)
+    monkeypatch.setenv(IMAGE_DIR_ENV, str(tmp_path))
+    assert image_pool(12).shape == (3, 3, 12, 12)
+    monkeypatch.delenv(IMAGE_DIR_ENV)
+    assert image_pool(12).shape[0] > 100  # built-in pool
+
+
+def test_builtin_pool_is_made_of_varied_colour_photographs():
+    pool = builtin_photographs(32, count=64)
+    assert pool.shape == (64, 3, 32, 32) and pool.dtype == np.uint8
+    assert len({p.tobytes() for p in pool}) == 64  # distinct patches
+    colour = np.abs(pool[:, 0].astype(int) - pool[:, 2].astype(int)).mean()
+    assert colour > 5  # not grey-scale
+    assert np.array_equal(pool, builtin_photographs(32, count=64))  # deterministic
