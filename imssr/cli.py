@@ -5,6 +5,8 @@ import argparse
 import json
 import os
 import sys
+
+import numpy as np
 from typing import Optional
 
 from imssr.errors import ImssrError
@@ -52,6 +54,12 @@ def build_parser() -> argparse.ArgumentParser:
         t.add_argument("--device", help="cpu (default), cuda, cuda:N or auto")
         t.add_argument("--batch-size", type=_positive_int,
                        help="RL batch size (and the auxiliary batch of tasks that train on it)")
+        t.add_argument("--mode", help="scene to train in (imssr modes; default training)")
+        t.add_argument("--eval-modes", metavar="A,B,...",
+                       help="scenes to evaluate in at each evaluation point (default: the training scene)")
+        t.add_argument("--footage", metavar="PATH",
+                       help="videos / frame folders (mp4, DAVIS JPEGImages/480p) for video backgrounds "
+                            "(default: $IMSSR_FOOTAGE_DIR, else built-in footage)")
         t.add_argument("--image-dir", metavar="DIR",
                        help="natural images (jpg/png tree, e.g. Places365) for SODA's overlay "
                             "(default: $IMSSR_IMAGE_DIR, else built-in photographs)")
@@ -74,9 +82,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("evaluate", help="evaluate the latest checkpoint of a run")
     e.add_argument("--run", required=True, help="run directory")
-    e.add_argument("--episodes", type=_positive_int, default=10)
+    e.add_argument("--episodes", type=_positive_int, default=10, help="episodes per scene")
+    e.add_argument("--modes", metavar="A,B,...",
+                   help="scenes to evaluate in, e.g. training,color_hard,video_hard (default: the run's)")
     e.add_argument("--seed", type=_nonneg_int, help="eval env seed (default: run seed + 20000)")
     e.add_argument("--device", default="cpu")
+    e.add_argument("--video", choices=["gif", "mp4"], help="save the first episode of each scene")
+    e.add_argument("--montage", action="store_true", help="save montage.png: one frame per scene")
+    e.add_argument("--footage", metavar="PATH", help="footage for video scenes (default: the run's)")
+
+    mo = sub.add_parser("modes", help="list scenes; --montage renders one frame of each")
+    mo.add_argument("--task", default="walker_walk")
+    mo.add_argument("--montage", metavar="PNG", help="write a montage of every scene (random actions)")
+    mo.add_argument("--seed", type=_nonneg_int, default=0)
+    mo.add_argument("--steps", type=_nonneg_int, default=20, help="agent steps before the frame is taken")
+    mo.add_argument("--footage", metavar="PATH", help="footage for video scenes")
 
     pl = sub.add_parser("plot", help="learning-curve PNG of a run")
     pl.add_argument("--run", required=True)
@@ -140,6 +160,12 @@ def _run_config(args, demo: bool):
             cfg.aux.batch_size = args.batch_size  # the task trains on the RL batch
     if args.image_dir is not None:
         cfg.aux.image_dir = args.image_dir
+    if args.mode is not None:
+        cfg.env.mode = args.mode
+    if args.eval_modes is not None:
+        cfg.train.eval_modes = args.eval_modes
+    if args.footage is not None:
+        cfg.env.footage_dir = args.footage
     if args.beta0 is not None:
         if not cfg.intrinsic.enabled:
             raise ImssrError(f"--beta0 applies to algorithms with an intrinsic reward, not {cfg.algo}")
@@ -169,6 +195,8 @@ def cmd_train(args, demo: bool = False) -> int:
 def cmd_evaluate(args) -> int:
     from imssr.config import load_config
     from imssr.envs import make_env
+    from imssr.envs.scenes import get_mode
+    from imssr.experiments.media import save_montage, save_video
     from imssr.training import build_agent, eval_row, evaluate, resolve_device
     from imssr.training.checkpoint import latest_path, load_checkpoint
     from imssr.training.logger import CSVLog, EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, write_eval
@@ -176,24 +204,73 @@ def cmd_evaluate(args) -> int:
     if not os.path.isdir(args.run):
         raise ImssrError(f"run directory not found: {args.run}")
     cfg = load_config(os.path.join(args.run, "config.json"))
+    modes = [m.strip() for m in (args.modes or cfg.env.mode).split(",") if m.strip()]
+    for mode in modes:
+        get_mode(mode)
     ckpt = load_checkpoint(latest_path(args.run))
     device = resolve_device(args.device)
     e = cfg.env
     seed = cfg.train.seed + 20_000 if args.seed is None else args.seed
-    env = make_env(e.task, seed=seed, mode=e.mode, action_repeat=e.action_repeat,
-                   image_size=e.image_size, frame_stack=e.frame_stack)
-    agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
-    try:
-        agent.load_state_dict(ckpt["agent"], restore_rng=False)
-    except (RuntimeError, KeyError, ValueError) as exc:
-        raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
-    returns = evaluate(agent, env, args.episodes)
-    env.close()
-    row = eval_row(ckpt["frame"], ckpt["step"], e.mode, returns)
-    write_eval(CSVLog(os.path.join(args.run, "evaluate.csv"), EVAL_COLUMNS),
-               CSVLog(os.path.join(args.run, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS), row, returns)
-    print(f"{e.mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
-          f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
+    footage = e.footage_dir if args.footage is None else args.footage
+    agent = None
+    montage = {}
+    summary = CSVLog(os.path.join(args.run, "evaluate.csv"), EVAL_COLUMNS)
+    episodes_log = CSVLog(os.path.join(args.run, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS)
+    for mode in dict.fromkeys(modes):
+        # Unseen footage: evaluation draws from the test pool.
+        env = make_env(e.task, seed=seed, mode=mode, action_repeat=e.action_repeat, image_size=e.image_size,
+                       frame_stack=e.frame_stack, footage_split="test", footage_path=footage)
+        if agent is None:
+            agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
+            try:
+                agent.load_state_dict(ckpt["agent"], restore_rng=False)
+            except (RuntimeError, KeyError, ValueError) as exc:
+                raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
+        frames: list = [] if (args.video or args.montage) else None
+        try:
+            returns = evaluate(agent, env, args.episodes, record=frames)
+        finally:
+            env.close()
+        row = eval_row(ckpt["frame"], ckpt["step"], mode, returns)
+        write_eval(summary, episodes_log, row, returns)
+        print(f"{mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
+              f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
+        if args.video:
+            path = save_video(frames, os.path.join(args.run, "videos", f"{mode}.{args.video}"))
+            print(f"  video: {path}")
+        if args.montage:
+            montage[mode] = frames[min(len(frames) - 1, 20)]
+    if montage:
+        path = save_montage(montage, os.path.join(args.run, "montage.png"),
+                            f"{cfg.algo} on {e.task}, frame {ckpt['frame']}")
+        print(f"montage: {path}")
+    return 0
+
+
+def cmd_modes(args) -> int:
+    from imssr.envs import get_task, make_env
+    from imssr.envs.scenes import MODES
+
+    if not args.montage:
+        for spec in MODES.values():
+            print(f"{spec.name}\t{spec.description}")
+        return 0
+    from imssr.experiments.media import save_montage
+
+    get_task(args.task)
+    frames = {}
+    for mode in MODES:
+        env = make_env(args.task, seed=args.seed, mode=mode, footage_split="test",
+                       footage_path=args.footage or "")
+        try:
+            env.action_space.seed(args.seed)
+            obs, _ = env.reset()
+            for _ in range(args.steps):
+                obs, *_ = env.step(env.action_space.sample())
+            frames[mode] = np.moveaxis(obs[-3:], 0, -1)
+        finally:
+            env.close()
+    print(save_montage(frames, args.montage, f"{args.task}: every scene (seed {args.seed})"))
     return 0
 
 
@@ -238,7 +315,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = parser.parse_args(argv)
     handlers = {"train": cmd_train, "demo": lambda a: cmd_train(a, demo=True),
                 "evaluate": cmd_evaluate, "tasks": cmd_tasks, "algos": cmd_algos,
-                "config": cmd_config, "plot": cmd_plot}
+                "config": cmd_config, "plot": cmd_plot, "modes": cmd_modes}
     try:
         return handlers[args.command](args)
     except ImssrError as exc:

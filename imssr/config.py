@@ -20,7 +20,11 @@ class EnvConfig:
     task: str = "cartpole_swingup_sparse"
     """Task name, paper-style ``domain_task`` (``imssr tasks`` lists them)."""
     mode: str = "training"
-    """Scene the agent trains in."""
+    """Scene the agent trains in (``imssr modes``: training, color_*, video_*, distracting_*)."""
+    footage_dir: str = ""
+    """Videos or frame folders (mp4 files, DAVIS ``JPEGImages/480p``) for video backgrounds;
+    empty: ``$IMSSR_FOOTAGE_DIR`` if set, else built-in footage.  Training envs draw from the
+    ``train`` half of the clips, evaluation envs from the unseen ``test`` half."""
     action_repeat: int = 8
     """Environment frames per agent step (Table III: 2 finger_spin, 8 cartpole/pendulum, else 4)."""
     image_size: int = 100
@@ -151,7 +155,9 @@ class TrainConfig:
     eval_every_frames: int = 10_000
     """Environment frames between evaluations (0 disables periodic evaluation)."""
     eval_episodes: int = 10
-    """Episodes per evaluation."""
+    """Episodes per evaluation (per scene)."""
+    eval_modes: str = ""
+    """Comma-separated scenes evaluated at each evaluation point; empty: the training scene."""
     checkpoint_every_frames: int = 50_000
     """Environment frames between checkpoints (taken at the next episode end)."""
     save_buffer: bool = True
@@ -168,6 +174,11 @@ class TrainConfig:
     """Show a progress bar with frames per second."""
     torch_threads: int = 0
     """torch intra-op threads (0 leaves torch's default)."""
+
+    def eval_mode_list(self, training_mode: str) -> list[str]:
+        """The scenes to evaluate in, in order, without repeats."""
+        modes = [m.strip() for m in self.eval_modes.split(",") if m.strip()] or [training_mode]
+        return list(dict.fromkeys(modes))
 
 
 @dataclass
@@ -268,6 +279,12 @@ class RunConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
+        from imssr.envs.scenes import get_mode
+
+        for mode in [e.mode, *t.eval_mode_list(e.mode)]:
+            get_mode(mode)
+        if e.footage_dir and not os.path.exists(os.path.expanduser(e.footage_dir)):
+            raise ImssrError(f"footage not found: {e.footage_dir} (env.footage_dir / --footage)")
         if x.image_dir and not os.path.isdir(os.path.expanduser(x.image_dir)):
             raise ImssrError(f"image folder not found: {x.image_dir} (aux.image_dir / --image-dir)")
         from imssr.presets import get_algo

@@ -6,7 +6,8 @@ Design choices, each for speed or faithfulness:
   copied because the camera reuses its output buffer;
 * only the last physics sub-step of an action repeat is rendered;
 * rewards are summed per sub-step (after the task's reward transform);
-* the frame stack is channels-first and repeats the first frame after reset.
+* the frame stack is channels-first and repeats the first frame after reset;
+* test scenes (``mode``) change pixels only, through :class:`imssr.envs.scenes.Scene`.
 """
 from __future__ import annotations
 
@@ -17,10 +18,9 @@ import gymnasium as gym
 import numpy as np
 
 from imssr._gl import check_gl
+from imssr.envs.scenes import MODES, Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
-
-MODES = ("training",)
 
 
 class DMCEnv(gym.Env):
@@ -43,9 +43,10 @@ class DMCEnv(gym.Env):
         image_size: int = 100,
         frame_stack: int = 3,
         camera_id: Optional[int] = None,
+        footage_split: str = "train",
+        footage_path: str = "",
     ):
-        if mode not in MODES:
-            raise ImssrError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
+        get_mode(mode)
         spec = task if isinstance(task, TaskSpec) else get_task(task)
         if action_repeat is not None and action_repeat < 1:
             raise ImssrError(f"action_repeat must be >= 1, got {action_repeat}")
@@ -77,6 +78,12 @@ class DMCEnv(gym.Env):
                 "needs the Debian package libgl1-mesa-dri (apt-get install libgl1-mesa-dri)"
             ) from None
 
+        # Test scenes; their footage comes from the ``footage_split`` pool (the
+        # trainer gives evaluation envs the unseen ``test`` pool).
+        self.scene: Optional[Scene] = None
+        if mode != "training":
+            self.scene = Scene(self._env.physics, mode, seed, image_size, self.camera_id,
+                               footage_split, footage_path)
         aspec = self._env.action_spec()
         self._act_low = aspec.minimum.astype(np.float64)
         self._act_high = aspec.maximum.astype(np.float64)
@@ -95,6 +102,8 @@ class DMCEnv(gym.Env):
         if seed is not None:
             self.seed_task(seed)
         self._env.reset()
+        if self.scene is not None:
+            self.scene.reset()
         frame = self._render()
         self._frames.clear()
         for _ in range(self.frame_stack):
@@ -119,6 +128,8 @@ class DMCEnv(gym.Env):
             reward += r
             if time_step.last():
                 break
+        if self.scene is not None:
+            self.scene.step()
         frame = self._render()
         self._frames.append(frame)
         terminated = bool(time_step.last() and time_step.discount == 0.0)
@@ -141,10 +152,15 @@ class DMCEnv(gym.Env):
         self._env.task._random = np.random.RandomState(seed)
 
     def get_rng_state(self) -> dict[str, Any]:
-        return {"task": self._env.task.random.get_state()}
+        state: dict[str, Any] = {"task": self._env.task.random.get_state()}
+        if self.scene is not None:
+            state["scene"] = self.scene.get_rng_state()
+        return state
 
     def set_rng_state(self, state: dict[str, Any]) -> None:
         self._env.task.random.set_state(state["task"])
+        if self.scene is not None and "scene" in state:
+            self.scene.set_rng_state(state["scene"])
 
     # -- internals -------------------------------------------------------------
     @property
@@ -153,7 +169,8 @@ class DMCEnv(gym.Env):
 
     def _render(self) -> np.ndarray:
         # (H, W, 3) -> (3, H, W); the camera reuses its buffer, so copy.
-        return np.ascontiguousarray(self._camera.render().transpose(2, 0, 1))
+        image = self.scene.render(self._camera) if self.scene is not None else self._camera.render()
+        return np.ascontiguousarray(image.transpose(2, 0, 1))
 
     def _observation(self) -> np.ndarray:
         return np.concatenate(self._frames, axis=0)
@@ -168,8 +185,9 @@ def _gl_backend() -> str:
 def make_env(task: str, seed: int = 0, mode: str = "training", **kwargs) -> DMCEnv:
     """Build a pixel DeepMind Control environment by the paper's task name.
 
-    ``kwargs`` go to :class:`DMCEnv` (``action_repeat``, ``image_size``,
-    ``frame_stack``, ``camera_id``).  The action repeat defaults to the paper's
+    ``mode`` is a scene from :data:`imssr.envs.scenes.MODES`.  ``kwargs`` go to
+    :class:`DMCEnv` (``action_repeat``, ``image_size``, ``frame_stack``,
+    ``camera_id``, ``footage_split``, ``footage_path``).  The action repeat defaults to the paper's
     per-task value.
     """
     return DMCEnv(task, seed=seed, mode=mode, **kwargs)

@@ -29,7 +29,7 @@ from imssr.utils import atomic_write_text, rng_states, seed_everything, set_rng_
 # Settings that may change between a run and its resume.
 RESUMABLE_CHANGES = {"train.frames", "train.device", "train.progress", "train.tensorboard",
                      "train.torch_threads", "train.eval_episodes", "train.eval_every_frames",
-                     "train.checkpoint_every_frames"}
+                     "train.checkpoint_every_frames", "train.eval_modes"}
 
 
 def resolve_device(name: str) -> torch.device:
@@ -84,10 +84,14 @@ class Trainer:
             torch.set_num_threads(cfg.train.torch_threads)
         seed_everything(cfg.train.seed)
         e = cfg.env
-        env_kwargs = dict(mode=e.mode, action_repeat=e.action_repeat, image_size=e.image_size,
+        env_kwargs = dict(action_repeat=e.action_repeat, image_size=e.image_size,
                           frame_stack=e.frame_stack)
-        self.env = make_env(e.task, seed=cfg.train.seed, **env_kwargs)
-        self.eval_env = make_env(e.task, seed=cfg.train.seed + 10_000, **env_kwargs)
+        # Training footage and evaluation footage come from disjoint pools.
+        self.env = make_env(e.task, seed=cfg.train.seed, mode=e.mode, footage_split="train",
+                            footage_path=e.footage_dir, **env_kwargs)
+        self.eval_modes = cfg.train.eval_mode_list(e.mode)
+        self.eval_envs = {m: make_env(e.task, seed=cfg.train.seed + 10_000, mode=m, footage_split="test",
+                                      footage_path=e.footage_dir, **env_kwargs) for m in self.eval_modes}
         self.action_dim = self.env.action_space.shape[0]
         self.agent = build_agent(cfg, self.env.observation_space.shape, self.action_dim, self.device)
         # Independent streams for the replay sampler and the seed-phase actions.
@@ -146,7 +150,10 @@ class Trainer:
                                 if saved_train["checkpoint_every_frames"] == t.checkpoint_every_frames
                                 else _next_multiple(self.frame, t.checkpoint_every_frames))
         self.env.set_rng_state(ckpt["env_rng"])
-        self.eval_env.set_rng_state(ckpt["eval_env_rng"])
+        saved = ckpt.get("eval_env_rngs") or {self.cfg.env.mode: ckpt.get("eval_env_rng")}
+        for mode, env in self.eval_envs.items():
+            if saved.get(mode) is not None:  # a scene added on resume starts from its seed
+                env.set_rng_state(saved[mode])
         self.action_rng.bit_generator.state = ckpt["action_rng"]
         set_rng_states(ckpt["global_rng"])
         if ckpt.get("replay_file"):
@@ -170,20 +177,29 @@ class Trainer:
             "next_eval_frame": self.next_eval_frame, "next_ckpt_frame": self.next_ckpt_frame,
             "last_eval_frame": self.last_eval_frame, "learning_starts": self.learning_starts,
             "eval_history": self.eval_history,
-            "env_rng": self.env.get_rng_state(), "eval_env_rng": self.eval_env.get_rng_state(),
+            "env_rng": self.env.get_rng_state(), "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
             "action_rng": self.action_rng.bit_generator.state, "global_rng": rng_states(),
             "replay_file": replay_file, "replay_state": self.replay.state_dict(),
         }
         save_checkpoint(self.out_dir, state, keep=self.cfg.train.keep_checkpoints)
 
     # -- the loop ----------------------------------------------------------------
-    def run_eval(self) -> dict:
-        returns = evaluate(self.agent, self.eval_env, self.cfg.train.eval_episodes)
-        row = dict(eval_row(self.frame, self.step, self.cfg.env.mode, returns), wall_time=time.time())
-        self.logger.log_eval(row, returns)
-        self.eval_history.append({"row": row, "returns": returns})
+    @property
+    def eval_env(self):
+        """The evaluation env of the first evaluated scene."""
+        return self.eval_envs[self.eval_modes[0]]
+
+    def run_eval(self) -> list[dict]:
+        """Evaluate in every scene of ``train.eval_modes``; one ``eval.csv`` row each."""
+        rows = []
+        for mode, env in self.eval_envs.items():
+            returns = evaluate(self.agent, env, self.cfg.train.eval_episodes)
+            row = dict(eval_row(self.frame, self.step, mode, returns), wall_time=time.time())
+            self.logger.log_eval(row, returns)
+            self.eval_history.append({"row": row, "returns": returns})
+            rows.append(row)
         self.last_eval_frame = self.frame
-        return row
+        return rows
 
     def train(self, stop_at_frame: Optional[int] = None) -> None:
         """Train to ``cfg.train.frames``.  ``stop_at_frame`` stops early after the
@@ -225,10 +241,9 @@ class Trainer:
                 if bar is not None:
                     bar.update(info["sim_steps"])
                 if self.next_eval_frame is not None and self.frame >= self.next_eval_frame:
-                    row = self.run_eval()
+                    rows = self.run_eval()
                     self.next_eval_frame += t.eval_every_frames
-                    _say(bar, f"eval frame {self.frame} step {self.step}: return "
-                              f"{row['return_mean']:.1f} ± {row['return_std']:.1f}")
+                    _say(bar, f"eval frame {self.frame} step {self.step}: return " + _summary(rows))
                 if terminated or truncated:
                     dt = max(time.time() - ep_start, 1e-9)
                     row = {"frame": self.frame, "step": self.step, "episode": self.episode,
@@ -244,8 +259,8 @@ class Trainer:
                     need_reset = True
                     last = self.step >= total_steps
                     if last and self.last_eval_frame != self.frame:
-                        row = self.run_eval()
-                        _say(bar, f"final eval frame {self.frame}: return {row['return_mean']:.1f}")
+                        rows = self.run_eval()
+                        _say(bar, f"final eval frame {self.frame}: return " + _summary(rows))
                     if last or (self.next_ckpt_frame is not None and self.frame >= self.next_ckpt_frame):
                         while self.next_ckpt_frame is not None and self.next_ckpt_frame <= self.frame:
                             self.next_ckpt_frame += t.checkpoint_every_frames
@@ -264,11 +279,17 @@ class Trainer:
 
     def close(self) -> None:
         self.env.close()
-        self.eval_env.close()
+        for env in self.eval_envs.values():
+            env.close()
 
 
 def _next_multiple(frame: int, every: int) -> Optional[int]:
     return None if not every else (frame // every + 1) * every
+
+
+def _summary(rows: list[dict]) -> str:
+    text = ", ".join(f"{r['mode']} {r['return_mean']:.1f} ± {r['return_std']:.1f}" for r in rows)
+    return text if len(rows) > 1 else text.split(" ", 1)[1]
 
 
 def _say(bar, text: str) -> None:
