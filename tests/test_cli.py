@@ -45,9 +45,21 @@ def test_train_end_to_end_then_evaluate(algo, tmp_path):
     assert len(train) == 2 and float(train[1]["critic_loss"]) > 0
     if ALGOS[algo].intrinsic_enabled:
         assert float(train[1]["beta"]) > 0 and float(train[1]["r_int_std"]) > 0
-    proc = imssr("evaluate", "--run", str(out), "--episodes", "1")
-    assert "return" in proc.stdout
-    assert len(read_csv(out / "evaluate.csv")) == 1
+    if algo != "curl":
+        proc = imssr("evaluate", "--run", str(out), "--episodes", "1")
+        assert "return" in proc.stdout
+        assert len(read_csv(out / "evaluate.csv")) == 1
+        return
+    # Test scenes, one gif per scene and a montage.
+    modes = ["training", "color_hard", "video_hard"]
+    proc = imssr("evaluate", "--run", str(out), "--episodes", "1", "--modes", ",".join(modes),
+                 "--video", "gif", "--montage")
+    assert all(f"{m}: return" in proc.stdout for m in modes)
+    assert [r["mode"] for r in read_csv(out / "evaluate.csv")] == modes
+    assert [r["mode"] for r in read_csv(out / "evaluate_episodes.csv")] == modes
+    for m in modes:
+        assert (out / "videos" / f"{m}.gif").stat().st_size > 1000
+    assert (out / "montage.png").stat().st_size > 1000
 
 
 def test_killed_run_resumes_to_completion(tmp_path):
@@ -82,6 +94,10 @@ def test_killed_run_resumes_to_completion(tmp_path):
     (["train", "--algo", "curl", "--task", "walker_walk", "--config", "/no/such.json"], "config file not found"),
     (["train", "--out", "/no/such/run", "--resume"], "nothing to resume"),
     (["evaluate", "--run", "/no/such/run"], "run directory not found"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--mode", "video_medium"], "unknown mode 'video_medium'"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--eval-modes", "training,colour_hard"],
+     "unknown mode 'colour_hard'"),
+    (["train", "--algo", "curl", "--task", "walker_walk", "--footage", "/no/such/videos"], "footage not found"),
 ])
 def test_errors_are_one_line(args, message, tmp_path):
     if "--device" in args:
