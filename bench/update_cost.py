@@ -1,9 +1,11 @@
-"""Cost of one agent update: IM-CURL against CURL (beta = 0 path absent), same process.
+"""Cost of one agent update: a base against its intrinsic-reward variants, same process.
 
-    python bench/update_cost.py [--batch 128] [--steps 30] [--threads 2]
+    python bench/update_cost.py [--base curl] [--variants im] [--batch 128] [--steps 30] [--threads 2]
 
-Prints the median seconds per update of each variant, interleaved in rounds so
-machine noise hits both alike, and the ratio IM / base.  Timings never go in tests.
+``--base`` is curl, soda, pad or svea (paper presets); ``--variants`` any of
+``im,rnd,re3`` (im-X, X+rnd, X+re3).  Prints the median seconds per update of
+each algorithm, interleaved step by step so machine noise hits all alike, and
+each variant's ratio to the base.  Timings never go in tests.
 """
 from __future__ import annotations
 
@@ -35,12 +37,18 @@ def main():
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--view", default="independent", choices=["independent", "shared"])
+    p.add_argument("--base", default="curl", choices=["curl", "soda", "pad", "svea"])
+    p.add_argument("--variants", default="im", help="comma list of im, rnd, re3")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
+    names = {"im": f"im-{a.base}", "rnd": f"{a.base}+rnd", "re3": f"{a.base}+re3"}
+    algos = [a.base] + [names[v.strip()] for v in a.variants.split(",") if v.strip()]
     agents = {}
-    for algo in ("curl", "im-curl"):
+    for algo in algos:
         cfg = make_config(algo, "cartpole_swingup_sparse")
-        cfg.agent.batch_size = cfg.aux.batch_size = a.batch
+        cfg.agent.batch_size = a.batch
+        if cfg.aux.name in ("curl", "pad", "svea"):  # tasks trained on the RL batch
+            cfg.aux.batch_size = a.batch
         cfg.intrinsic.view = a.view
         agents[algo] = (SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic), filled())
     times = {k: [] for k in agents}
@@ -52,8 +60,10 @@ def main():
                 times[name].append(time.perf_counter() - t0)
     med = {k: statistics.median(v) for k, v in times.items()}
     for k, v in med.items():
-        print(f"{k:8s} median {v:.3f} s/update (batch {a.batch}, {a.threads} threads)")
-    print(f"ratio im-curl / curl = {med['im-curl'] / med['curl']:.3f} (intrinsic view: {a.view})")
+        print(f"{k:10s} median {v:.3f} s/update (batch {a.batch}, {a.threads} threads)")
+    for k in algos[1:]:
+        print(f"ratio {k} / {a.base} = {med[k] / med[a.base]:.3f}"
+              + (f" (intrinsic view: {a.view})" if a.base == "curl" and k.startswith("im-") else ""))
 
 
 if __name__ == "__main__":

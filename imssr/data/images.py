@@ -26,9 +26,10 @@ from imssr.errors import ImssrError
 IMAGE_DIR_ENV = "IMSSR_IMAGE_DIR"
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
-# Colour photographs (package, path inside it).  Grey-scale or synthetic images
-# (camera, text, chessboard, ...) are left out: the overlay should look like
-# the natural scenes of Places365.
+# Photographs (package, path inside it): colour scenes plus three natural
+# grey-scale textures (grass, gravel, brick).  Synthetic or document images
+# (text, chessboard, page, ...) are left out: the overlay should look like the
+# natural scenes of Places365.
 _PHOTOS = (
     ("skimage", "data/astronaut.png"), ("skimage", "data/chelsea.png"),
     ("skimage", "data/coffee.png"), ("skimage", "data/rocket.jpg"),
