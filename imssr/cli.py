@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--run", required=True, help="run directory")
     e.add_argument("--episodes", type=_positive_int, default=10, help="episodes per scene")
     e.add_argument("--modes", metavar="A,B,...",
-                   help="scenes to evaluate in, e.g. training,color_hard,video_hard (default: the run's)")
+                   help="scenes to evaluate in, e.g. training,color_hard,video_hard (default: the run's eval modes)")
     e.add_argument("--seed", type=_nonneg_int, help="eval env seed (default: run seed + 20000)")
     e.add_argument("--device", default="cpu")
     e.add_argument("--video", choices=["gif", "mp4"], help="save the first episode of each scene")
@@ -204,7 +204,8 @@ def cmd_evaluate(args) -> int:
     if not os.path.isdir(args.run):
         raise ImssrError(f"run directory not found: {args.run}")
     cfg = load_config(os.path.join(args.run, "config.json"))
-    modes = [m.strip() for m in (args.modes or cfg.env.mode).split(",") if m.strip()]
+    modes = ([m.strip() for m in args.modes.split(",") if m.strip()] if args.modes
+             else cfg.train.eval_mode_list(cfg.env.mode))
     for mode in modes:
         get_mode(mode)
     ckpt = load_checkpoint(latest_path(args.run))

@@ -258,6 +258,8 @@ class RunConfig:
             (i.re3_k >= 1 and i.re3_dim >= 1, "intrinsic.re3_k and re3_dim must be >= 1"),
             (not (i.enabled and i.source == "re3") or a.batch_size > i.re3_k,
              "agent.batch_size must exceed intrinsic.re3_k"),
+            (not (i.enabled and i.source == "rnd") or a.crop_size >= 36,
+             "intrinsic.source=rnd needs agent.crop_size >= 36 (RND's 8/4, 4/2, 3/1 convolutions)"),
             (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
             (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
             (i.normalization in NORMALIZATIONS,

@@ -159,3 +159,19 @@ def test_agent_state_from_another_device_type_loads(full_run):
     other.load_state_dict(state)
     obs = np.zeros((9, 100, 100), np.uint8)
     assert np.array_equal(other.act(obs, True), full.agent.act(obs, True))
+
+
+def test_checkpoint_from_before_new_settings_still_resumes(full_run, tmp_path):
+    """A run saved before a setting existed resumes with that setting's default."""
+    import shutil
+
+    full_dir, _ = full_run
+    shutil.copytree(full_dir, tmp_path / "old")
+    path = latest_path(str(tmp_path / "old"))
+    state = load_checkpoint(path)
+    del state["config"]["env"]["footage_dir"], state["config"]["intrinsic"]["source"]
+    torch.save(state, path)
+    cfg = _cfg()
+    t = Trainer(cfg, str(tmp_path / "old"), resume=True)
+    t.close()
+    assert t.frame == 3000

@@ -47,6 +47,13 @@ def test_mode_changes_pixels_but_not_physics_or_rewards(mode, training):
 
 @pytest.mark.parametrize("mode", ["color_hard", "distracting_hard"])
 def test_same_seed_same_pixels(mode):
+    env = make_env("cartpole_swingup_sparse", seed=0, mode=mode, image_size=64)
+    try:  # reset(seed=...) reseeds the scene too
+        first, _ = env.reset(seed=5)
+        again, _ = env.reset(seed=5)
+        assert np.array_equal(first, again)
+    finally:
+        env.close()
     a, _, _ = _rollout(mode, seed=3)
     b, _, _ = _rollout(mode, seed=3)
     c, _, _ = _rollout(mode, seed=4)
@@ -85,10 +92,15 @@ def test_builtin_footage_moves_and_has_disjoint_train_and_test_pools():
     clip = train[0]
     assert clip.ndim == 4 and clip.shape[1:] == (32, 32, 3) and clip.dtype == np.uint8
     assert np.mean(np.abs(clip[1:].astype(int) - clip[:-1].astype(int))) > 0.5  # it moves
-    sources = sorted(footage_sources(), key=str)
-    assert len(sources) >= 8  # photographs plus dm_control's sky textures
-    train_bytes = {c[0].tobytes() for c in train}
-    assert not train_bytes & {c[0].tobytes() for c in test}
+    from imssr.data.images import source_files
+
+    train_src, test_src, overlay_src = (set(footage_sources("train")), set(footage_sources("test")),
+                                        set(source_files("overlay")))
+    assert len(train_src) >= 4 and len(test_src) >= 4  # photographs plus dm_control's sky boxes
+    # Nothing seen in training (training footage, overlay images) is test footage.
+    assert not test_src & (train_src | overlay_src)
+    assert not {p.parent for p in test_src if "sky_" in str(p)} & {p.parent for p in train_src}
+    assert not {c[0].tobytes() for c in train} & {c[0].tobytes() for c in test}
 
 
 def _davis(root, videos=3, frames=4):

@@ -54,11 +54,14 @@ class SODA(AuxiliaryTask):
             p.requires_grad_(False)
         self.optimizer = torch.optim.Adam(
             [*trunk.parameters(), *self.projection.parameters(), *self.predictor.parameters()], lr=cfg.lr)
-        pool = image_pool(agent_cfg.crop_size, cfg.image_dir, cfg.image_pool_size)
-        # A buffer (moves with .to(device)) but not state: it is rebuilt from its source.
-        self.register_buffer("images", torch.from_numpy(pool), persistent=False)
+        # Loaded on first use (evaluation never overlays) and not saved: it is
+        # rebuilt from its source.
+        self.images: torch.Tensor | None = None
 
     def overlay(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        if self.images is None or self.images.device != x.device:
+            pool = image_pool(self.agent_cfg.crop_size, self.cfg.image_dir, self.cfg.image_pool_size)
+            self.images = torch.from_numpy(pool).to(x.device)
         return random_overlay(x, self.images, self.cfg.overlay_alpha, generator)
 
     def pair_loss(self, augmented: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:

@@ -11,8 +11,9 @@ Sources, in order of precedence:
   dm_control's own sky textures (labmaze): slow pans, zooms and drifts across
   each picture, played forwards then backwards so clips loop without a jump.
 
-Clips are split into disjoint ``train`` and ``test`` pools (alternating by
-sorted source), so an agent trained on one scene is tested on unseen footage.
+Clips are split into disjoint ``train`` and ``test`` pools (built in: by source
+picture, none shared with the overlay images; user clips: alternating), so an
+agent trained on one scene is tested on unseen footage.
 A clip is a uint8 array ``(T, size, size, 3)``.
 """
 from __future__ import annotations
@@ -23,21 +24,19 @@ from pathlib import Path
 
 import numpy as np
 
-from imssr.data.images import IMAGE_SUFFIXES, _package_file, _read_rgb, _square_resize, photograph_files
+from imssr.data.images import IMAGE_SUFFIXES, _read_rgb, _square_resize, source_files
 from imssr.errors import ImssrError
 
 FOOTAGE_DIR_ENV = "IMSSR_FOOTAGE_DIR"
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".gif")
 SPLITS = ("train", "test")
 
-# dm_control's dependency labmaze ships photographic sky boxes (1024 px faces).
-_SKY_FACES = tuple(("labmaze", f"assets/sky_0{i}/{face}.png") for i in (1, 2, 3) for face in ("ft", "lf"))
-
-
-def footage_sources() -> list[Path]:
-    """Pictures the built-in footage is made from."""
-    skies = [p for p in (_package_file(pkg, rel) for pkg, rel in _SKY_FACES) if p is not None]
-    return photograph_files() + skies
+def footage_sources(split: str) -> list[Path]:
+    """Pictures the built-in ``split`` footage is made from (disjoint from the other
+    split and from the overlay images; dm_control's labmaze sky boxes included)."""
+    if split not in SPLITS:
+        raise ImssrError(f"unknown footage split {split!r}; valid: {', '.join(SPLITS)}")
+    return source_files(f"footage_{split}")
 
 
 def _smooth(t: np.ndarray) -> np.ndarray:
@@ -70,11 +69,8 @@ def moving_clip(image, size: int, length: int, rng: np.random.Generator) -> np.n
 @functools.lru_cache(maxsize=8)
 def builtin_footage(size: int, split: str = "test", clips: int = 8, length: int = 100,
                     seed: int = 0) -> tuple[np.ndarray, ...]:
-    """``clips`` moving clips per split from disjoint halves of the shipped pictures."""
-    if split not in SPLITS:
-        raise ImssrError(f"unknown footage split {split!r}; valid: {', '.join(SPLITS)}")
-    files = sorted(footage_sources(), key=str)
-    pool = files[SPLITS.index(split)::2]
+    """``clips`` moving clips for ``split`` from that split's own pictures."""
+    pool = footage_sources(split)
     if not pool:
         raise ImssrError("no built-in pictures found for footage (install scikit-image); "
                          f"or point --footage / ${FOOTAGE_DIR_ENV} at videos or frame folders")

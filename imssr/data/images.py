@@ -4,10 +4,11 @@ Two sources:
 
 * a user-supplied folder (any tree of ``.jpg`` / ``.jpeg`` / ``.png``, e.g. a
   Places365 download), given as ``aux.image_dir`` or ``$IMSSR_IMAGE_DIR``;
-* a built-in pool that works offline: the colour photographs that installed
-  packages ship (scikit-image's ``skimage/data``, scikit-learn's sample images,
+* a built-in pool that works offline: photographs that installed packages
+  ship (scikit-image's ``skimage/data``, scikit-learn's sample images,
   matplotlib's sample data), cut into many square patches at random positions
   and scales.  Nothing is downloaded and no image is stored in this repository.
+  The overlay's photographs are disjoint from those built-in footage uses.
 
 A pool is a uint8 array ``(N, 3, size, size)``; pools are cached per process.
 """
@@ -26,19 +27,23 @@ from imssr.errors import ImssrError
 IMAGE_DIR_ENV = "IMSSR_IMAGE_DIR"
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
-# Photographs (package, path inside it): colour scenes plus three natural
-# grey-scale textures (grass, gravel, brick).  Synthetic or document images
-# (text, chessboard, page, ...) are left out: the overlay should look like the
-# natural scenes of Places365.
-_PHOTOS = (
-    ("skimage", "data/astronaut.png"), ("skimage", "data/chelsea.png"),
-    ("skimage", "data/coffee.png"), ("skimage", "data/rocket.jpg"),
-    ("skimage", "data/motorcycle_left.png"), ("skimage", "data/hubble_deep_field.jpg"),
-    ("skimage", "data/retina.jpg"), ("skimage", "data/ihc.png"),
-    ("skimage", "data/grass.png"), ("skimage", "data/gravel.png"), ("skimage", "data/brick.png"),
-    ("sklearn", "datasets/images/china.jpg"), ("sklearn", "datasets/images/flower.jpg"),
-    ("matplotlib", "mpl-data/sample_data/grace_hopper.jpg"),
-)
+# Pictures that installed packages ship, as (package, path inside it), in three
+# disjoint roles so that nothing an agent sees while training (overlay images,
+# training footage) reappears in test footage.  Synthetic or document images
+# (text, chessboard, page, ...) are never used: the overlay should look like the
+# natural scenes of Places365.  Every labmaze sky box stays within one role.
+SOURCES = {
+    "overlay": (("skimage", "data/coffee.png"), ("skimage", "data/rocket.jpg"),
+                ("skimage", "data/retina.jpg"), ("skimage", "data/ihc.png"),
+                ("skimage", "data/brick.png"), ("sklearn", "datasets/images/china.jpg"),
+                ("matplotlib", "mpl-data/sample_data/grace_hopper.jpg")),
+    "footage_train": (("skimage", "data/chelsea.png"), ("skimage", "data/motorcycle_left.png"),
+                      ("skimage", "data/gravel.png"),
+                      *(("labmaze", f"assets/sky_01/{f}.png") for f in ("ft", "lf", "rt", "bk"))),
+    "footage_test": (("skimage", "data/astronaut.png"), ("skimage", "data/hubble_deep_field.jpg"),
+                     ("skimage", "data/grass.png"), ("sklearn", "datasets/images/flower.jpg"),
+                     *(("labmaze", f"assets/sky_0{i}/{f}.png") for i in (2, 3) for f in ("ft", "lf"))),
+}
 
 
 def _package_file(package: str, relative: str) -> Optional[Path]:
@@ -49,9 +54,9 @@ def _package_file(package: str, relative: str) -> Optional[Path]:
     return path if path.is_file() else None
 
 
-def photograph_files() -> list[Path]:
-    """Paths of the colour photographs that installed packages ship."""
-    return [p for p in (_package_file(pkg, rel) for pkg, rel in _PHOTOS) if p is not None]
+def source_files(role: str) -> list[Path]:
+    """Installed pictures for ``role`` (overlay, footage_train, footage_test); missing ones are skipped."""
+    return [p for p in (_package_file(pkg, rel) for pkg, rel in SOURCES[role]) if p is not None]
 
 
 def _read_rgb(path: Path):
@@ -77,8 +82,9 @@ def _square_resize(image, size: int, box: Optional[tuple[int, int, int, int]] = 
 
 @functools.lru_cache(maxsize=8)
 def builtin_photographs(size: int, count: int = 512, seed: int = 0) -> np.ndarray:
-    """``count`` square patches (random position, 30-100% of the short side) of the shipped photos."""
-    files = photograph_files()
+    """``count`` square patches (random position, 30-100% of the short side) of the shipped
+    overlay photographs (never used for footage)."""
+    files = source_files("overlay")
     if not files:
         raise ImssrError("no built-in photographs found (install scikit-image); "
                          f"or point aux.image_dir / ${IMAGE_DIR_ENV} at a folder of jpg/png images")

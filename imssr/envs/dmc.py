@@ -148,8 +148,10 @@ class DMCEnv(gym.Env):
 
     # -- reproducibility -------------------------------------------------------
     def seed_task(self, seed: int) -> None:
-        """Reseed the task's random state (initial states of later resets)."""
+        """Reseed the task's random state (initial states of later resets) and the scene's."""
         self._env.task._random = np.random.RandomState(seed)
+        if self.scene is not None:
+            self.scene.reseed(seed)
 
     def get_rng_state(self) -> dict[str, Any]:
         state: dict[str, Any] = {"task": self._env.task.random.get_state()}

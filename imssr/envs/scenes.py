@@ -82,7 +82,7 @@ class Scene:
         self.spec = get_mode(mode)
         self.physics = physics
         self.camera_id = camera_id
-        self.rng = np.random.default_rng([seed, list(MODES).index(mode)])
+        self.reseed(seed)
         model = physics.model
         self.mat_rgba0 = np.array(model.mat_rgba, copy=True)
         skies = np.flatnonzero(np.asarray(model.tex_type) == mujoco.mjtTexture.mjTEXTURE_SKYBOX)
@@ -201,6 +201,9 @@ class Scene:
             gl.call(mujoco.mjr_uploadTexture, model.ptr, ctx.mujoco.ptr, self.sky_id)
 
     # -- reproducibility -------------------------------------------------------------
+    def reseed(self, seed: int) -> None:
+        self.rng = np.random.default_rng([seed, list(MODES).index(self.spec.name)])
+
     def get_rng_state(self) -> dict[str, Any]:
         return self.rng.bit_generator.state
 

@@ -17,6 +17,7 @@ import torch
 
 from imssr.agents import SACAgent
 from imssr.config import RunConfig
+from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import make_env
 from imssr.errors import ImssrError
 from imssr.presets import get_algo
@@ -70,6 +71,11 @@ class Trainer:
     """
 
     def __init__(self, cfg: RunConfig, out_dir: str, resume: bool = False):
+        if not resume:
+            # Sources named by environment variables are written into the run's
+            # config, so a resume or `imssr evaluate` in another shell uses the same.
+            cfg.aux.image_dir = cfg.aux.image_dir or os.environ.get(IMAGE_DIR_ENV, "")
+            cfg.env.footage_dir = cfg.env.footage_dir or os.environ.get(FOOTAGE_DIR_ENV, "")
         cfg.validate()
         get_algo(cfg.algo)
         self.cfg, self.out_dir = cfg, out_dir
@@ -124,7 +130,11 @@ class Trainer:
         if not os.path.exists(path):
             raise ImssrError(f"nothing to resume: {path} does not exist")
         ckpt = load_checkpoint(path)
-        saved = _flatten(ckpt["config"])
+        # Through the config class, so settings added since the run started read as defaults.
+        try:
+            saved = _flatten(RunConfig.from_dict(ckpt["config"]).to_dict())
+        except (ImssrError, TypeError):
+            saved = _flatten(ckpt["config"])
         now = _flatten(self.cfg.to_dict())
         diff = sorted(k for k in saved.keys() | now.keys()
                       if saved.get(k) != now.get(k) and k not in RESUMABLE_CHANGES)
