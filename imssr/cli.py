@@ -220,7 +220,8 @@ def cmd_evaluate(args) -> int:
     for mode in dict.fromkeys(modes):
         # Unseen footage: evaluation draws from the test pool.
         env = make_env(e.task, seed=seed, mode=mode, action_repeat=e.action_repeat, image_size=e.image_size,
-                       frame_stack=e.frame_stack, footage_split="test", footage_path=footage)
+                       frame_stack=e.frame_stack, footage_split="test", footage_path=footage,
+                       shadow_size=e.shadow_size)
         if agent is None:
             agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
             try:

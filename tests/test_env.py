@@ -131,3 +131,17 @@ def test_missing_gl_library_names_the_debian_package(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", "vulkan")
     with pytest.raises(imssr.ImssrError, match="not supported"):
         check_gl()
+
+
+def test_shadow_map_size_changes_pixels_only_slightly():
+    from imssr.envs import make_env
+
+    envs = [make_env("walker_walk", seed=0, shadow_size=s) for s in (2048, 512)]
+    try:
+        assert [int(e.physics.model.vis.quality.shadowsize) for e in envs] == [2048, 512]
+        frames = [e.reset()[0].astype(int) for e in envs]
+        diff = np.abs(frames[0] - frames[1])
+        assert diff.mean() < 0.5  # soft shadow edges only
+    finally:
+        for e in envs:
+            e.close()

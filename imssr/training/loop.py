@@ -91,7 +91,7 @@ class Trainer:
         seed_everything(cfg.train.seed)
         e = cfg.env
         env_kwargs = dict(action_repeat=e.action_repeat, image_size=e.image_size,
-                          frame_stack=e.frame_stack)
+                          frame_stack=e.frame_stack, shadow_size=e.shadow_size)
         # Training footage and evaluation footage come from disjoint pools.
         self.env = make_env(e.task, seed=cfg.train.seed, mode=e.mode, footage_split="train",
                             footage_path=e.footage_dir, **env_kwargs)
