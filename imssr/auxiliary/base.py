@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from imssr.config import AgentConfig, AuxConfig
+from imssr.networks.module import ModuleWithOptimizer
 
 
 @dataclass
@@ -71,7 +72,7 @@ class SharedNetworks:
     action_dim: int
 
 
-class AuxiliaryTask(nn.Module, abc.ABC):
+class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     """Base class of auxiliary tasks."""
 
     name: ClassVar[str]
@@ -86,7 +87,6 @@ class AuxiliaryTask(nn.Module, abc.ABC):
         self.__dict__["shared"] = shared
         self.cfg = cfg
         self.agent_cfg = agent_cfg
-        self.optimizer: Optional[torch.optim.Optimizer] = None
 
     @abc.abstractmethod
     def per_sample_loss(self, batch: Batch) -> torch.Tensor:
@@ -111,14 +111,3 @@ class AuxiliaryTask(nn.Module, abc.ABC):
 
     def after_step(self, step: int) -> None:
         """Hook for momentum updates of the task's own target networks."""
-
-    def full_state_dict(self) -> dict:
-        state = {"module": self.state_dict()}
-        if self.optimizer is not None:
-            state["optimizer"] = self.optimizer.state_dict()
-        return state
-
-    def load_full_state_dict(self, state: dict) -> None:
-        self.load_state_dict(state["module"])
-        if self.optimizer is not None:
-            self.optimizer.load_state_dict(state["optimizer"])

@@ -8,22 +8,18 @@ and everything else stay the same.
 from __future__ import annotations
 
 import abc
-from typing import ClassVar, Optional
+from typing import ClassVar
 
 import torch
-from torch import nn
 
 from imssr.auxiliary import AuxiliaryTask, Batch, NextObsContext
+from imssr.networks.module import ModuleWithOptimizer
 
 
-class IntrinsicSignal(nn.Module, abc.ABC):
+class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
     """A per-sample novelty signal of the next observation."""
 
     name: ClassVar[str]
-
-    def __init__(self):
-        super().__init__()
-        self.optimizer: Optional[torch.optim.Optimizer] = None
 
     @abc.abstractmethod
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
@@ -32,17 +28,6 @@ class IntrinsicSignal(nn.Module, abc.ABC):
     def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
         """Train the signal's own networks, if any, once per agent update."""
         return {}
-
-    def full_state_dict(self) -> dict:
-        state = {"module": self.state_dict()}
-        if self.optimizer is not None:
-            state["optimizer"] = self.optimizer.state_dict()
-        return state
-
-    def load_full_state_dict(self, state: dict) -> None:
-        self.load_state_dict(state["module"])
-        if self.optimizer is not None:
-            self.optimizer.load_state_dict(state["optimizer"])
 
 
 class SSLSignal(IntrinsicSignal):
