@@ -1,4 +1,4 @@
-"""Command-line interface: ``imssr {train,demo,evaluate,plot,tasks,algos,config}``."""
+"""Command-line interface: ``imssr {train,demo,evaluate,plot,sweep,report,tasks,algos,modes,config}``."""
 from __future__ import annotations
 
 import argparse
@@ -102,12 +102,93 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--run", required=True)
     pl.add_argument("--out", help="PNG path (default RUN/learning_curve.png)")
 
+    add_sweep_parsers(sub)
+
     sub.add_parser("tasks", help="list task names")
     sub.add_parser("algos", help="list algorithms")
     c = sub.add_parser("config", help="print the preset config of an algorithm on a task")
     c.add_argument("--algo", choices=list(ALGOS), required=True)
     c.add_argument("--task", required=True)
     return p
+
+
+def add_sweep_parsers(sub) -> None:
+    """``imssr sweep`` (a grid of runs on Ray) and ``imssr report`` (paper-style tables)."""
+    _positive_float = _number(float, 1e-9, "a number > 0")
+    sw = sub.add_parser("sweep", help="train a grid of runs (algos x tasks x seeds [x beta0]) on Ray",
+                        description="Runs land in ROOT/<task>/<algo>/seed_<n> (ROOT/<task>/<algo>/"
+                        "beta0_<value>/seed_<n> in a beta0 sweep). Finished runs are skipped, "
+                        "interrupted ones resume, failed ones are retried; see docs/experiments.md.")
+    sw.add_argument("--root", help="sweep directory (default runs/sweep)")
+    sw.add_argument("--file", metavar="SWEEP.json",
+                    help="JSON object with the same keys (algos, tasks, seeds, frames, set, beta0, root, "
+                         "retries, cpus_per_run, gpus_per_run, max_parallel, address); flags override it")
+    sw.add_argument("--algos", metavar="A,B", help="algorithms (imssr algos)")
+    sw.add_argument("--tasks", metavar="T1,T2", help="tasks (imssr tasks)")
+    sw.add_argument("--seeds", metavar="1,2,3|1-5", help="seeds: a list, a range or both (default 1)")
+    sw.add_argument("--frames", type=_positive_int, help="budget per run in environment frames (default: preset)")
+    sw.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE",
+                    help="override for every run, as imssr train --set")
+    sw.add_argument("--beta0", metavar="B1,B2", help="beta_0 sensitivity sweep, e.g. 0.001,0.01,0.05,0.1")
+    sw.add_argument("--retries", type=_nonneg_int, help="extra attempts of a failed run (default 1)")
+    sw.add_argument("--cpus-per-run", type=_positive_float, help="CPUs per run (default 1)")
+    sw.add_argument("--gpus-per-run", type=_nonneg_float, help="GPUs per run, fractions allowed (default 0)")
+    sw.add_argument("--max-parallel", type=_nonneg_int, help="runs at once (default: what the cluster holds)")
+    sw.add_argument("--address", help="existing Ray cluster, e.g. 10.0.0.1:6379 (default: a local Ray)")
+    sw.add_argument("--dry-run", action="store_true", help="print the expanded grid and exit")
+    sw.add_argument("--no-progress", action="store_true", help="no live progress bar")
+
+    rp = sub.add_parser("report", help="tables, curves and aggregate metrics of a sweep directory")
+    rp.add_argument("root", metavar="ROOT", help="sweep directory (runs below it, any depth)")
+    rp.add_argument("--out", help="report directory (default ROOT/report)")
+    rp.add_argument("--paper-results", metavar="CSV",
+                    help="the paper's numbers (default ../shared/spec/paper_results.csv from the repository)")
+    rp.add_argument("--reps", type=_positive_int, default=2000, help="bootstrap replicates for the CIs")
+
+
+def _sweep_config(args):
+    from imssr.experiments.grid import SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
+
+    cfg = load_sweep_file(args.file) if args.file else SweepConfig()
+    given = {"root": args.root, "frames": args.frames, "retries": args.retries,
+             "cpus_per_run": args.cpus_per_run, "gpus_per_run": args.gpus_per_run,
+             "max_parallel": args.max_parallel, "address": args.address}
+    for key, value in given.items():
+        if value is not None:
+            setattr(cfg, key, value)
+    if args.algos is not None:
+        cfg.algos = parse_names(args.algos, "algos")
+    if args.tasks is not None:
+        cfg.tasks = parse_names(args.tasks, "tasks")
+    if args.seeds is not None:
+        cfg.seeds = parse_seeds(args.seeds)
+    if args.beta0 is not None:
+        cfg.beta0 = parse_floats(args.beta0, "beta0")
+    if args.set:
+        cfg.overrides = cfg.overrides + args.set
+    return cfg.validate()
+
+
+def cmd_sweep(args) -> int:
+    from imssr.experiments.sweep import format_plan, plan_runs, run_sweep, summarize
+
+    cfg = _sweep_config(args)
+    if args.dry_run:
+        print(format_plan(plan_runs(cfg), cfg))
+        return 0
+    statuses = run_sweep(cfg, progress=not args.no_progress)
+    line, code = summarize(statuses)
+    print(f"imssr: {line}", file=sys.stderr if code else sys.stdout)
+    return code
+
+
+def cmd_report(args) -> int:
+    from imssr.experiments.report import write_report
+
+    out = args.out or os.path.join(args.root, "report")
+    for path, text in write_report(args.root, out, paper_results=args.paper_results, reps=args.reps):
+        print(f"{text}: {path}")
+    return 0
 
 
 def _run_config(args, demo: bool):
@@ -317,7 +398,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = parser.parse_args(argv)
     handlers = {"train": cmd_train, "demo": lambda a: cmd_train(a, demo=True),
                 "evaluate": cmd_evaluate, "tasks": cmd_tasks, "algos": cmd_algos,
-                "config": cmd_config, "plot": cmd_plot, "modes": cmd_modes}
+                "config": cmd_config, "plot": cmd_plot, "modes": cmd_modes,
+                "sweep": cmd_sweep, "report": cmd_report}
     try:
         return handlers[args.command](args)
     except ImssrError as exc:
@@ -327,6 +409,10 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(f"imssr: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        if args.command == "sweep":
+            print("imssr: interrupted; re-running the same `imssr sweep` resumes every unfinished run "
+                  "from its last checkpoint", file=sys.stderr)
+            return 130
         print("imssr: interrupted; `imssr train --resume --out RUN` continues from the last checkpoint",
               file=sys.stderr)
         return 130

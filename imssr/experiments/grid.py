@@ -1,0 +1,276 @@
+"""Sweep grids: what to run (algos x tasks x seeds [x beta_0]) and where each run lives.
+
+A run's directory is a pure function of its grid point, ``ROOT/<task>/<algo>/seed_<n>``
+(``ROOT/<task>/<algo>/beta0_<value>/seed_<n>`` in a beta_0 sweep), so re-running a sweep
+finds its earlier runs again; ``imssr.experiments.sweep`` decides what each one still needs.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Optional
+
+from imssr.errors import ImssrError
+
+SWEEP_PLAN = "sweep.json"
+"""File under ROOT with the expanded grid (the report reads it for T and the expected seeds)."""
+
+
+@dataclass
+class SweepConfig:
+    """One sweep: the grid and how its runs are dispatched."""
+
+    root: str = "runs/sweep"
+    """Directory that holds every run of the sweep, ``sweep.json`` and ``sweep_status.json``."""
+    algos: list[str] = field(default_factory=list)
+    """Algorithms (``imssr algos``)."""
+    tasks: list[str] = field(default_factory=list)
+    """Tasks (``imssr tasks``)."""
+    seeds: list[int] = field(default_factory=lambda: [1])
+    """Seeds, one run each per algo and task."""
+    frames: Optional[int] = None
+    """Budget of every run in environment frames (the report's T); None: the preset's (500k)."""
+    overrides: list[str] = field(default_factory=list)
+    """``section.field=value`` overrides applied to every run, as ``imssr train --set`` takes them."""
+    beta0: list[float] = field(default_factory=list)
+    """beta_0 values of a beta sensitivity sweep (one run per value for algos with an intrinsic
+    reward; base algos run once as the beta_0 = 0 reference); empty: each preset's beta_0."""
+    retries: int = 1
+    """Extra attempts of a failed run (each resumes from the run's checkpoint if it has one)."""
+    cpus_per_run: float = 1.0
+    """CPUs Ray reserves per run; also the run's torch/OpenMP threads (at least 1)."""
+    gpus_per_run: float = 0.0
+    """GPUs (fractions allowed) Ray reserves per run; > 0 trains on ``cuda`` unless
+    ``train.device`` is overridden."""
+    max_parallel: int = 0
+    """Runs in flight at once; 0: as many as the cluster's CPUs and GPUs hold."""
+    address: str = ""
+    """Address of an existing Ray cluster (``ray start --head`` prints it); empty: a local Ray
+    started for this sweep and shut down after it."""
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "SweepConfig":
+        """A sweep from a JSON object whose keys are the CLI's (``set`` for overrides)."""
+        if not isinstance(data, dict):
+            raise ImssrError(f"a sweep file must hold a JSON object, got {type(data).__name__}")
+        data = {k.replace("-", "_"): v for k, v in data.items()}
+        if "set" in data:
+            data["overrides"] = data.pop("set")
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ImssrError(f"unknown sweep setting(s): {', '.join(unknown)}; valid: "
+                             f"{', '.join(sorted(names - {'overrides'} | {'set'}))}")
+        cfg = cls()
+        for key, value in data.items():
+            setattr(cfg, key, _coerce(key, value))
+        return cfg
+
+    def validate(self) -> "SweepConfig":
+        from imssr.envs import get_task
+        from imssr.presets import get_algo
+
+        if not self.algos:
+            raise ImssrError("a sweep needs --algos (see imssr algos)")
+        if not self.tasks:
+            raise ImssrError("a sweep needs --tasks (see imssr tasks)")
+        if not self.seeds:
+            raise ImssrError("a sweep needs --seeds")
+        for algo in self.algos:
+            get_algo(algo)
+        for task in self.tasks:
+            get_task(task)
+        checks = [
+            (self.frames is None or self.frames >= 1, "--frames must be >= 1"),
+            (self.retries >= 0, "--retries must be >= 0"),
+            (self.cpus_per_run > 0, "--cpus-per-run must be > 0"),
+            (self.gpus_per_run >= 0, "--gpus-per-run must be >= 0"),
+            (self.max_parallel >= 0, "--max-parallel must be >= 0"),
+            (all(s >= 0 for s in self.seeds), "seeds must be >= 0"),
+            (all(b >= 0 for b in self.beta0), "--beta0 values must be >= 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ImssrError(message)
+        if self.beta0:
+            from imssr.presets import ALGOS
+
+            if not any(ALGOS[a].intrinsic_enabled for a in self.algos):
+                raise ImssrError("--beta0 needs an algo with an intrinsic reward (im-X, X+rnd, X+re3)")
+        return self
+
+
+@dataclass(frozen=True)
+class Run:
+    """One grid point: a single ``imssr train`` run."""
+
+    algo: str
+    """Algorithm name."""
+    task: str
+    """Task name."""
+    seed: int
+    """Run seed."""
+    beta0: Optional[float]
+    """beta_0 of a beta sweep; None: the preset's (and for base algos)."""
+    dir: str
+    """Run directory (absolute)."""
+
+    @property
+    def name(self) -> str:
+        """Short label for logs and the status file."""
+        beta = "" if self.beta0 is None else f" beta0={beta_label(self.beta0)}"
+        return f"{self.algo} {self.task}{beta} seed {self.seed}"
+
+    def train_args(self, cfg: SweepConfig) -> list[str]:
+        """``imssr train`` arguments of this run (without --out / --resume)."""
+        args = ["--algo", self.algo, "--task", self.task, "--seed", str(self.seed)]
+        if cfg.frames is not None:
+            args += ["--frames", str(cfg.frames)]
+        if self.beta0 is not None:
+            args += ["--beta0", repr(float(self.beta0))]
+        if cfg.gpus_per_run > 0 and not any(o.startswith("train.device=") for o in cfg.overrides):
+            args += ["--device", "cuda"]
+        for item in cfg.overrides:
+            args += ["--set", item]
+        return args
+
+
+def beta_label(value: float) -> str:
+    """Directory-safe, round-tripping text of a beta_0 (0.001 -> '0.001', 1e-05 -> '1e-05')."""
+    return repr(float(value))
+
+
+def expand(cfg: SweepConfig) -> list[Run]:
+    """Every run of the grid, in a stable order (task, algo, beta_0, seed)."""
+    from imssr.presets import ALGOS
+
+    root = os.path.abspath(cfg.root)
+    runs = []
+    for task in cfg.tasks:
+        for algo in cfg.algos:
+            # Base algos have no beta_0: in a beta sweep they run once, as the beta_0 = 0 line.
+            betas = cfg.beta0 if (cfg.beta0 and ALGOS[algo].intrinsic_enabled) else [None]
+            for beta in betas:
+                parts = [root, task, algo] + ([] if beta is None else [f"beta0_{beta_label(beta)}"])
+                for seed in cfg.seeds:
+                    runs.append(Run(algo, task, seed, beta, os.path.join(*parts, f"seed_{seed}")))
+    return runs
+
+
+def build_run_config(run: Run, cfg: SweepConfig):
+    """The run's RunConfig exactly as ``imssr train`` would build it (same parser, same code)."""
+    from imssr.cli import _run_config, build_parser
+
+    args = build_parser().parse_args(["train", *run.train_args(cfg), "--out", run.dir])
+    return _run_config(args, demo=False)
+
+
+def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, int]) -> str:
+    """Write ``ROOT/sweep.json``: the sweep's settings and every run with its frame budget."""
+    from imssr.utils import atomic_write_text
+
+    root = os.path.abspath(cfg.root)
+    plan = {"sweep": asdict(cfg),
+            "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), frames=budgets[r.dir]) for r in runs]}
+    path = os.path.join(root, SWEEP_PLAN)
+    atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
+    return path
+
+
+# -- parsing -----------------------------------------------------------------------------
+def parse_names(text: Any, what: str) -> list[str]:
+    """``a,b`` or a JSON list -> names, without repeats."""
+    items = text if isinstance(text, list) else str(text).split(",")
+    names = [str(i).strip() for i in items if str(i).strip()]
+    if not names:
+        raise ImssrError(f"no {what} given")
+    return list(dict.fromkeys(names))
+
+
+def parse_seeds(text: Any) -> list[int]:
+    """``1,2,3``, ``1-5``, ``1-3,7`` or a JSON list of integers -> seeds, without repeats."""
+    items = text if isinstance(text, list) else str(text).split(",")
+    seeds: list[int] = []
+    for item in items:
+        if isinstance(item, bool):
+            raise ImssrError(f"bad seed {item!r}")
+        if isinstance(item, int):
+            seeds.append(item)
+            continue
+        part = str(item).strip()
+        if not part:
+            continue
+        lo, sep, hi = part.partition("-")
+        try:
+            if sep:
+                a, b = int(lo), int(hi)
+                if a > b:
+                    raise ImssrError(f"bad seed range {part!r}: {a} > {b}")
+                seeds.extend(range(a, b + 1))
+            else:
+                seeds.append(int(part))
+        except ValueError:
+            raise ImssrError(f"bad seeds {part!r}: expected integers like 1,2,3 or a range like 1-5") from None
+    if not seeds:
+        raise ImssrError("no seeds given")
+    if any(s < 0 for s in seeds):
+        raise ImssrError(f"seeds must be >= 0, got {min(seeds)}")
+    return list(dict.fromkeys(seeds))
+
+
+def parse_floats(text: Any, what: str) -> list[float]:
+    items = text if isinstance(text, list) else str(text).split(",")
+    values = []
+    for item in items:
+        if isinstance(item, str) and not item.strip():
+            continue
+        try:
+            value = float(item)
+        except (TypeError, ValueError):
+            raise ImssrError(f"bad {what} value {item!r}: expected numbers like 0.001,0.01") from None
+        if not value >= 0:  # also NaN
+            raise ImssrError(f"{what} values must be >= 0, got {item!r}")
+        values.append(value)
+    if not values:
+        raise ImssrError(f"no {what} values given")
+    return list(dict.fromkeys(values))
+
+
+def _coerce(key: str, value: Any) -> Any:
+    """A sweep-file value in the type of its SweepConfig field."""
+    if key == "algos":
+        return parse_names(value, "algos")
+    if key == "tasks":
+        return parse_names(value, "tasks")
+    if key == "seeds":
+        return parse_seeds(value)
+    if key == "beta0":
+        return parse_floats(value, "beta0")
+    if key == "overrides":
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ImssrError('sweep file: "set" must be a list of "section.field=value" strings')
+        return list(value)
+    if key in ("root", "address"):
+        if not isinstance(value, str):
+            raise ImssrError(f"sweep file: {key!r} must be a string")
+        return value
+    kind = {"frames": int, "retries": int, "max_parallel": int,
+            "cpus_per_run": float, "gpus_per_run": float}[key]
+    if value is None and key == "frames":
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+            (kind is int and not float(value).is_integer()):
+        raise ImssrError(f"sweep file: {key!r} must be {'an integer' if kind is int else 'a number'}, got {value!r}")
+    return kind(value)
+
+
+def load_sweep_file(path: str) -> SweepConfig:
+    if not os.path.exists(path):
+        raise ImssrError(f"sweep file not found: {path}")
+    try:
+        with open(path) as fh:
+            data = json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise ImssrError(f"sweep file {path} is not valid JSON: {exc}") from None
+    return SweepConfig.from_dict(data)

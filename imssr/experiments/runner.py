@@ -1,0 +1,138 @@
+"""One sweep run on a worker: ``imssr train`` as a subprocess, and the run's done marker.
+
+The training runs in its own process so that a run cannot leak memory, threads or GL
+contexts into the next one, and so that killing it (Ctrl-C on the sweep, a cancelled Ray
+task) leaves only its last atomic checkpoint behind, from which the next attempt resumes.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from typing import Optional
+
+from imssr.training.logger import read_csv
+from imssr.utils import atomic_write_text
+
+DONE_FILE = "done.json"
+"""Written atomically in the run directory once ``imssr train`` exits 0 having reached its budget."""
+LOG_FILE = "sweep.log"
+"""Output of every attempt of the run, appended, one header line per attempt."""
+
+
+def has_checkpoint(run_dir: str) -> bool:
+    return os.path.exists(os.path.join(run_dir, "checkpoints", "latest.pt"))
+
+
+def read_done(run_dir: str) -> Optional[dict]:
+    """The run's done marker, or None (absent or unreadable: the run is not done)."""
+    try:
+        with open(os.path.join(run_dir, DONE_FILE)) as fh:
+            done = json.load(fh)
+    except (OSError, json.JSONDecodeError):
+        return None
+    return done if isinstance(done, dict) and isinstance(done.get("frames"), int) else None
+
+
+def is_done(run_dir: str, frames: int) -> bool:
+    """Finished with a budget of at least ``frames`` (a larger budget resumes the run)."""
+    done = read_done(run_dir)
+    return done is not None and done["frames"] >= frames
+
+
+def last_frame(path: str) -> int:
+    """Frame of the last complete row of a CSV log (0 if none); reads only the file's tail."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 4096))
+            lines = fh.read().decode(errors="replace").splitlines()
+    except OSError:
+        return 0
+    for line in reversed(lines):
+        head = line.split(",", 1)[0]
+        if head.isdigit():
+            return int(head)
+    return 0
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    # If the Ray worker that waits on this training is killed (force-cancelled task, Ray
+    # shut down), the training must not live on as an orphan holding CPUs.
+    import ctypes
+
+    ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def execute_run(run_dir: str, train_args: list[str], frames: int, attempt: int,
+                threads: int = 1) -> dict:
+    """Train (or resume) one run to ``frames``; return what happened.
+
+    Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
+    line when it failed), ``final_frame``, ``seconds``.
+    """
+    os.makedirs(run_dir, exist_ok=True)
+    resumed = has_checkpoint(run_dir)
+    # A resume passes the same settings so that `imssr train` rejects a run directory whose
+    # config differs from the sweep's (apart from the budget and logging settings).
+    cmd = [sys.executable, "-m", "imssr", "train", *train_args, "--out", run_dir, "--no-progress"]
+    if resumed:
+        cmd.append("--resume")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # One thread pool per reserved CPU: torch's default (every core) makes parallel runs spin
+    # against each other, which on a shared 2-core machine is 10x slower than one thread each.
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env[var] = str(max(1, threads))
+    log_path = os.path.join(run_dir, LOG_FILE)
+    start = time.time()
+    with open(log_path, "a") as log:
+        log.write(f"==> attempt {attempt} ({'resume' if resumed else 'fresh'}) at "
+                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
+        log.flush()
+        offset = log.tell()
+        preexec = _die_with_parent if sys.platform.startswith("linux") else None
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                preexec_fn=preexec, start_new_session=True)
+        try:
+            returncode = proc.wait()
+        finally:
+            if proc.poll() is None:  # interrupted while waiting (task cancelled)
+                os.killpg(proc.pid, signal.SIGTERM)
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    os.killpg(proc.pid, signal.SIGKILL)
+    final = last_frame(os.path.join(run_dir, "eval.csv"))
+    result = {"ok": False, "returncode": returncode, "resumed": resumed, "error": "",
+              "final_frame": final, "seconds": round(time.time() - start, 1)}
+    if returncode != 0:
+        result["error"] = _last_line(log_path, offset) or f"exit status {returncode}"
+    elif final < frames:
+        result["error"] = f"exited 0 but its last evaluation is at frame {final}, before its budget {frames}"
+    else:
+        result["ok"] = True
+        write_done(run_dir, frames, final, attempt, resumed)
+    return result
+
+
+def write_done(run_dir: str, frames: int, final_frame: int, attempt: int, resumed: bool) -> None:
+    evals = read_csv(os.path.join(run_dir, "eval.csv"))
+    done = {"frames": frames, "final_frame": final_frame, "evaluations": len(evals),
+            "attempt": attempt, "resumed": resumed, "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    atomic_write_text(os.path.join(run_dir, DONE_FILE), json.dumps(done, indent=2) + "\n")
+
+
+def _last_line(path: str, offset: int) -> str:
+    """Last non-empty line written to ``path`` after ``offset`` (the attempt's error message)."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            text = fh.read()[-8192:].decode(errors="replace")
+    except OSError:
+        return ""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1][:500] if lines else ""

@@ -1,0 +1,279 @@
+"""Dispatch a sweep's runs through Ray, idempotently, with bounded retries and a status file.
+
+Each run is one Ray task that runs ``imssr train`` in a subprocess
+(:func:`imssr.experiments.runner.execute_run`).  Before anything starts, every run is
+classified from its directory: ``done.json`` with a budget at least the sweep's means done
+(skipped), a checkpoint means resume, nothing means a fresh start.  A failed attempt is
+retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
+still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Optional
+
+from imssr.errors import ImssrError
+from imssr.experiments.grid import Run, SweepConfig, build_run_config, expand, save_plan
+from imssr.experiments.runner import LOG_FILE, has_checkpoint, is_done, last_frame
+from imssr.utils import atomic_write_text
+
+STATUS_FILE = "sweep_status.json"
+STATES = ("queued", "running", "done", "failed")
+# The local Ray started for a sweep only passes small results around: a small object
+# store keeps its start-up memory low on small machines.
+LOCAL_OBJECT_STORE_BYTES = 150 * 1024 ** 2
+
+
+@dataclass
+class RunStatus:
+    """What the sweep knows about one run; a row of ``sweep_status.json``."""
+
+    run: Run
+    """The grid point."""
+    frames: int
+    """The run's budget in environment frames."""
+    state: str = "queued"
+    """queued, running, done or failed."""
+    action: str = "fresh"
+    """What the sweep found: ``done`` (skipped), ``resume`` (a checkpoint) or ``fresh``."""
+    attempts: int = 0
+    """Attempts started by this invocation of the sweep."""
+    errors: list[str] = field(default_factory=list)
+    """Last output line of each failed attempt."""
+    final_frame: int = 0
+    """Frame of the run's last evaluation."""
+    seconds: float = 0.0
+    """Wall time of this invocation's attempts."""
+
+    def to_dict(self, root: str) -> dict:
+        return {"name": self.run.name, "dir": os.path.relpath(self.run.dir, root), "algo": self.run.algo,
+                "task": self.run.task, "seed": self.run.seed, "beta0": self.run.beta0,
+                "frames": self.frames, "state": self.state, "action": self.action,
+                "attempts": self.attempts, "errors": self.errors, "final_frame": self.final_frame,
+                "seconds": round(self.seconds, 1), "log": os.path.relpath(os.path.join(self.run.dir, LOG_FILE), root)}
+
+
+def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
+    """Expand and validate the grid (one-line errors before any run starts) and classify runs."""
+    cfg.validate()
+    runs = expand(cfg)
+    statuses = []
+    for run in runs:
+        # Builds each run's config exactly as `imssr train` will: a bad override fails here,
+        # once, instead of N times on the workers.
+        frames = build_run_config(run, cfg).train.frames
+        status = RunStatus(run, frames)
+        if is_done(run.dir, frames):
+            status.state, status.action = "done", "done"
+            status.final_frame = last_frame(os.path.join(run.dir, "eval.csv"))
+        elif has_checkpoint(run.dir):
+            status.action = "resume"
+        statuses.append(status)
+    return statuses
+
+
+def write_status(cfg: SweepConfig, statuses: list[RunStatus], started: float, finished: bool = False) -> str:
+    root = os.path.abspath(cfg.root)
+    counts = {s: sum(st.state == s for st in statuses) for s in STATES}
+    data = {"root": root, "started": _iso(started), "updated": _iso(time.time()), "finished": finished,
+            "retries": cfg.retries, "counts": counts, "runs": [s.to_dict(root) for s in statuses]}
+    path = os.path.join(root, STATUS_FILE)
+    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
+    return path
+
+
+def _iso(t: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t))
+
+
+def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
+    """The expanded grid, one run per line (``--dry-run``)."""
+    lines = [f"{len(statuses)} runs under {os.path.abspath(cfg.root)}:"]
+    for s in statuses:
+        what = {"done": "done, skipped", "resume": "resume from checkpoint", "fresh": "new"}[s.action]
+        lines.append(f"  {os.path.relpath(s.run.dir, os.path.abspath(cfg.root))}\t{s.run.name}, "
+                     f"{s.frames} frames\t[{what}]")
+    lines.append("e.g. imssr train " + " ".join(statuses[0].run.train_args(cfg)) + f" --out {statuses[0].run.dir}"
+                 if statuses else "")
+    return "\n".join(lines)
+
+
+def _init_ray(cfg: SweepConfig):
+    import logging
+
+    # No usage-stats prompt or upload from a batch job (and none on machines without network).
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    try:
+        import ray
+    except ImportError:  # pragma: no cover - ray is a dependency
+        raise ImssrError("imssr sweep needs ray: pip install 'ray==2.60.0'") from None
+    # Workers' output goes to each run's sweep.log, not to the driver's terminal.
+    common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                  configure_logging=True)
+    try:
+        if cfg.address:
+            ray.init(address=cfg.address, **common)
+        else:
+            ray.init(object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        where = f"the Ray cluster at {cfg.address}" if cfg.address else "a local Ray"
+        raise ImssrError(f"could not start {where}: {str(exc).splitlines()[0] if str(exc) else exc}") from None
+    return ray
+
+
+def _capacity(ray, cfg: SweepConfig) -> int:
+    """Runs that fit at once in the cluster's CPUs (and GPUs when runs need them)."""
+    resources = ray.cluster_resources()
+    fits = int(resources.get("CPU", 1) // cfg.cpus_per_run)
+    if cfg.gpus_per_run > 0:
+        gpus = resources.get("GPU", 0)
+        if gpus < cfg.gpus_per_run:
+            raise ImssrError(f"--gpus-per-run {cfg.gpus_per_run} but the Ray cluster has {gpus:g} GPUs")
+        fits = min(fits, int(gpus // cfg.gpus_per_run))
+    if fits < 1:
+        raise ImssrError(f"--cpus-per-run {cfg.cpus_per_run} exceeds the Ray cluster's "
+                         f"{resources.get('CPU', 0):g} CPUs")
+    return min(fits, cfg.max_parallel) if cfg.max_parallel else fits
+
+
+class _Progress:
+    """Live summary across runs: a tqdm bar over finished runs plus the state counts."""
+
+    def __init__(self, statuses: list[RunStatus], enabled: bool):
+        from tqdm import tqdm
+
+        self.statuses = statuses
+        self.bar = tqdm(total=len(statuses), unit="run", desc="sweep", dynamic_ncols=True,
+                        disable=None if enabled else True)
+        self.refresh()
+
+    def refresh(self) -> None:
+        counts = {s: sum(st.state == s for st in self.statuses) for s in STATES}
+        # Frames trained so far over all runs, from the tails of their train.csv logs.
+        total = sum(st.frames for st in self.statuses) or 1
+        trained = sum(st.frames if st.state == "done" else
+                      min(st.frames, last_frame(os.path.join(st.run.dir, "train.csv"))) for st in self.statuses)
+        self.bar.n = counts["done"] + counts["failed"]
+        self.bar.set_postfix_str(f"queued {counts['queued']} running {counts['running']} done {counts['done']} "
+                                 f"failed {counts['failed']} | frames {100 * trained / total:.0f}%", refresh=False)
+        self.bar.refresh()
+
+    def say(self, text: str) -> None:
+        if self.bar.disable:
+            print(text, flush=True)
+        else:
+            self.bar.write(text)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> list[RunStatus]:
+    """Run every run of the sweep that is not done; return the final status of each."""
+    statuses = plan_runs(cfg)
+    root = os.path.abspath(cfg.root)
+    os.makedirs(root, exist_ok=True)
+    save_plan(cfg, [s.run for s in statuses], {s.run.dir: s.frames for s in statuses})
+    started = time.time()
+    status_path = write_status(cfg, statuses, started)
+    todo = deque(s for s in statuses if s.state != "done")
+    if not todo:
+        print(f"imssr: all {len(statuses)} runs are done; nothing to start ({status_path})", flush=True)
+        write_status(cfg, statuses, started, finished=True)
+        return statuses
+    print(f"imssr: {len(statuses)} runs, {len(statuses) - len(todo)} done, "
+          f"{sum(s.action == 'resume' for s in todo)} to resume, {sum(s.action == 'fresh' for s in todo)} new; "
+          f"status in {status_path}", flush=True)
+    ray = _init_ray(cfg)
+    ui = None
+    try:
+        parallel = _capacity(ray, cfg)
+        task = ray.remote(_remote_run).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
+                                               max_retries=0)
+        ui = _Progress(statuses, progress)
+        inflight: dict = {}
+        threads = max(1, int(cfg.cpus_per_run))
+        while todo or inflight:
+            while todo and len(inflight) < parallel:
+                st = todo.popleft()
+                st.state, st.attempts = "running", st.attempts + 1
+                ref = task.remote(st.run.dir, st.run.train_args(cfg), st.frames, st.attempts, threads)
+                inflight[ref] = st
+                write_status(cfg, statuses, started)
+            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=poll_s)
+            for ref in ready:
+                st = inflight.pop(ref)
+                result = _result(ray, ref)
+                st.seconds += result.get("seconds", 0.0)
+                st.final_frame = result.get("final_frame", st.final_frame)
+                if result["ok"]:
+                    st.state = "done"
+                    ui.say(f"done    {st.run.name}: frame {st.final_frame}"
+                           f"{' (resumed)' if result.get('resumed') else ''}, {result.get('seconds', 0):.0f}s")
+                    continue
+                st.errors.append(result["error"])
+                if st.attempts <= cfg.retries:
+                    st.state = "queued"
+                    todo.append(st)
+                    ui.say(f"retry   {st.run.name}: attempt {st.attempts} failed: {result['error']}")
+                else:
+                    st.state = "failed"
+                    ui.say(f"FAILED  {st.run.name} after {st.attempts} attempt(s): {result['error']} "
+                           f"(log: {os.path.join(st.run.dir, LOG_FILE)})")
+            if ready:
+                write_status(cfg, statuses, started)
+            ui.refresh()
+    except KeyboardInterrupt:
+        # Running trainings die with their workers; each keeps its last checkpoint, so
+        # re-running the sweep resumes them.
+        for st in statuses:
+            if st.state == "running":
+                st.state = "queued"
+        write_status(cfg, statuses, started)
+        raise
+    finally:
+        if ui is not None:
+            ui.close()
+        ray.shutdown()
+    write_status(cfg, statuses, started, finished=True)
+    return statuses
+
+
+def _remote_run(run_dir: str, train_args: list[str], frames: int, attempt: int, threads: int) -> dict:
+    """The Ray task body (module level, so workers import it rather than unpickle code)."""
+    from imssr.experiments.runner import execute_run
+
+    return execute_run(run_dir, train_args, frames, attempt, threads)
+
+
+def _result(ray, ref) -> dict:
+    """A task's result; a worker that died (OOM, node lost) is a failed attempt like any other."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayError as exc:
+        text = str(exc).strip().splitlines()
+        return {"ok": False, "error": f"Ray task failed: {text[0] if text else type(exc).__name__}"}
+
+
+def summarize(statuses: list[RunStatus]) -> tuple[str, int]:
+    """One closing line and the exit status: 0 when every run is done, 1 otherwise."""
+    failed = [s for s in statuses if s.state == "failed"]
+    done = sum(s.state == "done" for s in statuses)
+    if failed:
+        names = ", ".join(s.run.name for s in failed[:3]) + (" ..." if len(failed) > 3 else "")
+        return (f"{len(failed)} of {len(statuses)} runs failed after retries ({names}); "
+                f"{done} done; see sweep_status.json and each run's {LOG_FILE}"), 1
+    return f"all {len(statuses)} runs done", 0
+
+
+def status_of(root: str) -> Optional[dict]:
+    """The last sweep status written under ``root`` (None if there is none)."""
+    try:
+        with open(os.path.join(root, STATUS_FILE)) as fh:
+            return json.load(fh)
+    except (OSError, json.JSONDecodeError):
+        return None
