@@ -118,7 +118,9 @@ def _init_ray(cfg: SweepConfig):
         if cfg.address:
             ray.init(address=cfg.address, **common)
         else:
-            ray.init(object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+            # "local": always a fresh instance of our own, never a cluster that happens to run
+            # on this machine (ray.init() with no address would attach to it).
+            ray.init(address="local", object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = f"the Ray cluster at {cfg.address}" if cfg.address else "a local Ray"
         raise ImssrError(f"could not start {where}: {str(exc).splitlines()[0] if str(exc) else exc}") from None

@@ -1,0 +1,121 @@
+"""Sweep figures: learning curves across seeds, and final return against beta_0."""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+
+from imssr.experiments.results import SweepResults
+from imssr.experiments.tables import Row, label_order, mode_order
+from imssr.utils import atomic_path
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _grid(plt, n: int, width: float = 4.2, height: float = 3.2):
+    cols = min(3, n)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), dpi=100, squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.axis("off")
+    return fig, list(axes.flat[:n])
+
+
+def _save(plt, fig, path: str) -> str:
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
+
+
+def curve_points(results: SweepResults, task: str, mode: str, label: str) -> list[tuple[int, float, float, int]]:
+    """``(frame, mean, std, seeds)`` over the seeds that evaluated at each frame."""
+    by_frame: dict[int, list[float]] = {}
+    for run in results.runs:
+        if run.task == task and run.label == label:
+            for m, frame, ret in run.evals:
+                if m == mode:
+                    by_frame.setdefault(frame, []).append(ret)
+    return [(f, float(np.mean(v)), float(np.std(v)), len(v)) for f, v in sorted(by_frame.items())]
+
+
+def plot_curves(results: SweepResults, path: str) -> str:
+    """One panel per (task, mode), one line per algo: mean over seeds with a ±std band."""
+    plt = _pyplot()
+    panels = [(task, mode) for task in sorted({r.task for r in results.runs})
+              for mode in mode_order(m for r in results.runs if r.task == task for m, _, _ in r.evals)]
+    if not panels:
+        panels = [(sorted({r.task for r in results.runs})[0], "training")]
+    labels = label_order(results)
+    colors = {label: plt.cm.tab10(i % 10) for i, label in enumerate(labels)}
+    fig, axes = _grid(plt, len(panels))
+    for ax, (task, mode) in zip(axes, panels):
+        for label in labels:
+            pts = curve_points(results, task, mode, label)
+            if not pts:
+                continue
+            x = [p[0] for p in pts]
+            m = np.array([p[1] for p in pts])
+            s = np.array([p[2] for p in pts])
+            seeds = max(p[3] for p in pts)
+            ax.plot(x, m, marker="o", markersize=3, color=colors[label], label=f"{label} ({seeds} seeds)")
+            ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.2, linewidth=0)
+        ax.set_title(f"{task} ({mode})", fontsize=10)
+        ax.set_xlabel("environment frames")
+        ax.set_ylabel("evaluation return")
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    return _save(plt, fig, path)
+
+
+def plot_beta(rows: list[Row], path: str) -> Optional[str]:
+    """Final return (1.0T; mean ± std over seeds) against beta_0 on a log axis, per task and mode.
+
+    Base algos (and beta_0 = 0, which is the base algorithm) have no place on a log axis;
+    they are drawn as horizontal reference lines with their ±std band.
+    """
+    swept = [r for r in rows if r.beta0 is not None and r.cells[-1].n]
+    if not swept:
+        return None
+    plt = _pyplot()
+    panels = sorted({(r.task, r.mode) for r in swept}, key=lambda p: (p[0], p[1] != "training", p[1]))
+    fig, axes = _grid(plt, len(panels))
+    for ax, (task, mode) in zip(axes, panels):
+        group = [r for r in rows if r.task == task and r.mode == mode and r.cells[-1].n]
+        algos = sorted({r.algo for r in group if r.beta0 is not None})
+        for i, algo in enumerate(algos):
+            pts = sorted((r.beta0, r.cells[-1].mean, r.cells[-1].std)
+                         for r in group if r.algo == algo and r.beta0 is not None and r.beta0 > 0)
+            color = plt.cm.tab10(i % 10)
+            if pts:
+                ax.errorbar([p[0] for p in pts], [p[1] for p in pts], yerr=[p[2] for p in pts], marker="o",
+                            capsize=3, color=color, label=algo)
+            for r in group:
+                if r.algo == algo and r.beta0 == 0:
+                    _reference(ax, r, f"{algo} beta0=0", color)
+        for j, r in enumerate(x for x in group if x.beta0 is None):
+            _reference(ax, r, f"{r.label} (beta0 = 0)", plt.cm.tab10((len(algos) + j) % 10))
+        ax.set_xscale("log")
+        ax.set_xlabel("beta_0 (log scale)")
+        ax.set_ylabel(f"return at 1.0T (frame {group[0].cells[-1].frame})")
+        ax.set_title(f"{task} ({mode})", fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    return _save(plt, fig, path)
+
+
+def _reference(ax, row: Row, label: str, color) -> None:
+    cell = row.cells[-1]
+    ax.axhline(cell.mean, color=color, linestyle="--", label=label)
+    if not math.isnan(cell.std) and cell.std > 0:
+        ax.axhspan(cell.mean - cell.std, cell.mean + cell.std, color=color, alpha=0.12)

@@ -1,0 +1,83 @@
+"""``imssr report``: a sweep directory -> CSVs, the paper's table, curves, aggregates, beta_0 plot.
+
+Files written under ``out``:
+
+- ``evaluations.csv``  every evaluation of every seed (``algo,task,mode,seed,frame,return,beta0``)
+- ``table.csv``        mean/std/seeds at 0.2T, 0.5T, 1.0T per (mode, task, algo), the paper's beside
+- ``aggregates.csv``   rliable IQM and probability of improvement with 95% CIs
+- ``curves.png``       learning curves, one panel per task and mode
+- ``beta0.png``        final return against beta_0 (only for a beta sweep)
+- ``report.md``        all of the above in one page, with notes on what is missing
+"""
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+from imssr.experiments import aggregate, figures, tables
+from imssr.experiments.results import collect, write_evaluations
+from imssr.utils import atomic_write_text
+
+PAPER_T = 500_000
+
+
+def write_report(root: str, out: str, paper_results: Optional[str] = None,
+                 reps: int = 2000) -> list[tuple[str, str]]:
+    """Write the report; return ``(path, description)`` of each file written."""
+    results = collect(root)
+    os.makedirs(out, exist_ok=True)
+    notes = list(results.notes)
+    paper_path = paper_results or tables.default_paper_results()
+    paper = None
+    if os.path.exists(paper_path):
+        paper = tables.load_paper_results(paper_path)
+    else:
+        notes.append(f"paper results not found at {paper_path}: no paper column (--paper-results PATH)")
+    rows, row_notes = tables.build_rows(results, paper)
+    notes += row_notes
+    budgets = sorted({results.budget(t) for t in {r.task for r in results.runs}})
+    if paper is not None and budgets != [PAPER_T]:
+        notes.append(f"the paper's numbers are at T = {PAPER_T} frames; this sweep's T is "
+                     f"{', '.join(map(str, budgets))}, so its 0.2T/0.5T/1.0T are other frames")
+    aggregates, agg_notes = aggregate.compute(rows, reps=reps)
+    notes += agg_notes
+    written = [
+        (write_evaluations(results, os.path.join(out, "evaluations.csv")), "per-seed evaluations"),
+        (tables.write_table_csv(rows, os.path.join(out, "table.csv")), "table (CSV)"),
+        (aggregate.write_csv(aggregates, os.path.join(out, "aggregates.csv")), "aggregate metrics (CSV)"),
+        (figures.plot_curves(results, os.path.join(out, "curves.png")), "learning curves"),
+    ]
+    beta_png = figures.plot_beta(rows, os.path.join(out, "beta0.png")) if results.is_beta_sweep else None
+    if beta_png:
+        written.append((beta_png, "final return against beta_0"))
+    md = _markdown(results, rows, aggregates, notes, paper is not None, beta_png is not None, reps)
+    path = os.path.join(out, "report.md")
+    atomic_write_text(path, md)
+    written.append((path, "report"))
+    return written
+
+
+def _markdown(results, rows, aggregates, notes, with_paper: bool, beta_plot: bool, reps: int) -> str:
+    n_evals = sum(len(r.evals) for r in results.runs)
+    parts = [
+        f"# Sweep report: `{results.root}`\n",
+        f"{len(results.runs)} runs, {n_evals} evaluations. Cells: mean ± std over seeds (ddof 0) of each "
+        "seed's last evaluation return at or before the point; **bold**: best mean of the task at that "
+        "point; `(n/N)`: only n of the N expected seeds reached the point."
+        + (" `paper` columns: the published numbers (Tables I and II)." if with_paper else "") + "\n",
+        "## Table\n",
+        tables.markdown_tables(rows, results, with_paper),
+        "## Aggregate metrics (rliable)\n",
+        f"Scores normalised by 1000 (the DMC maximum). IQM: interquartile mean over runs and tasks; "
+        f"P(X > Y): probability that X beats its base Y on a random task. 95% stratified-bootstrap CIs, "
+        f"{reps} replicates.\n",
+        aggregate.markdown(aggregates),
+        "## Learning curves\n",
+        "![learning curves](curves.png)\n",
+    ]
+    if beta_plot:
+        parts += ["## Beta_0 sensitivity\n", "Return at 1.0T against beta_0 (log axis); dashed lines: the "
+                  "base algorithms (beta_0 = 0).\n", "![beta_0](beta0.png)\n"]
+    parts.append("## Notes\n")
+    parts.append("\n".join(f"- {n}" for n in notes) + "\n" if notes else "Every expected seed reached every point.\n")
+    return "\n".join(parts)

@@ -1,0 +1,159 @@
+"""Reading a sweep directory back: every run's identity, budget and evaluations.
+
+Runs are found by their ``config.json`` at any depth below the root, so a report also works
+on hand-assembled directories and on sweeps that are still running.  ``sweep.json`` (written
+by ``imssr sweep``) adds the runs that were planned but have not written anything yet.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Optional
+
+from imssr.errors import ImssrError
+from imssr.experiments.grid import SWEEP_PLAN, beta_label
+from imssr.training.logger import read_csv
+
+EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "frame", "return", "beta0"]
+
+
+@dataclass
+class RunResult:
+    """One run directory as the report sees it."""
+
+    algo: str
+    """Algorithm name."""
+    task: str
+    """Task name."""
+    seed: int
+    """Run seed."""
+    beta0: Optional[float]
+    """beta_0 when the run is a point of a beta sweep (a ``beta0_<value>`` directory level)."""
+    frames: int
+    """The run's budget in environment frames."""
+    action_repeat: int
+    """Frames per agent step: an evaluation lands up to ``action_repeat - 1`` frames late."""
+    dir: str
+    """Run directory."""
+    evals: list[tuple[str, int, float]] = field(default_factory=list)
+    """``(mode, frame, return_mean)`` of every evaluation, in file order."""
+
+    @property
+    def label(self) -> str:
+        """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep."""
+        return self.algo if self.beta0 is None else f"{self.algo} beta0={beta_label(self.beta0)}"
+
+
+@dataclass
+class PlannedRun:
+    """A run that ``sweep.json`` lists (it may not exist yet)."""
+
+    algo: str
+    task: str
+    seed: int
+    beta0: Optional[float]
+    frames: int
+    dir: str
+
+    @property
+    def label(self) -> str:
+        return self.algo if self.beta0 is None else f"{self.algo} beta0={beta_label(self.beta0)}"
+
+
+@dataclass
+class SweepResults:
+    """Everything under a root: runs with their evaluations, the plan, and what was odd."""
+
+    root: str
+    runs: list[RunResult]
+    planned: list[PlannedRun]
+    notes: list[str]
+
+    @property
+    def is_beta_sweep(self) -> bool:
+        return any(r.beta0 is not None for r in self.runs) or any(p.beta0 is not None for p in self.planned)
+
+    def budget(self, task: str) -> int:
+        """The sweep's T for ``task``: the planned budget, else the largest budget of its runs."""
+        frames = [p.frames for p in self.planned if p.task == task] or \
+                 [r.frames for r in self.runs if r.task == task]
+        return max(frames)
+
+
+def collect(root: str) -> SweepResults:
+    if not os.path.isdir(root):
+        raise ImssrError(f"sweep directory not found: {root}")
+    root = os.path.abspath(root)
+    notes: list[str] = []
+    runs = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames[:] = sorted(d for d in dirnames if d not in ("checkpoints", "tb", "videos"))
+        if "config.json" not in filenames:
+            continue
+        run = _read_run(dirpath, root, notes)
+        if run is not None:
+            runs.append(run)
+    planned = _read_plan(root, notes)
+    found = {os.path.abspath(r.dir) for r in runs}
+    for p in planned:
+        if p.dir not in found:
+            notes.append(f"{os.path.relpath(p.dir, root)}: planned but not started (no config.json)")
+    if not runs:
+        raise ImssrError(f"no runs under {root} (a run directory holds config.json and eval.csv)")
+    return SweepResults(root, runs, planned, notes)
+
+
+def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
+    rel = os.path.relpath(run_dir, root)
+    try:
+        with open(os.path.join(run_dir, "config.json")) as fh:
+            cfg = json.load(fh)
+        algo, task = cfg["algo"], cfg["env"]["task"]
+        seed, frames = int(cfg["train"]["seed"]), int(cfg["train"]["frames"])
+        action_repeat = int(cfg["env"]["action_repeat"])
+        beta_level = any(part.startswith("beta0_") for part in rel.split(os.sep))
+        beta0 = float(cfg["intrinsic"]["beta0"]) if beta_level else None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
+        return None
+    run = RunResult(algo, task, seed, beta0, frames, action_repeat, run_dir)
+    rows = read_csv(os.path.join(run_dir, "eval.csv"))
+    for row in rows:
+        try:
+            run.evals.append((row["mode"], int(float(row["frame"])), float(row["return_mean"])))
+        except (KeyError, TypeError, ValueError):
+            continue  # a row cut short by a killed process
+    if not run.evals:
+        notes.append(f"{rel}: no evaluations yet")
+    return run
+
+
+def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
+    path = os.path.join(root, SWEEP_PLAN)
+    if not os.path.exists(path):
+        return []
+    try:
+        with open(path) as fh:
+            plan = json.load(fh)
+        return [PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), int(r["frames"]),
+                           os.path.join(root, r["dir"])) for r in plan["runs"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        notes.append(f"{SWEEP_PLAN}: unreadable ({exc}); expected seeds come from the runs found")
+        return []
+
+
+def write_evaluations(results: SweepResults, path: str) -> str:
+    """Every evaluation of every run: ``algo,task,mode,seed,frame,return,beta0``."""
+    from imssr.utils import atomic_path
+
+    rows = sorted((r.algo, r.task, mode, r.seed, frame, ret, "" if r.beta0 is None else beta_label(r.beta0))
+                  for r in results.runs for mode, frame, ret in r.evals)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(EVALUATIONS_COLUMNS)
+            for algo, task, mode, seed, frame, ret, beta in rows:
+                writer.writerow([algo, task, mode, seed, frame, f"{ret:.6g}", beta])
+    return path

@@ -1,0 +1,255 @@
+"""The paper's table layout: mean ± std over seeds at 0.2T, 0.5T and 1.0T per task and mode.
+
+A seed's value at a point ``p = f * T`` is its last evaluation at or before ``p``.  An
+evaluation is taken at the first agent step at or after its scheduled frame, so it may land
+up to ``action_repeat - 1`` frames after ``p``; those still count as "at ``p``".  A seed
+whose evaluations stop before ``p`` (an unfinished run) has no value there, and the cell
+says how many of the expected seeds it averages.  Std is over seeds with ddof = 0 (numpy's
+default, as RL papers' tables use), so one seed has std 0.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from imssr.experiments.results import RunResult, SweepResults
+
+FRACTIONS = (0.2, 0.5, 1.0)
+TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "frame", "mean", "std", "seeds",
+                 "expected_seeds", "best", "paper_mean", "paper_std"]
+
+
+@dataclass
+class Cell:
+    """Mean ± std over seeds of one (mode, task, label) at one fraction of T."""
+
+    fraction: float
+    """Fraction of the budget T."""
+    frame: int
+    """The point ``fraction * T`` in environment frames."""
+    values: dict[int, float] = field(default_factory=dict)
+    """Seed -> return of its evaluation at the point."""
+    expected: int = 0
+    """Seeds the sweep planned (or that any algo of the task ran) for this group."""
+    best: bool = False
+    """Highest mean of its (mode, task) row group at this fraction."""
+    paper: Optional[tuple[float, float]] = None
+    """The paper's (mean, std) for the same algo, task, mode and fraction, if published."""
+
+    @property
+    def n(self) -> int:
+        return len(self.values)
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(list(self.values.values()))) if self.values else math.nan
+
+    @property
+    def std(self) -> float:
+        return float(np.std(list(self.values.values()))) if self.values else math.nan
+
+
+@dataclass
+class Row:
+    """One algo (or algo at one beta_0) on one task in one mode: a cell per fraction."""
+
+    mode: str
+    task: str
+    label: str
+    algo: str
+    beta0: Optional[float]
+    cells: list[Cell]
+
+
+def value_at(evals: list[tuple[int, float]], point: int, slack: int) -> Optional[float]:
+    """Return of the last evaluation at or before ``point`` (``slack`` frames late allowed);
+    None when the run's evaluations have not reached the point."""
+    evals = sorted(evals)
+    if not evals or evals[-1][0] + slack < point:
+        return None
+    before = [ret for frame, ret in evals if frame <= point + slack]
+    return before[-1] if before else None
+
+
+def _why_missing(evals: list[tuple[int, float]], point: int) -> str:
+    if not evals:
+        return "no evaluation in this mode"
+    frames = sorted(f for f, _ in evals)
+    if frames[-1] < point:
+        return f"not reached: last evaluation at frame {frames[-1]}"
+    return f"no evaluation at or before it: first at frame {frames[0]}"
+
+
+def mode_order(modes) -> list[str]:
+    """The training scene first, then the test scenes alphabetically."""
+    return sorted(set(modes), key=lambda m: (m != "training", m))
+
+
+def label_order(results: SweepResults) -> list[str]:
+    """Algos in registry order (curl, im-curl, ...), beta sweeps by increasing beta_0."""
+    from imssr.presets import ALGOS
+
+    rank = {name: i for i, name in enumerate(ALGOS)}
+    keys = {(r.label, r.algo, r.beta0) for r in results.runs} | \
+           {(p.label, p.algo, p.beta0) for p in results.planned}
+    ordered = sorted(keys, key=lambda k: (rank.get(k[1], len(rank)), k[1], -1.0 if k[2] is None else k[2]))
+    return [k[0] for k in ordered]
+
+
+def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[list[Row], list[str]]:
+    """Every (mode, task, label) row, and notes on missing seeds and evaluation points."""
+    from imssr.presets import ALGOS
+
+    notes: list[str] = []
+    labels = label_order(results)
+    by_group: dict[tuple[str, str], list[RunResult]] = {}
+    for run in results.runs:
+        by_group.setdefault((run.task, run.label), []).append(run)
+    rows = []
+    for task in sorted({r.task for r in results.runs}):
+        budget = results.budget(task)
+        expected = _expected_seeds(results, task)
+        modes = mode_order(m for r in results.runs if r.task == task for m, _, _ in r.evals)
+        for mode in modes:
+            for label in labels:
+                runs = by_group.get((task, label), [])
+                if not runs and not any(p.task == task and p.label == label for p in results.planned):
+                    continue
+                first = runs[0] if runs else next(p for p in results.planned if p.label == label)
+                algo, beta0 = first.algo, first.beta0
+                want = expected.get(label, set())
+                cells = []
+                for fraction in FRACTIONS:
+                    point = int(round(fraction * budget))
+                    cell = Cell(fraction, point, expected=len(want | {r.seed for r in runs}))
+                    late = []
+                    for run in runs:
+                        evals = [(f, v) for m, f, v in run.evals if m == mode]
+                        value = value_at(evals, point, run.action_repeat - 1)
+                        if value is None:
+                            late.append(f"{run.seed} ({_why_missing(evals, point)})")
+                        else:
+                            cell.values[run.seed] = value
+                    absent = sorted(want - {r.seed for r in runs})
+                    if late or absent:
+                        parts = ([f"no value for seed(s) {', '.join(late)}"] if late else []) + \
+                                ([f"no run for seed(s) {', '.join(map(str, absent))}"] if absent else [])
+                        notes.append(f"{mode} / {task} / {label} at {fraction:.1f}T (frame {point}): "
+                                     + "; ".join(parts))
+                    if paper is not None and beta0 is None and algo in ALGOS:
+                        cell.paper = paper.get((task, mode, fraction, ALGOS[algo].paper_name))
+                    cells.append(cell)
+                rows.append(Row(mode, task, label, algo, beta0, cells))
+    _mark_best(rows)
+    return rows, notes
+
+
+def _expected_seeds(results: SweepResults, task: str) -> dict[str, set[int]]:
+    """Seeds each label should have on ``task``: the plan's, else every seed any label ran."""
+    planned = [p for p in results.planned if p.task == task]
+    if planned:
+        out: dict[str, set[int]] = {}
+        for p in planned:
+            out.setdefault(p.label, set()).add(p.seed)
+        return out
+    seeds = {r.seed for r in results.runs if r.task == task}
+    return {r.label: seeds for r in results.runs if r.task == task}
+
+
+def _mark_best(rows: list[Row]) -> None:
+    groups: dict[tuple[str, str], list[Row]] = {}
+    for row in rows:
+        groups.setdefault((row.mode, row.task), []).append(row)
+    for group in groups.values():
+        for i in range(len(FRACTIONS)):
+            means = [row.cells[i].mean for row in group if row.cells[i].n]
+            if not means:
+                continue
+            top = max(means)
+            for row in group:
+                row.cells[i].best = bool(row.cells[i].n) and row.cells[i].mean == top
+
+
+# -- the paper's numbers ---------------------------------------------------------------
+def default_paper_results() -> str:
+    """``../shared/spec/paper_results.csv`` beside the repository checkout."""
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    return os.path.join(os.path.dirname(repo), "shared", "spec", "paper_results.csv")
+
+
+def load_paper_results(path: str) -> dict[tuple[str, str, float, str], tuple[float, float]]:
+    """``(task, mode, fraction, paper algo name) -> (mean, std)`` from the spec's CSV."""
+    out = {}
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            try:
+                key = (row["task"], row["mode"], float(row["frames_fraction"]), row["algorithm"])
+                out[key] = (float(row["mean"]), float(row["std"]))
+            except (KeyError, TypeError, ValueError):
+                continue
+    return out
+
+
+# -- output ------------------------------------------------------------------------------
+def _fmt(mean: float, std: float) -> str:
+    return f"{mean:.1f} ± {std:.1f}"
+
+
+def cell_text(cell: Cell) -> str:
+    if not cell.n:
+        return f"– (0/{cell.expected})"
+    text = f"**{cell.mean:.1f}** ± {cell.std:.1f}" if cell.best else _fmt(cell.mean, cell.std)
+    return text if cell.n >= cell.expected else f"{text} ({cell.n}/{cell.expected})"
+
+
+def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) -> str:
+    """One table per mode: tasks as row groups, a column per fraction (and the paper's beside it)."""
+    out = []
+    for mode in mode_order(r.mode for r in rows):
+        mode_rows = [r for r in rows if r.mode == mode]
+        header = ["task", "algo"]
+        for fraction in FRACTIONS:
+            header.append(f"{fraction:.1f}T")
+            if with_paper:
+                header.append(f"paper {fraction:.1f}T")
+        header.append("seeds")
+        budgets = sorted({results.budget(r.task) for r in mode_rows})
+        out.append(f"### `{mode}` (T = {', '.join(map(str, budgets))} frames)\n")
+        out.append("| " + " | ".join(header) + " |")
+        out.append("|" + "|".join(["---"] * 2 + ["---:"] * (len(header) - 2)) + "|")
+        previous_task = None
+        for row in mode_rows:
+            task = f"`{row.task}`" if row.task != previous_task else ""
+            previous_task = row.task
+            cols = [task, row.label]
+            for cell in row.cells:
+                cols.append(cell_text(cell))
+                if with_paper:
+                    cols.append(_fmt(*cell.paper) if cell.paper else "")
+            final = row.cells[-1]
+            cols.append(f"{final.n}/{final.expected}")
+            out.append("| " + " | ".join(cols) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+def write_table_csv(rows: list[Row], path: str) -> str:
+    from imssr.utils import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(TABLE_COLUMNS)
+            for row in rows:
+                for cell in row.cells:
+                    paper = cell.paper or ("", "")
+                    writer.writerow([row.mode, row.task, row.label, row.algo,
+                                     "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.frame,
+                                     "" if not cell.n else f"{cell.mean:.6g}", "" if not cell.n else f"{cell.std:.6g}",
+                                     cell.n, cell.expected, int(cell.best), *paper])
+    return path

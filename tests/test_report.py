@@ -1,0 +1,197 @@
+"""imssr report on synthetic sweep directories with known numbers: tables, paper column,
+partial sweeps, rliable aggregates, the beta_0 plot, and the CLI."""
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from imssr.experiments.report import write_report
+from imssr.presets import make_config
+from imssr.training.logger import EVAL_COLUMNS, read_csv
+
+TASK = "cartpole_swingup_sparse"  # action repeat 8: an evaluation may land up to 7 frames late
+
+
+def make_run(root, algo, seed, evals, task=TASK, frames=1000, beta0=None):
+    """A run directory as `imssr train` leaves it: config.json and eval.csv rows (mode, frame, return)."""
+    parts = [task, algo] + ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
+    run = os.path.join(root, *parts)
+    os.makedirs(run)
+    cfg = make_config(algo, task)
+    cfg.train.frames, cfg.train.seed = frames, seed
+    if beta0 is not None:
+        cfg.intrinsic.beta0 = beta0
+    with open(os.path.join(run, "config.json"), "w") as fh:
+        fh.write(cfg.to_json())
+    with open(os.path.join(run, "eval.csv"), "w", newline="") as fh:
+        w = csv.DictWriter(fh, EVAL_COLUMNS)
+        w.writeheader()
+        for mode, frame, ret in evals:
+            w.writerow({"frame": frame, "step": frame // 8, "mode": mode, "return_mean": ret, "return_std": 1.0,
+                        "episodes": 1, "return_min": ret, "return_max": ret, "wall_time": 0})
+    return run
+
+
+def curve(r02, r05, r10, mode="training"):
+    # 0.2T = 200: the evaluation at 100 is the last at or before it (300 is after);
+    # 0.5T = 500: 504 lands within one agent step (8 frames) of it and counts.
+    return [(mode, 100, r02), (mode, 300, -1.0), (mode, 504, r05), (mode, 1000, r10)]
+
+
+def table(out):
+    return {(r["mode"], r["label"], r["fraction"]): r for r in read_csv(os.path.join(out, "table.csv"))}
+
+
+@pytest.fixture
+def paper_csv(tmp_path):
+    path = tmp_path / "paper.csv"
+    path.write_text("table,task,mode,frames_fraction,algorithm,mean,std\n"
+                    f"I,{TASK},training,1.0,CURL,744.2,23.8\nI,{TASK},training,1.0,IM-CURL,744.8,54.2\n")
+    return str(path)
+
+
+def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for seed, (a, b, c) in zip((1, 2, 3), [(10, 100, 100), (20, 200, 200), (30, 300, 300)]):
+        make_run(root, "curl", seed, curve(a, b, c))
+    for seed, (a, b, c) in zip((1, 2, 3), [(0, 400, 400), (0, 500, 500), (0, 600, 600)]):
+        make_run(root, "im-curl", seed, curve(a, b, c) + curve(1, 2, 3, mode="color_hard"))
+    write_report(root, out, paper_results=paper_csv, reps=200)
+    t = table(out)
+    std = float(np.std([100, 200, 300]))  # 81.65: ddof 0
+    assert float(t["training", "curl", "1.0"]["mean"]) == 200.0
+    assert float(t["training", "curl", "1.0"]["std"]) == pytest.approx(std, rel=1e-5)
+    assert float(t["training", "curl", "0.2"]["mean"]) == 20.0  # frame 100, not 300
+    assert float(t["training", "curl", "0.5"]["mean"]) == 200.0  # frame 504 counts as 500
+    assert t["training", "curl", "1.0"]["frame"] == "1000"
+    assert float(t["training", "im-curl", "1.0"]["mean"]) == 500.0
+    assert (t["training", "im-curl", "1.0"]["best"], t["training", "curl", "1.0"]["best"]) == ("1", "0")
+    assert (t["training", "curl", "0.2"]["best"], t["training", "im-curl", "0.2"]["best"]) == ("1", "0")
+    assert t["training", "curl", "1.0"]["paper_mean"] == "744.2"
+    assert t["training", "curl", "0.2"]["paper_mean"] == ""
+    # Test scenes get their own table; curl was never evaluated there.
+    assert float(t["color_hard", "im-curl", "1.0"]["mean"]) == 3.0
+    assert t["color_hard", "curl", "1.0"]["seeds"] == "0"
+    md = open(os.path.join(out, "report.md")).read()
+    assert "| `cartpole_swingup_sparse` | curl | **20.0** ± 8.2 |  | 200.0 ± 81.6 |  | 200.0 ± 81.6 | 744.2 ± 23.8 | 3/3 |" in md
+    assert "| im-curl | 0.0 ± 0.0 |  | **500.0** ± 81.6 |  | **500.0** ± 81.6 | 744.8 ± 54.2 | 3/3 |" in md
+    assert "### `training`" in md and md.index("### `training`") < md.index("### `color_hard`")
+    # Every evaluation, one row each.
+    rows = read_csv(os.path.join(out, "evaluations.csv"))
+    assert list(rows[0]) == ["algo", "task", "mode", "seed", "frame", "return", "beta0"]
+    assert len(rows) == 3 * 4 + 3 * 8
+    assert {"algo": "curl", "task": TASK, "mode": "training", "seed": "2", "frame": "504",
+            "return": "200", "beta0": ""} in rows
+    assert os.path.getsize(os.path.join(out, "curves.png")) > 5000
+    assert not os.path.exists(os.path.join(out, "beta0.png"))
+
+
+def test_aggregates_iqm_and_probability_of_improvement(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for seed, ret in zip((1, 2, 3, 4), (100, 200, 300, 1000)):
+        make_run(root, "curl", seed, curve(0, 0, ret))
+    for seed, ret in zip((1, 2, 3, 4), (400, 500, 600, 700)):
+        make_run(root, "im-curl", seed, curve(0, 0, ret))
+    write_report(root, out, paper_results=paper_csv, reps=200)
+    agg = {(r["fraction"], r["metric"], r["label"]): r for r in read_csv(os.path.join(out, "aggregates.csv"))}
+    # IQM of 0.1, 0.2, 0.3, 1.0: the middle half, (0.2 + 0.3) / 2.
+    iqm = agg["1.0", "IQM", "curl"]
+    assert float(iqm["point"]) == pytest.approx(0.25)
+    assert float(iqm["ci_low"]) <= 0.25 <= float(iqm["ci_high"])
+    assert float(agg["1.0", "IQM", "im-curl"]["point"]) == pytest.approx(0.55)
+    # im-curl beats curl in 3 of 4 seeds x 4 seeds = 12 of 16 pairs (1000 beats every im-curl seed).
+    poi = agg["1.0", "P(X > Y)", "im-curl > curl"]
+    assert float(poi["point"]) == pytest.approx(12 / 16)
+    assert poi["tasks"] == TASK and poi["runs"] == "4"
+    # Identical scores at 0.2T: no improvement either way.
+    assert float(agg["0.2", "P(X > Y)", "im-curl > curl"]["point"]) == 0.5
+
+
+def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, curve(10, 100, 100))
+    make_run(root, "curl", 2, curve(20, 200, 200))
+    make_run(root, "curl", 3, curve(30, 300, 300)[:3])  # still running: last evaluation at 504
+    make_run(root, "im-curl", 1, curve(0, 400, 400))
+    make_run(root, "im-curl", 2, [])  # started, no evaluation yet
+    # The plan says three seeds each: im-curl seed 3 never started.
+    plan = {"sweep": {}, "runs": [{"algo": a, "task": TASK, "seed": s, "beta0": None, "frames": 1000,
+                                   "dir": f"{TASK}/{a}/seed_{s}"} for a in ("curl", "im-curl") for s in (1, 2, 3)]}
+    with open(os.path.join(root, "sweep.json"), "w") as fh:
+        json.dump(plan, fh)
+    write_report(root, out, paper_results=paper_csv, reps=200)
+    t = table(out)
+    assert (t["training", "curl", "0.5"]["seeds"], t["training", "curl", "0.5"]["expected_seeds"]) == ("3", "3")
+    assert float(t["training", "curl", "0.5"]["mean"]) == 200.0
+    assert (t["training", "curl", "1.0"]["seeds"], float(t["training", "curl", "1.0"]["mean"])) == ("2", 150.0)
+    assert (t["training", "im-curl", "1.0"]["seeds"], t["training", "im-curl", "1.0"]["expected_seeds"]) == ("1", "3")
+    md = open(os.path.join(out, "report.md")).read()
+    assert "150.0 ± 50.0 (2/3)" in md and "**400.0** ± 0.0 (1/3)" in md
+    assert "training / cartpole_swingup_sparse / curl at 1.0T (frame 1000): no value for seed(s) 3 " \
+           "(not reached: last evaluation at frame 504)" in md
+    assert "im-curl at 1.0T (frame 1000): no value for seed(s) 2 (no evaluation in this mode); " \
+           "no run for seed(s) 3" in md
+    assert f"{TASK}/im-curl/seed_2: no evaluations yet" in md
+    assert f"{TASK}/im-curl/seed_3: planned but not started" in md
+    # rliable needs a full matrix: the fewest seeds of any task (1 for im-curl) are used.
+    agg = {(r["fraction"], r["metric"], r["label"]): r for r in read_csv(os.path.join(out, "aggregates.csv"))}
+    assert agg["1.0", "IQM", "im-curl"]["runs"] == "1"
+    assert float(agg["1.0", "IQM", "curl"]["point"]) == pytest.approx(0.15)
+
+
+def test_missing_paper_results_drops_the_column_with_a_note(tmp_path):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, curve(10, 100, 100))
+    write_report(root, out, paper_results=str(tmp_path / "nope.csv"), reps=50)
+    md = open(os.path.join(out, "report.md")).read()
+    assert "paper 1.0T" not in md and "paper results not found at" in md
+    assert table(out)["training", "curl", "1.0"]["paper_mean"] == ""
+
+
+def test_default_paper_results_are_the_spec_copy():
+    from imssr.experiments.tables import default_paper_results, load_paper_results
+
+    path = default_paper_results()
+    if not os.path.exists(path):
+        pytest.skip("no ../shared/spec beside this checkout")
+    paper = load_paper_results(path)
+    assert paper[(TASK, "training", 0.2, "IM-CURL")] == (318.4, 240.3)
+    assert paper[("walker_walk", "video_hard", 1.0, "IM-SODA")][0] > 0
+
+
+def test_beta_sweep_report_draws_return_against_beta(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for seed in (1, 2):
+        make_run(root, "curl", seed, curve(0, 0, 100 * seed))
+        make_run(root, "im-curl", seed, curve(0, 0, 300 + seed), beta0=0.01)
+        make_run(root, "im-curl", seed, curve(0, 0, 500 + seed), beta0=0.1)
+    written = dict((os.path.basename(p), d) for p, d in write_report(root, out, paper_results=paper_csv, reps=50))
+    assert "beta0.png" in written and os.path.getsize(os.path.join(out, "beta0.png")) > 5000
+    t = table(out)
+    assert float(t["training", "im-curl beta0=0.01", "1.0"]["mean"]) == 301.5
+    assert float(t["training", "im-curl beta0=0.1", "1.0"]["beta0"]) == 0.1
+    assert t["training", "im-curl beta0=0.1", "1.0"]["best"] == "1"
+    # A beta sweep's variants are not the paper's settings: no paper numbers beside them.
+    assert t["training", "im-curl beta0=0.1", "1.0"]["paper_mean"] == ""
+    md = open(os.path.join(out, "report.md")).read()
+    assert "## Beta_0 sensitivity" in md
+    agg = {(r["metric"], r["label"]) for r in read_csv(os.path.join(out, "aggregates.csv"))}
+    assert ("P(X > Y)", "im-curl beta0=0.01 > curl") in agg
+    assert {r["beta0"] for r in read_csv(os.path.join(out, "evaluations.csv"))} == {"", "0.01", "0.1"}
+
+
+def test_report_cli(tmp_path, paper_csv):
+    root = str(tmp_path / "sweep")
+    make_run(root, "curl", 1, curve(10, 100, 100))
+    proc = subprocess.run([sys.executable, "-m", "imssr", "report", root, "--paper-results", paper_csv,
+                           "--reps", "50"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert os.path.exists(os.path.join(root, "report", "report.md")) and "report.md" in proc.stdout
+    proc = subprocess.run([sys.executable, "-m", "imssr", "report", str(tmp_path / "none")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == f"imssr: error: sweep directory not found: {tmp_path / 'none'}"
