@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -192,6 +193,7 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> l
           f"status in {status_path}", flush=True)
     ray = _init_ray(cfg)
     ui = None
+    previous = _sigterm_as_interrupt()
     try:
         parallel = _capacity(ray, cfg)
         task = ray.remote(_remote_run).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
@@ -241,8 +243,24 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> l
         if ui is not None:
             ui.close()
         ray.shutdown()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     write_status(cfg, statuses, started, finished=True)
     return statuses
+
+
+def _sigterm_as_interrupt():
+    """Treat SIGTERM (a batch scheduler's stop, `kill`) like Ctrl-C, so the status file says
+    which runs were cut short; returns the previous handler (None off the main thread)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, stop)
 
 
 def _remote_run(run_dir: str, train_args: list[str], frames: int, attempt: int, threads: int) -> dict:
