@@ -118,6 +118,8 @@ def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
     make_run(root, "curl", 3, curve(30, 300, 300)[:3])  # still running: last evaluation at 504
     make_run(root, "im-curl", 1, curve(0, 400, 400))
     make_run(root, "im-curl", 2, [])  # started, no evaluation yet
+    with open(os.path.join(root, TASK, "im-curl", "seed_2", "eval.csv"), "a") as fh:
+        fh.write("1000,125,training,9")  # ... and killed while writing its first row
     # The plan says three seeds each: im-curl seed 3 never started.
     plan = {"sweep": {}, "runs": [{"algo": a, "task": TASK, "seed": s, "beta0": None, "frames": 1000,
                                    "dir": f"{TASK}/{a}/seed_{s}"} for a in ("curl", "im-curl") for s in (1, 2, 3)]}

@@ -66,6 +66,30 @@ def test_grid_directories_and_beta_level(tmp_path):
     assert build_run_config(plain[0], cfg).intrinsic.beta0 == 0.01
 
 
+def test_run_arguments_and_done_marker(tmp_path):
+    from imssr.experiments.runner import is_done, last_frame, write_done
+
+    cfg = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[2], frames=3000,
+                      gpus_per_run=0.5, overrides=["agent.batch_size=8"])
+    (run,) = expand(cfg)
+    # A GPU share means training on it, unless the overrides choose a device.
+    assert run.train_args(cfg) == ["--algo", "curl", "--task", TASK, "--seed", "2", "--frames", "3000",
+                                   "--device", "cuda", "--set", "agent.batch_size=8"]
+    cfg.overrides.append("train.device=cuda:1")
+    assert "--device" not in run.train_args(cfg)
+    os.makedirs(run.dir)
+    assert not is_done(run.dir, 3000)
+    with open(os.path.join(run.dir, "eval.csv"), "w") as fh:
+        fh.write("frame,step,mode,return_mean\n1000,125,training,1.5\n3000,375,training,2.5\n3")  # cut short
+    assert last_frame(os.path.join(run.dir, "eval.csv")) == 3000
+    write_done(run.dir, 3000, 3000, attempt=1, resumed=False)
+    assert is_done(run.dir, 3000) and is_done(run.dir, 2000)
+    assert not is_done(run.dir, 4000)  # a larger budget resumes the finished run
+    with open(os.path.join(run.dir, DONE_FILE), "w") as fh:
+        fh.write('{"frames": 30')  # torn marker: not done
+    assert not is_done(run.dir, 3000)
+
+
 def test_sweep_file_equals_flags(tmp_path, capsys):
     path = tmp_path / "sweep.json"
     path.write_text(json.dumps({"algos": ["curl", "im-curl"], "tasks": TASK, "seeds": "1-2", "frames": 2000,

@@ -119,7 +119,10 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
         return None
     run = RunResult(algo, task, seed, beta0, frames, action_repeat, run_dir)
-    rows = read_csv(os.path.join(run_dir, "eval.csv"))
+    path = os.path.join(run_dir, "eval.csv")
+    rows = read_csv(path)
+    if rows and not _ends_with_newline(path):
+        rows = rows[:-1]  # a row cut short by a killed writer ("...,training,2." of 2.5)
     for row in rows:
         try:
             run.evals.append((row["mode"], int(float(row["frame"])), float(row["return_mean"])))
@@ -128,6 +131,15 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     if not run.evals:
         notes.append(f"{rel}: no evaluations yet")
     return run
+
+
+def _ends_with_newline(path: str) -> bool:
+    with open(path, "rb") as fh:
+        fh.seek(0, os.SEEK_END)
+        if fh.tell() == 0:
+            return True
+        fh.seek(-1, os.SEEK_END)
+        return fh.read(1) == b"\n"
 
 
 def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:

@@ -44,16 +44,20 @@ def is_done(run_dir: str, frames: int) -> bool:
 
 
 def last_frame(path: str) -> int:
-    """Frame of the last complete row of a CSV log (0 if none); reads only the file's tail."""
+    """Frame of the last complete (newline-terminated) row of a CSV log (0 if none); reads only
+    the file's tail."""
     try:
         with open(path, "rb") as fh:
             fh.seek(0, os.SEEK_END)
             size = fh.tell()
             fh.seek(max(0, size - 4096))
-            lines = fh.read().decode(errors="replace").splitlines()
+            text = fh.read().decode(errors="replace")
     except OSError:
         return 0
-    for line in reversed(lines):
+    lines = text.split("\n")
+    # The last element is "" after a complete row; anything else is a row cut short by a
+    # killed writer, whose frame may be truncated (3 of 3000): ignore it.
+    for line in reversed(lines[:-1]):
         head = line.split(",", 1)[0]
         if head.isdigit():
             return int(head)
