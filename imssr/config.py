@@ -45,6 +45,9 @@ class AgentConfig:
     head of its own (PAD: 3 of 11) shares only the first ``encoder_layers - encoder_head_layers``."""
     encoder_filters: int = 32
     """Filters per convolutional layer."""
+    channels_last: bool = True
+    """Run the encoder's convolutions on NHWC activations (faster on CPU and GPU; same maths,
+    float rounding may differ in the last bits)."""
     feature_dim: int = 50
     """Size of the encoder's projection (Linear + LayerNorm) output (CURL 50, DMC-GB 100)."""
     projection_tanh: bool = False

@@ -35,7 +35,7 @@ class SACNetworks(nn.Module):
     def __init__(self, obs_channels: int, action_dim: int, cfg: AgentConfig):
         super().__init__()
         trunk = ConvTrunk(obs_channels, cfg.crop_size, cfg.encoder_layers, cfg.encoder_filters,
-                          cfg.encoder_head_layers)
+                          cfg.encoder_head_layers, cfg.channels_last)
         self.critic = Critic(Encoder(trunk, cfg.feature_dim, cfg.projection_tanh), action_dim, cfg.hidden_dim)
         self.actor = Actor(trunk.out_dim, cfg.feature_dim, action_dim, cfg.hidden_dim,
                            cfg.log_std_min, cfg.log_std_max, cfg.projection_tanh)
@@ -167,8 +167,9 @@ class SACAgent:
     def update_actor_and_alpha(self, batch: Batch) -> dict[str, torch.Tensor]:
         n = self.nets
         # The trunk is recomputed after the critic step (as the reference code
-        # does) and detached: the actor never trains the convolutions.
-        trunk = n.critic.encoder.trunk(batch.obs).detach()
+        # does) without a graph: the actor never trains the convolutions.
+        with torch.no_grad():
+            trunk = n.critic.encoder.trunk(batch.obs)
         _, pi, log_pi, log_std = n.actor(trunk, generator=self.noise_gen)
         q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), pi)
         actor_loss = (self.alpha.detach() * log_pi - torch.min(q1, q2)).mean()
