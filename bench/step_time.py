@@ -1,0 +1,104 @@
+"""Seconds per training step (one env step + every update of that agent step), same process.
+
+    python bench/step_time.py [--task cartpole_swingup_sparse] [--steps 100] [--threads 2]
+        [--variants im-curl curl "im-curl:agent.channels_last=false"] [--device cpu]
+
+Each variant is ``ALGO[:SECTION.FIELD=VALUE,...]`` with the paper's preset for
+``ALGO`` and the overrides applied.  The first variant is the baseline of the
+printed ratios.  Every variant gets its own environment and a replay buffer
+seeded with ``--seed-steps`` random-action steps of real rendered frames; then
+the variants take one training step each in turn (act, all updates, env step,
+replay add), so machine noise hits them alike.  Prints the median and mean
+over ``--steps`` steps after ``--warmup``, and the process's peak RSS.  On
+CUDA every step ends with a synchronisation so that queued kernels are counted.
+Timings never go in tests.
+"""
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import time
+
+import numpy as np
+import torch
+
+import imssr  # noqa: F401  (sets the GL backend)
+from imssr.config import apply_overrides
+from imssr.envs import make_env
+from imssr.presets import make_config
+from imssr.replay import FrameReplayBuffer
+from imssr.training.loop import build_agent, resolve_device
+
+
+class Runner:
+    """One variant: its environment, replay and agent, stepped like the training loop."""
+
+    def __init__(self, spec: str, task: str, seed_steps: int, device, batch: int):
+        algo, _, overrides = spec.partition(":")
+        cfg = make_config(algo, task)
+        if batch:
+            cfg.agent.batch_size = batch
+        cfg = apply_overrides(cfg, [o for o in overrides.split(",") if o])
+        self.spec, self.cfg, self.device = spec, cfg, device
+        self.env = make_env(task, seed=0, action_repeat=cfg.env.action_repeat,
+                            shadow_size=cfg.env.shadow_size)
+        obs, info = self.env.reset(seed=0)
+        self.replay = FrameReplayBuffer(seed_steps + 2000, info["frame"].shape, self.env.action_space.shape[0],
+                                        frame_stack=cfg.env.frame_stack, seed=0)
+        self.replay.add_first(info["frame"])
+        self.obs = obs
+        self.rng = np.random.default_rng(0)
+        for _ in range(seed_steps):
+            self._env_step(self.rng.uniform(-1, 1, self.env.action_space.shape).astype(np.float32))
+        self.agent = build_agent(cfg, obs.shape, self.env.action_space.shape[0], device)
+        self.step = seed_steps
+        self.times: list[float] = []
+
+    def _env_step(self, action) -> None:
+        self.obs, reward, terminated, truncated, info = self.env.step(action)
+        self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"])
+        if terminated or truncated:
+            self.obs, info = self.env.reset()
+            self.replay.add_first(info["frame"])
+
+    def train_step(self, record: bool) -> None:
+        t0 = time.perf_counter()
+        action = self.agent.act(self.obs, deterministic=False)
+        self.agent.update(self.replay, self.step)
+        self._env_step(action)
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        self.step += 1
+        if record:
+            self.times.append(time.perf_counter() - t0)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--task", default="cartpole_swingup_sparse")
+    p.add_argument("--variants", nargs="+", default=["curl", "im-curl"])
+    p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--seed-steps", type=int, default=300)
+    p.add_argument("--batch", type=int, default=0, help="RL batch size (0: the preset's, 128)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--device", default="cpu")
+    a = p.parse_args()
+    torch.set_num_threads(a.threads)
+    device = resolve_device(a.device)
+    runners = [Runner(v, a.task, a.seed_steps, device, a.batch) for v in a.variants]
+    for i in range(a.warmup + a.steps):
+        for r in runners:
+            r.train_step(record=i >= a.warmup)
+    base = statistics.median(runners[0].times)
+    print(f"task {a.task}, {a.steps} steps after {a.warmup} warm-up, {a.threads} threads, device {device}")
+    for r in runners:
+        med, mean = statistics.median(r.times), statistics.fmean(r.times)
+        print(f"{r.spec:45s} median {med:.3f} s/step  mean {mean:.3f}  ratio to {runners[0].spec}: "
+              f"{med / base:.3f}")
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB (all variants)")
+
+
+if __name__ == "__main__":
+    main()
