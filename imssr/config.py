@@ -88,6 +88,13 @@ class AgentConfig:
     """Lower bound of the actor's log standard deviation."""
     log_std_max: float = 2.0
     """Upper bound of the actor's log standard deviation."""
+    update_schedule: str = "sequential"
+    """``sequential``: critic step, actor step on a fresh encoding of ``o``, target EMA, then the
+    auxiliary step, as the CURL / DMC-GB code bases do (the paper's setting).  ``fused``: one
+    online encoder pass over ``o`` feeds the critic, the actor (detached, DrQ-v2 style) and, for
+    tasks that can reuse it (CURL), the auxiliary loss, whose gradient joins the critic's in one
+    backward pass; fewer encoder passes (docs/performance.md), not update-for-update equal to
+    the reference.  Needs ``critic_update_every = 1``."""
 
 
 @dataclass
@@ -254,6 +261,10 @@ class RunConfig:
             (x.batch_size >= 2, "aux.batch_size must be >= 2"),
             (a.batch_size >= 2, "agent.batch_size must be >= 2"),
             (0.0 <= a.discount <= 1.0, "agent.discount must be in [0, 1]"),
+            (a.update_schedule in UPDATE_SCHEDULES,
+             f"agent.update_schedule must be one of {', '.join(UPDATE_SCHEDULES)}"),
+            (a.update_schedule != "fused" or a.critic_update_every == 1,
+             "agent.update_schedule=fused needs agent.critic_update_every=1"),
             (x.update_every >= 1, "aux.update_every must be >= 1"),
             (0.0 < x.tau <= 1.0, "aux.tau must be in (0, 1]"),
             (0.0 <= x.overlay_alpha <= 1.0, "aux.overlay_alpha must be in [0, 1]"),
@@ -311,6 +322,7 @@ class RunConfig:
 SCHEDULES = ("constant", "step")
 NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 SOURCES = ("ssl", "rnd", "re3")
+UPDATE_SCHEDULES = ("sequential", "fused")
 
 
 def _check_types(section) -> None:

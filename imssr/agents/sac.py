@@ -8,6 +8,8 @@ One agent step's update (order as in the CURL / DMC-GB code bases):
      (``encoder_tau``), every ``target_update_every`` steps;
   4. the auxiliary task, every ``aux.update_every`` steps;
   5. the intrinsic signal's own networks, if it has any (RND's predictor).
+With ``agent.update_schedule = fused`` the actor reuses the critic's encoding of
+``o`` and a task that can (CURL) adds its loss to the critic's in step 1.
 The time limit is not terminal: ``discount`` is 0 only for true terminal states.
 """
 from __future__ import annotations
@@ -115,15 +117,21 @@ class SACAgent:
     def update(self, replay: FrameReplayBuffer, step: int) -> dict[str, torch.Tensor | float]:
         """All updates of one agent step; ``step`` counts agent steps."""
         c = self.cfg
+        fused = c.update_schedule == "fused"
         batch = self.to_batch(replay.sample(c.batch_size))
         metrics: dict[str, torch.Tensor | float] = {}
+        aux_due = self.aux is not None and self.aux.trains and step % self.aux.cfg.update_every == 0
+        # Fused: the task's loss rides on the critic's encoder pass and backward.
+        fuse_aux = aux_due and fused and self.aux.fuses_with_critic
+        obs_trunk = None
         if step % c.critic_update_every == 0:
-            metrics.update(self.update_critic(batch, step))
+            critic_metrics, obs_trunk = self.update_critic(batch, step, fuse_aux)
+            metrics.update(critic_metrics)
         if step % c.actor_update_every == 0:
-            metrics.update(self.update_actor_and_alpha(batch))
+            metrics.update(self.update_actor_and_alpha(batch, obs_trunk if fused else None))
         if step % c.target_update_every == 0:
             self.soft_update_targets()
-        if self.aux is not None and self.aux.trains and step % self.aux.cfg.update_every == 0:
+        if aux_due and not fuse_aux:
             aux_batch = batch if self.aux.uses_rl_batch else self.to_batch(replay.sample(self.aux.cfg.batch_size))
             metrics.update(self.aux.update(aux_batch, step))
         if self.signal is not None:
@@ -131,7 +139,13 @@ class SACAgent:
         self.updates += 1
         return metrics
 
-    def update_critic(self, batch: Batch, step: int) -> dict[str, torch.Tensor | float]:
+    def update_critic(self, batch: Batch, step: int, fuse_aux: bool = False
+                      ) -> tuple[dict[str, torch.Tensor | float], torch.Tensor]:
+        """Critic step (plus the auxiliary step if ``fuse_aux``).
+
+        Returns the metrics and the online trunk's output on ``batch.obs`` from
+        before the step, detached (the fused schedule's actor input).
+        """
         n, c = self.nets, self.cfg
         metrics: dict[str, torch.Tensor | float] = {}
         with torch.no_grad():
@@ -154,22 +168,37 @@ class SACAgent:
         # All views in one forward pass; each is regressed to the same (clean) target.
         obs = views[0][0] if len(views) == 1 else torch.cat([v for v, _ in views])
         action = batch.action.repeat(len(views), 1)
-        q1_all, q2_all = n.critic(obs, action)
+        trunk = n.critic.encoder.trunk(obs)
+        q1_all, q2_all = n.critic.q(n.critic.encoder.projection(trunk), action)
         loss = 0.0
         for q1, q2, (_, weight) in zip(q1_all.chunk(len(views)), q2_all.chunk(len(views)), views):
             loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
+        total = loss
+        if fuse_aux:
+            aux_loss = self.aux.loss_from_trunk(batch, trunk[:len(batch)]).mean()
+            total = loss + aux_loss
+            self.aux.optimizer.zero_grad(set_to_none=True)
+            metrics["aux_loss"] = aux_loss.detach()
         self.critic_opt.zero_grad(set_to_none=True)
-        loss.backward()
+        total.backward()
         self.critic_opt.step()
+        if fuse_aux:
+            self.aux.step_fused(step)
         metrics.update(critic_loss=loss.detach(), q_mean=q1_all[:len(batch)].detach().mean())
-        return metrics
+        return metrics, trunk[:len(batch)].detach()
 
-    def update_actor_and_alpha(self, batch: Batch) -> dict[str, torch.Tensor]:
+    def update_actor_and_alpha(self, batch: Batch, trunk: Optional[torch.Tensor] = None
+                               ) -> dict[str, torch.Tensor]:
+        """Actor and temperature step on ``trunk`` (the online encoding of ``batch.obs``).
+
+        Sequential schedule (``trunk`` None): the trunk is recomputed after the
+        critic step, as the reference code does, without a graph since the actor
+        never trains the convolutions.  Fused: the critic pass's detached encoding.
+        """
         n = self.nets
-        # The trunk is recomputed after the critic step (as the reference code
-        # does) without a graph: the actor never trains the convolutions.
-        with torch.no_grad():
-            trunk = n.critic.encoder.trunk(batch.obs)
+        if trunk is None:
+            with torch.no_grad():
+                trunk = n.critic.encoder.trunk(batch.obs)
         _, pi, log_pi, log_std = n.actor(trunk, generator=self.noise_gen)
         q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), pi)
         actor_loss = (self.alpha.detach() * log_pi - torch.min(q1, q2)).mean()

@@ -80,6 +80,9 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     """True: trains on the RL batch; False: the agent samples it a batch of ``cfg.batch_size``."""
     trains: ClassVar[bool] = True
     """False for tasks without an auxiliary loss of their own (SVEA acts through the critic)."""
+    fuses_with_critic: ClassVar[bool] = False
+    """True if :meth:`loss_from_trunk` can compute the training loss from the critic's own
+    trunk output on the RL crop of ``o`` (``agent.update_schedule = fused``)."""
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__()
@@ -95,6 +98,24 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     @abc.abstractmethod
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         """The same loss for each next observation, shape ``(B,)``, without gradients."""
+
+    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor) -> torch.Tensor:
+        """Per-sample training loss given the online trunk's output on ``batch.obs`` (with grad).
+
+        Only for tasks with ``fuses_with_critic``: in the fused schedule the agent adds its
+        mean to the critic loss, backpropagates once, then calls :meth:`step_fused`.
+        """
+        raise NotImplementedError(f"{self.name} cannot fuse its loss with the critic's")
+
+    def fused_parameters(self) -> list:
+        """What the task's optimiser steps in the fused schedule: its own parameters only,
+        since the shared encoder is stepped once by the critic's optimiser on the summed gradient."""
+        return list(self.parameters())
+
+    def step_fused(self, step: int) -> None:
+        """Optimiser step after the fused backward pass (gradients already in place)."""
+        self.optimizer.step()
+        self.after_step(step)
 
     def critic_views(self, batch: Batch) -> list[tuple[torch.Tensor, float]]:
         """Observations the critic regresses to the same target, with their loss weights."""

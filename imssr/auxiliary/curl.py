@@ -20,14 +20,18 @@ from imssr.config import AgentConfig, AuxConfig
 class CURL(AuxiliaryTask):
     name = "curl"
     uses_rl_batch = True  # same batch as the RL update; the anchor is the RL crop
+    fuses_with_critic = True  # the query is the critic's own encoding of the RL crop
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
         dim = shared.encoder.out_dim
         self.W = nn.Parameter(torch.rand(dim, dim))
-        # One optimiser over W and the online encoder: the contrastive loss
-        # trains the encoder that the critic uses.
-        self.optimizer = torch.optim.Adam([self.W, *shared.encoder.parameters()], lr=cfg.lr)
+        # Sequential schedule: one optimiser over W and the online encoder, so the
+        # contrastive loss trains the encoder that the critic uses.  Fused: W only;
+        # the encoder takes the summed gradient through the critic's optimiser.
+        params = self.fused_parameters() if agent_cfg.update_schedule == "fused" \
+            else [self.W, *shared.encoder.parameters()]
+        self.optimizer = torch.optim.Adam(params, lr=cfg.lr)
 
     def logits(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
         logits = z_query @ (self.W @ z_key.T)
@@ -39,8 +43,11 @@ class CURL(AuxiliaryTask):
         return F.cross_entropy(self.logits(z_query, z_key), labels, reduction="none")
 
     def per_sample_loss(self, batch: Batch) -> torch.Tensor:
+        return self.loss_from_trunk(batch, self.shared.encoder.trunk(batch.obs))
+
+    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor) -> torch.Tensor:
         positive = random_crop(batch.raw_obs, self.agent_cfg.crop_size, batch.generator)
-        z_query = self.shared.encoder(batch.obs)
+        z_query = self.shared.encoder.projection(trunk)
         with torch.no_grad():
             z_key = self.shared.target_encoder(positive)
         return self.loss_from_latents(z_query, z_key)
