@@ -2,10 +2,13 @@
 
     python bench/step_time.py [--task cartpole_swingup_sparse] [--steps 100] [--threads 2]
         [--variants im-curl curl "im-curl:agent.channels_last=false"] [--device cpu]
+        [--baseline-rev GIT_REV]
 
 Each variant is ``ALGO[:SECTION.FIELD=VALUE,...]`` with the paper's preset for
-``ALGO`` and the overrides applied.  The first variant is the baseline of the
-printed ratios.  Every variant gets its own environment and a replay buffer
+``ALGO`` and the overrides applied; ``rev:ALGO[:...]`` runs it with the code of
+``--baseline-rev`` (exported by ``git archive`` and imported under another
+name), so an optimisation is measured against the earlier code in the same
+process.  The first variant is the baseline of the printed ratios.  Every variant gets its own environment and a replay buffer
 seeded with ``--seed-steps`` random-action steps of real rendered frames; then
 the variants take one training step each in turn (act, all updates, env step,
 replay add), so machine noise hits them alike.  Prints the median and mean
@@ -16,9 +19,14 @@ Timings never go in tests.
 from __future__ import annotations
 
 import argparse
+import importlib
 import resource
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -31,27 +39,54 @@ from imssr.replay import FrameReplayBuffer
 from imssr.training.loop import build_agent, resolve_device
 
 
+def import_revision(rev: str):
+    """The package as of git revision ``rev``, importable as ``imssr_rev``."""
+    root = Path(__file__).resolve().parent.parent
+    dest = Path(tempfile.mkdtemp(prefix="imssr_rev_"))
+    tar = subprocess.run(["git", "-C", str(root), "archive", rev, "imssr"], check=True,
+                         capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=tar, check=True)
+    (dest / "imssr").rename(dest / "imssr_rev")
+    for f in (dest / "imssr_rev").rglob("*.py"):
+        text = f.read_text()
+        f.write_text(text.replace("from imssr.", "from imssr_rev.").replace("import imssr.", "import imssr_rev.")
+                     .replace("from imssr import", "from imssr_rev import"))
+    sys.path.insert(0, str(dest))
+    return {m: importlib.import_module(f"imssr_rev.{m}")
+            for m in ("config", "envs", "presets", "replay", "training.loop")}
+
+
 class Runner:
     """One variant: its environment, replay and agent, stepped like the training loop."""
 
-    def __init__(self, spec: str, task: str, seed_steps: int, device, batch: int):
+    def __init__(self, spec: str, task: str, seed_steps: int, device, batch: int, rev=None):
         algo, _, overrides = spec.partition(":")
-        cfg = make_config(algo, task)
+        api = {"make_config": make_config, "apply_overrides": apply_overrides, "make_env": make_env,
+               "FrameReplayBuffer": FrameReplayBuffer, "build_agent": build_agent}
+        if algo == "rev":
+            if rev is None:
+                raise SystemExit("a rev: variant needs --baseline-rev")
+            algo, _, overrides = overrides.partition(":")
+            api = {"make_config": rev["presets"].make_config, "apply_overrides": rev["config"].apply_overrides,
+                   "make_env": rev["envs"].make_env, "FrameReplayBuffer": rev["replay"].FrameReplayBuffer,
+                   "build_agent": rev["training.loop"].build_agent}
+        cfg = api["make_config"](algo, task)
         if batch:
             cfg.agent.batch_size = batch
-        cfg = apply_overrides(cfg, [o for o in overrides.split(",") if o])
+        cfg = api["apply_overrides"](cfg, [o for o in overrides.split(",") if o])
         self.spec, self.cfg, self.device = spec, cfg, device
-        self.env = make_env(task, seed=0, action_repeat=cfg.env.action_repeat,
-                            shadow_size=cfg.env.shadow_size)
+        self.env = api["make_env"](task, seed=0, action_repeat=cfg.env.action_repeat,
+                                   shadow_size=cfg.env.shadow_size)
         obs, info = self.env.reset(seed=0)
-        self.replay = FrameReplayBuffer(seed_steps + 2000, info["frame"].shape, self.env.action_space.shape[0],
-                                        frame_stack=cfg.env.frame_stack, seed=0)
+        self.replay = api["FrameReplayBuffer"](seed_steps + 2000, info["frame"].shape,
+                                               self.env.action_space.shape[0],
+                                               frame_stack=cfg.env.frame_stack, seed=0)
         self.replay.add_first(info["frame"])
         self.obs = obs
         self.rng = np.random.default_rng(0)
         for _ in range(seed_steps):
             self._env_step(self.rng.uniform(-1, 1, self.env.action_space.shape).astype(np.float32))
-        self.agent = build_agent(cfg, obs.shape, self.env.action_space.shape[0], device)
+        self.agent = api["build_agent"](cfg, obs.shape, self.env.action_space.shape[0], device)
         self.step = seed_steps
         self.times: list[float] = []
 
@@ -84,10 +119,12 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=0, help="RL batch size (0: the preset's, 128)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--baseline-rev", default=None, help="git revision that rev:ALGO variants run")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     device = resolve_device(a.device)
-    runners = [Runner(v, a.task, a.seed_steps, device, a.batch) for v in a.variants]
+    rev = import_revision(a.baseline_rev) if a.baseline_rev else None
+    runners = [Runner(v, a.task, a.seed_steps, device, a.batch, rev) for v in a.variants]
     for i in range(a.warmup + a.steps):
         for r in runners:
             r.train_step(record=i >= a.warmup)
