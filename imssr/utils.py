@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import os
 import random
 import tempfile
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import numpy as np
 import torch
@@ -35,6 +36,16 @@ def atomic_write_text(path: str, text: str) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "w") as fh:
             fh.write(text)
+
+
+def atomic_write_csv(path: str, header: list[str], rows: Iterable[list]) -> str:
+    """Write ``header`` and ``rows`` as CSV atomically; returns ``path``."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(header)
+            writer.writerows(rows)
+    return path
 
 
 def seed_everything(seed: int) -> None:

@@ -1,5 +1,4 @@
 """The command line: tiny end-to-end runs per algorithm, evaluate, kill + resume, errors."""
-import os
 import signal
 import subprocess
 import sys

@@ -11,7 +11,6 @@ step that reached ``o'``.
 from __future__ import annotations
 
 import torch
-from torch import nn
 
 from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
 from imssr.config import AgentConfig, AuxConfig

@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 
 from imssr._gl import check_gl
-from imssr.envs.scenes import MODES, Scene, get_mode
+from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
 

@@ -7,7 +7,6 @@ intrinsic reward (IM-X, and X+RND / X+RE3) beats its base X on a randomly drawn 
 """
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from typing import Optional
 
@@ -131,13 +130,8 @@ def markdown(aggregates: list[Aggregate]) -> str:
 
 
 def write_csv(aggregates: list[Aggregate], path: str) -> str:
-    from imssr.utils import atomic_path
+    from imssr.utils import atomic_write_csv
 
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(AGGREGATE_COLUMNS)
-            for a in aggregates:
-                writer.writerow([a.mode, f"{a.fraction:.1f}", a.metric, a.label, f"{a.point:.6g}",
-                                 f"{a.ci_low:.6g}", f"{a.ci_high:.6g}", ";".join(a.tasks), a.runs])
-    return path
+    return atomic_write_csv(path, AGGREGATE_COLUMNS, (
+        [a.mode, f"{a.fraction:.1f}", a.metric, a.label, f"{a.point:.6g}",
+         f"{a.ci_low:.6g}", f"{a.ci_high:.6g}", ";".join(a.tasks), a.runs] for a in aggregates))

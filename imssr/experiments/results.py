@@ -6,7 +6,6 @@ by ``imssr sweep``) adds the runs that were planned but have not written anythin
 """
 from __future__ import annotations
 
-import csv
 import json
 import os
 from dataclasses import dataclass, field
@@ -43,7 +42,12 @@ class RunResult:
     @property
     def label(self) -> str:
         """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep."""
-        return self.algo if self.beta0 is None else f"{self.algo} beta0={beta_label(self.beta0)}"
+        return group_label(self.algo, self.beta0)
+
+
+def group_label(algo: str, beta0: Optional[float]) -> str:
+    """The algo, plus beta_0 for a point of a beta sweep."""
+    return algo if beta0 is None else f"{algo} beta0={beta_label(beta0)}"
 
 
 @dataclass
@@ -59,7 +63,7 @@ class PlannedRun:
 
     @property
     def label(self) -> str:
-        return self.algo if self.beta0 is None else f"{self.algo} beta0={beta_label(self.beta0)}"
+        return group_label(self.algo, self.beta0)
 
 
 @dataclass
@@ -158,14 +162,10 @@ def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
 
 def write_evaluations(results: SweepResults, path: str) -> str:
     """Every evaluation of every run: ``algo,task,mode,seed,frame,return,beta0``."""
-    from imssr.utils import atomic_path
+    from imssr.utils import atomic_write_csv
 
     rows = sorted((r.algo, r.task, mode, r.seed, frame, ret, "" if r.beta0 is None else beta_label(r.beta0))
                   for r in results.runs for mode, frame, ret in r.evals)
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(EVALUATIONS_COLUMNS)
-            for algo, task, mode, seed, frame, ret, beta in rows:
-                writer.writerow([algo, task, mode, seed, frame, f"{ret:.6g}", beta])
-    return path
+    return atomic_write_csv(path, EVALUATIONS_COLUMNS,
+                            ([algo, task, mode, seed, frame, f"{ret:.6g}", beta]
+                             for algo, task, mode, seed, frame, ret, beta in rows))

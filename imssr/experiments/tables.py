@@ -239,17 +239,15 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
 
 
 def write_table_csv(rows: list[Row], path: str) -> str:
-    from imssr.utils import atomic_path
+    from imssr.utils import atomic_write_csv
 
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(TABLE_COLUMNS)
-            for row in rows:
-                for cell in row.cells:
-                    paper = cell.paper or ("", "")
-                    writer.writerow([row.mode, row.task, row.label, row.algo,
-                                     "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.frame,
-                                     "" if not cell.n else f"{cell.mean:.6g}", "" if not cell.n else f"{cell.std:.6g}",
-                                     cell.n, cell.expected, int(cell.best), *paper])
-    return path
+    def lines():
+        for row in rows:
+            for cell in row.cells:
+                paper = cell.paper or ("", "")
+                yield [row.mode, row.task, row.label, row.algo,
+                       "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.frame,
+                       "" if not cell.n else f"{cell.mean:.6g}", "" if not cell.n else f"{cell.std:.6g}",
+                       cell.n, cell.expected, int(cell.best), *paper]
+
+    return atomic_write_csv(path, TABLE_COLUMNS, lines())
