@@ -4,7 +4,9 @@
 
 Times a no-grad forward pass and a forward + backward pass of the real
 ``ConvTrunk`` on 84x84 crops of 9 channels (3 stacked RGB frames), with the same
-weights in both layouts, and prints medians and the NHWC / NCHW ratio.
+weights in three layouts: NCHW; NHWC activations with NCHW weights; NHWC
+activations and weights (what ``agent.channels_last`` does).  Prints medians
+and each ratio to NCHW.
 """
 from __future__ import annotations
 
@@ -30,9 +32,15 @@ def main() -> None:
         nchw = ConvTrunk(9, 84, layers, channels_last=False)
         nhwc = ConvTrunk(9, 84, layers, channels_last=True)
         nhwc.load_state_dict(nchw.state_dict())
-        times = {"NCHW": ([], []), "NHWC": ([], [])}
+        act_only = ConvTrunk(9, 84, layers, channels_last=True)
+        act_only.load_state_dict(nchw.state_dict())
+        for m in act_only.modules():
+            if isinstance(m, torch.nn.Conv2d):
+                m.weight.data = m.weight.data.contiguous()
+        nets = {"NCHW": nchw, "NHWC acts": act_only, "NHWC": nhwc}
+        times = {name: ([], []) for name in nets}
         for i in range(a.reps + 2):
-            for name, net in (("NCHW", nchw), ("NHWC", nhwc)):
+            for name, net in nets.items():
                 t0 = time.perf_counter()
                 with torch.no_grad():
                     net(x)
@@ -43,10 +51,10 @@ def main() -> None:
                     times[name][0].append(t1 - t0)
                     times[name][1].append(t2 - t1)
         med = {k: (statistics.median(f), statistics.median(b)) for k, (f, b) in times.items()}
-        print(f"{layers:2d} layers, batch {a.batch}: "
-              f"NCHW fwd {med['NCHW'][0]:.3f} s, fwd+bwd {med['NCHW'][1]:.3f} s | "
-              f"NHWC fwd {med['NHWC'][0]:.3f} s, fwd+bwd {med['NHWC'][1]:.3f} s | "
-              f"ratio fwd {med['NHWC'][0] / med['NCHW'][0]:.2f}, fwd+bwd {med['NHWC'][1] / med['NCHW'][1]:.2f}")
+        base = med["NCHW"]
+        print(f"{layers:2d} layers, batch {a.batch}: " + " | ".join(
+            f"{k} fwd {f:.3f} s ({f / base[0]:.2f}), fwd+bwd {b:.3f} s ({b / base[1]:.2f})"
+            for k, (f, b) in med.items()))
 
 
 if __name__ == "__main__":

@@ -46,6 +46,12 @@ def filled_buffer(n_steps: int = 200, action_dim: int = 1, seed: int = 0, episod
     return buf
 
 
+def assert_same_nets(a, b) -> None:
+    """Every tensor of two agents' networks is bit-for-bit equal."""
+    for (k, v), (_, w) in zip(a.nets.state_dict().items(), b.nets.state_dict().items()):
+        assert torch.equal(v, w), k
+
+
 @pytest.fixture
 def tiny_cfg():
     return tiny_config

@@ -1,8 +1,7 @@
 """SAC agent: actions, determinism, save/load round trip, update schedule."""
 import numpy as np
-import torch
 
-from conftest import filled_buffer, tiny_config
+from conftest import assert_same_nets, filled_buffer, tiny_config
 from imssr.agents import SACAgent
 
 
@@ -27,8 +26,7 @@ def test_same_seed_same_updates():
     for s in range(4):
         a.update(buf_a, s)
         b.update(buf_b, s)
-    for (k, v), (_, w) in zip(a.nets.state_dict().items(), b.nets.state_dict().items()):
-        assert torch.equal(v, w), k
+    assert_same_nets(a, b)
 
 
 def test_state_dict_round_trip_continues_identically():
@@ -43,8 +41,7 @@ def test_state_dict_round_trip_continues_identically():
     for s in range(3, 6):
         a.update(buf, s)
         b.update(buf_b, s)
-    for (k, v), (_, w) in zip(a.nets.state_dict().items(), b.nets.state_dict().items()):
-        assert torch.equal(v, w), k
+    assert_same_nets(a, b)
 
 
 def test_update_schedule_actor_every_two_steps_and_actor_never_trains_convs():

@@ -3,7 +3,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import filled_buffer, tiny_config
+from conftest import assert_same_nets, filled_buffer, tiny_config
 from imssr.agents import SACAgent
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
@@ -77,8 +77,7 @@ def test_fused_beta_zero_is_the_baseline_and_round_trip_continues_identically():
     for s in range(3):
         base.update(buf_a, s)
         assert "r_int_mean" in im0.update(buf_b, s)
-    for (k, v), (_, w) in zip(base.nets.state_dict().items(), im0.nets.state_dict().items()):
-        assert torch.equal(v, w), k
+    assert_same_nets(base, im0)
     clone = _agent("curl", seed=7)
     clone.load_state_dict(base.state_dict())
     buf_c = filled_buffer(action_dim=2, seed=1)
@@ -86,8 +85,7 @@ def test_fused_beta_zero_is_the_baseline_and_round_trip_continues_identically():
     for s in range(3, 5):
         base.update(buf_a, s)
         clone.update(buf_c, s)
-    for (k, v), (_, w) in zip(base.nets.state_dict().items(), clone.nets.state_dict().items()):
-        assert torch.equal(v, w), k
+    assert_same_nets(base, clone)
 
 
 def test_schedule_is_validated():

@@ -183,7 +183,7 @@ class SACAgent:
         total.backward()
         self.critic_opt.step()
         if fuse_aux:
-            self.aux.step_fused(step)
+            self.aux.apply_gradients(step)
         metrics.update(critic_loss=loss.detach(), q_mean=q1_all[:len(batch)].detach().mean())
         return metrics, trunk[:len(batch)].detach()
 

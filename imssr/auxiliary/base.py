@@ -103,7 +103,7 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         """Per-sample training loss given the online trunk's output on ``batch.obs`` (with grad).
 
         Only for tasks with ``fuses_with_critic``: in the fused schedule the agent adds its
-        mean to the critic loss, backpropagates once, then calls :meth:`step_fused`.
+        mean to the critic loss, backpropagates once, then calls :meth:`apply_gradients`.
         """
         raise NotImplementedError(f"{self.name} cannot fuse its loss with the critic's")
 
@@ -112,8 +112,8 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         since the shared encoder is stepped once by the critic's optimiser on the summed gradient."""
         return list(self.parameters())
 
-    def step_fused(self, step: int) -> None:
-        """Optimiser step after the fused backward pass (gradients already in place)."""
+    def apply_gradients(self, step: int) -> None:
+        """Optimiser step on the gradients already in place, then :meth:`after_step`."""
         self.optimizer.step()
         self.after_step(step)
 
@@ -126,8 +126,7 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         loss = self.per_sample_loss(batch).mean()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        self.optimizer.step()
-        self.after_step(step)
+        self.apply_gradients(step)
         return {"aux_loss": loss.detach()}
 
     def after_step(self, step: int) -> None:
