@@ -1,4 +1,4 @@
-"""Small helpers shared across the package: atomic files and seeding."""
+"""Small helpers shared across the package: atomic files, seeding, thread contention."""
 from __future__ import annotations
 
 import contextlib
@@ -63,3 +63,27 @@ def set_rng_states(states: dict) -> None:
     random.setstate(states["python"])
     np.random.set_state(states["numpy"])
     torch.set_rng_state(states["torch"])
+
+
+def contention_warning(threads: int, load: float | None = None, cores: int | None = None) -> str | None:
+    """A one-line warning if ``threads`` torch threads would contend with other busy processes.
+
+    torch's intra-op pool spins on every thread; when the cores are already busy
+    (another run, a test suite) a 2-thread update on a 2-core machine was measured
+    running many times slower than with 1 thread.  ``load`` is the 1-minute load
+    average and ``cores`` the usable cores (both read from the OS when None).
+    """
+    if threads <= 1:
+        return None
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except OSError:  # not available on this platform
+            return None
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    if load + threads <= cores + 0.5:
+        return None
+    return (f"imssr: warning: load average {load:.1f} on {cores} cores and {threads} torch threads; "
+            "threads that contend with other processes can run many times slower "
+            "(set --set train.torch_threads=1, or stop the other jobs)")

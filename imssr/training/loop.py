@@ -25,7 +25,7 @@ from imssr.replay import FrameReplayBuffer
 from imssr.training.checkpoint import checkpoint_dir, latest_path, load_checkpoint, save_checkpoint
 from imssr.training.evaluate import eval_row, evaluate
 from imssr.training.logger import Logger
-from imssr.utils import atomic_write_text, rng_states, seed_everything, set_rng_states
+from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
 RESUMABLE_CHANGES = {"train.frames", "train.device", "train.progress", "train.tensorboard",
@@ -88,6 +88,9 @@ class Trainer:
                              "or choose another --out")
         if cfg.train.torch_threads:
             torch.set_num_threads(cfg.train.torch_threads)
+        warning = contention_warning(torch.get_num_threads())
+        if warning:
+            print(warning, flush=True)
         seed_everything(cfg.train.seed)
         e = cfg.env
         env_kwargs = dict(action_repeat=e.action_repeat, image_size=e.image_size,
