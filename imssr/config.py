@@ -92,7 +92,7 @@ class AgentConfig:
     """``sequential``: critic step, actor step on a fresh encoding of ``o``, target EMA, then the
     auxiliary step, as the CURL / DMC-GB code bases do (the paper's setting).  ``fused``: one
     online encoder pass over ``o`` feeds the critic, the actor (detached, DrQ-v2 style) and, for
-    tasks that can reuse it (CURL), the auxiliary loss, whose gradient joins the critic's in one
+    tasks that can reuse it (CURL, PAD), the auxiliary loss, whose gradient joins the critic's in one
     backward pass; fewer encoder passes (docs/performance.md), not update-for-update equal to
     the reference.  Needs ``critic_update_every = 1``."""
 

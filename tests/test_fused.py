@@ -1,10 +1,11 @@
-"""The fused update schedule: one encoder pass and one backward for critic + CURL."""
+"""The fused update schedule: one encoder pass and one backward for critic + CURL or PAD."""
 import pytest
 import torch
 import torch.nn.functional as F
 
 from conftest import assert_same_nets, filled_buffer, tiny_config
 from imssr.agents import SACAgent
+from imssr.auxiliary import NextObsContext
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 
@@ -19,47 +20,67 @@ def _agent(algo="curl", seed=0, beta0=None, **agent):
     return SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
 
 
-def test_fused_gradient_is_the_sum_of_the_critic_and_curl_gradients():
-    agent = _agent()
+@pytest.mark.parametrize("algo", ["curl", "pad"])
+def test_fused_gradient_is_the_sum_of_the_critic_and_task_gradients(algo):
+    agent = _agent(algo)
     n = agent.nets
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
     gen, noise = agent.gen.get_state(), agent.noise_gen.get_state()
-    enc = list(n.critic.encoder.parameters())
+    enc, own = list(n.critic.encoder.parameters()), list(agent.aux.parameters())
     # By hand, at the same weights and random draws: each loss's gradient separately.
     with torch.no_grad():
         _, a2, logp, _ = n.actor(n.critic.encoder.trunk(batch.next_obs), generator=agent.noise_gen)
         tq = torch.min(*n.critic_target(batch.next_obs, a2)) - agent.alpha * logp
         target = batch.reward + batch.discount * 0.99 * tq
-    trunk = n.critic.encoder.trunk(batch.obs)
+    features = n.critic.encoder.trunk.shared_features(batch.obs)
+    trunk = n.critic.encoder.trunk.head(features).flatten(1)
     q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), batch.action)
     critic_loss = F.mse_loss(q1, target) + F.mse_loss(q2, target)
-    curl_loss = agent.aux.loss_from_trunk(batch, trunk).mean()
-    g_critic = torch.autograd.grad(critic_loss, enc, retain_graph=True)
-    g_curl = torch.autograd.grad(curl_loss, enc + [agent.aux.W])
+    task_loss = agent.aux.loss_from_trunk(batch, trunk, features).mean()
+    g_critic = torch.autograd.grad(critic_loss, enc, retain_graph=True, allow_unused=True)
+    g_task = torch.autograd.grad(task_loss, enc + own, allow_unused=True)
     agent.gen.set_state(gen)
     agent.noise_gen.set_state(noise)
     metrics, obs_trunk = agent.update_critic(batch, 0, fuse_aux=True)
     torch.testing.assert_close(metrics["critic_loss"], critic_loss.detach())
-    torch.testing.assert_close(metrics["aux_loss"], curl_loss.detach())
-    for p, gc, ga in zip(enc, g_critic, g_curl):
-        torch.testing.assert_close(p.grad, gc + ga, rtol=1e-4, atol=1e-6)
-    torch.testing.assert_close(agent.aux.W.grad, g_curl[-1])
+    torch.testing.assert_close(metrics["aux_loss"], task_loss.detach())
+    for p, gc, ga in zip(enc, g_critic, g_task):
+        # PAD's loss does not reach the critic's head layers or projection (ga None).
+        expected = gc if ga is None else gc + ga
+        torch.testing.assert_close(p.grad, expected, rtol=1e-4, atol=1e-6)
+    for p, ga in zip(own, g_task[len(enc):]):
+        torch.testing.assert_close(p.grad, ga)
     # The actor's input is the pre-step encoding, without a graph.
     torch.testing.assert_close(obs_trunk, trunk.detach())
     assert not obs_trunk.requires_grad
 
 
-def test_fused_curl_steps_the_encoder_once_through_the_critic_optimiser():
-    agent = _agent()
+@pytest.mark.parametrize("algo", ["curl", "pad"])
+def test_fused_task_steps_the_encoder_once_through_the_critic_optimiser(algo):
+    agent = _agent(algo)
     aux_params = {id(p) for g in agent.aux.optimizer.param_groups for p in g["params"]}
-    assert aux_params == {id(agent.aux.W)}
+    assert aux_params == {id(p) for p in agent.aux.parameters()}
     before = [p.clone() for p in agent.nets.critic.encoder.parameters()]
-    w_before = agent.aux.W.clone()
+    own_before = [p.clone() for p in agent.aux.parameters()]
     buf = filled_buffer(action_dim=2)
     m = agent.update(buf, 0)
     assert {"critic_loss", "aux_loss", "actor_loss"} <= set(m)
     assert all(not torch.equal(a, b) for a, b in zip(before, agent.nets.critic.encoder.parameters()))
-    assert not torch.equal(w_before, agent.aux.W)
+    assert all(not torch.equal(a, b) for a, b in zip(own_before, agent.aux.parameters()))
+
+
+def test_fused_im_pad_reward_is_the_training_loss_it_reuses():
+    """The reused fused loss equals IM-PAD's intrinsic loss computed from scratch."""
+    agent = _agent("im-pad")
+    batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
+    n = agent.nets
+    features = n.critic.encoder.trunk.shared_features(batch.obs)
+    fused = agent.aux.loss_from_trunk(batch, n.critic.encoder.trunk.head(features).flatten(1), features)
+    ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, None, None, agent.intrinsic_gen,
+                         batch=batch)
+    torch.testing.assert_close(agent.aux.intrinsic_loss(ctx), fused.detach(), rtol=1e-5, atol=1e-6)
+    ctx.fused_loss = fused.detach()
+    assert agent.aux.intrinsic_loss(ctx) is ctx.fused_loss
 
 
 @pytest.mark.parametrize("algo", ["curl", "soda", "pad", "svea"])

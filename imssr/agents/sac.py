@@ -9,7 +9,7 @@ One agent step's update (order as in the CURL / DMC-GB code bases):
   4. the auxiliary task, every ``aux.update_every`` steps;
   5. the intrinsic signal's own networks, if it has any (RND's predictor).
 With ``agent.update_schedule = fused`` the actor reuses the critic's encoding of
-``o`` and a task that can (CURL) adds its loss to the critic's in step 1.
+``o`` and a task that can (CURL, PAD) adds its loss to the critic's in step 1.
 The time limit is not terminal: ``discount`` is 0 only for true terminal states.
 """
 from __future__ import annotations
@@ -148,6 +148,17 @@ class SACAgent:
         """
         n, c = self.nets, self.cfg
         metrics: dict[str, torch.Tensor | float] = {}
+        views = self.aux.critic_views(batch) if self.aux is not None else [(batch.obs, 1.0)]
+        # All views in one forward pass; each is regressed to the same (clean) target.
+        obs = views[0][0] if len(views) == 1 else torch.cat([v for v, _ in views])
+        encoder_trunk = n.critic.encoder.trunk
+        features = encoder_trunk.shared_features(obs)
+        trunk = encoder_trunk.head(features).flatten(1)  # = encoder_trunk(obs)
+        # Fused: the task's loss from this same pass, computed before the target so that a
+        # task whose intrinsic loss is this quantity (PAD) can hand it over.  No generator
+        # is shared with the target's, so the order changes no random draw.
+        aux_per_sample = self.aux.loss_from_trunk(batch, trunk[:len(batch)], features[:len(batch)]) \
+            if fuse_aux else None
         with torch.no_grad():
             next_trunk = n.critic.encoder.trunk(batch.next_obs)
             _, next_action, next_log_pi, _ = n.actor(next_trunk, generator=self.noise_gen)
@@ -159,23 +170,20 @@ class SACAgent:
                 # Algorithm 1: per-sample SSL loss of o', normalised in the batch,
                 # r <- r + beta_t * r_int (Eq. 1).
                 ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
-                                     self.intrinsic_gen, self.intrinsic.cfg.view, batch)
+                                     self.intrinsic_gen, self.intrinsic.cfg.view, batch,
+                                     None if aux_per_sample is None else aux_per_sample.detach())
                 bonus, stats = self.intrinsic(self.signal(ctx), step)
                 reward = reward + bonus
                 metrics.update(stats)
             target_q = reward + batch.discount * c.discount * target_v
-        views = self.aux.critic_views(batch) if self.aux is not None else [(batch.obs, 1.0)]
-        # All views in one forward pass; each is regressed to the same (clean) target.
-        obs = views[0][0] if len(views) == 1 else torch.cat([v for v, _ in views])
         action = batch.action.repeat(len(views), 1)
-        trunk = n.critic.encoder.trunk(obs)
         q1_all, q2_all = n.critic.q(n.critic.encoder.projection(trunk), action)
         loss = 0.0
         for q1, q2, (_, weight) in zip(q1_all.chunk(len(views)), q2_all.chunk(len(views)), views):
             loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
         total = loss
         if fuse_aux:
-            aux_loss = self.aux.loss_from_trunk(batch, trunk[:len(batch)]).mean()
+            aux_loss = aux_per_sample.mean()
             total = loss + aux_loss
             self.aux.optimizer.zero_grad(set_to_none=True)
             metrics["aux_loss"] = aux_loss.detach()

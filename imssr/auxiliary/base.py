@@ -59,6 +59,10 @@ class NextObsContext:
     view: str = "independent"
     batch: Optional["Batch"] = None
     """The whole RL batch, for tasks whose loss of o' needs o or a (e.g. inverse dynamics)."""
+    fused_loss: Optional[torch.Tensor] = None
+    """The task's per-sample training loss from this update's fused pass (detached), or None.
+    A task whose intrinsic loss is that very quantity (PAD: same (o, a, o') crops, same
+    weights) returns it instead of recomputing it."""
 
 
 @dataclass
@@ -82,7 +86,7 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     """False for tasks without an auxiliary loss of their own (SVEA acts through the critic)."""
     fuses_with_critic: ClassVar[bool] = False
     """True if :meth:`loss_from_trunk` can compute the training loss from the critic's own
-    trunk output on the RL crop of ``o`` (``agent.update_schedule = fused``)."""
+    encoder pass over the RL crop of ``o`` (``agent.update_schedule = fused``)."""
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__()
@@ -99,9 +103,11 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         """The same loss for each next observation, shape ``(B,)``, without gradients."""
 
-    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor) -> torch.Tensor:
-        """Per-sample training loss given the online trunk's output on ``batch.obs`` (with grad).
+    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """Per-sample training loss given the critic's encoder pass over ``batch.obs`` (with grad).
 
+        ``trunk`` is the online trunk's output, ``features`` the output of its shared layers
+        (``ConvTrunk.shared_features``: ``trunk`` before flattening when there is no head).
         Only for tasks with ``fuses_with_critic``: in the fused schedule the agent adds its
         mean to the critic loss, backpropagates once, then calls :meth:`apply_gradients`.
         """

@@ -7,6 +7,12 @@ critic and has its own head convolutions and projection, then an MLP
 step.  IM-PAD's intrinsic reward is the per-sample inverse-dynamics error of the
 RL batch's own transitions ``(o, a, o')``: how poorly the model explains the
 step that reached ``o'``.
+
+Fused schedule (``agent.update_schedule = fused``): the critic's own pass over
+``o`` supplies the shared features of ``o``, so only ``o'`` needs a shared-layer
+pass, and one backward serves both losses.  The per-sample training loss is
+then exactly IM-PAD's intrinsic loss (same crops, same weights), which is
+reused instead of being recomputed.
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ from imssr.networks.encoder import conv_stack
 class PAD(AuxiliaryTask):
     name = "pad"
     uses_rl_batch = True
+    fuses_with_critic = True  # the critic's shared features of o are PAD's features of o
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
@@ -29,19 +36,33 @@ class PAD(AuxiliaryTask):
         self.projection = Projection(trunk.out_dim, agent_cfg.feature_dim, agent_cfg.projection_tanh)
         self.mlp = mlp(2 * agent_cfg.feature_dim, agent_cfg.hidden_dim, shared.action_dim)
         self.apply(weight_init)
-        # The shared convolutions (not the critic's head) and the task's own layers.
-        self.optimizer = torch.optim.Adam([*trunk.convs.parameters(), *self.parameters()], lr=cfg.lr)
+        # Sequential: the shared convolutions (not the critic's head) and the task's own
+        # layers.  Fused: its own layers; the shared convolutions take the summed gradient
+        # through the critic's optimiser.
+        params = self.fused_parameters() if agent_cfg.update_schedule == "fused" \
+            else [*trunk.convs.parameters(), *self.parameters()]
+        self.optimizer = torch.optim.Adam(params, lr=cfg.lr)
+
+    def predict_from_features(self, features: torch.Tensor) -> torch.Tensor:
+        """Action predicted from the shared features of ``cat([o, o'])``, ``(2B, ...)``."""
+        z, z_next = self.projection(self.head(features).flatten(1)).chunk(2)
+        return self.mlp(torch.cat([z, z_next], dim=1))
 
     def predict_action(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         # One encoder pass over both observations.
-        h = self.head(self.shared.encoder.trunk.shared_features(torch.cat([obs, next_obs])))
-        z, z_next = self.projection(h.flatten(1)).chunk(2)
-        return self.mlp(torch.cat([z, z_next], dim=1))
+        return self.predict_from_features(self.shared.encoder.trunk.shared_features(torch.cat([obs, next_obs])))
 
     def per_sample_loss(self, batch: Batch) -> torch.Tensor:
         return (self.predict_action(batch.obs, batch.next_obs) - batch.action).pow(2).mean(dim=1)
 
+    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        next_features = self.shared.encoder.trunk.shared_features(batch.next_obs)
+        pred = self.predict_from_features(torch.cat([features, next_features]))
+        return (pred - batch.action).pow(2).mean(dim=1)
+
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
+        if ctx.fused_loss is not None:
+            return ctx.fused_loss
         b = ctx.batch
         return (self.predict_action(b.obs, ctx.next_view) - b.action).pow(2).mean(dim=1)
