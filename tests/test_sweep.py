@@ -68,6 +68,7 @@ def test_grid_directories_and_beta_level(tmp_path):
 
 def test_run_arguments_and_done_marker(tmp_path):
     from imssr.experiments.runner import is_done, last_frame, write_done
+    from imssr.experiments.sweep import plan_runs
 
     cfg = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[2], frames=3000,
                       gpus_per_run=0.5, overrides=["agent.batch_size=8"])
@@ -82,8 +83,10 @@ def test_run_arguments_and_done_marker(tmp_path):
     with open(os.path.join(run.dir, "eval.csv"), "w") as fh:
         fh.write("frame,step,mode,return_mean\n1000,125,training,1.5\n3000,375,training,2.5\n3")  # cut short
     assert last_frame(os.path.join(run.dir, "eval.csv")) == 3000
-    write_done(run.dir, 3000, 3000, attempt=1, resumed=False)
+    write_done(run.dir, 3000, 3000, attempt=1, resumed=False, seconds=12.5)
     assert is_done(run.dir, 3000) and is_done(run.dir, 2000)
+    (status,) = plan_runs(cfg)  # a later sweep over the root: skipped, its time still reported
+    assert (status.state, status.final_frame, status.seconds) == ("done", 3000, 12.5)
     assert not is_done(run.dir, 4000)  # a larger budget resumes the finished run
     with open(os.path.join(run.dir, DONE_FILE), "w") as fh:
         fh.write('{"frames": 30')  # torn marker: not done

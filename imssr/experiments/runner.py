@@ -119,14 +119,17 @@ def execute_run(run_dir: str, train_args: list[str], frames: int, attempt: int,
         result["error"] = f"exited 0 but its last evaluation is at frame {final}, before its budget {frames}"
     else:
         result["ok"] = True
-        write_done(run_dir, frames, final, attempt, resumed)
+        write_done(run_dir, frames, final, attempt, resumed, result["seconds"])
     return result
 
 
-def write_done(run_dir: str, frames: int, final_frame: int, attempt: int, resumed: bool) -> None:
+def write_done(run_dir: str, frames: int, final_frame: int, attempt: int, resumed: bool,
+               seconds: float = 0.0) -> None:
+    """Mark the run finished; ``seconds`` is the last attempt's wall-clock time."""
     evals = read_csv(os.path.join(run_dir, "eval.csv"))
     done = {"frames": frames, "final_frame": final_frame, "evaluations": len(evals),
-            "attempt": attempt, "resumed": resumed, "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            "attempt": attempt, "resumed": resumed, "seconds": seconds,
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
     atomic_write_text(os.path.join(run_dir, DONE_FILE), json.dumps(done, indent=2) + "\n")
 
 

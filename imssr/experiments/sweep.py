@@ -19,7 +19,7 @@ from typing import Optional
 
 from imssr.errors import ImssrError
 from imssr.experiments.grid import Run, SweepConfig, build_run_config, expand, save_plan
-from imssr.experiments.runner import LOG_FILE, has_checkpoint, is_done, last_frame
+from imssr.experiments.runner import LOG_FILE, has_checkpoint, is_done, last_frame, read_done
 from imssr.utils import atomic_write_text
 
 STATUS_FILE = "sweep_status.json"
@@ -71,6 +71,8 @@ def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
         if is_done(run.dir, frames):
             status.state, status.action = "done", "done"
             status.final_frame = last_frame(os.path.join(run.dir, "eval.csv"))
+            # A later sweep over the same root still reports how long the run took.
+            status.seconds = float(read_done(run.dir).get("seconds", 0.0))
         elif has_checkpoint(run.dir):
             status.action = "resume"
         statuses.append(status)
