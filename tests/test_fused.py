@@ -79,8 +79,27 @@ def test_fused_im_pad_reward_is_the_training_loss_it_reuses():
     ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, None, None, agent.intrinsic_gen,
                          batch=batch)
     torch.testing.assert_close(agent.aux.intrinsic_loss(ctx), fused.detach(), rtol=1e-5, atol=1e-6)
-    ctx.fused_loss = fused.detach()
-    assert agent.aux.intrinsic_loss(ctx) is ctx.fused_loss
+
+
+def test_fused_im_pad_update_hands_its_training_loss_to_the_reward():
+    agent = _agent("im-pad")
+    seen = []
+    compute = agent.aux.intrinsic_loss
+
+    def spy(ctx):  # records what the agent passes, then runs the real method
+        seen.append((ctx.fused_loss, compute(NextObsContext(**{**vars(ctx), "fused_loss": None}))))
+        return compute(ctx)
+
+    agent.aux.intrinsic_loss = spy
+    metrics, _ = agent.update_critic(agent.to_batch(filled_buffer(action_dim=2).sample(8)), 0, fuse_aux=True)
+    ((handed, recomputed),) = seen
+    assert handed is not None and not handed.requires_grad
+    torch.testing.assert_close(handed, recomputed, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(metrics["aux_loss"], handed.mean())
+    # Sequential schedule: nothing to hand over, the reward computes the loss itself.
+    seen.clear()
+    agent.update_critic(agent.to_batch(filled_buffer(action_dim=2).sample(8)), 1, fuse_aux=False)
+    assert seen[0][0] is None
 
 
 @pytest.mark.parametrize("algo", ["curl", "soda", "pad", "svea"])
@@ -92,14 +111,15 @@ def test_every_base_trains_under_the_fused_schedule(algo):
         assert torch.isfinite(torch.as_tensor(float(m["critic_loss"])))
 
 
-def test_fused_beta_zero_is_the_baseline_and_round_trip_continues_identically():
+@pytest.mark.parametrize("base_algo", ["curl", "pad"])
+def test_fused_beta_zero_is_the_baseline_and_round_trip_continues_identically(base_algo):
     buf_a, buf_b = filled_buffer(action_dim=2, seed=1), filled_buffer(action_dim=2, seed=1)
-    base, im0 = _agent("curl"), _agent("im-curl", beta0=0.0)
+    base, im0 = _agent(base_algo), _agent(f"im-{base_algo}", beta0=0.0)
     for s in range(3):
         base.update(buf_a, s)
         assert "r_int_mean" in im0.update(buf_b, s)
     assert_same_nets(base, im0)
-    clone = _agent("curl", seed=7)
+    clone = _agent(base_algo, seed=7)
     clone.load_state_dict(base.state_dict())
     buf_c = filled_buffer(action_dim=2, seed=1)
     buf_c.rng.bit_generator.state = buf_a.rng.bit_generator.state

@@ -62,7 +62,7 @@ class NextObsContext:
     fused_loss: Optional[torch.Tensor] = None
     """The task's per-sample training loss from this update's fused pass (detached), or None.
     A task whose intrinsic loss is that very quantity (PAD: same (o, a, o') crops, same
-    weights) returns it instead of recomputing it."""
+    weights; equal up to float rounding) returns it instead of recomputing it."""
 
 
 @dataclass

@@ -11,7 +11,8 @@ step that reached ``o'``.
 Fused schedule (``agent.update_schedule = fused``): the critic's own pass over
 ``o`` supplies the shared features of ``o``, so only ``o'`` needs a shared-layer
 pass, and one backward serves both losses.  The per-sample training loss is
-then exactly IM-PAD's intrinsic loss (same crops, same weights), which is
+then IM-PAD's intrinsic loss (same crops, action and weights; equal up to float
+rounding, the shared layers running on B + B inputs instead of 2B), which is
 reused instead of being recomputed.
 """
 from __future__ import annotations
