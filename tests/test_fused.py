@@ -36,22 +36,24 @@ def test_fused_gradient_is_the_sum_of_the_critic_and_task_gradients(algo):
     trunk = n.critic.encoder.trunk.head(features).flatten(1)
     q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), batch.action)
     critic_loss = F.mse_loss(q1, target) + F.mse_loss(q2, target)
+    # PAD runs its own pass over o' here; the agent shares one pass over o and o'.
     task_loss = agent.aux.loss_from_trunk(batch, trunk, features).mean()
     g_critic = torch.autograd.grad(critic_loss, enc, retain_graph=True, allow_unused=True)
     g_task = torch.autograd.grad(task_loss, enc + own, allow_unused=True)
     agent.gen.set_state(gen)
     agent.noise_gen.set_state(noise)
     metrics, obs_trunk = agent.update_critic(batch, 0, fuse_aux=True)
-    torch.testing.assert_close(metrics["critic_loss"], critic_loss.detach())
-    torch.testing.assert_close(metrics["aux_loss"], task_loss.detach())
+    # The agent's passes run over other batch sizes (o and o' together): rounding differs.
+    torch.testing.assert_close(metrics["critic_loss"], critic_loss.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(metrics["aux_loss"], task_loss.detach(), rtol=1e-5, atol=1e-6)
     for p, gc, ga in zip(enc, g_critic, g_task):
         # PAD's loss does not reach the critic's head layers or projection (ga None).
         expected = gc if ga is None else gc + ga
         torch.testing.assert_close(p.grad, expected, rtol=1e-4, atol=1e-6)
     for p, ga in zip(own, g_task[len(enc):]):
-        torch.testing.assert_close(p.grad, ga)
+        torch.testing.assert_close(p.grad, ga, rtol=1e-4, atol=1e-6)
     # The actor's input is the pre-step encoding, without a graph.
-    torch.testing.assert_close(obs_trunk, trunk.detach())
+    torch.testing.assert_close(obs_trunk, trunk.detach(), rtol=1e-5, atol=1e-6)
     assert not obs_trunk.requires_grad
 
 

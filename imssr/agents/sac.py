@@ -152,15 +152,23 @@ class SACAgent:
         # All views in one forward pass; each is regressed to the same (clean) target.
         obs = views[0][0] if len(views) == 1 else torch.cat([v for v, _ in views])
         encoder_trunk = n.critic.encoder.trunk
-        features = encoder_trunk.shared_features(obs)
+        next_features = None
+        if fuse_aux and self.aux.fused_next_features:
+            # One pass of the shared layers over o and o' (PAD): o' with grad for the task's
+            # loss, and detached for the Bellman target's online encoding below.
+            both = encoder_trunk.shared_features(torch.cat([obs, batch.next_obs]))
+            features, next_features = both[:len(obs)], both[len(obs):]
+        else:
+            features = encoder_trunk.shared_features(obs)
         trunk = encoder_trunk.head(features).flatten(1)  # = encoder_trunk(obs)
         # Fused: the task's loss from this same pass, computed before the target so that a
         # task whose intrinsic loss is this quantity (PAD) can hand it over.  No generator
         # is shared with the target's, so the order changes no random draw.
-        aux_per_sample = self.aux.loss_from_trunk(batch, trunk[:len(batch)], features[:len(batch)]) \
-            if fuse_aux else None
+        aux_per_sample = self.aux.loss_from_trunk(batch, trunk[:len(batch)], features[:len(batch)],
+                                                  next_features) if fuse_aux else None
         with torch.no_grad():
-            next_trunk = n.critic.encoder.trunk(batch.next_obs)
+            next_trunk = encoder_trunk(batch.next_obs) if next_features is None \
+                else encoder_trunk.head(next_features.detach()).flatten(1)
             _, next_action, next_log_pi, _ = n.actor(next_trunk, generator=self.noise_gen)
             target_latent = n.critic_target.encoder(batch.next_obs)
             tq1, tq2 = n.critic_target.q(target_latent, next_action)

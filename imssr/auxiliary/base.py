@@ -87,6 +87,10 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     fuses_with_critic: ClassVar[bool] = False
     """True if :meth:`loss_from_trunk` can compute the training loss from the critic's own
     encoder pass over the RL crop of ``o`` (``agent.update_schedule = fused``)."""
+    fused_next_features: ClassVar[bool] = False
+    """True if the fused loss also needs the online shared-layer features of ``batch.next_obs``
+    with grad (PAD): the agent then runs its shared layers once over ``o`` and ``o'`` together
+    and reuses the detached features of ``o'`` for the Bellman target's online encoding."""
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__()
@@ -103,11 +107,14 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         """The same loss for each next observation, shape ``(B,)``, without gradients."""
 
-    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features: torch.Tensor,
+                        next_features: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Per-sample training loss given the critic's encoder pass over ``batch.obs`` (with grad).
 
         ``trunk`` is the online trunk's output, ``features`` the output of its shared layers
-        (``ConvTrunk.shared_features``: ``trunk`` before flattening when there is no head).
+        (``ConvTrunk.shared_features``: ``trunk`` before flattening when there is no head);
+        ``next_features`` the shared-layer features of ``batch.next_obs`` (with grad) for tasks
+        with ``fused_next_features``, else None.
         Only for tasks with ``fuses_with_critic``: in the fused schedule the agent adds its
         mean to the critic loss, backpropagates once, then calls :meth:`apply_gradients`.
         """

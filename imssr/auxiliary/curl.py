@@ -45,7 +45,7 @@ class CURL(AuxiliaryTask):
     def per_sample_loss(self, batch: Batch) -> torch.Tensor:
         return self.loss_from_trunk(batch, self.shared.encoder.trunk(batch.obs), None)
 
-    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features) -> torch.Tensor:
+    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features, next_features=None) -> torch.Tensor:
         positive = random_crop(batch.raw_obs, self.agent_cfg.crop_size, batch.generator)
         z_query = self.shared.encoder.projection(trunk)
         with torch.no_grad():

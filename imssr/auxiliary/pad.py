@@ -8,14 +8,17 @@ step.  IM-PAD's intrinsic reward is the per-sample inverse-dynamics error of the
 RL batch's own transitions ``(o, a, o')``: how poorly the model explains the
 step that reached ``o'``.
 
-Fused schedule (``agent.update_schedule = fused``): the critic's own pass over
-``o`` supplies the shared features of ``o``, so only ``o'`` needs a shared-layer
-pass, and one backward serves both losses.  The per-sample training loss is
+Fused schedule (``agent.update_schedule = fused``): the agent runs the shared
+layers once over ``o`` and ``o'`` together; the critic reads the features of
+``o``, PAD both, and the Bellman target the detached features of ``o'``; one
+backward serves both losses.  The per-sample training loss is
 then IM-PAD's intrinsic loss (same crops, action and weights; equal up to float
 rounding, the shared layers running on B + B inputs instead of 2B), which is
 reused instead of being recomputed.
 """
 from __future__ import annotations
+
+from typing import Optional
 
 import torch
 
@@ -29,6 +32,7 @@ class PAD(AuxiliaryTask):
     name = "pad"
     uses_rl_batch = True
     fuses_with_critic = True  # the critic's shared features of o are PAD's features of o
+    fused_next_features = True  # ... and those of o' serve PAD and the Bellman target alike
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
@@ -56,8 +60,10 @@ class PAD(AuxiliaryTask):
     def per_sample_loss(self, batch: Batch) -> torch.Tensor:
         return (self.predict_action(batch.obs, batch.next_obs) - batch.action).pow(2).mean(dim=1)
 
-    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        next_features = self.shared.encoder.trunk.shared_features(batch.next_obs)
+    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features: torch.Tensor,
+                        next_features: Optional[torch.Tensor] = None) -> torch.Tensor:
+        if next_features is None:
+            next_features = self.shared.encoder.trunk.shared_features(batch.next_obs)
         pred = self.predict_from_features(torch.cat([features, next_features]))
         return (pred - batch.action).pow(2).mean(dim=1)
 
