@@ -50,17 +50,20 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
     beta_png = figures.plot_beta(rows, os.path.join(out, "beta0.png")) if results.is_beta_sweep else None
     if beta_png:
         written.append((beta_png, "final return against beta_0"))
-    md = _markdown(results, rows, aggregates, notes, paper is not None, beta_png is not None, reps)
+    # The root as the user named it: a committed report should not carry this machine's paths.
+    md = _markdown(results, os.path.normpath(root), rows, aggregates, notes, paper is not None,
+                   beta_png is not None, reps)
     path = os.path.join(out, "report.md")
     atomic_write_text(path, md)
     written.append((path, "report"))
     return written
 
 
-def _markdown(results, rows, aggregates, notes, with_paper: bool, beta_plot: bool, reps: int) -> str:
+def _markdown(results, root_name: str, rows, aggregates, notes, with_paper: bool, beta_plot: bool,
+              reps: int) -> str:
     n_evals = sum(len(r.evals) for r in results.runs)
     parts = [
-        f"# Sweep report: `{results.root}`\n",
+        f"# Sweep report: `{root_name}`\n",
         f"{len(results.runs)} runs, {n_evals} evaluations. Cells: mean ± std over seeds (ddof 0) of each "
         "seed's last evaluation return at or before the point; **bold**: best mean of the task at that "
         "point; `(n/N)`: only n of the N expected seeds reached the point."
