@@ -126,6 +126,19 @@ def test_bad_input_is_one_line(args, message, tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("imssr: error: ") and message in err[0], err
 
 
+def test_unreachable_cluster_fails_at_once_in_one_line(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as sock:  # a port that was free a moment ago: nothing listens there
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    assert main(["sweep", "--root", str(tmp_path / "r"), "--algos", "curl", "--tasks", TASK,
+                 "--address", f"127.0.0.1:{port}", "--no-progress", *set_args(TINY)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"imssr: error: could not connect to the Ray cluster at 127.0.0.1:{port}: "
+                              "nothing answers there"), err
+
+
 def test_bad_input_has_no_traceback():
     proc = sweep_cli("--algos", "drq", "--tasks", TASK, check=False)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr

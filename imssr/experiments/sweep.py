@@ -105,6 +105,25 @@ def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
     return "\n".join(lines)
 
 
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail in one line, at once, if nothing listens at ``HOST:PORT``.
+
+    ``ray.init`` keeps retrying an address where no Ray head runs for minutes before it
+    gives up; a plain TCP connect answers in at most ``timeout_s``.  Addresses that are not
+    ``[ray://]HOST:PORT`` (``auto``) are left to Ray.
+    """
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ImssrError(f"could not connect to the Ray cluster at {address}: nothing answers there "
+                         f"({exc.strerror or exc}); start it with `ray start --head --port {port}`") from None
+
+
 def _init_ray(cfg: SweepConfig):
     import logging
 
@@ -119,14 +138,21 @@ def _init_ray(cfg: SweepConfig):
                   configure_logging=True)
     try:
         if cfg.address:
+            _check_reachable(cfg.address)
             ray.init(address=cfg.address, **common)
         else:
             # "local": always a fresh instance of our own, never a cluster that happens to run
             # on this machine (ray.init() with no address would attach to it).
             ray.init(address="local", object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
     except (ConnectionError, RuntimeError, ValueError) as exc:
-        where = f"the Ray cluster at {cfg.address}" if cfg.address else "a local Ray"
-        raise ImssrError(f"could not start {where}: {str(exc).splitlines()[0] if str(exc) else exc}") from None
+        first = str(exc).splitlines()[0] if str(exc) else repr(exc)
+        if not cfg.address:
+            raise ImssrError(f"could not start a local Ray: {first}") from None
+        # A head started by `ray start` (Ray >= 2.59) requires its token, but a driver that
+        # connects by address only sends one with RAY_AUTH_MODE=token: say so in the error.
+        hint = "" if os.environ.get("RAY_AUTH_MODE") == "token" else \
+            " (is it running? a head started by `ray start` needs RAY_AUTH_MODE=token here too)"
+        raise ImssrError(f"could not connect to the Ray cluster at {cfg.address}: {first}{hint}") from None
     return ray
 
 
