@@ -53,23 +53,28 @@ class PAD(AuxiliaryTask):
         z, z_next = self.projection(self.head(features).flatten(1)).chunk(2)
         return self.mlp(torch.cat([z, z_next], dim=1))
 
+    @staticmethod
+    def action_error(pred: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``L_PAD`` per sample: mean squared error over the action's dimensions, ``(B,)``."""
+        return (pred - action).pow(2).mean(dim=1)
+
     def predict_action(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         # One encoder pass over both observations.
         return self.predict_from_features(self.shared.encoder.trunk.shared_features(torch.cat([obs, next_obs])))
 
     def per_sample_loss(self, batch: Batch) -> torch.Tensor:
-        return (self.predict_action(batch.obs, batch.next_obs) - batch.action).pow(2).mean(dim=1)
+        return self.action_error(self.predict_action(batch.obs, batch.next_obs), batch.action)
 
     def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features: torch.Tensor,
                         next_features: Optional[torch.Tensor] = None) -> torch.Tensor:
         if next_features is None:
             next_features = self.shared.encoder.trunk.shared_features(batch.next_obs)
         pred = self.predict_from_features(torch.cat([features, next_features]))
-        return (pred - batch.action).pow(2).mean(dim=1)
+        return self.action_error(pred, batch.action)
 
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         if ctx.fused_loss is not None:
             return ctx.fused_loss
         b = ctx.batch
-        return (self.predict_action(b.obs, ctx.next_view) - b.action).pow(2).mean(dim=1)
+        return self.action_error(self.predict_action(b.obs, ctx.next_view), b.action)
