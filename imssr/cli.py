@@ -42,11 +42,17 @@ def build_parser() -> argparse.ArgumentParser:
         t.add_argument("--algo", choices=list(ALGOS), help="algorithm (imssr algos)")
         t.add_argument("--task", help="task name, e.g. cartpole_swingup_sparse (imssr tasks)")
         t.add_argument("--seed", type=_nonneg_int, help="seed (default 0)")
-        t.add_argument("--frames", type=_positive_int, help="budget in environment frames (paper: 500000)")
+        t.add_argument("--steps", type=_positive_int,
+                       help="budget T in agent steps (the paper's preset: 500000)")
+        t.add_argument("--frames", type=_positive_int,
+                       help="budget in environment frames instead: steps = frames / action repeat, rounded up")
+        t.add_argument("--network", choices=["dmcgb", "official-curl"],
+                       help="encoder layout of a new run: dmcgb (what the authors ran; default) or "
+                            "official-curl (50-d projection without tanh, ReLU after the last conv)")
         t.add_argument("--out", help="run directory (default runs/<task>/<algo>/seed_<n>)")
         t.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
-        t.add_argument("--eval-every", type=_nonneg_int, metavar="FRAMES",
-                       help="environment frames between evaluations (0: only at the end)")
+        t.add_argument("--eval-every", type=_nonneg_int, metavar="STEPS",
+                       help="agent steps between evaluations (0: only at the end; preset 10000)")
         t.add_argument("--eval-episodes", type=_positive_int, metavar="K", help="episodes per evaluation")
         t.add_argument("--beta0", type=_nonneg_float,
                        help="initial intrinsic coefficient beta_0 (im-, +rnd, +re3 algos)")
@@ -65,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
         t.add_argument("--seed-steps", type=_nonneg_int, metavar="STEPS",
                        help="agent steps of random actions before learning")
         t.add_argument("--replay-capacity", type=_positive_int, metavar="TRANSITIONS")
-        t.add_argument("--checkpoint-every", type=_nonneg_int, metavar="FRAMES")
+        t.add_argument("--checkpoint-every", type=_nonneg_int, metavar="STEPS",
+                       help="agent steps between checkpoints (0: only at the end)")
         t.add_argument("--no-buffer-in-checkpoint", action="store_true",
                        help="do not save the replay buffer (smaller checkpoints, inexact resume)")
         t.add_argument("--no-tensorboard", action="store_true")
@@ -108,6 +115,10 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("config", help="print the preset config of an algorithm on a task")
     c.add_argument("--algo", choices=list(ALGOS), required=True)
     c.add_argument("--task", required=True)
+    c.add_argument("--network", choices=["dmcgb", "official-curl"], default="dmcgb",
+                   help="encoder layout (default dmcgb, what the authors ran)")
+    c.add_argument("--explain", action="store_true",
+                   help="a table of every preset value with its source (Table III, the authors' code, ...)")
     return p
 
 
@@ -120,12 +131,16 @@ def add_sweep_parsers(sub) -> None:
                         "interrupted ones resume, failed ones are retried; see docs/experiments.md.")
     sw.add_argument("--root", help="sweep directory (default runs/sweep)")
     sw.add_argument("--file", metavar="SWEEP.json",
-                    help="JSON object with the same keys (algos, tasks, seeds, frames, set, beta0, root, "
-                         "retries, cpus_per_run, gpus_per_run, max_parallel, address); flags override it")
+                    help="JSON object with the same keys (algos, tasks, seeds, steps or frames, set, beta0, "
+                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, address); flags override it")
     sw.add_argument("--algos", metavar="A,B", help="algorithms (imssr algos)")
     sw.add_argument("--tasks", metavar="T1,T2", help="tasks (imssr tasks)")
     sw.add_argument("--seeds", metavar="1,2,3|1-5", help="seeds: a list, a range or both (default 1)")
-    sw.add_argument("--frames", type=_positive_int, help="budget per run in environment frames (default: preset)")
+    sw.add_argument("--steps", type=_positive_int,
+                    help="budget T per run in agent steps (default: the preset's, 500000)")
+    sw.add_argument("--frames", type=_positive_int,
+                    help="budget per run in environment frames instead: each run trains frames / its "
+                         "task's action repeat steps, rounded up")
     sw.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE",
                     help="override for every run, as imssr train --set")
     sw.add_argument("--beta0", metavar="B1,B2", help="beta_0 sensitivity sweep, e.g. 0.001,0.01,0.05,0.1")
@@ -148,8 +163,13 @@ def add_sweep_parsers(sub) -> None:
 def _sweep_config(args):
     from imssr.experiments.grid import SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 
+    if args.steps is not None and args.frames is not None:
+        raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
     cfg = load_sweep_file(args.file) if args.file else SweepConfig()
-    given = {"root": args.root, "frames": args.frames, "retries": args.retries,
+    if args.steps is not None or args.frames is not None:
+        # A budget flag replaces the file's budget, whichever unit the file gave it in.
+        cfg.steps = cfg.frames = None
+    given = {"root": args.root, "steps": args.steps, "frames": args.frames, "retries": args.retries,
              "cpus_per_run": args.cpus_per_run, "gpus_per_run": args.gpus_per_run,
              "max_parallel": args.max_parallel, "address": args.address}
     for key, value in given.items():
@@ -212,19 +232,27 @@ def _run_config(args, demo: bool):
             raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
         get_algo(algo)
         get_task(task)
-        cfg = demo_config(algo, task) if demo else make_config(algo, task)
+        network = args.network or "dmcgb"
+        cfg = demo_config(algo, task, network) if demo else make_config(algo, task, network)
     if args.resume or args.config:
         # Explicit --algo/--task must agree with the loaded config.
         if args.algo and args.algo != cfg.algo:
             raise ImssrError(f"--algo {args.algo} differs from the run's algo {cfg.algo}")
         if args.task and args.task != cfg.env.task:
             raise ImssrError(f"--task {args.task} differs from the run's task {cfg.env.task}")
+        if args.network:
+            raise ImssrError("--network chooses the preset of a new run; with --resume or --config "
+                             "set agent.final_relu / feature_dim / projection_tanh instead")
     assert isinstance(cfg, RunConfig)
     # Flag -> train field, for flags that set a value when given.
-    for flag, field_name in (("seed", "seed"), ("frames", "frames"), ("eval_every", "eval_every_frames"),
+    if args.steps is not None and args.frames is not None:
+        raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
+    if args.frames is not None:
+        cfg.train.steps = -(-args.frames // cfg.env.action_repeat)
+    for flag, field_name in (("seed", "seed"), ("steps", "steps"), ("eval_every", "eval_every_steps"),
                              ("eval_episodes", "eval_episodes"), ("device", "device"),
                              ("seed_steps", "seed_steps"), ("replay_capacity", "replay_capacity"),
-                             ("checkpoint_every", "checkpoint_every_frames")):
+                             ("checkpoint_every", "checkpoint_every_steps")):
         if getattr(args, flag) is not None:
             setattr(cfg.train, field_name, getattr(args, flag))
     # Switches that turn a default-on feature off.
@@ -234,9 +262,7 @@ def _run_config(args, demo: bool):
             setattr(cfg.train, field_name, False)
     if args.batch_size is not None:
         cfg.agent.batch_size = args.batch_size
-        from imssr.auxiliary import AUX_TASKS
-
-        if cfg.aux.name in AUX_TASKS and AUX_TASKS[cfg.aux.name].uses_rl_batch:
+        if not cfg.aux.own_batch:
             cfg.aux.batch_size = args.batch_size  # the task trains on the RL batch
     if args.image_dir is not None:
         cfg.aux.image_dir = args.image_dir
@@ -261,8 +287,8 @@ def cmd_train(args, demo: bool = False) -> int:
     cfg = _run_config(args, demo)
     out = args.out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
     trainer = Trainer(cfg, out, resume=args.resume)
-    print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.train.frames} frames = "
-          f"{cfg.total_steps} agent steps (action repeat {cfg.env.action_repeat}) -> {out}", flush=True)
+    print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {out}",
+          flush=True)
     try:
         trainer.train()
     finally:
@@ -377,9 +403,12 @@ def cmd_algos(_args) -> int:
 
 
 def cmd_config(args) -> int:
-    from imssr.presets import make_config
+    from imssr.presets import explain, make_config
 
-    print(make_config(args.algo, args.task).to_json())
+    if args.explain:
+        print(explain(args.algo, args.task, args.network))
+    else:
+        print(make_config(args.algo, args.task, args.network).to_json())
     return 0
 
 

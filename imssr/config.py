@@ -1,8 +1,14 @@
 """Typed configuration.  Every field documents itself; counters say their unit.
 
 Units: an *agent step* is one action chosen by the agent; it advances the
-simulator by ``action_repeat`` *environment frames*.  The paper's T = 500k
-counts environment frames.  Replay capacity counts transitions (agent steps).
+simulator by ``action_repeat`` *environment frames*.  Every budget, interval and
+schedule here counts agent steps, as the authors' code does: the paper's
+T = 500,000 agent steps (Table III, "Number of training steps"), which is
+4,000,000 frames at action repeat 8.  Replay capacity counts transitions.
+
+``CONFIG_VERSION`` 2 is the first with budgets in agent steps; a config written
+before (no ``version`` key: budgets in frames, imssr 0.1's networks and signals)
+is read through :func:`migrate` so that its run resumes and reports as it ran.
 """
 from __future__ import annotations
 
@@ -13,6 +19,10 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 from imssr.errors import ImssrError
+
+CONFIG_VERSION = 2
+"""2: budgets in agent steps, ``agent.final_relu``, ``aux.own_batch``, ``intrinsic.form`` and
+the normalisation fields.  1 (no ``version`` key): imssr 0.1."""
 
 
 @dataclass
@@ -39,7 +49,7 @@ class EnvConfig:
 @dataclass
 class AgentConfig:
     encoder_layers: int = 4
-    """Convolutional layers of the shared pixel encoder (4 CURL, 11 SODA/PAD/SVEA)."""
+    """Convolutional layers of the shared pixel encoder (Table III: 4 CURL, 11 SODA/PAD/SVEA)."""
     encoder_head_layers: int = 0
     """Of ``encoder_layers``, how many (the last) form the RL head; an auxiliary task with a
     head of its own (PAD: 3 of 11) shares only the first ``encoder_layers - encoder_head_layers``."""
@@ -48,10 +58,14 @@ class AgentConfig:
     channels_last: bool = True
     """Run the encoder's convolutions on NHWC activations (faster on CPU and GPU; same maths,
     float rounding may differ in the last bits)."""
-    feature_dim: int = 50
-    """Size of the encoder's projection (Linear + LayerNorm) output (CURL 50, DMC-GB 100)."""
-    projection_tanh: bool = False
-    """Apply tanh after the LayerNorm of the critic's and actor's projections (DMC-GB: true)."""
+    final_relu: bool = False
+    """ReLU after the last convolution (official CURL: true; DMC-GB, whose encoder the authors
+    ran for every algorithm: false, a ReLU only between convolutions)."""
+    feature_dim: int = 100
+    """Size of the encoder's projection (Linear + LayerNorm) output (DMC-GB 100, official CURL 50)."""
+    projection_tanh: bool = True
+    """Apply tanh after the LayerNorm of the critic's and actor's projections (DMC-GB: true;
+    official CURL: false)."""
     hidden_dim: int = 1024
     """Width of the two hidden layers of the actor and of each Q head."""
     crop_size: int = 84
@@ -105,9 +119,11 @@ class AuxConfig:
     """Adam learning rate of the auxiliary loss (CURL 1e-3, SODA 3e-4)."""
     update_every: int = 1
     """Agent steps between auxiliary updates."""
+    own_batch: bool = False
+    """True: the task trains on a batch of its own, ``batch_size`` transitions sampled apart from
+    the RL batch (SODA; PAD per Table III); false: on the RL batch itself (CURL)."""
     batch_size: int = 128
-    """Auxiliary batch size for tasks that sample their own batch (SODA: 256); tasks trained on
-    the RL batch (CURL, PAD) ignore it."""
+    """Size of the task's own batch (Table III: 256 SODA and PAD); unused without ``own_batch``."""
     tau: float = 0.005
     """EMA rate of the task's own target network (SODA's target encoder and projection)."""
     overlay_alpha: float = 0.5
@@ -141,6 +157,15 @@ class IntrinsicConfig:
     """Agent steps between decays of the ``step`` schedule."""
     normalization: str = "zscore"
     """In-batch normalisation of the per-sample losses: zscore, minmax, mean or none."""
+    unbiased_std: bool = True
+    """``zscore`` divides by the unbiased (n - 1) standard deviation, as the authors' code
+    (torch's default ``std``); false: the biased one (imssr 0.1)."""
+    norm_eps: float = 0.0
+    """Added to the normaliser's denominator (zscore: the std; minmax: the range; mean: the mean).
+    IM-CURL 0 (the authors add none), IM-SODA 1e-5 (the authors' ``std + 1e-5``)."""
+    norm_rtol: float = 1e-5
+    """A batch whose loss spread (std, or max - min) is at most ``norm_rtol * max(|mean|, 1e-12)``
+    gets a zero bonus: its differences are float rounding, not novelty.  0: never."""
     rnd_lr: float = 1e-4
     """Adam learning rate of RND's predictor."""
     rnd_dim: int = 128
@@ -149,30 +174,36 @@ class IntrinsicConfig:
     """RE3: the k of the k-nearest-neighbour distance within the batch."""
     re3_dim: int = 50
     """RE3: size of the fixed random encoder's output."""
-    view: str = "independent"
-    """``independent``: the online branch sees a fresh crop of o' (as the SSL loss is
-    trained); ``shared``: reuse the crop of the Bellman target (no extra encoder pass)."""
+    form: str = "authors"
+    """How IM-CURL's and IM-SODA's signal of o' is computed (docs/algorithms.md).  ``authors``:
+    as the authors' code did (IM-CURL: online z of the RL crop of o' keyed by the target
+    encoder on the same crop; IM-SODA: online predictor on the clean crop vs the target on its
+    overlay, squared distance summed over dimensions, then log1p).  ``training``: the task's
+    training loss applied to o' (IM-CURL: the key on an independent crop, one more encoder
+    pass; IM-SODA: the training loss's orientation, mean over dimensions).  PAD, SVEA, RND and
+    RE3 have one form."""
 
 
 @dataclass
 class TrainConfig:
-    frames: int = 500_000
-    """Training budget in environment frames (the paper's T)."""
+    steps: int = 500_000
+    """Training budget T in agent steps (Table III: 500,000; frames = steps * action_repeat)."""
     seed_steps: int = 1000
     """Agent steps of uniform random actions before learning starts."""
-    burst_updates: int = 0
-    """Updates run at the agent step the seed phase ends (DMC-GB: 1000); 0 or 1: the usual one."""
-    replay_capacity: int = 100_000
-    """Replay capacity in stored observations, about one per transition (CURL 100k, DMC-GB 500k);
-    an episode of n transitions uses n + 1 slots."""
-    eval_every_frames: int = 10_000
-    """Environment frames between evaluations (0 disables periodic evaluation)."""
-    eval_episodes: int = 10
-    """Episodes per evaluation (per scene)."""
+    burst_updates: int = 1000
+    """Updates run at the agent step the seed phase ends (DMC-GB and the authors: as many as
+    seed steps, 1000); 0 or 1: the usual one.  Only at the end of the first seed phase."""
+    replay_capacity: int = 500_000
+    """Replay capacity in stored observations, about one per transition (Table III: CURL 100k,
+    SODA/PAD/SVEA 500k); an episode of n transitions uses n + 1 slots."""
+    eval_every_steps: int = 10_000
+    """Agent steps between evaluations (the authors' ``eval_freq``; 0: only at the end)."""
+    eval_episodes: int = 30
+    """Episodes per evaluation (per scene; the authors' ``eval_episodes``)."""
     eval_modes: str = ""
     """Comma-separated scenes evaluated at each evaluation point; empty: the training scene."""
-    checkpoint_every_frames: int = 50_000
-    """Environment frames between checkpoints (taken at the next episode end)."""
+    checkpoint_every_steps: int = 50_000
+    """Agent steps between checkpoints (taken at the next episode end; 0: only at the end)."""
     save_buffer: bool = True
     """Save the replay buffer with each checkpoint (needed for an exact resume)."""
     keep_checkpoints: int = 1
@@ -198,6 +229,8 @@ class TrainConfig:
 class RunConfig:
     algo: str = "im-curl"
     """Algorithm name (``imssr algos``)."""
+    version: int = CONFIG_VERSION
+    """Config format (see :data:`CONFIG_VERSION`); older files are migrated when read."""
     env: EnvConfig = field(default_factory=EnvConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     aux: AuxConfig = field(default_factory=AuxConfig)
@@ -206,8 +239,18 @@ class RunConfig:
 
     @property
     def total_steps(self) -> int:
-        """Training budget in agent steps."""
-        return -(-self.train.frames // self.env.action_repeat)
+        """Training budget in agent steps (T)."""
+        return self.train.steps
+
+    @property
+    def total_frames(self) -> int:
+        """Training budget in environment frames."""
+        return self.train.steps * self.env.action_repeat
+
+    def budget_text(self) -> str:
+        """``"500,000 agent steps = 4,000,000 frames at action repeat 8"``."""
+        return (f"{self.train.steps:,} agent steps = {self.total_frames:,} frames "
+                f"at action repeat {self.env.action_repeat}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -219,6 +262,7 @@ class RunConfig:
     def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
         if not isinstance(data, dict):
             raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
+        data = migrate(data)
         sections = {f.name: f.type for f in fields(cls)}
         kwargs: dict[str, Any] = {}
         classes = {"env": EnvConfig, "agent": AgentConfig, "aux": AuxConfig,
@@ -282,18 +326,22 @@ class RunConfig:
             (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
             (i.normalization in NORMALIZATIONS,
              f"intrinsic.normalization must be one of {', '.join(NORMALIZATIONS)}"),
-            (i.view in ("independent", "shared"), "intrinsic.view must be independent or shared"),
+            (i.form in FORMS, f"intrinsic.form must be one of {', '.join(FORMS)}"),
+            (i.norm_eps >= 0.0, "intrinsic.norm_eps must be >= 0"),
+            (i.norm_rtol >= 0.0, "intrinsic.norm_rtol must be >= 0"),
             (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
             (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
-            (t.frames >= 1, "train.frames must be >= 1"),
+            (self.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION} (older configs are "
+             "migrated when read from a file)"),
+            (t.steps >= 1, "train.steps must be >= 1"),
             (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
             (t.burst_updates >= 0, "train.burst_updates must be >= 0"),
             (t.torch_threads >= 0, "train.torch_threads must be >= 0"),
             (t.keep_checkpoints >= 0, "train.keep_checkpoints must be >= 0"),
             (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
-            (t.eval_every_frames >= 0, "train.eval_every_frames must be >= 0"),
+            (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
-            (t.checkpoint_every_frames >= 0, "train.checkpoint_every_frames must be >= 0"),
+            (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
             (t.seed >= 0, "train.seed must be >= 0"),
         ]
         for ok, message in checks:
@@ -323,6 +371,64 @@ SCHEDULES = ("constant", "step")
 NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 SOURCES = ("ssl", "rnd", "re3")
 UPDATE_SCHEDULES = ("sequential", "fused")
+FORMS = ("authors", "training")
+
+
+def _ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
+
+
+def migrate(data: dict[str, Any]) -> dict[str, Any]:
+    """A config dict of any earlier version, as the current version.
+
+    Version 1 (imssr 0.1, no ``version`` key) counted budgets in frames and had
+    other defaults for settings added since; they are filled in with what that
+    version ran, so an old run resumes, evaluates and reports as it was trained:
+    frames -> agent steps (rounded up, as the old loop ran ``ceil(frames / action_repeat)``
+    steps; an interval that the action repeat does not divide is rounded up too), ReLU after the last
+    convolution, SODA on its own batch and the others on the RL batch, the signal's form from
+    ``intrinsic.view``, and the biased std + 1e-8 without the spread tolerance.
+    """
+    version = data.get("version")
+    if version is None:
+        # A file without a version is either imssr 0.1's (it always holds train.frames) or a
+        # partial config written by hand for this version.
+        v1_keys = {("train", "frames"), ("train", "eval_every_frames"),
+                   ("train", "checkpoint_every_frames"), ("intrinsic", "view")}
+        version = 1 if any(isinstance(data.get(sec), dict) and key in data[sec] for sec, key in v1_keys) \
+            else CONFIG_VERSION
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= CONFIG_VERSION:
+        raise ImssrError(f"config version {version!r} is not one this imssr reads (1..{CONFIG_VERSION})")
+    if version == CONFIG_VERSION:
+        return data
+    data = json.loads(json.dumps(data))  # a deep copy
+    sections = {k: data.get(k) if isinstance(data.get(k), dict) else {} for k in
+                ("env", "agent", "aux", "intrinsic", "train")}
+    env, agent, aux, intr, train = (sections[k] for k in ("env", "agent", "aux", "intrinsic", "train"))
+    repeat = env.get("action_repeat", 8)
+    if not isinstance(repeat, int) or repeat < 1:
+        raise ImssrError(f"env.action_repeat must be a positive integer, got {repeat!r}")
+    for old, new, default in (("frames", "steps", 500_000), ("eval_every_frames", "eval_every_steps", 10_000),
+                              ("checkpoint_every_frames", "checkpoint_every_steps", 50_000)):
+        value = train.pop(old, default)
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise ImssrError(f"train.{old} must be an integer, got {value!r}")
+        train.setdefault(new, _ceil_div(value, repeat))
+    train.setdefault("burst_updates", 0)
+    train.setdefault("replay_capacity", 100_000)
+    train.setdefault("eval_episodes", 10)
+    agent.setdefault("final_relu", True)
+    agent.setdefault("feature_dim", 50)
+    agent.setdefault("projection_tanh", False)
+    aux.setdefault("own_batch", aux.get("name", "curl") == "soda")
+    view = intr.pop("view", "independent")
+    intr.setdefault("form", "authors" if view == "shared" and aux.get("name", "curl") == "curl" else "training")
+    intr.setdefault("unbiased_std", False)
+    intr.setdefault("norm_eps", 1e-8)
+    intr.setdefault("norm_rtol", 0.0)
+    data.update(sections)
+    data["version"] = CONFIG_VERSION
+    return data
 
 
 def _check_types(section) -> None:

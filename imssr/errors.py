@@ -3,3 +3,7 @@
 
 class ImssrError(Exception):
     """A user-facing error: bad input, missing file, corrupt checkpoint, missing library."""
+
+
+class NonFiniteError(ImssrError):
+    """A loss or signal became NaN or infinite during training."""

@@ -22,10 +22,10 @@ def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **
     cfg.train.replay_capacity = 5000
     cfg.train.seed_steps = 60
     cfg.train.burst_updates = 0  # DMC-GB presets: 1000
-    cfg.train.frames = 2000
-    cfg.train.eval_every_frames = 1000
+    cfg.train.steps = 250  # 2000 frames at action repeat 8
+    cfg.train.eval_every_steps = 125
     cfg.train.eval_episodes = 1
-    cfg.train.checkpoint_every_frames = 1000
+    cfg.train.checkpoint_every_steps = 125
     cfg.train.tensorboard = False
     cfg.train.progress = False
     for k, v in train.items():

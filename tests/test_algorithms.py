@@ -23,13 +23,13 @@ def _train(cfg, out, record=None):
 
 @pytest.mark.parametrize("algo", list(ALGOS))
 def test_every_algorithm_trains_and_evaluates(algo, tmp_path):
-    cfg = tiny_config(algo, seed_steps=8, frames=24 * 8, eval_every_frames=0)
+    cfg = tiny_config(algo, seed_steps=8, steps=24, eval_every_steps=0)
     metrics = []
     trainer = _train(cfg, tmp_path, metrics)
     assert trainer.agent.updates == len(metrics) == 24 - 8
     assert all(math.isfinite(float(m["critic_loss"])) for m in metrics)
     evals = read_csv(tmp_path / "eval.csv")
-    assert len(evals) == 1 and int(evals[0]["frame"]) == cfg.train.frames
+    assert len(evals) == 1 and int(evals[0]["step"]) == cfg.train.steps
     spec = ALGOS[algo]
     # The bonus entered the critic's target exactly for algorithms with an intrinsic signal.
     assert all(("bonus_std" in m) == spec.intrinsic_enabled for m in metrics)
@@ -43,7 +43,7 @@ def test_dmcgb_presets_train_at_full_size(algo, tmp_path):
     assert cfg.agent.encoder_layers == 11 and cfg.agent.batch_size == 128
     cfg.train.seed_steps = 8
     cfg.train.burst_updates = 0  # the preset's 1000-update burst is budget, not architecture
-    cfg.train.frames = 10 * cfg.env.action_repeat
+    cfg.train.steps = 10
     cfg.train.eval_episodes = 1
     cfg.train.tensorboard = cfg.train.progress = False
     cfg.train.replay_capacity = 64

@@ -1,4 +1,5 @@
 """SODA, PAD and SVEA: per-sample losses and how each plugs into the agent."""
+import math
 import numpy as np
 import pytest
 import torch
@@ -41,7 +42,7 @@ def test_soda_loss_is_the_normalised_l2_of_predictor_and_target():
     soda = agent.aux
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
     aug = soda.overlay(batch.obs, torch.Generator().manual_seed(0))
-    got = soda.pair_loss(aug, batch.obs)
+    got = soda.squared_distance(aug, batch.obs).mean(dim=1)
     h = soda.predictor(soda.projection(agent.nets.critic.encoder.trunk(aug)))
     t = soda.target_projection(soda.target_trunk(batch.obs))
     cos = F.cosine_similarity(h, t, dim=1)
@@ -54,7 +55,7 @@ def test_soda_loss_is_the_normalised_l2_of_predictor_and_target():
 def test_soda_trains_on_its_own_batch_and_moves_its_target_slowly():
     agent = _agent("soda")
     soda = agent.aux
-    assert not soda.uses_rl_batch and soda.cfg.batch_size == 8
+    assert soda.cfg.own_batch and soda.cfg.batch_size == 8
     before = [p.clone() for p in soda.target_trunk.parameters()]
     buf = filled_buffer(action_dim=2)
     m0 = agent.update(buf, 0)
@@ -69,8 +70,9 @@ def test_soda_intrinsic_loss_is_per_sample_and_gradient_free():
     agent = _agent("im-soda")
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
     loss = agent.aux.intrinsic_loss(_ctx(agent, batch))
+    # The authors' form: log(1 + sum of squares of two unit vectors' difference), in [0, log 5].
     assert loss.shape == (8,) and not loss.requires_grad and torch.all(loss >= 0)
-    assert torch.all(loss <= 4.0 / agent.cfg.feature_dim + 1e-6)
+    assert torch.all(loss <= math.log(5.0) + 1e-6)
 
 
 def test_pad_shares_only_the_first_layers_and_predicts_actions():

@@ -14,14 +14,14 @@ from imssr.training.logger import read_csv
 
 def _cfg():
     # 3 episodes of cartpole (125 agent steps each), checkpoints after each.
-    return tiny_config("im-curl", frames=3000, seed_steps=60, eval_every_frames=1000,
-                       checkpoint_every_frames=1000)
+    return tiny_config("im-curl", steps=375, seed_steps=60, eval_every_steps=125,
+                       checkpoint_every_steps=125)
 
 
-def _train(out, stop_at_frame=None, resume=False):
+def _train(out, stop_at_step=None, resume=False):
     t = Trainer(_cfg(), str(out), resume=resume)
     try:
-        t.train(stop_at_frame=stop_at_frame)
+        t.train(stop_at_step=stop_at_step)
         return t
     finally:
         t.close()
@@ -40,7 +40,7 @@ def full_run(tmp_path_factory):
 def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
     full_dir, full = full_run
     # "Kill" after the checkpoint at frame 1000, then resume in a new Trainer.
-    part = _train(tmp_path, stop_at_frame=1000)
+    part = _train(tmp_path, stop_at_step=125)
     assert part.frame == 1000
     resumed = _train(tmp_path, resume=True)
     assert resumed.frame == full.frame == 3000 and resumed.step == full.step
@@ -58,7 +58,7 @@ def test_checkpoint_contents_and_round_trip(full_run):
     assert state["frame"] == 3000 and state["step"] == 375 and state["episode"] == 3
     assert os.path.exists(full_dir / "checkpoints" / state["replay_file"])
     cfg = _cfg()
-    cfg.train.frames = 3000
+    cfg.train.steps = 375
     t = Trainer(cfg, str(full_dir), resume=True)  # loads everything, nothing left to do
     try:
         obs, _ = t.eval_env.reset()
@@ -118,16 +118,16 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
     cfg.train.save_buffer = False
     t = Trainer(cfg, str(tmp_path))
     try:
-        t.train(stop_at_frame=1000)
+        t.train(stop_at_step=125)
     finally:
         t.close()
     cfg = _cfg()
     cfg.train.save_buffer = False
-    cfg.train.eval_every_frames = 0  # changed on resume: no per-step evaluations, no hang
-    cfg.train.checkpoint_every_frames = 0
+    cfg.train.eval_every_steps = 0  # changed on resume: no per-step evaluations, no hang
+    cfg.train.checkpoint_every_steps = 0
     t = Trainer(cfg, str(tmp_path), resume=True)
     try:
-        assert t.next_eval_frame is None and t.next_ckpt_frame is None
+        assert t.next_eval_step is None and t.next_ckpt_step is None
         assert t.learning_starts == 125 + 60  # refill the empty buffer with random actions first
         t.train()
     finally:
@@ -139,7 +139,7 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
 def test_fresh_run_replaces_logs_of_a_run_that_never_checkpointed(tmp_path):
     (tmp_path / "train.csv").write_text("frame,step\n5000,625\n")
     (tmp_path / "eval.csv").write_text("frame,step\n5000,625\n")
-    t = Trainer(tiny_config("curl", frames=1000, eval_every_frames=0), str(tmp_path))
+    t = Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
     try:
         t.train()
     finally:

@@ -9,9 +9,9 @@ import pytest
 from imssr.presets import ALGOS
 from imssr.training.logger import read_csv
 
-TINY = ["--frames", "2000", "--seed-steps", "60", "--batch-size", "8", "--eval-every", "1000",
+TINY = ["--steps", "250", "--seed-steps", "60", "--batch-size", "8", "--eval-every", "125",
         "--eval-episodes", "1", "--replay-capacity", "3000", "--no-progress",
-        "--set", "agent.hidden_dim=32", "--set", "agent.feature_dim=16"]
+        "--set", "agent.hidden_dim=32", "--set", "agent.feature_dim=16", "--set", "train.burst_updates=0"]
 
 
 def imssr(*args, check=True, **kw):
@@ -64,7 +64,7 @@ def test_train_end_to_end_then_evaluate(algo, tmp_path):
 def test_killed_run_resumes_to_completion(tmp_path):
     out = tmp_path / "killed"
     args = ["train", "--algo", "im-curl", "--task", "cartpole_swingup_sparse", "--out", str(out),
-            *TINY, "--frames", "3000", "--checkpoint-every", "1000"]
+            *TINY, "--steps", "375", "--checkpoint-every", "125"]
     proc = subprocess.Popen([sys.executable, "-m", "imssr", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     latest = out / "checkpoints" / "latest.pt"

@@ -42,12 +42,12 @@ def test_intrinsic_loss_is_per_sample_without_gradients_and_uses_views():
         trunk = n.critic.encoder.trunk(batch.next_obs)
         target = n.critic_target.encoder(batch.next_obs)
     shared = agent.aux.intrinsic_loss(NextObsContext(batch.raw_next_obs, batch.next_obs, trunk, target,
-                                                     torch.Generator().manual_seed(0), "shared"))
+                                                     torch.Generator().manual_seed(0), "authors"))
     indep = agent.aux.intrinsic_loss(NextObsContext(batch.raw_next_obs, batch.next_obs, trunk, target,
-                                                    torch.Generator().manual_seed(0), "independent"))
+                                                    torch.Generator().manual_seed(0), "training"))
     assert shared.shape == indep.shape == (8,)
     assert not shared.requires_grad and not indep.requires_grad
-    # "shared" pairs the online and momentum encoders on the same crop.
+    # "authors" pairs the online and momentum encoders on the same crop.
     torch.testing.assert_close(shared, agent.aux.loss_from_latents(n.critic.encoder.projection(trunk), target))
     assert not torch.equal(shared, indep)
 

@@ -13,6 +13,7 @@ from imssr.errors import ImssrError
 def _agent(algo="curl", seed=0, beta0=None, **agent):
     cfg = tiny_config(algo)
     cfg.agent.update_schedule = "fused"
+    cfg.aux.own_batch = False  # PAD on the RL batch (DMC-GB's; Table III gives it a batch of its own)
     if beta0 is not None:
         cfg.intrinsic.beta0 = beta0
     for k, v in agent.items():
@@ -138,3 +139,17 @@ def test_schedule_is_validated():
     with pytest.raises(ImssrError, match="critic_update_every"):
         apply_overrides(tiny_config("curl"), ["agent.update_schedule=fused",
                                               "agent.critic_update_every=2"]).validate()
+
+
+def test_pad_on_its_own_batch_is_not_fused_and_still_trains_the_shared_layers():
+    cfg = tiny_config("pad")
+    cfg.agent.update_schedule = "fused"
+    assert cfg.aux.own_batch  # Table III: PAD's SSL batch is its own (256)
+    agent = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
+    assert not agent.aux.fuses(cfg.agent)
+    convs = agent.nets.critic.encoder.trunk.convs
+    owned = {id(p) for g in agent.aux.optimizer.param_groups for p in g["params"]}
+    assert all(id(p) in owned for p in convs.parameters())
+    before = [p.clone() for p in convs.parameters()]
+    agent.aux.update(agent.to_batch(filled_buffer(action_dim=2).sample(8)), 0)
+    assert any(not torch.equal(a, b) for a, b in zip(before, convs.parameters()))

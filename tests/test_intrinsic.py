@@ -13,7 +13,9 @@ from imssr.intrinsic import BetaSchedule, IntrinsicReward, normalize
 def test_normalizations():
     x = torch.tensor([1.0, 2.0, 3.0, 6.0])
     z = normalize(x, "zscore")
-    assert abs(float(z.mean())) < 1e-6 and float(z.std(unbiased=False)) == pytest.approx(1.0, abs=1e-5)
+    assert abs(float(z.mean())) < 1e-6 and float(z.std()) == pytest.approx(1.0, abs=1e-5)
+    biased = normalize(x, "zscore", unbiased=False)
+    assert float(biased.std(unbiased=False)) == pytest.approx(1.0, abs=1e-5)
     m = normalize(x, "minmax")
     assert float(m.min()) == 0.0 and float(m.max()) == pytest.approx(1.0, abs=1e-6)
     assert float(normalize(x, "mean").mean()) == pytest.approx(1.0, abs=1e-6)
@@ -42,8 +44,9 @@ def test_intrinsic_reward_scales_normalised_losses():
     cfg.beta0, cfg.schedule = 0.5, "constant"
     bonus, stats = IntrinsicReward(cfg)(torch.tensor([1.0, 3.0]), step=0)
     assert bonus.shape == (2, 1)
-    torch.testing.assert_close(bonus.flatten(), torch.tensor([-0.5, 0.5]))
-    assert stats["beta"] == 0.5 and math.isclose(float(stats["r_int_std"]), 1.0, rel_tol=1e-5)
+    # Unbiased std of (1, 3) is sqrt(2): z = -+1/sqrt(2).
+    torch.testing.assert_close(bonus.flatten(), 0.5 * torch.tensor([-1.0, 1.0]) / math.sqrt(2))
+    assert stats["beta"] == 0.5 and math.isclose(float(stats["r_int_std"]), 1 / math.sqrt(2), rel_tol=1e-5)
 
 
 def _run(algo, beta0=None, steps=6, seed=0):

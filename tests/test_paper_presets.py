@@ -13,7 +13,8 @@ def test_paper_preset_trains(task, algo, tmp_path):
     cfg = make_config(algo, task)
     # Only the budget shrinks: 8 random steps fill the buffer, then 2 full-size updates.
     cfg.train.seed_steps = 8
-    cfg.train.frames = 10 * cfg.env.action_repeat
+    cfg.train.steps = 10
+    cfg.train.burst_updates = 0  # the preset's 1000-update burst: tested on its own
     cfg.train.eval_episodes = 1
     cfg.train.tensorboard = cfg.train.progress = False
     cfg.train.replay_capacity = 64  # the 100k default would only cost untouched virtual memory
@@ -24,4 +25,4 @@ def test_paper_preset_trains(task, algo, tmp_path):
         trainer.close()
     assert trainer.agent.updates == 2
     rows = read_csv(tmp_path / "eval.csv")
-    assert len(rows) == 1 and int(rows[0]["step"]) == 10 and int(rows[0]["frame"]) == cfg.train.frames
+    assert len(rows) == 1 and int(rows[0]["step"]) == 10 and int(rows[0]["frame"]) == 10 * cfg.env.action_repeat

@@ -13,16 +13,17 @@ from imssr.experiments.report import write_report
 from imssr.presets import make_config
 from imssr.training.logger import EVAL_COLUMNS, read_csv
 
-TASK = "cartpole_swingup_sparse"  # action repeat 8: an evaluation may land up to 7 frames late
+TASK = "cartpole_swingup_sparse"  # action repeat 8: agent step s is frame 8 * s
 
 
-def make_run(root, algo, seed, evals, task=TASK, frames=1000, beta0=None):
-    """A run directory as `imssr train` leaves it: config.json and eval.csv rows (mode, frame, return)."""
+def make_run(root, algo, seed, evals, task=TASK, steps=1000, beta0=None):
+    """A run directory as `imssr train` leaves it: config.json and eval.csv rows (mode, agent step,
+    return); T = ``steps`` agent steps."""
     parts = [task, algo] + ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
     run = os.path.join(root, *parts)
     os.makedirs(run)
     cfg = make_config(algo, task)
-    cfg.train.frames, cfg.train.seed = frames, seed
+    cfg.train.steps, cfg.train.seed = steps, seed
     if beta0 is not None:
         cfg.intrinsic.beta0 = beta0
     with open(os.path.join(run, "config.json"), "w") as fh:
@@ -30,16 +31,16 @@ def make_run(root, algo, seed, evals, task=TASK, frames=1000, beta0=None):
     with open(os.path.join(run, "eval.csv"), "w", newline="") as fh:
         w = csv.DictWriter(fh, EVAL_COLUMNS)
         w.writeheader()
-        for mode, frame, ret in evals:
-            w.writerow({"frame": frame, "step": frame // 8, "mode": mode, "return_mean": ret, "return_std": 1.0,
+        for mode, step, ret in evals:
+            w.writerow({"frame": step * cfg.env.action_repeat, "step": step, "mode": mode, "return_mean": ret, "return_std": 1.0,
                         "episodes": 1, "return_min": ret, "return_max": ret, "wall_time": 0})
     return run
 
 
 def curve(r02, r05, r10, mode="training"):
-    # 0.2T = 200: the evaluation at 100 is the last at or before it (300 is after);
-    # 0.5T = 500: 504 lands within one agent step (8 frames) of it and counts.
-    return [(mode, 100, r02), (mode, 300, -1.0), (mode, 504, r05), (mode, 1000, r10)]
+    # T = 1000 agent steps.  0.2T = step 200: the evaluation at step 100 is the last at or
+    # before it (300 is after); 0.5T = step 500 and 1.0T = step 1000 have an evaluation each.
+    return [(mode, 100, r02), (mode, 300, -1.0), (mode, 500, r05), (mode, 1000, r10)]
 
 
 def table(out):
@@ -65,9 +66,11 @@ def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
     std = float(np.std([100, 200, 300]))  # 81.65: ddof 0
     assert float(t["training", "curl", "1.0"]["mean"]) == 200.0
     assert float(t["training", "curl", "1.0"]["std"]) == pytest.approx(std, rel=1e-5)
-    assert float(t["training", "curl", "0.2"]["mean"]) == 20.0  # frame 100, not 300
-    assert float(t["training", "curl", "0.5"]["mean"]) == 200.0  # frame 504 counts as 500
-    assert t["training", "curl", "1.0"]["frame"] == "1000"
+    assert float(t["training", "curl", "0.2"]["mean"]) == 20.0  # step 100, not 300
+    assert float(t["training", "curl", "0.5"]["mean"]) == 200.0
+    # Points in agent steps, their frames beside (action repeat 8).
+    assert (t["training", "curl", "1.0"]["step"], t["training", "curl", "1.0"]["frame"]) == ("1000", "8000")
+    assert (t["training", "curl", "0.2"]["step"], t["training", "curl", "0.2"]["frame"]) == ("200", "1600")
     assert float(t["training", "im-curl", "1.0"]["mean"]) == 500.0
     assert (t["training", "im-curl", "1.0"]["best"], t["training", "curl", "1.0"]["best"]) == ("1", "0")
     assert (t["training", "curl", "0.2"]["best"], t["training", "im-curl", "0.2"]["best"]) == ("1", "0")
@@ -79,12 +82,16 @@ def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
     md = open(os.path.join(out, "report.md")).read()
     assert "| `cartpole_swingup_sparse` | curl | **20.0** ± 8.2 |  | 200.0 ± 81.6 |  | 200.0 ± 81.6 | 744.2 ± 23.8 | 3/3 |" in md
     assert "| im-curl | 0.0 ± 0.0 |  | **500.0** ± 81.6 |  | **500.0** ± 81.6 | 744.8 ± 54.2 | 3/3 |" in md
-    assert "### `training`" in md and md.index("### `training`") < md.index("### `color_hard`")
+    assert "### `training` (T = 1,000 agent steps)" in md and md.index("### `training`") < md.index("### `color_hard`")
+    assert f"| `{TASK}` | 8 | 200 steps (1,600 frames) | 500 steps (4,000 frames) | 1,000 steps (8,000 frames) |" in md
+    # The paper's T is 500,000 agent steps; this sweep's points are other steps, and the note says so.
+    assert "the paper's numbers are at T = 500,000 agent steps (0.2T/0.5T/1.0T = 100,000/250,000/500,000 " \
+           "steps); this sweep's T is 1,000 agent steps" in md
     # Every evaluation, one row each.
     rows = read_csv(os.path.join(out, "evaluations.csv"))
-    assert list(rows[0]) == ["algo", "task", "mode", "seed", "frame", "return", "beta0"]
+    assert list(rows[0]) == ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0"]
     assert len(rows) == 3 * 4 + 3 * 8
-    assert {"algo": "curl", "task": TASK, "mode": "training", "seed": "2", "frame": "504",
+    assert {"algo": "curl", "task": TASK, "mode": "training", "seed": "2", "step": "500", "frame": "4000",
             "return": "200", "beta0": ""} in rows
     assert os.path.getsize(os.path.join(out, "curves.png")) > 5000
     assert not os.path.exists(os.path.join(out, "beta0.png"))
@@ -115,13 +122,13 @@ def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
     root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
     make_run(root, "curl", 1, curve(10, 100, 100))
     make_run(root, "curl", 2, curve(20, 200, 200))
-    make_run(root, "curl", 3, curve(30, 300, 300)[:3])  # still running: last evaluation at 504
+    make_run(root, "curl", 3, curve(30, 300, 300)[:3])  # still running: last evaluation at step 500
     make_run(root, "im-curl", 1, curve(0, 400, 400))
     make_run(root, "im-curl", 2, [])  # started, no evaluation yet
     with open(os.path.join(root, TASK, "im-curl", "seed_2", "eval.csv"), "a") as fh:
-        fh.write("1000,125,training,9")  # ... and killed while writing its first row
+        fh.write("8000,1000,training,9")  # ... and killed while writing its first row
     # The plan says three seeds each: im-curl seed 3 never started.
-    plan = {"sweep": {}, "runs": [{"algo": a, "task": TASK, "seed": s, "beta0": None, "frames": 1000,
+    plan = {"sweep": {}, "runs": [{"algo": a, "task": TASK, "seed": s, "beta0": None, "steps": 1000, "frames": 8000,
                                    "dir": f"{TASK}/{a}/seed_{s}"} for a in ("curl", "im-curl") for s in (1, 2, 3)]}
     with open(os.path.join(root, "sweep.json"), "w") as fh:
         json.dump(plan, fh)
@@ -133,9 +140,9 @@ def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
     assert (t["training", "im-curl", "1.0"]["seeds"], t["training", "im-curl", "1.0"]["expected_seeds"]) == ("1", "3")
     md = open(os.path.join(out, "report.md")).read()
     assert "150.0 ± 50.0 (2/3)" in md and "**400.0** ± 0.0 (1/3)" in md
-    assert "training / cartpole_swingup_sparse / curl at 1.0T (frame 1000): no value for seed(s) 3 " \
-           "(not reached: last evaluation at frame 504)" in md
-    assert "im-curl at 1.0T (frame 1000): no value for seed(s) 2 (no evaluation in this mode); " \
+    assert "training / cartpole_swingup_sparse / curl at 1.0T (step 1000): no value for seed(s) 3 " \
+           "(not reached: last evaluation at step 500)" in md
+    assert "im-curl at 1.0T (step 1000): no value for seed(s) 2 (no evaluation in this mode); " \
            "no run for seed(s) 3" in md
     assert f"{TASK}/im-curl/seed_2: no evaluations yet" in md
     assert f"{TASK}/im-curl/seed_3: planned but not started" in md
@@ -143,6 +150,35 @@ def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
     agg = {(r["fraction"], r["metric"], r["label"]): r for r in read_csv(os.path.join(out, "aggregates.csv"))}
     assert agg["1.0", "IQM", "im-curl"]["runs"] == "1"
     assert float(agg["1.0", "IQM", "curl"]["point"]) == pytest.approx(0.15)
+
+
+def test_points_are_agent_steps_rounded_up():
+    from imssr.experiments.tables import point_step, value_at
+
+    # The paper's points, whatever the task's action repeat.
+    assert [point_step(f, 500_000) for f in (0.2, 0.5, 1.0)] == [100_000, 250_000, 500_000]
+    # A point between agent steps is the first step at or after it (0.5 * 125 = 62.5 -> 63),
+    # where a run made when budgets counted frames evaluated (frame 500 at action repeat 8).
+    assert [point_step(f, 125) for f in (0.2, 0.5, 1.0)] == [25, 63, 125]
+    evals = [(25, 1.0), (50, 2.0), (63, 3.0), (125, 4.0)]
+    assert [value_at(evals, p) for p in (25, 63, 100, 125)] == [1.0, 3.0, 3.0, 4.0]
+    assert value_at(evals[:2], 63) is None  # not reached
+
+
+def test_paper_budget_has_no_budget_note(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, [("training", s, s / 1000) for s in (100_000, 250_000, 500_000)], steps=500_000)
+    make_run(root, "curl", 1, [("training", s, s / 1000) for s in (100_000, 250_000, 500_000)],
+             task="finger_spin", steps=500_000)
+    write_report(root, out, paper_results=paper_csv, reps=50)
+    md = open(os.path.join(out, "report.md")).read()
+    assert "the paper's numbers are at T" not in md
+    # The same agent steps on both tasks, other frames (action repeat 2 on finger_spin).
+    assert "| `finger_spin` | 2 | 100,000 steps (200,000 frames) | 250,000 steps (500,000 frames) | " \
+           "500,000 steps (1,000,000 frames) |" in md
+    assert f"| `{TASK}` | 8 | 100,000 steps (800,000 frames) |" in md
+    t = {(r["task"], r["fraction"]): r for r in read_csv(os.path.join(out, "table.csv"))}
+    assert [float(t["finger_spin", f]["mean"]) for f in ("0.2", "0.5", "1.0")] == [100.0, 250.0, 500.0]
 
 
 def test_missing_paper_results_drops_the_column_with_a_note(tmp_path):

@@ -37,7 +37,7 @@ class SACNetworks(nn.Module):
     def __init__(self, obs_channels: int, action_dim: int, cfg: AgentConfig):
         super().__init__()
         trunk = ConvTrunk(obs_channels, cfg.crop_size, cfg.encoder_layers, cfg.encoder_filters,
-                          cfg.encoder_head_layers, cfg.channels_last)
+                          cfg.encoder_head_layers, cfg.channels_last, cfg.final_relu)
         self.critic = Critic(Encoder(trunk, cfg.feature_dim, cfg.projection_tanh), action_dim, cfg.hidden_dim)
         self.actor = Actor(trunk.out_dim, cfg.feature_dim, action_dim, cfg.hidden_dim,
                            cfg.log_std_min, cfg.log_std_max, cfg.projection_tanh)
@@ -121,8 +121,9 @@ class SACAgent:
         batch = self.to_batch(replay.sample(c.batch_size))
         metrics: dict[str, torch.Tensor | float] = {}
         aux_due = self.aux is not None and self.aux.trains and step % self.aux.cfg.update_every == 0
-        # Fused: the task's loss rides on the critic's encoder pass and backward.
-        fuse_aux = aux_due and fused and self.aux.fuses_with_critic
+        # Fused: the task's loss rides on the critic's encoder pass and backward (only when
+        # it trains on the RL batch: a task with a batch of its own needs its own pass).
+        fuse_aux = aux_due and self.aux.fuses(c)
         obs_trunk = None
         if step % c.critic_update_every == 0:
             critic_metrics, obs_trunk = self.update_critic(batch, step, fuse_aux)
@@ -132,7 +133,7 @@ class SACAgent:
         if step % c.target_update_every == 0:
             self.soft_update_targets()
         if aux_due and not fuse_aux:
-            aux_batch = batch if self.aux.uses_rl_batch else self.to_batch(replay.sample(self.aux.cfg.batch_size))
+            aux_batch = self.to_batch(replay.sample(self.aux.cfg.batch_size)) if self.aux.cfg.own_batch else batch
             metrics.update(self.aux.update(aux_batch, step))
         if self.signal is not None:
             metrics.update(self.signal.update(batch, step))
@@ -178,9 +179,9 @@ class SACAgent:
                 # Algorithm 1: per-sample SSL loss of o', normalised in the batch,
                 # r <- r + beta_t * r_int (Eq. 1).
                 ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
-                                     self.intrinsic_gen, self.intrinsic.cfg.view, batch,
+                                     self.intrinsic_gen, self.intrinsic.cfg.form, batch,
                                      None if aux_per_sample is None else aux_per_sample.detach())
-                bonus, stats = self.intrinsic(self.signal(ctx), step)
+                bonus, stats = self.intrinsic(self.signal(ctx), step, self.signal.label)
                 reward = reward + bonus
                 metrics.update(stats)
             target_q = reward + batch.discount * c.discount * target_v

@@ -56,7 +56,8 @@ class NextObsContext:
     online_trunk: torch.Tensor
     target_latent: torch.Tensor
     generator: torch.Generator
-    view: str = "independent"
+    form: str = "authors"
+    """``intrinsic.form``: compute the signal as the authors' code did, or as the training loss."""
     batch: Optional["Batch"] = None
     """The whole RL batch, for tasks whose loss of o' needs o or a (e.g. inverse dynamics)."""
     fused_loss: Optional[torch.Tensor] = None
@@ -80,8 +81,6 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     """Base class of auxiliary tasks."""
 
     name: ClassVar[str]
-    uses_rl_batch: ClassVar[bool] = True
-    """True: trains on the RL batch; False: the agent samples it a batch of ``cfg.batch_size``."""
     trains: ClassVar[bool] = True
     """False for tasks without an auxiliary loss of their own (SVEA acts through the critic)."""
     fuses_with_critic: ClassVar[bool] = False
@@ -119,6 +118,11 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         mean to the critic loss, backpropagates once, then calls :meth:`apply_gradients`.
         """
         raise NotImplementedError(f"{self.name} cannot fuse its loss with the critic's")
+
+    def fuses(self, agent_cfg: AgentConfig) -> bool:
+        """Whether the agent fuses this task's loss with the critic's: a task that can, under the
+        fused schedule, trained on the RL batch (a batch of its own needs a pass of its own)."""
+        return self.fuses_with_critic and agent_cfg.update_schedule == "fused" and not self.cfg.own_batch
 
     def fused_parameters(self) -> list:
         """What the task's optimiser steps in the fused schedule: its own parameters only,

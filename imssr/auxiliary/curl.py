@@ -4,7 +4,17 @@ InfoNCE with a bilinear similarity (the paper's Eq. infonce):
 ``logits_ij = z_i^T W k_j`` between queries ``z`` from the online encoder on
 one crop and keys ``k`` from the momentum (critic-target) encoder on an
 independent crop; the positive of row ``i`` is column ``i``.  The per-sample
-loss is the row-wise cross-entropy.
+loss is the row-wise cross-entropy.  As the authors ran it (DMC-GB's CURL), it
+trains on the RL batch every step, the anchor being the RL crop of o.
+
+IM-CURL's signal of o' (``intrinsic.form``):
+
+* ``authors`` (the authors' ``CURL.compute_intri_reward``): query = the online
+  encoder on the RL crop of o' (the Bellman target already computed its trunk),
+  key = the critic target's encoder on the *same* crop (the target's latent of
+  the Bellman target, reused): no encoder pass of its own.
+* ``training``: the key on an independent crop of o', as the training loss pairs
+  views (one more target-encoder pass).
 """
 from __future__ import annotations
 
@@ -19,7 +29,6 @@ from imssr.config import AgentConfig, AuxConfig
 
 class CURL(AuxiliaryTask):
     name = "curl"
-    uses_rl_batch = True  # same batch as the RL update; the anchor is the RL crop
     fuses_with_critic = True  # the query is the critic's own encoding of the RL crop
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
@@ -29,7 +38,7 @@ class CURL(AuxiliaryTask):
         # Sequential schedule: one optimiser over W and the online encoder, so the
         # contrastive loss trains the encoder that the critic uses.  Fused: W only;
         # the encoder takes the summed gradient through the critic's optimiser.
-        params = self.fused_parameters() if agent_cfg.update_schedule == "fused" \
+        params = self.fused_parameters() if self.fuses(agent_cfg) \
             else [self.W, *shared.encoder.parameters()]
         self.optimizer = torch.optim.Adam(params, lr=cfg.lr)
 
@@ -54,13 +63,10 @@ class CURL(AuxiliaryTask):
 
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
-        # Query: the online encoder on the Bellman target's crop (its trunk output
-        # is reused); key: the momentum encoder on an independent crop, exactly
-        # as the training loss pairs views.  ``shared`` reuses the target's
-        # latent of the same crop instead: no encoder pass at all.
+        # Query: the online encoder on the Bellman target's crop (its trunk output is reused).
         z_query = self.shared.encoder.projection(ctx.online_trunk)
-        if ctx.view == "shared":
-            z_key = ctx.target_latent
+        if ctx.form == "authors":
+            z_key = ctx.target_latent  # the target encoder on that same crop
         else:
             positive = random_crop(ctx.raw_next_obs, self.agent_cfg.crop_size, ctx.generator)
             z_key = self.shared.target_encoder(positive)

@@ -21,6 +21,7 @@ from __future__ import annotations
 from typing import Optional
 
 import torch
+from torch import nn
 
 from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
 from imssr.config import AgentConfig, AuxConfig
@@ -30,21 +31,23 @@ from imssr.networks.encoder import conv_stack
 
 class PAD(AuxiliaryTask):
     name = "pad"
-    uses_rl_batch = True
     fuses_with_critic = True  # the critic's shared features of o are PAD's features of o
     fused_next_features = True  # ... and those of o' serve PAD and the Bellman target alike
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
         trunk = shared.encoder.trunk
+        # Its own head layers on the shared features, laid out as the critic's head.
         self.head = conv_stack(trunk.filters, trunk.head_layers)
+        if trunk.final_relu:
+            self.head.append(nn.ReLU(inplace=trunk.head_layers > 0))
         self.projection = Projection(trunk.out_dim, agent_cfg.feature_dim, agent_cfg.projection_tanh)
         self.mlp = mlp(2 * agent_cfg.feature_dim, agent_cfg.hidden_dim, shared.action_dim)
         self.apply(weight_init)
         # Sequential: the shared convolutions (not the critic's head) and the task's own
         # layers.  Fused: its own layers; the shared convolutions take the summed gradient
         # through the critic's optimiser.
-        params = self.fused_parameters() if agent_cfg.update_schedule == "fused" \
+        params = self.fused_parameters() if self.fuses(agent_cfg) \
             else [*trunk.convs.parameters(), *self.parameters()]
         self.optimizer = torch.optim.Adam(params, lr=cfg.lr)
 

@@ -2,14 +2,22 @@
 
 The online branch (shared trunk -> projection MLP -> predictor) sees an
 overlaid view, the EMA target branch (its own copies of trunk and projection,
-tau = ``aux.tau``) the clean view of the same crop; the loss is the squared L2
-distance of the L2-normalised outputs (paper, Appendix, Eq. sodaloss):
+tau = ``aux.tau``) a clean view; the loss is the squared L2 distance of the
+L2-normalised outputs (paper, Appendix, Eq. sodaloss):
 ``||h(g(f(o_aug)))/|.| - g*(f*(o))/|.|||^2``.  Per sample it is averaged over
 the latent dimensions, so the batch mean is exactly ``F.mse_loss`` as DMC-GB trains.
+As in DMC-GB and the authors' code, the two branches see *independent* random
+crops of o (the overlaid one cropped apart from the clean one).
 
 SODA trains on a batch of its own (``aux.batch_size``, every ``aux.update_every``
-steps), so IM-SODA's intrinsic reward is the same per-sample loss computed on
-the RL batch's next observations.
+steps), so IM-SODA's signal is computed on the RL batch's crop of o'
+(``intrinsic.form``):
+
+* ``authors`` (the authors' ``SODA.intrinsic_reward``): the online predictor on
+  the *clean* crop x, the target branch on its overlay (same crop), the reverse
+  of the training loss; ``l = sum_d (h/|h| - t/|t|)_d^2``, then ``log(1 + l)``.
+* ``training``: the training loss's orientation (online on the overlay, target on
+  the clean crop), mean over dimensions, no log.
 """
 from __future__ import annotations
 
@@ -19,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from imssr.augmentations import random_overlay
+from imssr.augmentations import random_crop, random_overlay
 from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
 from imssr.config import AgentConfig, AuxConfig
 from imssr.data import image_pool
@@ -36,7 +44,6 @@ def bn_mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
 
 class SODA(AuxiliaryTask):
     name = "soda"
-    uses_rl_batch = False
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
@@ -64,19 +71,28 @@ class SODA(AuxiliaryTask):
             self.images = torch.from_numpy(pool).to(x.device)
         return random_overlay(x, self.images, self.cfg.overlay_alpha, generator)
 
-    def pair_loss(self, augmented: torch.Tensor, clean: torch.Tensor) -> torch.Tensor:
-        h = self.predictor(self.projection(self.shared.encoder.trunk(augmented)))
+    def squared_distance(self, online_view: torch.Tensor, target_view: torch.Tensor) -> torch.Tensor:
+        """``(h/|h| - t/|t|)^2`` per sample and dimension, ``(B, D)``: ``h`` the online
+        predictor's output on ``online_view``, ``t`` the target branch's on ``target_view``."""
+        h = self.predictor(self.projection(self.shared.encoder.trunk(online_view)))
         with torch.no_grad():
-            target = self.target_projection(self.target_trunk(clean))
-        return (F.normalize(h, dim=1) - F.normalize(target, dim=1)).pow(2).mean(dim=1)
+            target = self.target_projection(self.target_trunk(target_view))
+        return (F.normalize(h, dim=1) - F.normalize(target, dim=1)).pow(2)
 
     def per_sample_loss(self, batch: Batch) -> torch.Tensor:
-        # Same crop for both branches; only the online one is overlaid.
-        return self.pair_loss(self.overlay(batch.obs, batch.generator), batch.obs)
+        # Independent crops: the clean view is the batch's crop of o, the overlaid
+        # view a fresh crop of the same observation.
+        augmented = self.overlay(random_crop(batch.raw_obs, self.agent_cfg.crop_size, batch.generator),
+                                 batch.generator)
+        return self.squared_distance(augmented, batch.obs).mean(dim=1)
 
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
-        return self.pair_loss(self.overlay(ctx.next_view, ctx.generator), ctx.next_view)
+        clean = ctx.next_view
+        augmented = self.overlay(clean, ctx.generator)  # same crop
+        if ctx.form == "authors":
+            return torch.log1p(self.squared_distance(clean, augmented).sum(dim=1))
+        return self.squared_distance(augmented, clean).mean(dim=1)
 
     @torch.no_grad()
     def after_step(self, step: int) -> None:

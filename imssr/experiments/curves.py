@@ -8,7 +8,8 @@ from imssr.training.logger import read_csv
 
 
 def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
-    """Plot evaluation return (mean ± std over episodes) against environment frames."""
+    """Plot evaluation return (mean ± std over episodes) against agent steps, with environment
+    frames on the top axis when the run's config gives the action repeat."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -22,26 +23,31 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
     action_repeat = None
     cfg_path = os.path.join(run_dir, "config.json")
     if os.path.exists(cfg_path):
-        import json
+        from imssr.config import load_config
 
-        with open(cfg_path) as fh:
-            cfg = json.load(fh)
-        title = f"{cfg['algo']} on {cfg['env']['task']} (seed {cfg['train']['seed']})"
-        action_repeat = cfg["env"]["action_repeat"]
+        # Through the config reader, so a run from before budgets counted agent steps plots too.
+        cfg = load_config(cfg_path)
+        title = f"{cfg.algo} on {cfg.env.task} (seed {cfg.train.seed})"
+        action_repeat = cfg.env.action_repeat
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     for mode in sorted({r["mode"] for r in rows}):
-        pts = sorted((int(r["frame"]), float(r["return_mean"]), float(r["return_std"]))
+        pts = sorted((int(float(r["step"])), float(r["return_mean"]), float(r["return_std"]))
                      for r in rows if r["mode"] == mode)
         x = [p[0] for p in pts]
         m = [p[1] for p in pts]
         s = [p[2] for p in pts]
         ax.plot(x, m, marker="o", label=mode)
         ax.fill_between(x, [a - b for a, b in zip(m, s)], [a + b for a, b in zip(m, s)], alpha=0.2)
-    ax.set_xlabel("environment frames")
+    from matplotlib.ticker import EngFormatter
+
+    ax.set_xlabel("agent steps")
+    # 250k, 4M: the default puts a 1e6 offset over the title.
+    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
     if action_repeat:
-        # Both counters, as every log carries them: agent steps = frames / action repeat.
-        top = ax.secondary_xaxis("top", functions=(lambda f: f / action_repeat, lambda s: s * action_repeat))
-        top.set_xlabel(f"agent steps (action repeat {action_repeat})")
+        # Both counters, as every log carries them: frames = agent steps * action repeat.
+        top = ax.secondary_xaxis("top", functions=(lambda s: s * action_repeat, lambda f: f / action_repeat))
+        top.set_xlabel(f"environment frames (action repeat {action_repeat})")
+        top.xaxis.set_major_formatter(EngFormatter(sep=""))
     ax.set_ylabel("evaluation return")
     ax.set_title(title)
     ax.grid(alpha=0.3)

@@ -38,21 +38,22 @@ def _save(plt, fig, path: str) -> str:
 
 
 def curve_points(results: SweepResults, task: str, mode: str, label: str) -> list[tuple[int, float, float, int]]:
-    """``(frame, mean, std, seeds)`` over the seeds that evaluated at each frame."""
-    by_frame: dict[int, list[float]] = {}
+    """``(agent step, mean, std, seeds)`` over the seeds that evaluated at each agent step."""
+    by_step: dict[int, list[float]] = {}
     for run in results.runs:
         if run.task == task and run.label == label:
-            for m, frame, ret in run.evals:
+            for m, step, _, ret in run.evals:
                 if m == mode:
-                    by_frame.setdefault(frame, []).append(ret)
-    return [(f, float(np.mean(v)), float(np.std(v)), len(v)) for f, v in sorted(by_frame.items())]
+                    by_step.setdefault(step, []).append(ret)
+    return [(s, float(np.mean(v)), float(np.std(v)), len(v)) for s, v in sorted(by_step.items())]
 
 
 def plot_curves(results: SweepResults, path: str) -> str:
-    """One panel per (task, mode), one line per algo: mean over seeds with a ±std band."""
+    """One panel per (task, mode), one line per algo: mean over seeds with a ±std band, against
+    agent steps (frames on the top axis when the task's runs share an action repeat)."""
     plt = _pyplot()
     panels = [(task, mode) for task in sorted({r.task for r in results.runs})
-              for mode in mode_order(m for r in results.runs if r.task == task for m, _, _ in r.evals)]
+              for mode in mode_order(m for r in results.runs if r.task == task for m, *_ in r.evals)]
     if not panels:
         panels = [(sorted({r.task for r in results.runs})[0], "training")]
     labels = label_order(results)
@@ -70,7 +71,11 @@ def plot_curves(results: SweepResults, path: str) -> str:
             ax.plot(x, m, marker="o", markersize=3, color=colors[label], label=f"{label} ({seeds} seeds)")
             ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.2, linewidth=0)
         ax.set_title(f"{task} ({mode})", fontsize=10)
-        ax.set_xlabel("environment frames")
+        ax.set_xlabel("agent steps")
+        ax.xaxis.set_major_formatter(_engineering())
+        repeat = results.action_repeat(task)
+        if repeat is not None:
+            _frames_axis(ax, repeat)
         ax.set_ylabel("evaluation return")
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
@@ -107,11 +112,26 @@ def plot_beta(rows: list[Row], path: str) -> Optional[str]:
             _reference(ax, r, f"{r.label} (beta0 = 0)", plt.cm.tab10((len(algos) + j) % 10))
         ax.set_xscale("log")
         ax.set_xlabel("beta_0 (log scale)")
-        ax.set_ylabel(f"return at 1.0T (frame {group[0].cells[-1].frame})")
+        ax.set_ylabel(f"return at 1.0T (step {group[0].cells[-1].step:,})")
         ax.set_title(f"{task} ({mode})", fontsize=10)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
     return _save(plt, fig, path)
+
+
+def _frames_axis(ax, action_repeat: int) -> None:
+    """Environment frames on the top axis: frames = agent steps * action repeat."""
+    top = ax.secondary_xaxis("top", functions=(lambda s: s * action_repeat, lambda f: f / action_repeat))
+    top.set_xlabel(f"frames (action repeat {action_repeat})", fontsize=8)
+    top.tick_params(labelsize=7)
+    top.xaxis.set_major_formatter(_engineering())
+
+
+def _engineering():
+    """Tick labels 250k, 4M: matplotlib's default puts a 1e6 offset over the title."""
+    from matplotlib.ticker import EngFormatter
+
+    return EngFormatter(sep="")
 
 
 def _reference(ax, row: Row, label: str, color) -> None:

@@ -14,7 +14,9 @@ from typing import Any, Optional
 from imssr.errors import ImssrError
 
 SWEEP_PLAN = "sweep.json"
-"""File under ROOT with the expanded grid (the report reads it for T and the expected seeds)."""
+"""File under ROOT with the expanded grid (the report reads it for T and the expected seeds).
+Each run holds its budget in agent steps (``steps``) and frames (``frames``); a plan written
+before budgets counted agent steps holds only ``frames``."""
 
 
 @dataclass
@@ -29,8 +31,13 @@ class SweepConfig:
     """Tasks (``imssr tasks``)."""
     seeds: list[int] = field(default_factory=lambda: [1])
     """Seeds, one run each per algo and task."""
+    steps: Optional[int] = None
+    """Budget T of every run in agent steps (the report's T); None (and no ``frames``): the
+    preset's, 500,000."""
     frames: Optional[int] = None
-    """Budget of every run in environment frames (the report's T); None: the preset's (500k)."""
+    """Alternative to ``steps``: the budget in environment frames, passed on as ``imssr train
+    --frames`` so that each run trains ``ceil(frames / action_repeat)`` steps of its own task's
+    action repeat.  At most one of ``steps`` and ``frames``."""
     overrides: list[str] = field(default_factory=list)
     """``section.field=value`` overrides applied to every run, as ``imssr train --set`` takes them."""
     beta0: list[float] = field(default_factory=list)
@@ -82,6 +89,9 @@ class SweepConfig:
         for task in self.tasks:
             get_task(task)
         checks = [
+            (self.steps is None or self.frames is None,
+             "give the budget as --steps (agent steps) or --frames, not both"),
+            (self.steps is None or self.steps >= 1, "--steps must be >= 1"),
             (self.frames is None or self.frames >= 1, "--frames must be >= 1"),
             (self.retries >= 0, "--retries must be >= 0"),
             (self.cpus_per_run > 0, "--cpus-per-run must be > 0"),
@@ -125,7 +135,9 @@ class Run:
     def train_args(self, cfg: SweepConfig) -> list[str]:
         """``imssr train`` arguments of this run (without --out / --resume)."""
         args = ["--algo", self.algo, "--task", self.task, "--seed", str(self.seed)]
-        if cfg.frames is not None:
+        if cfg.steps is not None:
+            args += ["--steps", str(cfg.steps)]
+        elif cfg.frames is not None:
             args += ["--frames", str(cfg.frames)]
         if self.beta0 is not None:
             args += ["--beta0", repr(float(self.beta0))]
@@ -166,13 +178,15 @@ def build_run_config(run: Run, cfg: SweepConfig):
     return _run_config(args, demo=False)
 
 
-def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, int]) -> str:
-    """Write ``ROOT/sweep.json``: the sweep's settings and every run with its frame budget."""
+def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, tuple[int, int]]) -> str:
+    """Write ``ROOT/sweep.json``: the sweep's settings and every run with its budget;
+    ``budgets`` maps a run's directory to its ``(agent steps, frames)``."""
     from imssr.utils import atomic_write_text
 
     root = os.path.abspath(cfg.root)
     plan = {"sweep": asdict(cfg),
-            "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), frames=budgets[r.dir]) for r in runs]}
+            "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), steps=budgets[r.dir][0],
+                          frames=budgets[r.dir][1]) for r in runs]}
     path = os.path.join(root, SWEEP_PLAN)
     atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
     return path
@@ -255,9 +269,9 @@ def _coerce(key: str, value: Any) -> Any:
         if not isinstance(value, str):
             raise ImssrError(f"sweep file: {key!r} must be a string")
         return value
-    kind = {"frames": int, "retries": int, "max_parallel": int,
+    kind = {"steps": int, "frames": int, "retries": int, "max_parallel": int,
             "cpus_per_run": float, "gpus_per_run": float}[key]
-    if value is None and key == "frames":
+    if value is None and key in ("steps", "frames"):
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or \
             (kind is int and not float(value).is_integer()):

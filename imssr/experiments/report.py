@@ -2,12 +2,14 @@
 
 Files written under ``out``:
 
-- ``evaluations.csv``  every evaluation of every seed (``algo,task,mode,seed,frame,return,beta0``)
+- ``evaluations.csv``  every evaluation of every seed (``algo,task,mode,seed,step,frame,return,beta0``)
 - ``table.csv``        mean/std/seeds at 0.2T, 0.5T, 1.0T per (mode, task, algo), the paper's beside
 - ``aggregates.csv``   rliable IQM and probability of improvement with 95% CIs
-- ``curves.png``       learning curves, one panel per task and mode
+- ``curves.png``       learning curves against agent steps, one panel per task and mode
 - ``beta0.png``        final return against beta_0 (only for a beta sweep)
 - ``report.md``        all of the above in one page, with notes on what is missing
+
+T and its fractions count agent steps, as the paper's do; frames are given beside them.
 """
 from __future__ import annotations
 
@@ -19,6 +21,8 @@ from imssr.experiments.results import collect, write_evaluations
 from imssr.utils import atomic_write_text
 
 PAPER_T = 500_000
+"""The paper's T in agent steps (Table III, "Number of training steps"): its 0.2T, 0.5T and 1.0T
+are 100,000, 250,000 and 500,000 agent steps, on every task whatever its action repeat."""
 
 
 def write_report(root: str, out: str, paper_results: Optional[str] = None,
@@ -37,8 +41,10 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
     notes += row_notes
     budgets = sorted({results.budget(t) for t in {r.task for r in results.runs}})
     if paper is not None and budgets != [PAPER_T]:
-        notes.append(f"the paper's numbers are at T = {PAPER_T} frames; this sweep's T is "
-                     f"{', '.join(map(str, budgets))}, so its 0.2T/0.5T/1.0T are other frames")
+        paper_points = "/".join(f"{tables.point_step(f, PAPER_T):,}" for f in tables.FRACTIONS)
+        notes.append(f"the paper's numbers are at T = {PAPER_T:,} agent steps (0.2T/0.5T/1.0T = "
+                     f"{paper_points} steps); this sweep's T is {', '.join(f'{b:,}' for b in budgets)} "
+                     f"agent steps, so its 0.2T/0.5T/1.0T are other agent steps")
     aggregates, agg_notes = aggregate.compute(rows, reps=reps)
     notes += agg_notes
     written = [
@@ -65,10 +71,12 @@ def _markdown(results, root_name: str, rows, aggregates, notes, with_paper: bool
     parts = [
         f"# Sweep report: `{root_name}`\n",
         f"{len(results.runs)} runs, {n_evals} evaluations. Cells: mean ± std over seeds (ddof 0) of each "
-        "seed's last evaluation return at or before the point; **bold**: best mean of the task at that "
+        "seed's last evaluation return at or before the point's agent step; **bold**: best mean of the task at that "
         "point; `(n/N)`: only n of the N expected seeds reached the point."
         + (" `paper` columns: the published numbers (Tables I and II)." if with_paper else "") + "\n",
         "## Table\n",
+        "T is the budget in agent steps; each task's points in agent steps and environment frames:\n",
+        tables.markdown_points(results),
         tables.markdown_tables(rows, results, with_paper),
         "## Aggregate metrics (rliable)\n",
         f"Scores normalised by 1000 (the DMC maximum). IQM: interquartile mean over runs and tasks; "
@@ -76,6 +84,7 @@ def _markdown(results, root_name: str, rows, aggregates, notes, with_paper: bool
         f"{reps} replicates.\n",
         aggregate.markdown(aggregates),
         "## Learning curves\n",
+        "Evaluation return against agent steps (environment frames on the top axis).\n",
         "![learning curves](curves.png)\n",
     ]
     if beta_plot:

@@ -1,5 +1,9 @@
 """Reading a sweep directory back: every run's identity, budget and evaluations.
 
+Budgets and evaluation points count agent steps; frames (``step * action_repeat``) are kept
+beside them.  Run configs are read through :func:`imssr.config.load_config`, so a run made
+when budgets counted frames reports with the agent steps it trained.
+
 Runs are found by their ``config.json`` at any depth below the root, so a report also works
 on hand-assembled directories and on sweeps that are still running.  ``sweep.json`` (written
 by ``imssr sweep``) adds the runs that were planned but have not written anything yet.
@@ -15,7 +19,7 @@ from imssr.errors import ImssrError
 from imssr.experiments.grid import SWEEP_PLAN, beta_label
 from imssr.training.logger import read_csv
 
-EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "frame", "return", "beta0"]
+EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0"]
 
 
 @dataclass
@@ -30,14 +34,20 @@ class RunResult:
     """Run seed."""
     beta0: Optional[float]
     """beta_0 when the run is a point of a beta sweep (a ``beta0_<value>`` directory level)."""
-    frames: int
-    """The run's budget in environment frames."""
+    steps: int
+    """The run's budget T in agent steps (a config from before budgets counted agent steps is
+    migrated: ``ceil(frames / action_repeat)``, the steps it trained)."""
     action_repeat: int
-    """Frames per agent step: an evaluation lands up to ``action_repeat - 1`` frames late."""
+    """Environment frames per agent step."""
     dir: str
     """Run directory."""
-    evals: list[tuple[str, int, float]] = field(default_factory=list)
-    """``(mode, frame, return_mean)`` of every evaluation, in file order."""
+    evals: list[tuple[str, int, int, float]] = field(default_factory=list)
+    """``(mode, step, frame, return_mean)`` of every evaluation, in file order."""
+
+    @property
+    def frames(self) -> int:
+        """The budget in environment frames."""
+        return self.steps * self.action_repeat
 
     @property
     def label(self) -> str:
@@ -58,7 +68,8 @@ class PlannedRun:
     task: str
     seed: int
     beta0: Optional[float]
-    frames: int
+    steps: int
+    """Budget in agent steps."""
     dir: str
 
     @property
@@ -80,10 +91,22 @@ class SweepResults:
         return any(r.beta0 is not None for r in self.runs) or any(p.beta0 is not None for p in self.planned)
 
     def budget(self, task: str) -> int:
-        """The sweep's T for ``task``: the planned budget, else the largest budget of its runs."""
-        frames = [p.frames for p in self.planned if p.task == task] or \
-                 [r.frames for r in self.runs if r.task == task]
-        return max(frames)
+        """The sweep's T for ``task`` in agent steps: the planned budget, else the largest
+        budget of its runs."""
+        steps = [p.steps for p in self.planned if p.task == task] or \
+                [r.steps for r in self.runs if r.task == task]
+        return max(steps)
+
+    def action_repeat(self, task: str) -> Optional[int]:
+        """The action repeat of ``task``'s runs; None when they differ (then a point in agent
+        steps is no single frame count)."""
+        repeats = {r.action_repeat for r in self.runs if r.task == task}
+        return repeats.pop() if len(repeats) == 1 else None
+
+    def frames_at(self, task: str, step: int) -> Optional[int]:
+        """Agent step ``step`` of ``task`` in environment frames (None: mixed action repeats)."""
+        repeat = self.action_repeat(task)
+        return None if repeat is None else step * repeat
 
 
 def collect(root: str) -> SweepResults:
@@ -99,7 +122,7 @@ def collect(root: str) -> SweepResults:
         run = _read_run(dirpath, root, notes)
         if run is not None:
             runs.append(run)
-    planned = _read_plan(root, notes)
+    planned = _read_plan(root, runs, notes)
     found = {os.path.abspath(r.dir) for r in runs}
     for p in planned:
         if p.dir not in found:
@@ -110,26 +133,30 @@ def collect(root: str) -> SweepResults:
 
 
 def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
+    from imssr.config import load_config
+
     rel = os.path.relpath(run_dir, root)
     try:
-        with open(os.path.join(run_dir, "config.json")) as fh:
-            cfg = json.load(fh)
-        algo, task = cfg["algo"], cfg["env"]["task"]
-        seed, frames = int(cfg["train"]["seed"]), int(cfg["train"]["frames"])
-        action_repeat = int(cfg["env"]["action_repeat"])
+        # Through the config reader, which migrates a run made when budgets counted frames.
+        cfg = load_config(os.path.join(run_dir, "config.json"))
         beta_level = any(part.startswith("beta0_") for part in rel.split(os.sep))
-        beta0 = float(cfg["intrinsic"]["beta0"]) if beta_level else None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        beta0 = float(cfg.intrinsic.beta0) if beta_level else None
+    except (ImssrError, OSError, ValueError, KeyError, TypeError) as exc:
         notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
         return None
-    run = RunResult(algo, task, seed, beta0, frames, action_repeat, run_dir)
+    repeat = cfg.env.action_repeat
+    run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir)
     path = os.path.join(run_dir, "eval.csv")
     rows = read_csv(path)
     if rows and not _ends_with_newline(path):
         rows = rows[:-1]  # a row cut short by a killed writer ("...,training,2." of 2.5)
     for row in rows:
         try:
-            run.evals.append((row["mode"], int(float(row["frame"])), float(row["return_mean"])))
+            frame = int(float(row["frame"]))
+            # Every eval.csv has a step column; a hand-made one without it gets the step at which
+            # the loop reaches that frame.
+            step = int(float(row["step"])) if row.get("step") not in (None, "") else -(-frame // repeat)
+            run.evals.append((row["mode"], step, frame, float(row["return_mean"])))
         except (KeyError, TypeError, ValueError):
             continue  # a row cut short by a killed process
     if not run.evals:
@@ -146,26 +173,43 @@ def _ends_with_newline(path: str) -> bool:
         return fh.read(1) == b"\n"
 
 
-def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
+def _read_plan(root: str, runs: list[RunResult], notes: list[str]) -> list[PlannedRun]:
     path = os.path.join(root, SWEEP_PLAN)
     if not os.path.exists(path):
         return []
+    repeats = {os.path.abspath(r.dir): r.action_repeat for r in runs}
     try:
         with open(path) as fh:
             plan = json.load(fh)
-        return [PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), int(r["frames"]),
-                           os.path.join(root, r["dir"])) for r in plan["runs"]]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        planned = []
+        for r in plan["runs"]:
+            run_dir = os.path.join(root, r["dir"])
+            if r.get("steps") is not None:
+                steps = int(r["steps"])
+            else:
+                # A plan from before budgets counted agent steps: its runs trained
+                # ceil(frames / action_repeat) steps (the run's repeat, else its task's preset's).
+                repeat = repeats.get(os.path.abspath(run_dir)) or _task_action_repeat(r["task"])
+                steps = -(-int(r["frames"]) // repeat)
+            planned.append(PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), steps, run_dir))
+        return planned
+    except (OSError, ValueError, KeyError, TypeError, ImssrError) as exc:
         notes.append(f"{SWEEP_PLAN}: unreadable ({exc}); expected seeds come from the runs found")
         return []
 
 
+def _task_action_repeat(task: str) -> int:
+    from imssr.envs import get_task
+
+    return get_task(task).action_repeat
+
+
 def write_evaluations(results: SweepResults, path: str) -> str:
-    """Every evaluation of every run: ``algo,task,mode,seed,frame,return,beta0``."""
+    """Every evaluation of every run: ``algo,task,mode,seed,step,frame,return,beta0``."""
     from imssr.utils import atomic_write_csv
 
-    rows = sorted((r.algo, r.task, mode, r.seed, frame, ret, "" if r.beta0 is None else beta_label(r.beta0))
-                  for r in results.runs for mode, frame, ret in r.evals)
+    rows = sorted((r.algo, r.task, mode, r.seed, step, frame, ret, "" if r.beta0 is None else beta_label(r.beta0))
+                  for r in results.runs for mode, step, frame, ret in r.evals)
     return atomic_write_csv(path, EVALUATIONS_COLUMNS,
-                            ([algo, task, mode, seed, frame, f"{ret:.6g}", beta]
-                             for algo, task, mode, seed, frame, ret, beta in rows))
+                            ([algo, task, mode, seed, step, frame, f"{ret:.6g}", beta]
+                             for algo, task, mode, seed, step, frame, ret, beta in rows))

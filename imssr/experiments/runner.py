@@ -18,7 +18,9 @@ from imssr.training.logger import read_csv
 from imssr.utils import atomic_write_text
 
 DONE_FILE = "done.json"
-"""Written atomically in the run directory once ``imssr train`` exits 0 having reached its budget."""
+"""Written atomically in the run directory once ``imssr train`` exits 0 having reached its budget.
+Holds the budget in agent steps (``steps``) and frames (``frames``); a marker written before
+budgets counted agent steps holds only ``frames`` (see :func:`done_steps`)."""
 LOG_FILE = "sweep.log"
 """Output of every attempt of the run, appended, one header line per attempt."""
 
@@ -34,34 +36,87 @@ def read_done(run_dir: str) -> Optional[dict]:
             done = json.load(fh)
     except (OSError, json.JSONDecodeError):
         return None
-    return done if isinstance(done, dict) and isinstance(done.get("frames"), int) else None
+    if not isinstance(done, dict):
+        return None
+    # Old markers (budgets in frames) have no "steps"; either counter makes a marker.
+    return done if any(_is_int(done.get(k)) for k in ("steps", "frames")) else None
 
 
-def is_done(run_dir: str, frames: int) -> bool:
-    """Finished with a budget of at least ``frames`` (a larger budget resumes the run)."""
-    done = read_done(run_dir)
-    return done is not None and done["frames"] >= frames
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
-def last_frame(path: str) -> int:
-    """Frame of the last complete (newline-terminated) row of a CSV log (0 if none); reads only
-    the file's tail."""
+def action_repeat_of(run_dir: str) -> Optional[int]:
+    """The run's action repeat from its ``config.json`` (any config version); None if unreadable."""
+    from imssr.config import load_config
+    from imssr.errors import ImssrError
+
+    try:
+        return load_config(os.path.join(run_dir, "config.json")).env.action_repeat
+    except (ImssrError, OSError, TypeError, ValueError):
+        return None
+
+
+def done_steps(run_dir: str, done: Optional[dict] = None) -> Optional[int]:
+    """The budget in agent steps that the run's done marker records; None when not done.
+
+    A marker written before budgets counted agent steps holds frames: its run trained
+    ``ceil(frames / action_repeat)`` steps, as the config migration counts them.  Without a
+    readable config the run's last evaluation step stands in (the run did reach it).
+    """
+    done = read_done(run_dir) if done is None else done
+    if done is None:
+        return None
+    if _is_int(done.get("steps")):
+        return done["steps"]
+    repeat = action_repeat_of(run_dir)
+    if repeat is not None:
+        return -(-done["frames"] // repeat)
+    return last_step(os.path.join(run_dir, "eval.csv"))
+
+
+def is_done(run_dir: str, steps: int) -> bool:
+    """Finished with a budget of at least ``steps`` agent steps (a larger budget resumes the run)."""
+    budget = done_steps(run_dir)
+    return budget is not None and budget >= steps
+
+
+def last_value(path: str, column: str) -> int:
+    """``column`` of the last complete (newline-terminated) row of a CSV log (0 if none); reads
+    only the file's header and tail."""
     try:
         with open(path, "rb") as fh:
+            header = fh.readline().decode(errors="replace").strip().split(",")
             fh.seek(0, os.SEEK_END)
             size = fh.tell()
             fh.seek(max(0, size - 4096))
             text = fh.read().decode(errors="replace")
     except OSError:
         return 0
+    if column not in header:
+        return 0
+    index = header.index(column)
     lines = text.split("\n")
+    if size > 4096:
+        lines = lines[1:]  # the tail's first line starts mid-row
     # The last element is "" after a complete row; anything else is a row cut short by a
-    # killed writer, whose frame may be truncated (3 of 3000): ignore it.
+    # killed writer, whose counter may be truncated (3 of 3000): ignore it.  The header itself
+    # (when the file holds no row) has no digits in that column.
     for line in reversed(lines[:-1]):
-        head = line.split(",", 1)[0]
-        if head.isdigit():
-            return int(head)
+        cells = line.split(",")
+        if len(cells) > index and cells[index].isdigit():
+            return int(cells[index])
     return 0
+
+
+def last_step(path: str) -> int:
+    """Agent step of the last complete row of a CSV log (``eval.csv``, ``train.csv``; 0 if none)."""
+    return last_value(path, "step")
+
+
+def last_frame(path: str) -> int:
+    """Environment frame of the last complete row of a CSV log (0 if none)."""
+    return last_value(path, "frame")
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
@@ -72,12 +127,12 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
     ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
-def execute_run(run_dir: str, train_args: list[str], frames: int, attempt: int,
+def execute_run(run_dir: str, train_args: list[str], steps: int, attempt: int,
                 threads: int = 1) -> dict:
-    """Train (or resume) one run to ``frames``; return what happened.
+    """Train (or resume) one run to ``steps`` agent steps; return what happened.
 
     Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
-    line when it failed), ``final_frame``, ``seconds``.
+    line when it failed), ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.
     """
     os.makedirs(run_dir, exist_ok=True)
     resumed = has_checkpoint(run_dir)
@@ -110,25 +165,30 @@ def execute_run(run_dir: str, train_args: list[str], frames: int, attempt: int,
                     proc.wait(timeout=30)
                 except subprocess.TimeoutExpired:
                     os.killpg(proc.pid, signal.SIGKILL)
-    final = last_frame(os.path.join(run_dir, "eval.csv"))
+    eval_csv = os.path.join(run_dir, "eval.csv")
+    final_step, final_frame = last_step(eval_csv), last_frame(eval_csv)
     result = {"ok": False, "returncode": returncode, "resumed": resumed, "error": "",
-              "final_frame": final, "seconds": round(time.time() - start, 1)}
+              "final_step": final_step, "final_frame": final_frame, "seconds": round(time.time() - start, 1)}
     if returncode != 0:
         result["error"] = _last_line(log_path, offset) or f"exit status {returncode}"
-    elif final < frames:
-        result["error"] = f"exited 0 but its last evaluation is at frame {final}, before its budget {frames}"
+    elif final_step < steps:
+        result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
+                           f"before its budget of {steps} steps")
     else:
         result["ok"] = True
-        write_done(run_dir, frames, final, attempt, resumed, result["seconds"])
+        write_done(run_dir, steps, final_step, attempt, resumed, result["seconds"])
     return result
 
 
-def write_done(run_dir: str, frames: int, final_frame: int, attempt: int, resumed: bool,
+def write_done(run_dir: str, steps: int, final_step: int, attempt: int, resumed: bool,
                seconds: float = 0.0) -> None:
-    """Mark the run finished; ``seconds`` is the last attempt's wall-clock time."""
+    """Mark the run finished with a budget of ``steps`` agent steps; ``seconds`` is the last
+    attempt's wall-clock time.  Frames are recorded beside the steps for people reading it."""
     evals = read_csv(os.path.join(run_dir, "eval.csv"))
-    done = {"frames": frames, "final_frame": final_frame, "evaluations": len(evals),
-            "attempt": attempt, "resumed": resumed, "seconds": seconds,
+    repeat = action_repeat_of(run_dir)
+    done = {"steps": steps, "frames": None if repeat is None else steps * repeat,
+            "final_step": final_step, "final_frame": last_frame(os.path.join(run_dir, "eval.csv")),
+            "evaluations": len(evals), "attempt": attempt, "resumed": resumed, "seconds": seconds,
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
     atomic_write_text(os.path.join(run_dir, DONE_FILE), json.dumps(done, indent=2) + "\n")
 

@@ -2,8 +2,8 @@
 
 Each run is one Ray task that runs ``imssr train`` in a subprocess
 (:func:`imssr.experiments.runner.execute_run`).  Before anything starts, every run is
-classified from its directory: ``done.json`` with a budget at least the sweep's means done
-(skipped), a checkpoint means resume, nothing means a fresh start.  A failed attempt is
+classified from its directory: ``done.json`` with a budget (in agent steps) at least the
+sweep's means done (skipped), a checkpoint means resume, nothing means a fresh start.  A failed attempt is
 retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
 still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.
 """
@@ -19,7 +19,7 @@ from typing import Optional
 
 from imssr.errors import ImssrError
 from imssr.experiments.grid import Run, SweepConfig, build_run_config, expand, save_plan
-from imssr.experiments.runner import LOG_FILE, has_checkpoint, is_done, last_frame, read_done
+from imssr.experiments.runner import LOG_FILE, has_checkpoint, is_done, last_frame, last_step, read_done
 from imssr.utils import atomic_write_text
 
 STATUS_FILE = "sweep_status.json"
@@ -35,8 +35,10 @@ class RunStatus:
 
     run: Run
     """The grid point."""
+    steps: int
+    """The run's budget T in agent steps."""
     frames: int
-    """The run's budget in environment frames."""
+    """The same budget in environment frames (``steps * action_repeat``)."""
     state: str = "queued"
     """queued, running, done or failed."""
     action: str = "fresh"
@@ -45,16 +47,19 @@ class RunStatus:
     """Attempts started by this invocation of the sweep."""
     errors: list[str] = field(default_factory=list)
     """Last output line of each failed attempt."""
+    final_step: int = 0
+    """Agent step of the run's last evaluation."""
     final_frame: int = 0
-    """Frame of the run's last evaluation."""
+    """Environment frame of the run's last evaluation."""
     seconds: float = 0.0
     """Wall time of this invocation's attempts."""
 
     def to_dict(self, root: str) -> dict:
         return {"name": self.run.name, "dir": os.path.relpath(self.run.dir, root), "algo": self.run.algo,
                 "task": self.run.task, "seed": self.run.seed, "beta0": self.run.beta0,
-                "frames": self.frames, "state": self.state, "action": self.action,
-                "attempts": self.attempts, "errors": self.errors, "final_frame": self.final_frame,
+                "steps": self.steps, "frames": self.frames, "state": self.state, "action": self.action,
+                "attempts": self.attempts, "errors": self.errors, "final_step": self.final_step,
+                "final_frame": self.final_frame,
                 "seconds": round(self.seconds, 1), "log": os.path.relpath(os.path.join(self.run.dir, LOG_FILE), root)}
 
 
@@ -66,11 +71,12 @@ def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
     for run in runs:
         # Builds each run's config exactly as `imssr train` will: a bad override fails here,
         # once, instead of N times on the workers.
-        frames = build_run_config(run, cfg).train.frames
-        status = RunStatus(run, frames)
-        if is_done(run.dir, frames):
+        run_cfg = build_run_config(run, cfg)
+        status = RunStatus(run, run_cfg.total_steps, run_cfg.total_frames)
+        if is_done(run.dir, status.steps):
             status.state, status.action = "done", "done"
-            status.final_frame = last_frame(os.path.join(run.dir, "eval.csv"))
+            eval_csv = os.path.join(run.dir, "eval.csv")
+            status.final_step, status.final_frame = last_step(eval_csv), last_frame(eval_csv)
             # A later sweep over the same root still reports how long the run took.
             status.seconds = float(read_done(run.dir).get("seconds", 0.0))
         elif has_checkpoint(run.dir):
@@ -99,7 +105,7 @@ def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
     for s in statuses:
         what = {"done": "done, skipped", "resume": "resume from checkpoint", "fresh": "new"}[s.action]
         lines.append(f"  {os.path.relpath(s.run.dir, os.path.abspath(cfg.root))}\t{s.run.name}, "
-                     f"{s.frames} frames\t[{what}]")
+                     f"{s.steps:,} agent steps ({s.frames:,} frames)\t[{what}]")
     lines.append("e.g. imssr train " + " ".join(statuses[0].run.train_args(cfg)) + f" --out {statuses[0].run.dir}"
                  if statuses else "")
     return "\n".join(lines)
@@ -184,13 +190,14 @@ class _Progress:
 
     def refresh(self) -> None:
         counts = {s: sum(st.state == s for st in self.statuses) for s in STATES}
-        # Frames trained so far over all runs, from the tails of their train.csv logs.
-        total = sum(st.frames for st in self.statuses) or 1
-        trained = sum(st.frames if st.state == "done" else
-                      min(st.frames, last_frame(os.path.join(st.run.dir, "train.csv"))) for st in self.statuses)
+        # Agent steps trained so far over all runs, from the tails of their train.csv logs
+        # (steps, not frames: runs of tasks with different action repeats weigh by their T).
+        total = sum(st.steps for st in self.statuses) or 1
+        trained = sum(st.steps if st.state == "done" else
+                      min(st.steps, last_step(os.path.join(st.run.dir, "train.csv"))) for st in self.statuses)
         self.bar.n = counts["done"] + counts["failed"]
         self.bar.set_postfix_str(f"queued {counts['queued']} running {counts['running']} done {counts['done']} "
-                                 f"failed {counts['failed']} | frames {100 * trained / total:.0f}%", refresh=False)
+                                 f"failed {counts['failed']} | steps {100 * trained / total:.0f}%", refresh=False)
         self.bar.refresh()
 
     def say(self, text: str) -> None:
@@ -208,7 +215,7 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> l
     statuses = plan_runs(cfg)
     root = os.path.abspath(cfg.root)
     os.makedirs(root, exist_ok=True)
-    save_plan(cfg, [s.run for s in statuses], {s.run.dir: s.frames for s in statuses})
+    save_plan(cfg, [s.run for s in statuses], {s.run.dir: (s.steps, s.frames) for s in statuses})
     started = time.time()
     status_path = write_status(cfg, statuses, started)
     todo = deque(s for s in statuses if s.state != "done")
@@ -233,7 +240,7 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> l
             while todo and len(inflight) < parallel:
                 st = todo.popleft()
                 st.state, st.attempts = "running", st.attempts + 1
-                ref = task.remote(st.run.dir, st.run.train_args(cfg), st.frames, st.attempts, threads)
+                ref = task.remote(st.run.dir, st.run.train_args(cfg), st.steps, st.attempts, threads)
                 inflight[ref] = st
                 write_status(cfg, statuses, started)
             ready, _ = ray.wait(list(inflight), num_returns=1, timeout=poll_s)
@@ -241,10 +248,11 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> l
                 st = inflight.pop(ref)
                 result = _result(ray, ref)
                 st.seconds += result.get("seconds", 0.0)
+                st.final_step = result.get("final_step", st.final_step)
                 st.final_frame = result.get("final_frame", st.final_frame)
                 if result["ok"]:
                     st.state = "done"
-                    ui.say(f"done    {st.run.name}: frame {st.final_frame}"
+                    ui.say(f"done    {st.run.name}: step {st.final_step} (frame {st.final_frame})"
                            f"{' (resumed)' if result.get('resumed') else ''}, {result.get('seconds', 0):.0f}s")
                     continue
                 st.errors.append(result["error"])
@@ -291,11 +299,11 @@ def _sigterm_as_interrupt():
     return signal.signal(signal.SIGTERM, stop)
 
 
-def _remote_run(run_dir: str, train_args: list[str], frames: int, attempt: int, threads: int) -> dict:
+def _remote_run(run_dir: str, train_args: list[str], steps: int, attempt: int, threads: int) -> dict:
     """The Ray task body (module level, so workers import it rather than unpickle code)."""
     from imssr.experiments.runner import execute_run
 
-    return execute_run(run_dir, train_args, frames, attempt, threads)
+    return execute_run(run_dir, train_args, steps, attempt, threads)
 
 
 def _result(ray, ref) -> dict:

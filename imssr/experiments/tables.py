@@ -1,11 +1,14 @@
 """The paper's table layout: mean ± std over seeds at 0.2T, 0.5T and 1.0T per task and mode.
 
-A seed's value at a point ``p = f * T`` is its last evaluation at or before ``p``.  An
-evaluation is taken at the first agent step at or after its scheduled frame, so it may land
-up to ``action_repeat - 1`` frames after ``p``; those still count as "at ``p``".  A seed
-whose evaluations stop before ``p`` (an unfinished run) has no value there, and the cell
-says how many of the expected seeds it averages.  Std is over seeds with ddof = 0 (numpy's
-default, as RL papers' tables use), so one seed has std 0.
+T counts agent steps, as the paper's does (500,000 steps; 0.2T, 0.5T and 1.0T are 100,000,
+250,000 and 500,000 steps, whatever the task's action repeat).  The point ``p`` of a
+fraction ``f`` is the first agent step at or after ``f * T`` (``ceil(f * T)``), and a seed's
+value there is its last evaluation at or before step ``p``: the evaluation at ``p`` itself when
+the evaluation interval divides it, as the paper's 10,000 steps divide its points.  A run made
+when budgets counted frames evaluated at the first step at or after each scheduled frame, which
+is the same step.  A seed whose evaluations stop before ``p`` (an unfinished run) has no value
+there, and the cell says how many of the expected seeds it averages.  Std is over seeds with
+ddof = 0 (numpy's default, as RL papers' tables use), so one seed has std 0.
 """
 from __future__ import annotations
 
@@ -13,6 +16,7 @@ import csv
 import math
 import os
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import Optional
 
 import numpy as np
@@ -20,8 +24,8 @@ import numpy as np
 from imssr.experiments.results import RunResult, SweepResults
 
 FRACTIONS = (0.2, 0.5, 1.0)
-TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "frame", "mean", "std", "seeds",
-                 "expected_seeds", "best", "paper_mean", "paper_std"]
+TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",
+                 "seeds", "expected_seeds", "best", "paper_mean", "paper_std"]
 
 
 @dataclass
@@ -30,8 +34,10 @@ class Cell:
 
     fraction: float
     """Fraction of the budget T."""
-    frame: int
-    """The point ``fraction * T`` in environment frames."""
+    step: int
+    """The point: the first agent step at or after ``fraction * T``."""
+    frame: Optional[int]
+    """The point in environment frames (None when the task's runs differ in action repeat)."""
     values: dict[int, float] = field(default_factory=dict)
     """Seed -> return of its evaluation at the point."""
     expected: int = 0
@@ -66,23 +72,28 @@ class Row:
     cells: list[Cell]
 
 
-def value_at(evals: list[tuple[int, float]], point: int, slack: int) -> Optional[float]:
-    """Return of the last evaluation at or before ``point`` (``slack`` frames late allowed);
+def point_step(fraction: float, budget: int) -> int:
+    """The agent step of ``fraction * budget``, rounded up (exactly: 0.2 * 125 is 25, not 25.000001)."""
+    return math.ceil(Fraction(str(fraction)) * budget)
+
+
+def value_at(evals: list[tuple[int, float]], point: int) -> Optional[float]:
+    """Return of the last evaluation ``(step, return)`` at or before agent step ``point``;
     None when the run's evaluations have not reached the point."""
     evals = sorted(evals)
-    if not evals or evals[-1][0] + slack < point:
+    if not evals or evals[-1][0] < point:
         return None
-    before = [ret for frame, ret in evals if frame <= point + slack]
+    before = [ret for step, ret in evals if step <= point]
     return before[-1] if before else None
 
 
 def _why_missing(evals: list[tuple[int, float]], point: int) -> str:
     if not evals:
         return "no evaluation in this mode"
-    frames = sorted(f for f, _ in evals)
-    if frames[-1] < point:
-        return f"not reached: last evaluation at frame {frames[-1]}"
-    return f"no evaluation at or before it: first at frame {frames[0]}"
+    steps = sorted(s for s, _ in evals)
+    if steps[-1] < point:
+        return f"not reached: last evaluation at step {steps[-1]}"
+    return f"no evaluation at or before it: first at step {steps[0]}"
 
 
 def mode_order(modes) -> list[str]:
@@ -114,7 +125,7 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
     for task in sorted({r.task for r in results.runs}):
         budget = results.budget(task)
         expected = _expected_seeds(results, task)
-        modes = mode_order(m for r in results.runs if r.task == task for m, _, _ in r.evals)
+        modes = mode_order(m for r in results.runs if r.task == task for m, *_ in r.evals)
         for mode in modes:
             for label in labels:
                 runs = by_group.get((task, label), [])
@@ -125,12 +136,13 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
                 want = expected.get(label, set())
                 cells = []
                 for fraction in FRACTIONS:
-                    point = int(round(fraction * budget))
-                    cell = Cell(fraction, point, expected=len(want | {r.seed for r in runs}))
+                    point = point_step(fraction, budget)
+                    cell = Cell(fraction, point, results.frames_at(task, point),
+                                expected=len(want | {r.seed for r in runs}))
                     late = []
                     for run in runs:
-                        evals = [(f, v) for m, f, v in run.evals if m == mode]
-                        value = value_at(evals, point, run.action_repeat - 1)
+                        evals = [(s, v) for m, s, _, v in run.evals if m == mode]
+                        value = value_at(evals, point)
                         if value is None:
                             late.append(f"{run.seed} ({_why_missing(evals, point)})")
                         else:
@@ -139,7 +151,7 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
                     if late or absent:
                         parts = ([f"no value for seed(s) {', '.join(late)}"] if late else []) + \
                                 ([f"no run for seed(s) {', '.join(map(str, absent))}"] if absent else [])
-                        notes.append(f"{mode} / {task} / {label} at {fraction:.1f}T (frame {point}): "
+                        notes.append(f"{mode} / {task} / {label} at {fraction:.1f}T (step {point}): "
                                      + "; ".join(parts))
                     if paper is not None and beta0 is None and algo in ALGOS:
                         cell.paper = paper.get((task, mode, fraction, ALGOS[algo].paper_name))
@@ -207,6 +219,24 @@ def cell_text(cell: Cell) -> str:
     return text if cell.n >= cell.expected else f"{text} ({cell.n}/{cell.expected})"
 
 
+def point_text(step: int, frame: Optional[int]) -> str:
+    """``"100,000 steps (800,000 frames)"``."""
+    return f"{step:,} steps ({'frames vary' if frame is None else f'{frame:,} frames'})"
+
+
+def markdown_points(results: SweepResults) -> str:
+    """Where 0.2T, 0.5T and 1.0T fall on each task, in agent steps with the frames beside."""
+    lines = ["| task | action repeat | " + " | ".join(f"{f:.1f}T" for f in FRACTIONS) + " |",
+             "|---|---:|" + "---:|" * len(FRACTIONS)]
+    for task in sorted({r.task for r in results.runs}):
+        budget, repeat = results.budget(task), results.action_repeat(task)
+        repeats = str(repeat) if repeat is not None else \
+            ", ".join(map(str, sorted({r.action_repeat for r in results.runs if r.task == task})))
+        points = [point_text(p, results.frames_at(task, p)) for p in (point_step(f, budget) for f in FRACTIONS)]
+        lines.append(f"| `{task}` | {repeats} | " + " | ".join(points) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) -> str:
     """One table per mode: tasks as row groups, a column per fraction (and the paper's beside it)."""
     out = []
@@ -219,7 +249,7 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
                 header.append(f"paper {fraction:.1f}T")
         header.append("seeds")
         budgets = sorted({results.budget(r.task) for r in mode_rows})
-        out.append(f"### `{mode}` (T = {', '.join(map(str, budgets))} frames)\n")
+        out.append(f"### `{mode}` (T = {', '.join(f'{b:,}' for b in budgets)} agent steps)\n")
         out.append("| " + " | ".join(header) + " |")
         out.append("|" + "|".join(["---"] * 2 + ["---:"] * (len(header) - 2)) + "|")
         previous_task = None
@@ -246,7 +276,8 @@ def write_table_csv(rows: list[Row], path: str) -> str:
             for cell in row.cells:
                 paper = cell.paper or ("", "")
                 yield [row.mode, row.task, row.label, row.algo,
-                       "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.frame,
+                       "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.step,
+                       "" if cell.frame is None else cell.frame,
                        "" if not cell.n else f"{cell.mean:.6g}", "" if not cell.n else f"{cell.std:.6g}",
                        cell.n, cell.expected, int(cell.best), *paper]
 

@@ -21,6 +21,11 @@ class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
 
     name: ClassVar[str]
 
+    @property
+    def label(self) -> str:
+        """What the signal is, for messages."""
+        return f"{self.name} signal of o'"
+
     @abc.abstractmethod
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
         """Raw signal per sample, shape ``(B,)``, without gradients."""
@@ -38,6 +43,10 @@ class SSLSignal(IntrinsicSignal):
     def __init__(self, aux: AuxiliaryTask):
         super().__init__()
         self.__dict__["aux"] = aux  # the agent owns and saves the task
+
+    @property
+    def label(self) -> str:
+        return f"{self.aux.name} per-sample loss of o'"
 
     @torch.no_grad()
     def forward(self, ctx: NextObsContext) -> torch.Tensor:

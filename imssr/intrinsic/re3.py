@@ -22,7 +22,7 @@ class RE3(IntrinsicSignal):
     def __init__(self, channels: int, agent_cfg: AgentConfig, cfg: IntrinsicConfig):
         super().__init__()
         trunk = ConvTrunk(channels, agent_cfg.crop_size, agent_cfg.encoder_layers, agent_cfg.encoder_filters,
-                          channels_last=agent_cfg.channels_last)
+                          channels_last=agent_cfg.channels_last, final_relu=agent_cfg.final_relu)
         self.encoder = nn.Sequential(trunk, Projection(trunk.out_dim, cfg.re3_dim))
         self.encoder.apply(weight_init)
         for p in self.encoder.parameters():

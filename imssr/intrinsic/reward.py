@@ -13,30 +13,42 @@ from dataclasses import dataclass
 import torch
 
 from imssr.config import NORMALIZATIONS, SCHEDULES, IntrinsicConfig
-from imssr.errors import ImssrError
-
-EPS = 1e-8
+from imssr.errors import ImssrError, NonFiniteError
 
 
-def normalize(losses: torch.Tensor, method: str = "zscore") -> torch.Tensor:
-    """Normalise per-sample losses ``(B,)`` within the batch.
 
-    * ``zscore``: ``(l - mean) / (std + eps)``; zero-mean, unit spread: the
-      bonus reorders states without shifting the reward level (default).
+def normalize(losses: torch.Tensor, method: str = "zscore", eps: float = 0.0, unbiased: bool = True,
+              rtol: float = 1e-5) -> torch.Tensor:
+    """Normalise per-sample losses ``(B,)`` within the batch (Algorithm 1's ``Normalize``).
+
+    * ``zscore``: ``(l - mean) / (std + eps)``, the unbiased std unless ``unbiased`` is false;
+      zero-mean, unit spread: the bonus reorders states without shifting the reward level.
+      The authors' IM-CURL: eps 0; their IM-SODA: eps 1e-5.
     * ``minmax``: ``(l - min) / (max - min + eps)`` in [0, 1]; a non-negative bonus.
     * ``mean``: ``l / (mean + eps)``; keeps ratios, mean 1.
     * ``none``: the raw loss.
+
+    A batch whose spread (zscore: std; minmax: max - min) is at most ``rtol * max(|mean|, 1e-12)``
+    gives zeros: the losses are equal up to float rounding, and dividing their rounding error by a
+    tiny spread would hand out a large constant bonus (all 0.3: +0.75 per sample with eps 1e-8).
+    The caller checks that the losses are finite (:class:`IntrinsicReward`).
     """
-    if method == "zscore":
-        return (losses - losses.mean()) / (losses.std(unbiased=False) + EPS)
-    if method == "minmax":
-        lo, hi = losses.min(), losses.max()
-        return (losses - lo) / (hi - lo + EPS)
-    if method == "mean":
-        return losses / (losses.mean() + EPS)
     if method == "none":
         return losses
-    raise ImssrError(f"unknown normalization {method!r}; valid: {', '.join(NORMALIZATIONS)}")
+    if method == "mean":
+        return losses / (losses.mean() + eps)
+    if method not in ("zscore", "minmax"):
+        raise ImssrError(f"unknown normalization {method!r}; valid: {', '.join(NORMALIZATIONS)}")
+    mean = losses.mean()
+    if method == "zscore":
+        spread = losses.std(unbiased=unbiased) if losses.numel() > 1 else torch.zeros_like(mean)
+        centred = losses - mean
+    else:
+        lo = losses.min()
+        spread, centred = losses.max() - lo, losses - lo
+    # One comparison on the device; no host sync.
+    flat = spread <= rtol * mean.abs().clamp_min(1e-12)
+    return torch.where(flat, torch.zeros_like(losses), centred / (spread + eps))
 
 
 @dataclass
@@ -69,9 +81,20 @@ class IntrinsicReward:
         self.cfg = cfg
         self.schedule = BetaSchedule(cfg.beta0, cfg.schedule, cfg.decay, cfg.decay_every_steps)
 
-    def __call__(self, losses: torch.Tensor, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor | float]]:
-        """Return the bonus to add to the reward, shape ``(B, 1)``, and log values."""
-        r_int = normalize(losses.detach().flatten(), self.cfg.normalization)
+    def __call__(self, losses: torch.Tensor, step: int, signal: str = "intrinsic signal"
+                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor | float]]:
+        """Return the bonus to add to the reward, shape ``(B, 1)``, and log values.
+
+        A non-finite loss would turn every reward of the batch into NaN through the batch
+        statistics, and the critic with it: the run stops instead, naming the step and signal.
+        """
+        losses = losses.detach().flatten()
+        if not bool(torch.isfinite(losses).all()):
+            bad = int((~torch.isfinite(losses)).sum())
+            raise NonFiniteError(f"non-finite intrinsic reward at agent step {step}: {bad} of "
+                                 f"{losses.numel()} values of the {signal} are nan or inf")
+        c = self.cfg
+        r_int = normalize(losses, c.normalization, c.norm_eps, c.unbiased_std, c.norm_rtol)
         beta = self.schedule(step)
         # r_int is normalised (zscore: mean 0, std 1 by construction), so the raw
         # loss's spread and the bonus actually added are logged too.

@@ -16,18 +16,43 @@ def conv_output_size(size: int, num_layers: int) -> int:
     return size - 2 * (num_layers - 1)
 
 
+class ConvStack(nn.Sequential):
+    """A :func:`conv_stack`; reads the state dicts of imssr 0.1's ``(Conv, ReLU)`` ordering too."""
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # imssr 0.1 put each ReLU after its convolution: convolutions at even indices.
+        # Here they sit at odd ones; the weights are the same layers in the same order.
+        if f"{prefix}0.weight" in state_dict:
+            for key in [k for k in state_dict if k.startswith(prefix)]:
+                index, rest = key[len(prefix):].split(".", 1)
+                state_dict[f"{prefix}{int(index) + 1}.{rest}"] = state_dict.pop(key)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
 def conv_stack(filters: int, num_layers: int) -> nn.Sequential:
-    """``num_layers`` stride-1 3x3 convolutions of ``filters`` channels, ReLU after each."""
+    """``num_layers`` stride-1 3x3 convolutions of ``filters`` channels, each after a ReLU.
+
+    The ReLU comes first (DMC-GB's layout): a stack continues a convolution's output, so
+    ReLUs stand between convolutions and none follows the last one; whether the encoder's
+    output gets one is :class:`ConvTrunk`'s ``final_relu``.
+    """
     layers: list[nn.Module] = []
-    for _ in range(num_layers):
-        # In place: a convolution's backward needs its input, not its output, and
-        # ReLU's backward reads its own output, so nothing is overwritten that is needed.
-        layers += [nn.Conv2d(filters, filters, 3, stride=1), nn.ReLU(inplace=True)]
-    return nn.Sequential(*layers)
+    for i in range(num_layers):
+        # In place after the stack's own convolutions: a convolution's backward needs its
+        # input, not its output, and ReLU's backward reads its own output.  Not the first:
+        # the stack's input may have other readers (PAD's head and the critic's read the
+        # same shared features).
+        layers += [nn.ReLU(inplace=i > 0), nn.Conv2d(filters, filters, 3, stride=1)]
+    return ConvStack(*layers)
 
 
 class ConvTrunk(nn.Module):
-    """``num_layers`` 3x3 convolutions of ``filters`` channels, ReLU after each.
+    """``num_layers`` 3x3 convolutions of ``filters`` channels with a ReLU between each two.
+
+    ``final_relu`` adds one after the last convolution too (official CURL); DMC-GB, whose
+    encoder the authors ran for every algorithm, has none.  The shared layers' output
+    (:meth:`shared_features`) is a convolution's output without its ReLU; the head, like a
+    head of an auxiliary task built on the same features (PAD), starts with one.
 
     The first ``num_layers - head_layers`` (``convs``) may be shared with an
     auxiliary task that builds a head of its own (PAD); the last ``head_layers``
@@ -42,17 +67,19 @@ class ConvTrunk(nn.Module):
     """
 
     def __init__(self, in_channels: int, image_size: int, num_layers: int = 4, filters: int = 32,
-                 head_layers: int = 0, channels_last: bool = True):
+                 head_layers: int = 0, channels_last: bool = True, final_relu: bool = False):
         super().__init__()
         out = conv_output_size(image_size, num_layers)
         if out < 1:
             raise ValueError(f"{num_layers} conv layers leave no pixels of a {image_size}px input")
         if not 0 <= head_layers < num_layers:
             raise ValueError(f"head_layers must be in [0, {num_layers}), got {head_layers}")
-        self.convs = nn.Sequential(nn.Conv2d(in_channels, filters, 3, stride=2), nn.ReLU(inplace=True),
+        self.convs = nn.Sequential(nn.Conv2d(in_channels, filters, 3, stride=2),
                                    *conv_stack(filters, num_layers - 1 - head_layers))
         self.head = conv_stack(filters, head_layers)
-        self.filters, self.head_layers = filters, head_layers
+        if final_relu:
+            self.head.append(nn.ReLU(inplace=head_layers > 0))
+        self.filters, self.head_layers, self.final_relu = filters, head_layers, final_relu
         self.channels_last = channels_last
         self.out_dim = filters * out * out
         if channels_last:

@@ -1,7 +1,9 @@
 """The training loop: seed phase, updates, evaluation, logging, checkpoints.
 
 Counters: ``frame`` counts environment (simulator) frames, ``step`` counts
-agent steps (``frame = step * action_repeat``).  Budgets in the config say which.
+agent steps (``frame = step * action_repeat``).  The budget, evaluation and
+checkpoint intervals and the beta schedule count agent steps, as the authors'
+code does; every log carries both counters.
 Checkpoints are taken at episode ends, where the next thing the loop does is a
 reset from the saved task RNG, so ``--resume`` reproduces the uninterrupted run.
 """
@@ -28,9 +30,9 @@ from imssr.training.logger import Logger
 from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
-RESUMABLE_CHANGES = {"train.frames", "train.device", "train.progress", "train.tensorboard",
-                     "train.torch_threads", "train.eval_episodes", "train.eval_every_frames",
-                     "train.checkpoint_every_frames", "train.eval_modes"}
+RESUMABLE_CHANGES = {"train.steps", "train.device", "train.progress", "train.tensorboard",
+                     "train.torch_threads", "train.eval_episodes", "train.eval_every_steps",
+                     "train.checkpoint_every_steps", "train.eval_modes"}
 
 
 def resolve_device(name: str) -> torch.device:
@@ -109,9 +111,9 @@ class Trainer:
                                         self.action_dim, e.frame_stack, seed=replay_seq)
         self.action_rng = np.random.default_rng(action_seq)
         self.frame = self.step = self.episode = 0
-        self.next_eval_frame = cfg.train.eval_every_frames or None
-        self.next_ckpt_frame = cfg.train.checkpoint_every_frames or None
-        self.last_eval_frame = -1
+        self.next_eval_step = cfg.train.eval_every_steps or None
+        self.next_ckpt_step = cfg.train.checkpoint_every_steps or None
+        self.last_eval_step = -1
         # Agent step from which the agent acts and learns (later after a resume
         # without a saved buffer: the buffer refills with random actions first).
         self.learning_starts = cfg.train.seed_steps
@@ -123,6 +125,9 @@ class Trainer:
             self._restore(ckpt)
         atomic_write_text(os.path.join(out_dir, "config.json"), cfg.to_json() + "\n")
         self.logger = Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if ckpt else None)
+        if ckpt is not None and "next_eval_step" not in ckpt:
+            print(f"imssr: resuming a run made before budgets counted agent steps: its budget is "
+                  f"{cfg.budget_text()}", flush=True)
         if ckpt is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
             self.logger.rewrite_eval(self.eval_history)
@@ -153,15 +158,17 @@ class Trainer:
             raise ImssrError(f"checkpoint does not match this agent: {str(exc).splitlines()[0]}") from None
         self.frame, self.step, self.episode = ckpt["frame"], ckpt["step"], ckpt["episode"]
         self.learning_starts = ckpt.get("learning_starts", self.cfg.train.seed_steps)
-        self.last_eval_frame = ckpt["last_eval_frame"]
         self.eval_history = list(ckpt.get("eval_history", []))
-        saved_train, t = ckpt["config"]["train"], self.cfg.train
+        counters = _step_counters(ckpt, self.cfg.env.action_repeat)
+        self.last_eval_step = counters["last_eval_step"]
+        saved_train = RunConfig.from_dict(ckpt["config"]).train
+        t = self.cfg.train
         # Intervals may change on resume: keep the saved schedule only when they did not.
-        self.next_eval_frame = (ckpt["next_eval_frame"] if saved_train["eval_every_frames"] == t.eval_every_frames
-                                else _next_multiple(self.frame, t.eval_every_frames))
-        self.next_ckpt_frame = (ckpt["next_ckpt_frame"]
-                                if saved_train["checkpoint_every_frames"] == t.checkpoint_every_frames
-                                else _next_multiple(self.frame, t.checkpoint_every_frames))
+        self.next_eval_step = (counters["next_eval_step"] if saved_train.eval_every_steps == t.eval_every_steps
+                               else _next_multiple(self.step, t.eval_every_steps))
+        self.next_ckpt_step = (counters["next_ckpt_step"]
+                               if saved_train.checkpoint_every_steps == t.checkpoint_every_steps
+                               else _next_multiple(self.step, t.checkpoint_every_steps))
         self.env.set_rng_state(ckpt["env_rng"])
         saved = ckpt.get("eval_env_rngs") or {self.cfg.env.mode: ckpt.get("eval_env_rng")}
         for mode, env in self.eval_envs.items():
@@ -187,8 +194,8 @@ class Trainer:
         state = {
             "config": self.cfg.to_dict(), "frame": self.frame, "step": self.step,
             "episode": self.episode, "agent": self.agent.state_dict(),
-            "next_eval_frame": self.next_eval_frame, "next_ckpt_frame": self.next_ckpt_frame,
-            "last_eval_frame": self.last_eval_frame, "learning_starts": self.learning_starts,
+            "next_eval_step": self.next_eval_step, "next_ckpt_step": self.next_ckpt_step,
+            "last_eval_step": self.last_eval_step, "learning_starts": self.learning_starts,
             "eval_history": self.eval_history,
             "env_rng": self.env.get_rng_state(), "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
             "action_rng": self.action_rng.bit_generator.state, "global_rng": rng_states(),
@@ -211,17 +218,17 @@ class Trainer:
             self.logger.log_eval(row, returns)
             self.eval_history.append({"row": row, "returns": returns})
             rows.append(row)
-        self.last_eval_frame = self.frame
+        self.last_eval_step = self.step
         return rows
 
-    def train(self, stop_at_frame: Optional[int] = None) -> None:
-        """Train to ``cfg.train.frames``.  ``stop_at_frame`` stops early after the
+    def train(self, stop_at_step: Optional[int] = None) -> None:
+        """Train to ``cfg.train.steps`` agent steps.  ``stop_at_step`` stops early after the
         first checkpoint at or past it, as a killed process would (for tests)."""
         cfg, t = self.cfg, self.cfg.train
         total_steps = cfg.total_steps
         try:
             from tqdm import tqdm
-            bar = tqdm(total=t.frames, initial=min(self.frame, t.frames), unit="frame",
+            bar = tqdm(total=total_steps, initial=min(self.step, total_steps), unit="step",
                        disable=None if t.progress else True, dynamic_ncols=True,
                        desc=f"{cfg.algo} {cfg.env.task} s{t.seed}")
         except ImportError:  # pragma: no cover - tqdm is a dependency
@@ -241,7 +248,8 @@ class Trainer:
                     action = self.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
                 else:
                     action = self.agent.act(obs, deterministic=False)
-                    n_updates = max(1, t.burst_updates) if self.step == self.learning_starts else 1
+                    # The burst: once, when the first seed phase ends (not after a refill).
+                    n_updates = max(1, t.burst_updates) if self.step == t.seed_steps else 1
                     for _ in range(n_updates):
                         for k, v in self.agent.update(self.replay, self.step).items():
                             sums[k] += v; counts[k] += 1
@@ -252,11 +260,11 @@ class Trainer:
                 ep_return += reward
                 ep_frames += info["sim_steps"]
                 if bar is not None:
-                    bar.update(info["sim_steps"])
-                if self.next_eval_frame is not None and self.frame >= self.next_eval_frame:
+                    bar.update(1)
+                if self.next_eval_step is not None and self.step >= self.next_eval_step:
                     rows = self.run_eval()
-                    self.next_eval_frame += t.eval_every_frames
-                    _say(bar, f"eval frame {self.frame} step {self.step}: return " + _summary(rows))
+                    self.next_eval_step += t.eval_every_steps
+                    _say(bar, f"eval step {self.step} frame {self.frame}: return " + _summary(rows))
                 if terminated or truncated:
                     dt = max(time.time() - ep_start, 1e-9)
                     row = {"frame": self.frame, "step": self.step, "episode": self.episode,
@@ -267,22 +275,22 @@ class Trainer:
                     row.update({k: float(sums[k]) / counts[k] for k in sums})
                     self.logger.log_train(row)
                     if bar is not None:
-                        bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}")
+                        bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}", frame=self.frame)
                     self.episode += 1
                     need_reset = True
                     last = self.step >= total_steps
-                    if last and self.last_eval_frame != self.frame:
+                    if last and self.last_eval_step != self.step:
                         rows = self.run_eval()
-                        _say(bar, f"final eval frame {self.frame}: return " + _summary(rows))
-                    if last or (self.next_ckpt_frame is not None and self.frame >= self.next_ckpt_frame):
-                        while self.next_ckpt_frame is not None and self.next_ckpt_frame <= self.frame:
-                            self.next_ckpt_frame += t.checkpoint_every_frames
+                        _say(bar, f"final eval step {self.step} frame {self.frame}: return " + _summary(rows))
+                    if last or (self.next_ckpt_step is not None and self.step >= self.next_ckpt_step):
+                        while self.next_ckpt_step is not None and self.next_ckpt_step <= self.step:
+                            self.next_ckpt_step += t.checkpoint_every_steps
                         self.save()
-                        if stop_at_frame is not None and self.frame >= stop_at_frame and not last:
+                        if stop_at_step is not None and self.step >= stop_at_step and not last:
                             return
             if not need_reset:
                 # Budget ended mid-episode: evaluate and checkpoint what we have.
-                if self.last_eval_frame != self.frame:
+                if self.last_eval_step != self.step:
                     self.run_eval()
                 self.save()
         finally:
@@ -296,8 +304,22 @@ class Trainer:
             env.close()
 
 
-def _next_multiple(frame: int, every: int) -> Optional[int]:
-    return None if not every else (frame // every + 1) * every
+def _next_multiple(step: int, every: int) -> Optional[int]:
+    return None if not every else (step // every + 1) * every
+
+
+def _step_counters(ckpt: dict, action_repeat: int) -> dict:
+    """The loop's schedule counters in agent steps, from a checkpoint of any version.
+
+    Checkpoints written before budgets counted agent steps hold frame counters; the next
+    evaluation / checkpoint falls on the first agent step at or past the saved frame, as it did.
+    """
+    if "next_eval_step" in ckpt:
+        return {k: ckpt[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
+    ceil = lambda frame: None if frame is None else -(-frame // action_repeat)  # noqa: E731
+    last = ckpt["last_eval_frame"]
+    return {"next_eval_step": ceil(ckpt["next_eval_frame"]), "next_ckpt_step": ceil(ckpt["next_ckpt_frame"]),
+            "last_eval_step": -1 if last < 0 else last // action_repeat}
 
 
 def _summary(rows: list[dict]) -> str:
