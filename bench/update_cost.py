@@ -36,7 +36,8 @@ def main():
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--view", default="independent", choices=["independent", "shared"])
+    p.add_argument("--form", default="authors", choices=["authors", "training"],
+                   help="intrinsic.form of the IM- variant (authors: no extra encoder pass for IM-CURL)")
     p.add_argument("--base", default="curl", choices=["curl", "soda", "pad", "svea"])
     p.add_argument("--variants", default="im", help="comma list of im, rnd, re3")
     a = p.parse_args()
@@ -47,9 +48,9 @@ def main():
     for algo in algos:
         cfg = make_config(algo, "cartpole_swingup_sparse")
         cfg.agent.batch_size = a.batch
-        if cfg.aux.name in ("curl", "pad", "svea"):  # tasks trained on the RL batch
+        if not cfg.aux.own_batch:  # tasks trained on the RL batch
             cfg.aux.batch_size = a.batch
-        cfg.intrinsic.view = a.view
+        cfg.intrinsic.form = a.form
         agents[algo] = (SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic), filled())
     times = {k: [] for k in agents}
     for step in range(a.steps + 3):
@@ -63,7 +64,7 @@ def main():
         print(f"{k:10s} median {v:.3f} s/update (batch {a.batch}, {a.threads} threads)")
     for k in algos[1:]:
         print(f"ratio {k} / {a.base} = {med[k] / med[a.base]:.3f}"
-              + (f" (intrinsic view: {a.view})" if a.base == "curl" and k.startswith("im-") else ""))
+              + (f" (intrinsic form: {a.form})" if a.base in ("curl", "soda") and k.startswith("im-") else ""))
 
 
 if __name__ == "__main__":
