@@ -248,7 +248,9 @@ def _run_config(args, demo: bool):
     if args.steps is not None and args.frames is not None:
         raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
     if args.frames is not None:
-        cfg.train.steps = -(-args.frames // cfg.env.action_repeat)
+        from imssr.config import steps_for_frames
+
+        cfg.train.steps = steps_for_frames(args.frames, cfg.env.action_repeat)
     for flag, field_name in (("seed", "seed"), ("steps", "steps"), ("eval_every", "eval_every_steps"),
                              ("eval_episodes", "eval_episodes"), ("device", "device"),
                              ("seed_steps", "seed_steps"), ("replay_capacity", "replay_capacity"),

@@ -374,8 +374,9 @@ UPDATE_SCHEDULES = ("sequential", "fused")
 FORMS = ("authors", "training")
 
 
-def _ceil_div(a: int, b: int) -> int:
-    return -(-a // b)
+def steps_for_frames(frames: int, action_repeat: int) -> int:
+    """Agent steps that cover ``frames`` environment frames (rounded up, as the loop runs them)."""
+    return -(-frames // action_repeat)
 
 
 def migrate(data: dict[str, Any]) -> dict[str, Any]:
@@ -413,7 +414,7 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
         value = train.pop(old, default)
         if not isinstance(value, int) or isinstance(value, bool):
             raise ImssrError(f"train.{old} must be an integer, got {value!r}")
-        train.setdefault(new, _ceil_div(value, repeat))
+        train.setdefault(new, steps_for_frames(value, repeat))
     train.setdefault("burst_updates", 0)
     train.setdefault("replay_capacity", 100_000)
     train.setdefault("eval_episodes", 10)

@@ -15,6 +15,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Optional
 
+from imssr.config import steps_for_frames
 from imssr.errors import ImssrError
 from imssr.experiments.grid import SWEEP_PLAN, beta_label
 from imssr.training.logger import read_csv
@@ -155,7 +156,7 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
             frame = int(float(row["frame"]))
             # Every eval.csv has a step column; a hand-made one without it gets the step at which
             # the loop reaches that frame.
-            step = int(float(row["step"])) if row.get("step") not in (None, "") else -(-frame // repeat)
+            step = int(float(row["step"])) if row.get("step") not in (None, "") else steps_for_frames(frame, repeat)
             run.evals.append((row["mode"], step, frame, float(row["return_mean"])))
         except (KeyError, TypeError, ValueError):
             continue  # a row cut short by a killed process
@@ -190,7 +191,7 @@ def _read_plan(root: str, runs: list[RunResult], notes: list[str]) -> list[Plann
                 # A plan from before budgets counted agent steps: its runs trained
                 # ceil(frames / action_repeat) steps (the run's repeat, else its task's preset's).
                 repeat = repeats.get(os.path.abspath(run_dir)) or _task_action_repeat(r["task"])
-                steps = -(-int(r["frames"]) // repeat)
+                steps = steps_for_frames(int(r["frames"]), repeat)
             planned.append(PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), steps, run_dir))
         return planned
     except (OSError, ValueError, KeyError, TypeError, ImssrError) as exc:

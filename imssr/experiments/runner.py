@@ -14,6 +14,7 @@ import sys
 import time
 from typing import Optional
 
+from imssr.config import steps_for_frames
 from imssr.training.logger import read_csv
 from imssr.utils import atomic_write_text
 
@@ -71,7 +72,7 @@ def done_steps(run_dir: str, done: Optional[dict] = None) -> Optional[int]:
         return done["steps"]
     repeat = action_repeat_of(run_dir)
     if repeat is not None:
-        return -(-done["frames"] // repeat)
+        return steps_for_frames(done["frames"], repeat)
     return last_step(os.path.join(run_dir, "eval.csv"))
 
 

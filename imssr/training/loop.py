@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from imssr.agents import SACAgent
-from imssr.config import RunConfig
+from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import make_env
 from imssr.errors import ImssrError
@@ -316,7 +316,7 @@ def _step_counters(ckpt: dict, action_repeat: int) -> dict:
     """
     if "next_eval_step" in ckpt:
         return {k: ckpt[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
-    ceil = lambda frame: None if frame is None else -(-frame // action_repeat)  # noqa: E731
+    ceil = lambda frame: None if frame is None else steps_for_frames(frame, action_repeat)  # noqa: E731
     last = ckpt["last_eval_frame"]
     return {"next_eval_step": ceil(ckpt["next_eval_frame"]), "next_ckpt_step": ceil(ckpt["next_ckpt_frame"]),
             "last_eval_step": -1 if last < 0 else last // action_repeat}
