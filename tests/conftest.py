@@ -29,6 +29,9 @@ def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **
     cfg.train.tensorboard = False
     cfg.train.progress = False
     for k, v in train.items():
+        # A misspelt or retired field (e.g. ``frames``) must fail, not be ignored.
+        if not hasattr(cfg.train, k):
+            raise AttributeError(f"TrainConfig has no field {k!r}")
         setattr(cfg.train, k, v)
     return cfg
 

@@ -168,7 +168,7 @@ def test_training_in_a_scene_and_evaluating_in_several(tmp_path):
     from imssr.training.checkpoint import latest_path, load_checkpoint
     from imssr.training.logger import read_csv
 
-    cfg = tiny_config("im-curl", seed_steps=8, frames=200, eval_every_frames=0)
+    cfg = tiny_config("im-curl", seed_steps=8, steps=25, eval_every_steps=0)  # 200 frames
     cfg.env.mode = "distracting_easy"
     cfg.train.eval_modes = "training,video_hard"
     trainer = Trainer(cfg, str(tmp_path))
