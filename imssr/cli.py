@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 
 import numpy as np
 from typing import Optional
@@ -11,15 +12,16 @@ from typing import Optional
 from imssr.errors import ImssrError
 
 
-def _number(kind, minimum, label):
-    """An argparse type: ``kind`` (int or float) no smaller than ``minimum``."""
+def _number(kind, minimum, label, maximum=None):
+    """An argparse type: ``kind`` (int or float) no smaller than ``minimum`` (and, with
+    ``maximum``, no larger).  Infinity is left to the config's validation, which names the field."""
 
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {label}, got {text!r}") from None
-        if not value >= minimum:  # also rejects NaN
+        if not value >= minimum or (maximum is not None and value > maximum):  # also rejects NaN
             raise argparse.ArgumentTypeError(f"expected {label}, got {text!r}")
         return value
 
@@ -31,6 +33,24 @@ _nonneg_int = _number(int, 0, "an integer >= 0")
 _nonneg_float = _number(float, 0.0, "a number >= 0")
 
 
+def _seed_type():
+    from imssr.config import MAX_SEED, SEED_RULE
+
+    return _number(int, 0, f"a seed, {SEED_RULE}", MAX_SEED)
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Every option's help says its default: options with a default value get
+    "(default: VALUE)" unless their help already says what the default is."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.option_strings and action.nargs != 0 and not action.required and \
+                "default" not in text and action.default not in (None, argparse.SUPPRESS):
+            text += " (default: %(default)s)"
+        return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     from imssr.presets import ALGOS
 
@@ -38,28 +58,42 @@ def build_parser() -> argparse.ArgumentParser:
                                 "intrinsic rewards for pixel-based SAC on DeepMind Control.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def add_run_options(t: argparse.ArgumentParser) -> None:
-        t.add_argument("--algo", choices=list(ALGOS), help="algorithm (imssr algos)")
-        t.add_argument("--task", help="task name, e.g. cartpole_swingup_sparse (imssr tasks)")
-        t.add_argument("--seed", type=_nonneg_int, help="seed (default 0)")
+    def add_run_options(t: argparse.ArgumentParser, demo: bool = False) -> None:
+        def preset(value: str) -> str:
+            """The default of a preset setting: the paper's preset's value, or the demo's own."""
+            return "default: the demo's" if demo else f"default: the preset's, {value}"
+
+        t.add_argument("--algo", choices=list(ALGOS),
+                       help="algorithm, see imssr algos (default: none: a new train run needs it; with "
+                            "--config or --resume the file's; demo: the demo's)")
+        t.add_argument("--task", help="task name, e.g. cartpole_swingup_sparse, see imssr tasks (default: none: "
+                                      "a new train run needs it; with --config or --resume the file's; demo: the demo's)")
+        t.add_argument("--seed", type=_nonneg_int, help="run seed, 0 to 2147483647 (default: 0, or the config's)")
         t.add_argument("--steps", type=_positive_int,
-                       help="budget T in agent steps (the paper's preset: 500000)")
+                       help="budget T in agent steps (" + preset("the paper's 500000") + "; with --resume the run's)")
         t.add_argument("--frames", type=_positive_int,
-                       help="budget in environment frames instead: steps = frames / action repeat, rounded up")
+                       help="budget in environment frames instead: steps = frames / action repeat, rounded up "
+                            "(default: none, --steps decides)")
         t.add_argument("--network", choices=["dmcgb", "official-curl"],
                        help="encoder layout of a new run: dmcgb (what the authors ran; default) or "
                             "official-curl (50-d projection without tanh, ReLU after the last conv)")
         t.add_argument("--out", help="run directory (default runs/<task>/<algo>/seed_<n>)")
         t.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+        t.add_argument("--refill-buffer", action="store_true",
+                       help="with --resume: if the saved replay buffer is missing or damaged, continue with an "
+                            "empty buffer refilled by random actions (not an exact resume) instead of failing")
         t.add_argument("--eval-every", type=_nonneg_int, metavar="STEPS",
-                       help="agent steps between evaluations (0: only at the end; preset 10000)")
-        t.add_argument("--eval-episodes", type=_positive_int, metavar="K", help="episodes per evaluation")
+                       help=f"agent steps between evaluations (0: only at the end; {preset('10000')})")
+        t.add_argument("--eval-episodes", type=_positive_int, metavar="K",
+                       help=f"episodes per evaluation ({preset('30')})")
         t.add_argument("--beta0", type=_nonneg_float,
-                       help="initial intrinsic coefficient beta_0 (im-, +rnd, +re3 algos)")
-        t.add_argument("--device", help="cpu (default), cuda, cuda:N or auto")
+                       help="initial intrinsic coefficient beta_0 of im-, +rnd and +re3 algos "
+                            "(" + preset("the paper's Table V") + ")")
+        t.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: cpu)")
         t.add_argument("--batch-size", type=_positive_int,
-                       help="RL batch size (and the auxiliary batch of tasks that train on it)")
-        t.add_argument("--mode", help="scene to train in (imssr modes; default training)")
+                       help="RL batch size, and the auxiliary batch of tasks that train on it "
+                            f"({preset('128')})")
+        t.add_argument("--mode", help="scene to train in, see imssr modes (default: training)")
         t.add_argument("--eval-modes", metavar="A,B,...",
                        help="scenes to evaluate in at each evaluation point (default: the training scene)")
         t.add_argument("--footage", metavar="PATH",
@@ -69,43 +103,56 @@ def build_parser() -> argparse.ArgumentParser:
                        help="natural images (jpg/png tree, e.g. Places365) for SODA's overlay "
                             "(default: $IMSSR_IMAGE_DIR, else built-in photographs)")
         t.add_argument("--seed-steps", type=_nonneg_int, metavar="STEPS",
-                       help="agent steps of random actions before learning")
-        t.add_argument("--replay-capacity", type=_positive_int, metavar="TRANSITIONS")
+                       help=f"agent steps of random actions before learning ({preset('1000')})")
+        t.add_argument("--replay-capacity", type=_positive_int, metavar="TRANSITIONS",
+                       help=f"replay capacity in transitions ({preset('100000 for CURL and 500000 for SODA, PAD and SVEA')})")
         t.add_argument("--checkpoint-every", type=_nonneg_int, metavar="STEPS",
-                       help="agent steps between checkpoints (0: only at the end)")
+                       help=f"agent steps between checkpoints (0: only at the end; {preset('50000')})")
         t.add_argument("--no-buffer-in-checkpoint", action="store_true",
                        help="do not save the replay buffer (smaller checkpoints, inexact resume)")
-        t.add_argument("--no-tensorboard", action="store_true")
-        t.add_argument("--no-progress", action="store_true")
-        t.add_argument("--config", metavar="FILE", help="JSON config to start from instead of the preset")
+        t.add_argument("--no-tensorboard", action="store_true", help="write no TensorBoard files (CSV logs only)")
+        t.add_argument("--no-progress", action="store_true",
+                       help="no progress bar (output that is not a terminal still gets a progress line "
+                            "every minute)")
+        t.add_argument("--config", metavar="FILE",
+                       help="JSON config, complete (a run's config.json) or partial: what it leaves out comes "
+                            "from the preset of its algo and task (default: none, the preset)")
         t.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
-                       help="override any config field, e.g. --set intrinsic.normalization=minmax")
+                       help="override any config field, e.g. --set intrinsic.normalization=minmax; "
+                            "repeatable (default: none)")
 
     t = sub.add_parser("train", help="train one run")
     add_run_options(t)
-    d = sub.add_parser("demo", help="a short IM-CURL run on cartpole_swingup_sparse (~15 min on 2 CPU cores)")
-    add_run_options(d)
+    d = sub.add_parser("demo", help="a short IM-CURL run on cartpole_swingup that shows learning "
+                                   "(about 12 min on 2 CPU cores): curve, GIF and the paper-scale command")
+    add_run_options(d, demo=True)
 
-    e = sub.add_parser("evaluate", help="evaluate the latest checkpoint of a run")
+    e = sub.add_parser("evaluate", help="evaluate the latest checkpoint of a run (or --checkpoint)")
     e.add_argument("--run", required=True, help="run directory")
+    e.add_argument("--checkpoint", metavar="FILE|STEP",
+                   help="checkpoint to evaluate: a file, or the agent step of a retained "
+                        "RUN/checkpoints/step-*.pt (default: latest.pt)")
     e.add_argument("--episodes", type=_positive_int, default=10, help="episodes per scene")
     e.add_argument("--modes", metavar="A,B,...",
                    help="scenes to evaluate in, e.g. training,color_hard,video_hard (default: the run's eval modes)")
-    e.add_argument("--seed", type=_nonneg_int, help="eval env seed (default: run seed + 20000)")
-    e.add_argument("--device", default="cpu")
-    e.add_argument("--video", choices=["gif", "mp4"], help="save the first episode of each scene")
+    e.add_argument("--seed", type=_seed_type(), help="eval env seed (default: run seed + 20000)")
+    e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
+    e.add_argument("--video", choices=["gif", "mp4"],
+                   help="save the first episode of each scene as RUN/videos/MODE.gif|mp4 (default: none)")
     e.add_argument("--montage", action="store_true", help="save montage.png: one frame per scene")
     e.add_argument("--footage", metavar="PATH", help="footage for video scenes (default: the run's)")
 
     mo = sub.add_parser("modes", help="list scenes; --montage renders one frame of each")
-    mo.add_argument("--task", default="walker_walk")
-    mo.add_argument("--montage", metavar="PNG", help="write a montage of every scene (random actions)")
-    mo.add_argument("--seed", type=_nonneg_int, default=0)
+    mo.add_argument("--task", default="walker_walk", help="task the montage shows")
+    mo.add_argument("--montage", metavar="PNG",
+                    help="write a montage of every scene (random actions) (default: none, only list the scenes)")
+    mo.add_argument("--seed", type=_seed_type(), default=0, help="env seed")
     mo.add_argument("--steps", type=_nonneg_int, default=20, help="agent steps before the frame is taken")
-    mo.add_argument("--footage", metavar="PATH", help="footage for video scenes")
+    mo.add_argument("--footage", metavar="PATH",
+                    help="footage for video scenes (default: $IMSSR_FOOTAGE_DIR, else built-in footage)")
 
     pl = sub.add_parser("plot", help="learning-curve PNG of a run")
-    pl.add_argument("--run", required=True)
+    pl.add_argument("--run", required=True, help="run directory")
     pl.add_argument("--out", help="PNG path (default RUN/learning_curve.png)")
 
     add_sweep_parsers(sub)
@@ -113,12 +160,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("tasks", help="list task names")
     sub.add_parser("algos", help="list algorithms")
     c = sub.add_parser("config", help="print the preset config of an algorithm on a task")
-    c.add_argument("--algo", choices=list(ALGOS), required=True)
-    c.add_argument("--task", required=True)
+    c.add_argument("--algo", choices=list(ALGOS), required=True, help="algorithm (imssr algos)")
+    c.add_argument("--task", required=True, help="task name (imssr tasks)")
     c.add_argument("--network", choices=["dmcgb", "official-curl"], default="dmcgb",
                    help="encoder layout (default dmcgb, what the authors ran)")
     c.add_argument("--explain", action="store_true",
                    help="a table of every preset value with its source (Table III, the authors' code, ...)")
+    for parser in sub.choices.values():
+        parser.formatter_class = _HelpFormatter  # every option's help says its default
     return p
 
 
@@ -132,18 +181,22 @@ def add_sweep_parsers(sub) -> None:
     sw.add_argument("--root", help="sweep directory (default runs/sweep)")
     sw.add_argument("--file", metavar="SWEEP.json",
                     help="JSON object with the same keys (algos, tasks, seeds, steps or frames, set, beta0, "
-                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, address); flags override it")
-    sw.add_argument("--algos", metavar="A,B", help="algorithms (imssr algos)")
-    sw.add_argument("--tasks", metavar="T1,T2", help="tasks (imssr tasks)")
+                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, address); flags override it "
+                         "(default: none)")
+    sw.add_argument("--algos", metavar="A,B",
+                    help="algorithms, see imssr algos (default: none: a sweep needs them, here or in --file)")
+    sw.add_argument("--tasks", metavar="T1,T2",
+                    help="tasks, see imssr tasks (default: none: a sweep needs them, here or in --file)")
     sw.add_argument("--seeds", metavar="1,2,3|1-5", help="seeds: a list, a range or both (default 1)")
     sw.add_argument("--steps", type=_positive_int,
                     help="budget T per run in agent steps (default: the preset's, 500000)")
     sw.add_argument("--frames", type=_positive_int,
                     help="budget per run in environment frames instead: each run trains frames / its "
-                         "task's action repeat steps, rounded up")
+                         "task's action repeat steps, rounded up (default: none, --steps decides)")
     sw.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE",
-                    help="override for every run, as imssr train --set")
-    sw.add_argument("--beta0", metavar="B1,B2", help="beta_0 sensitivity sweep, e.g. 0.001,0.01,0.05,0.1")
+                    help="override for every run, as imssr train --set; repeatable (default: none)")
+    sw.add_argument("--beta0", metavar="B1,B2",
+                    help="beta_0 sensitivity sweep, e.g. 0.001,0.01,0.05,0.1 (default: none, each preset's beta_0)")
     sw.add_argument("--retries", type=_nonneg_int, help="extra attempts of a failed run (default 1)")
     sw.add_argument("--cpus-per-run", type=_positive_float, help="CPUs per run (default 1)")
     sw.add_argument("--gpus-per-run", type=_nonneg_float, help="GPUs per run, fractions allowed (default 0)")
@@ -201,9 +254,16 @@ def cmd_sweep(args) -> int:
     return code
 
 
+def _check_out(out: Optional[str], flag: str = "--out") -> None:
+    """An empty ``--out`` names no directory (it used to fall back to the default silently)."""
+    if out is not None and not out.strip():
+        raise ImssrError(f"{flag} is empty; give a path, or omit {flag} for the default")
+
+
 def cmd_report(args) -> int:
     from imssr.experiments.report import write_report
 
+    _check_out(args.out)
     out = args.out or os.path.join(args.root, "report")
     for path, text in write_report(args.root, out, paper_results=args.paper_results, reps=args.reps):
         print(f"{text}: {path}")
@@ -211,14 +271,16 @@ def cmd_report(args) -> int:
 
 
 def _run_config(args, demo: bool):
-    from imssr.config import apply_overrides, load_config
+    from imssr.config import apply_overrides, load_config, load_partial_config
     from imssr.presets import demo_config, get_algo, make_config
     from imssr.envs import get_task
     from imssr.config import RunConfig
 
+    _check_out(args.out)
     saved_path = os.path.join(args.out, "config.json") if args.out else None
     if args.config:
-        cfg = load_config(args.config)
+        # A partial file is merged onto the preset of its algo and task; a complete one reads as written.
+        cfg = load_partial_config(args.config, args.algo, args.task)
     elif args.resume:
         if not args.out:
             raise ImssrError("--resume needs --out RUN_DIR")
@@ -227,7 +289,7 @@ def _run_config(args, demo: bool):
         cfg = load_config(saved_path)
     else:
         algo = args.algo or ("im-curl" if demo else None)
-        task = args.task or ("cartpole_swingup_sparse" if demo else None)
+        task = args.task or ("cartpole_swingup" if demo else None)
         if algo is None or task is None:
             raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
         get_algo(algo)
@@ -286,17 +348,27 @@ def cmd_train(args, demo: bool = False) -> int:
     from imssr.experiments import plot_learning_curve
     from imssr.training import Trainer
 
+    refill = getattr(args, "refill_buffer", False)
+    if refill and not args.resume:
+        raise ImssrError("--refill-buffer goes with --resume")
     cfg = _run_config(args, demo)
     out = args.out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
-    trainer = Trainer(cfg, out, resume=args.resume)
+    trainer = Trainer(cfg, out, resume=args.resume, refill_buffer=refill)
     print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {out}",
           flush=True)
+    started = time.time()
     try:
         trainer.train()
+        png = plot_learning_curve(out)
+        if demo:
+            from imssr.training.demo import record_episode, summary
+
+            gif = record_episode(trainer, os.path.join(out, "episode.gif"))
+            print(summary(cfg, out, (time.time() - started) / 60, gif, png), flush=True)
+        else:
+            print(f"imssr: done; {os.path.join(out, 'eval.csv')}, {png}")
     finally:
         trainer.close()
-    png = plot_learning_curve(out)
-    print(f"imssr: done; {os.path.join(out, 'eval.csv')}, {png}")
     return 0
 
 
@@ -306,7 +378,7 @@ def cmd_evaluate(args) -> int:
     from imssr.envs.scenes import get_mode
     from imssr.experiments.media import save_montage, save_video
     from imssr.training import build_agent, eval_row, evaluate, resolve_device
-    from imssr.training.checkpoint import latest_path, load_checkpoint
+    from imssr.training.checkpoint import load_checkpoint, select_checkpoint, usable_checkpoint
     from imssr.training.logger import CSVLog, EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, write_eval
 
     if not os.path.isdir(args.run):
@@ -316,7 +388,12 @@ def cmd_evaluate(args) -> int:
              else cfg.train.eval_mode_list(cfg.env.mode))
     for mode in modes:
         get_mode(mode)
-    ckpt = load_checkpoint(latest_path(args.run))
+    if args.checkpoint:
+        ckpt = load_checkpoint(select_checkpoint(args.run, args.checkpoint))
+    else:
+        ckpt, _, note = usable_checkpoint(args.run, verb="evaluating")
+        if note:
+            print(f"imssr: {note}", flush=True)
     device = resolve_device(args.device)
     e = cfg.env
     seed = cfg.train.seed + 20_000 if args.seed is None else args.seed
@@ -354,6 +431,8 @@ def cmd_evaluate(args) -> int:
         path = save_montage(montage, os.path.join(args.run, "montage.png"),
                             f"{cfg.algo} on {e.task}, frame {ckpt['frame']}")
         print(f"montage: {path}")
+    # Appended to, one summary row per scene and one row per episode (with the checkpoint's step).
+    print(f"imssr: evaluation written to {summary.path} and {episodes_log.path}")
     return 0
 
 
@@ -419,6 +498,7 @@ def cmd_plot(args) -> int:
 
     if not os.path.isdir(args.run):
         raise ImssrError(f"run directory not found: {args.run}")
+    _check_out(args.out)
     print(plot_learning_curve(args.run, args.out))
     return 0
 

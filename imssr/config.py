@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -23,6 +24,11 @@ from imssr.errors import ImssrError
 CONFIG_VERSION = 2
 """2: budgets in agent steps, ``agent.final_relu``, ``aux.own_batch``, ``intrinsic.form`` and
 the normalisation fields.  1 (no ``version`` key): imssr 0.1."""
+
+MAX_SEED = 2**31 - 1
+"""Largest run seed: numpy's and dm_control's seeds are 32-bit, and evaluation envs use the run
+seed + 10,000 and + 20,000, so seeds stay below 2**31 (the sweep's seeds are checked the same)."""
+SEED_RULE = f"an integer in [0, {MAX_SEED}] (numpy and dm_control take 32-bit seeds, and evaluation adds up to 20000)"
 
 
 @dataclass
@@ -256,7 +262,9 @@ class RunConfig:
         return dataclasses.asdict(self)
 
     def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+        from imssr.jsonio import dumps
+
+        return dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
@@ -342,7 +350,7 @@ class RunConfig:
             (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
             (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
-            (t.seed >= 0, "train.seed must be >= 0"),
+            (0 <= t.seed <= MAX_SEED, f"train.seed must be {SEED_RULE}, got {t.seed}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -444,10 +452,21 @@ def _check_types(section) -> None:
             ok = isinstance(value, int) and not isinstance(value, bool)
         elif isinstance(default, float):
             ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if ok and not _is_finite(value):
+                # NaN and infinity pass every comparison check below or break them; they only
+                # end a run later, in a simulator traceback.
+                raise ImssrError(f"{name}.{f.name} must be a finite number, got {value!r}")
         else:
             ok = isinstance(value, type(default))
         if not ok:
             raise ImssrError(f"{name}.{f.name} must be a {type(default).__name__}, got {value!r}")
+
+
+def _is_finite(value) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer too large for a float
+        return False
 
 
 def _build(cls, values: dict[str, Any], section: str):
@@ -483,27 +502,80 @@ def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
             if not isinstance(value, bool):
                 raise ImssrError(f"{key} expects true or false, got {raw!r}")
         elif isinstance(current, int):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
+            # NaN, Infinity and 1e400 (which JSON reads as infinity) are no integers.
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                    (isinstance(value, float) and not (math.isfinite(value) and value.is_integer())):
                 raise ImssrError(f"{key} expects an integer, got {raw!r}")
             value = int(value)
         elif isinstance(current, float):
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ImssrError(f"{key} expects a number, got {raw!r}")
-            value = float(value)
+            try:
+                value = float(value)
+            except OverflowError:  # an integer too large for a float
+                raise ImssrError(f"{key} expects a finite number, got {raw!r}") from None
+            if not math.isfinite(value):
+                raise ImssrError(f"{key} expects a finite number, got {raw!r}")
         elif isinstance(current, str) and not isinstance(value, str):
             value = raw
         setattr(target, name, value)
     return cfg
 
 
-def load_config(path: str) -> RunConfig:
+def read_config_file(path: str) -> Any:
+    """The JSON value of a config file, with one-line errors for anything that is not JSON text."""
     try:
-        with open(path) as fh:
-            data = json.load(fh)
+        with open(path, encoding="utf-8") as fh:
+            return json.load(fh)
     except FileNotFoundError:
         raise ImssrError(f"config file not found: {path}") from None
+    except IsADirectoryError:
+        raise ImssrError(f"config file {path} is a directory") from None
+    except UnicodeDecodeError:
+        raise ImssrError(f"config file {path} is not a JSON text file (it is not UTF-8 text)") from None
     except json.JSONDecodeError as exc:
         raise ImssrError(f"config file {path} is not valid JSON: {exc}") from None
-    return RunConfig.from_dict(data)
+
+
+def load_config(path: str) -> RunConfig:
+    """A complete config file, such as a run's ``config.json`` (fields it lacks read as the
+    dataclass defaults; see :func:`load_partial_config` for a file written by hand)."""
+    return RunConfig.from_dict(read_config_file(path))
+
+
+def load_partial_config(path: str, algo: str | None = None, task: str | None = None,
+                        network: str = "dmcgb") -> RunConfig:
+    """A config file merged onto the preset of its algo and task (``imssr train --config``).
+
+    Every field the file gives wins; every field it leaves out is the preset's
+    (:func:`imssr.presets.make_config`), so ``{"algo": "curl", "env": {"task": "walker_walk"}}``
+    is the preset of CURL on walker_walk (action repeat 4), and a complete file (a run's
+    ``config.json``) reads back exactly as it was written.  The file's ``algo`` and
+    ``env.task`` win over ``algo`` and ``task`` (the CLI's ``--algo`` / ``--task``, which
+    must then agree); a config that names neither is an error.
+    """
+    from imssr.presets import make_config
+
+    data = read_config_file(path)
+    if not isinstance(data, dict):
+        raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
+    data = migrate(data)
+    file_algo = data.get("algo")
+    file_task = data["env"].get("task") if isinstance(data.get("env"), dict) else None
+    # A value of the wrong type is left for the type checks to name.
+    algo = file_algo if isinstance(file_algo, str) else algo
+    task = file_task if isinstance(file_task, str) else task
+    # A preset is chosen only by name: a file that names none would otherwise train a default.
+    if algo is None or task is None:
+        missing = " and ".join(n for n, v in (("algo", algo), ("env.task", task)) if v is None)
+        raise ImssrError(f"config {path} names no {missing}; add it to the file or pass "
+                         f"{' and '.join('--' + n.split('.')[-1] for n, v in (('algo', algo), ('env.task', task)) if v is None)}")
+    merged = make_config(algo, task, network).to_dict()
+    for key, value in data.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key].update(value)
+        else:
+            merged[key] = value
+    return RunConfig.from_dict(merged)
 
 

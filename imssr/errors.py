@@ -7,3 +7,8 @@ class ImssrError(Exception):
 
 class NonFiniteError(ImssrError):
     """A loss or signal became NaN or infinite during training."""
+
+
+class DivergedError(NonFiniteError):
+    """Training diverged: a loss or the agent's action is NaN or infinite
+    ("diverged at agent step N: critic loss nan"); the last checkpoint is from before it."""

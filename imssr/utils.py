@@ -3,37 +3,107 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import os
 import random
-import tempfile
-from typing import Iterable, Iterator
+import re
+import secrets
+from typing import Iterable, Iterator, Optional
 
 import numpy as np
 import torch
 
+from imssr.errors import ImssrError
+
 
 @contextlib.contextmanager
-def atomic_path(path: str) -> Iterator[str]:
+def atomic_path(path: str, needed: Optional[int] = None) -> Iterator[str]:
     """Yield a temporary path beside ``path``; on success, fsync and rename it over ``path``.
 
-    A reader never sees a half-written file: it sees the old file or the new one.
+    A reader never sees a half-written file: it sees the old file or the new one.  The
+    temporary file is created with mode ``0o666`` so that the process umask decides the
+    final permissions, as for any file the user creates (``tempfile.mkstemp`` would make
+    every output private, 0600).  A full disk (``ENOSPC``, a quota, a short write) becomes
+    one :func:`no_space_message` line naming ``path`` and ``needed`` bytes (when given);
+    the old file stays in place and the temporary file is removed.
     """
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(path), dir=directory)
-    os.close(fd)
+    tmp = _create_temp(directory, os.path.basename(path))
     try:
-        yield tmp
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        with disk_full_as_error(path, needed):
+            yield tmp
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
+def _create_temp(directory: str, name: str) -> str:
+    """Create an empty ``.tmp-*`` file in ``directory`` (mode 0o666 less the umask)."""
+    for _ in range(100):
+        tmp = os.path.join(directory, f".tmp-{secrets.token_hex(4)}-{name}")
+        try:
+            with disk_full_as_error(os.path.join(directory, name)):
+                fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(errno.EEXIST, "no free temporary file name", directory)
+
+
+# numpy's ``tofile`` reports a short write as "N requested and M written", without errno.
+_SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """``exc`` says the file system is full (or the user's quota is spent)."""
+    return isinstance(exc, OSError) and (exc.errno in (errno.ENOSPC, errno.EDQUOT)
+                                         or bool(_SHORT_WRITE.search(str(exc))))
+
+
+def mount_point(path: str) -> str:
+    """The mount point of the file system that holds ``path`` (or its nearest existing parent)."""
+    path = os.path.realpath(path)
+    while not os.path.exists(path):
+        path = os.path.dirname(path)
+    while not os.path.ismount(path):
+        path = os.path.dirname(path)
+    return path
+
+
+def no_space_message(path: str, needed: Optional[int] = None, quota: bool = False) -> str:
+    """One line: "no space left on DEVICE while writing PATH (N MB needed)"."""
+    try:
+        device = mount_point(os.path.dirname(os.path.abspath(path)))
+    except OSError:  # pragma: no cover - the directory vanished meanwhile
+        device = "its device"
+    what = "no space left (disk quota exceeded)" if quota else "no space left"
+    size = "" if needed is None else f" ({_mb(needed)} MB needed)"
+    return f"{what} on {device} while writing {path}{size}"
+
+
+def _mb(nbytes: int) -> str:
+    mb = nbytes / 1e6
+    return f"{mb:.1f}" if mb >= 0.1 else f"{max(mb, 0.001):.3f}"
+
+
+@contextlib.contextmanager
+def disk_full_as_error(path: str, needed: Optional[int] = None) -> Iterator[None]:
+    """Turn a full-disk ``OSError`` raised inside the block into an :class:`ImssrError`."""
+    try:
+        yield
+    except OSError as exc:
+        if not is_disk_full(exc):
+            raise
+        raise ImssrError(no_space_message(path, needed, quota=exc.errno == errno.EDQUOT)) from None
+
+
 def atomic_write_text(path: str, text: str) -> None:
-    with atomic_path(path) as tmp:
+    with atomic_path(path, needed=len(text.encode())) as tmp:
         with open(tmp, "w") as fh:
             fh.write(text)
 

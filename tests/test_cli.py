@@ -1,4 +1,5 @@
 """The command line: tiny end-to-end runs per algorithm, evaluate, kill + resume, errors."""
+import os
 import signal
 import subprocess
 import sys
@@ -47,6 +48,8 @@ def test_train_end_to_end_then_evaluate(algo, tmp_path):
     if algo != "curl":
         proc = imssr("evaluate", "--run", str(out), "--episodes", "1")
         assert "return" in proc.stdout
+        assert f"imssr: evaluation written to {out / 'evaluate.csv'} and {out / 'evaluate_episodes.csv'}" \
+            in proc.stdout
         assert len(read_csv(out / "evaluate.csv")) == 1
         return
     # Test scenes, one gif per scene and a montage.
@@ -68,7 +71,7 @@ def test_killed_run_resumes_to_completion(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "imssr", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     latest = out / "checkpoints" / "latest.pt"
-    deadline = time.time() + 240
+    deadline = time.time() + 600  # generous: a busy machine can be slow; exits as soon as it exists
     while not latest.exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.2)
     proc.send_signal(signal.SIGKILL)
@@ -121,3 +124,61 @@ def test_tasks_and_algos_listings():
     assert names == {f"{p}{b}{s}" for b in ("curl", "soda", "pad", "svea")
                      for p, s in (("", ""), ("im-", ""), ("", "+rnd"), ("", "+re3"))}
     assert '"beta0": 0.05' in imssr("config", "--algo", "im-curl", "--task", "pendulum_swingup").stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seed", "18446744073709551616"], "train.seed must be an integer in [0, 2147483647] (numpy and dm_control "
+                                         "take 32-bit seeds, and evaluation adds up to 20000), got 18446744073709551616"),
+    (["--set", "train.seed=1e30"], "train.seed must be an integer in [0, 2147483647]"),
+    (["--set", "agent.batch_size=NaN"], "agent.batch_size expects an integer, got 'NaN'"),
+    (["--set", "agent.batch_size=Infinity"], "agent.batch_size expects an integer, got 'Infinity'"),
+    (["--set", "agent.batch_size=1e400"], "agent.batch_size expects an integer, got '1e400'"),
+    (["--set", "agent.actor_lr=NaN"], "agent.actor_lr expects a finite number, got 'NaN'"),
+    (["--set", "agent.init_temperature=Infinity"], "agent.init_temperature expects a finite number, got 'Infinity'"),
+    (["--beta0", "inf"], "intrinsic.beta0 must be a finite number, got inf"),
+    (["--out", ""], "--out is empty"),
+])
+def test_bad_values_are_one_line_errors_before_anything_starts(args, message, tmp_path, capsys):
+    from imssr.cli import main
+
+    argv = ["train", "--algo", "im-curl", "--task", "walker_walk", *args]
+    if "--out" not in args:
+        argv += ["--out", str(tmp_path / "run")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("imssr: error: ") and message in err[0], err
+    assert not (tmp_path / "run").exists() and not os.path.exists("runs/walker_walk/im-curl")
+
+
+def test_binary_config_file_is_a_one_line_error(tmp_path, capsys):
+    from imssr.cli import main
+
+    binary = tmp_path / "latest.pt"
+    binary.write_bytes(bytes(range(256)) * 8)
+    assert main(["train", "--config", str(binary), "--out", str(tmp_path / "run")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == \
+        [f"imssr: error: config file {binary} is not a JSON text file (it is not UTF-8 text)"]
+
+
+def test_every_option_of_every_subcommand_says_its_default():
+    import argparse
+
+    from imssr.cli import _HelpFormatter, build_parser
+
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    assert set(sub.choices) >= {"train", "demo", "evaluate", "modes", "plot", "sweep", "report", "tasks",
+                                "algos", "config"}
+    missing = []
+    for name, command in sub.choices.items():
+        assert command.formatter_class is _HelpFormatter
+        formatter = command._get_formatter()
+        for action in command._actions:
+            if not action.option_strings or action.nargs == 0 or action.required:
+                continue  # positional arguments, flags (--resume, -h) and required options have no default
+            text = formatter._expand_help(action) if action.help is not None else ""
+            if "default" not in text:
+                missing.append(f"{name} {action.option_strings[0]}: {text!r}")
+        command.format_help()  # renders (no stray % in a help text)
+    assert not missing, missing
+    assert "(default: 10)" in sub.choices["evaluate"].format_help()

@@ -90,3 +90,92 @@ def test_wrong_types_and_inconsistent_settings_are_one_line_errors(tmp_path):
                           ("train.seed_steps=0", "seed_steps must be >= 1")]:
         with pytest.raises(ImssrError, match=msg):
             apply_overrides(make_config("curl", "walker_walk"), [override]).validate()
+
+
+@pytest.mark.parametrize("override, message", [
+    ("agent.batch_size=NaN", "agent.batch_size expects an integer, got 'NaN'"),
+    ("agent.batch_size=Infinity", "agent.batch_size expects an integer, got 'Infinity'"),
+    ("agent.batch_size=1e400", "agent.batch_size expects an integer, got '1e400'"),
+    ("agent.actor_lr=NaN", "agent.actor_lr expects a finite number, got 'NaN'"),
+    ("agent.critic_lr=-Infinity", "agent.critic_lr expects a finite number"),
+    ("agent.init_temperature=Infinity", "agent.init_temperature expects a finite number"),
+    ("intrinsic.beta0=1e400", "intrinsic.beta0 expects a finite number"),
+    ("train.seed=1e30", r"train.seed must be an integer in \[0, 2147483647\]"),
+    ("train.seed=4294967296", r"train.seed must be an integer in \[0, 2147483647\]"),
+])
+def test_non_finite_numbers_and_huge_seeds_are_refused_up_front(override, message):
+    with pytest.raises(ImssrError, match=message):
+        apply_overrides(make_config("im-curl", "walker_walk"), [override]).validate()
+
+
+def test_non_finite_numbers_in_a_config_file_are_refused(tmp_path):
+    from imssr.config import load_config
+
+    for field, value in [("critic_lr", "NaN"), ("init_temperature", "Infinity"), ("discount", "-Infinity")]:
+        text = make_config("curl", "walker_walk").to_json().replace(
+            f'"{field}": {getattr(make_config("curl", "walker_walk").agent, field)!r}', f'"{field}": {value}')
+        assert value in text
+        path = tmp_path / "c.json"
+        path.write_text(text)
+        with pytest.raises(ImssrError, match=f"agent.{field} must be a finite number"):
+            load_config(str(path)).validate()
+    # Seeds: numpy / dm_control take 32-bit seeds, evaluation adds 20000.
+    cfg = make_config("curl", "walker_walk")
+    cfg.train.seed = 2**31 - 1
+    cfg.validate()
+    cfg.train.seed = 18446744073709551616
+    with pytest.raises(ImssrError, match="train.seed must be an integer in"):
+        cfg.validate()
+
+
+def test_config_json_never_holds_bare_infinity_or_nan():
+    from imssr.jsonio import dumps
+
+    cfg = make_config("im-curl", "walker_walk")
+    cfg.intrinsic.beta0 = float("inf")  # written before validation (e.g. by a hand-made script)
+    assert '"beta0": null' in cfg.to_json() and "Infinity" not in cfg.to_json()
+    assert dumps({"a": [float("nan"), 1.5, {"b": float("-inf")}]}) == '{"a": [null, 1.5, {"b": null}]}'
+
+
+def test_binary_and_partial_config_files(tmp_path):
+    from imssr.config import load_config, load_partial_config
+
+    binary = tmp_path / "model.pt"
+    binary.write_bytes(bytes(range(256)) * 4)
+    for load in (load_config, load_partial_config):
+        with pytest.raises(ImssrError, match="is not a JSON text file"):
+            load(str(binary))
+    with pytest.raises(ImssrError, match="is a directory"):
+        load_partial_config(str(tmp_path))
+    # A partial file gets the preset of its algo and task for everything it leaves out ...
+    partial = tmp_path / "partial.json"
+    partial.write_text('{"algo": "curl", "env": {"task": "walker_walk"}, "agent": {"batch_size": 64}}')
+    cfg = load_partial_config(str(partial))
+    expected = make_config("curl", "walker_walk")
+    expected.agent.batch_size = 64
+    assert cfg == expected and cfg.env.action_repeat == 4 and cfg.train.replay_capacity == 100_000
+    # ... whose algo and task may come from the command line when the file has none ...
+    partial.write_text('{"intrinsic": {"beta0": 0.2}}')
+    cfg = load_partial_config(str(partial), algo="im-soda", task="finger_spin")
+    assert (cfg.algo, cfg.env.action_repeat, cfg.aux.name, cfg.intrinsic.beta0) == ("im-soda", 2, "soda", 0.2)
+    # ... and a file that names neither, with nothing on the command line, trains no silent default.
+    with pytest.raises(ImssrError, match=r"names no algo and env.task; .* --algo and --task"):
+        load_partial_config(str(partial))
+    with pytest.raises(ImssrError, match=r"names no env.task; .* --task$"):
+        load_partial_config(str(partial), algo="curl")
+    # ... and a complete file (a run's config.json) reads back exactly as written.
+    full = make_config("im-pad", "reacher_easy")
+    full.env.action_repeat, full.agent.hidden_dim, full.train.seed = 8, 64, 7
+    path = tmp_path / "config.json"
+    path.write_text(full.to_json())
+    assert load_partial_config(str(path)) == full == load_config(str(path))
+    assert load_partial_config(str(path), algo="curl", task="walker_walk") == full
+
+
+def test_train_config_flag_merges_a_partial_file(tmp_path):
+    from imssr.cli import _run_config, build_parser
+
+    partial = tmp_path / "p.json"
+    partial.write_text('{"algo": "curl", "env": {"task": "walker_walk"}}')
+    args = build_parser().parse_args(["train", "--config", str(partial), "--out", str(tmp_path / "r")])
+    assert _run_config(args, demo=False) == make_config("curl", "walker_walk")

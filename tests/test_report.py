@@ -233,3 +233,44 @@ def test_report_cli(tmp_path, paper_csv):
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines()[-1] == f"imssr: error: sweep directory not found: {tmp_path / 'none'}"
+
+
+def test_runs_the_sweep_lists_as_failed_are_reported_as_failed(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, curve(10, 100, 100))
+    make_run(root, "curl", 2, curve(20, 200, 200))
+    make_run(root, "curl", 3, curve(30, 300, 300)[:2])  # diverged after its evaluation at step 300
+    make_run(root, "im-curl", 1, curve(0, 400, 400))
+    plan = {"sweep": {}, "runs": [{"algo": a, "task": TASK, "seed": s, "beta0": None, "steps": 1000, "frames": 8000,
+                                   "dir": f"{TASK}/{a}/seed_{s}"} for a in ("curl", "im-curl") for s in (1, 2, 3)]}
+    with open(os.path.join(root, "sweep.json"), "w") as fh:
+        json.dump(plan, fh)
+    runs = [{"dir": f"{TASK}/curl/seed_3", "state": "failed",
+             "errors": ["imssr: error: diverged at agent step 412: critic loss nan"] * 2},
+            {"dir": f"{TASK}/im-curl/seed_2", "state": "failed",  # failed before writing anything
+             "errors": ["imssr: error: device 'cuda:99' requested but CUDA is not available; use --device cpu"]},
+            {"dir": f"{TASK}/curl/seed_1", "state": "done", "errors": []},
+            {"dir": f"{TASK}/im-curl/seed_3", "state": "queued", "errors": []}]
+    with open(os.path.join(root, "sweep_status.json"), "w") as fh:
+        json.dump({"runs": runs}, fh)
+    write_report(root, out, paper_results=paper_csv, reps=200)
+    t = table(out)
+    cell = t["training", "curl", "1.0"]
+    assert (cell["seeds"], cell["expected_seeds"], cell["failed_seeds"]) == ("2", "3", "1")
+    assert t["training", "curl", "0.2"]["failed_seeds"] == "0"  # it had a value there
+    assert (t["training", "im-curl", "1.0"]["seeds"], t["training", "im-curl", "1.0"]["failed_seeds"]) == ("1", "1")
+    md = open(os.path.join(out, "report.md")).read()
+    assert "4 runs, 14 evaluations. **2 failed** in the sweep (see Failed runs)." in md
+    assert "150.0 ± 50.0 (2/3, 1 failed)" in md and "| 2/3, 1 failed |" in md
+    assert "## Failed runs" in md
+    assert f"- `{TASK}/curl/seed_3`: diverged at agent step 412: critic loss nan" in md
+    assert f"- `{TASK}/im-curl/seed_2`: device 'cuda:99' requested but CUDA is not available" in md
+    assert "curl at 1.0T (step 1000): no value for seed(s) 3 (failed: diverged at agent step 412: critic loss nan)" in md
+    assert "seed 2 failed before writing anything" in md and "no run for seed(s) 3" in md
+    assert f"{TASK}/im-curl/seed_2: planned but not started" not in md
+    # A run finished since (done.json) is no longer failed.
+    with open(os.path.join(root, TASK, "curl", "seed_3", "done.json"), "w") as fh:
+        json.dump({"steps": 1000}, fh)
+    write_report(root, out, paper_results=paper_csv, reps=200)
+    assert table(out)["training", "curl", "1.0"]["failed_seeds"] == "0"
+    assert "**1 failed**" in open(os.path.join(out, "report.md")).read()

@@ -131,6 +131,14 @@ def test_sweep_file_equals_flags(tmp_path, capsys):
     (["--algos", "curl", "--tasks", TASK, "--set", "agent.bogus=1"], "unknown setting 'agent.bogus'"),
     (["--algos", "curl", "--tasks", TASK, "--beta0", "0.1"], "--beta0 needs an algo with an intrinsic reward"),
     (["--algos", "im-curl", "--tasks", TASK, "--beta0", "0.1,-1"], "beta0 values must be >= 0"),
+    (["--algos", "im-curl", "--tasks", TASK, "--beta0", "0.1,inf"], "beta0 values must be >= 0 and finite"),
+    # imssr train's seed rule: a seed it refuses would pass here and fail every run.
+    (["--algos", "curl", "--tasks", TASK, "--seeds", "1,18446744073709551616"],
+     "seeds must be an integer in [0, 2147483647] (numpy and dm_control take 32-bit seeds, and evaluation "
+     "adds up to 20000), got 18446744073709551616"),
+    (["--algos", "curl", "--tasks", TASK, "--seeds", "4294967296"], "seeds must be an integer in [0, 2147483647]"),
+    (["--algos", "curl", "--tasks", TASK, "--set", "train.seed=1e30"], "train.seed must be an integer in"),
+    (["--algos", "curl", "--tasks", TASK, "--set", "agent.critic_lr=NaN"], "agent.critic_lr expects a finite number"),
     (["--tasks", TASK], "a sweep needs --algos"),
     (["--algos", "curl", "--tasks", TASK, "--steps", "10", "--frames", "80"],
      "give the budget as --steps (agent steps) or --frames, not both"),
@@ -328,3 +336,21 @@ def test_old_run_directories_are_done_and_reported_in_agent_steps(tmp_path):
     assert status(root)["counts"]["done"] == 2
     bigger = SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1], overrides=TINY, steps=300)
     assert [s.action for s in plan_runs(bigger)] == ["fresh"]  # a larger budget is not done
+
+
+def test_status_and_done_files_are_strict_json(tmp_path):
+    """No bare NaN / Infinity in the JSON files a sweep writes (strict parsers refuse them)."""
+    from imssr.experiments.runner import write_done
+    from imssr.experiments.sweep import RunStatus, write_status
+
+    def strict(path):
+        with open(path) as fh:
+            return json.load(fh, parse_constant=lambda name: pytest.fail(f"{path} holds {name}"))
+
+    cfg = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[1]).validate()
+    (run,) = expand(cfg)
+    st = RunStatus(run, 10, 80, seconds=float("nan"))
+    assert strict(write_status(cfg, [st], started=0.0))["runs"][0]["seconds"] is None
+    os.makedirs(run.dir)
+    write_done(run.dir, 10, 10, 1, False, seconds=float("inf"))
+    assert strict(os.path.join(run.dir, DONE_FILE))["seconds"] is None

@@ -146,5 +146,10 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         self.apply_gradients(step)
         return {"aux_loss": loss.detach()}
 
+    def load_data(self, device) -> None:
+        """Load what the task reads from disk (SODA: its overlay images) onto ``device``.  The
+        trainer calls it before the first step, so a bad image folder fails before the seed phase
+        rather than at the first update; evaluation never needs it."""
+
     def after_step(self, step: int) -> None:
         """Hook for momentum updates of the task's own target networks."""

@@ -65,10 +65,13 @@ class SODA(AuxiliaryTask):
         # rebuilt from its source.
         self.images: torch.Tensor | None = None
 
+    def load_data(self, device) -> None:
+        pool = image_pool(self.agent_cfg.crop_size, self.cfg.image_dir, self.cfg.image_pool_size)
+        self.images = torch.from_numpy(pool).to(device)
+
     def overlay(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         if self.images is None or self.images.device != x.device:
-            pool = image_pool(self.agent_cfg.crop_size, self.cfg.image_dir, self.cfg.image_pool_size)
-            self.images = torch.from_numpy(pool).to(x.device)
+            self.load_data(x.device)
         return random_overlay(x, self.images, self.cfg.overlay_alpha, generator)
 
     def squared_distance(self, online_view: torch.Tensor, target_view: torch.Tensor) -> torch.Tensor:

@@ -65,7 +65,8 @@ def _read_rgb(path: Path):
     try:
         with Image.open(path) as im:
             return im.convert("RGB")
-    except (OSError, ValueError) as exc:
+    # PIL raises SyntaxError for some broken files and DecompressionBombError for huge ones.
+    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as exc:
         raise ImssrError(f"cannot read image {path}: {exc}") from None
 
 
@@ -109,7 +110,10 @@ def _image_files(root: Path) -> list[Path]:
 def load_image_folder(path: str, size: int, max_images: int = 1024, seed: int = 0) -> np.ndarray:
     """Up to ``max_images`` images under ``path`` (recursively), centre-square resized to ``size``.
 
-    Large folders (Places365 has 1.8M files) are subsampled with ``seed``.
+    Large folders (Places365 has 1.8M files) are subsampled with ``seed``.  An unreadable file
+    (truncated, not an image) is skipped and, in a subsampled folder, replaced by another drawn
+    with the same seed; the skips are counted in one warning line ("skipped 3 of 1,027
+    unreadable images in DIR").  A folder without one readable image is an error.
     """
     root = Path(path).expanduser()
     if not root.exists():
@@ -119,10 +123,30 @@ def load_image_folder(path: str, size: int, max_images: int = 1024, seed: int = 
     files = _image_files(root)
     if not files:
         raise ImssrError(f"no .jpg/.jpeg/.png images under {root}")
+    order: list[int] = list(range(len(files)))
     if len(files) > max_images:
-        pick = np.random.default_rng(seed).choice(len(files), max_images, replace=False)
-        files = [files[i] for i in sorted(pick)]
-    return np.stack([_square_resize(_read_rgb(p), size) for p in files])
+        # The first max_images are the pool (as before skipping existed, so a folder without
+        # bad files gives the same pool); the rest, in a seeded order, replace unreadable ones.
+        rng = np.random.default_rng(seed)
+        pick = sorted(rng.choice(len(files), max_images, replace=False))
+        chosen = set(pick)
+        rest = [i for i in range(len(files)) if i not in chosen]
+        order = pick + [rest[j] for j in rng.permutation(len(rest))]
+    pool, tried = [], 0
+    for i in order:
+        if len(pool) == max_images:
+            break
+        tried += 1
+        try:
+            pool.append(_square_resize(_read_rgb(files[i]), size))
+        except ImssrError:
+            continue
+    skipped = tried - len(pool)
+    if not pool:
+        raise ImssrError(f"no readable images under {root}: all {skipped:,} .jpg/.jpeg/.png files failed to load")
+    if skipped:
+        print(f"imssr: warning: skipped {skipped:,} of {tried:,} unreadable images in {root}", flush=True)
+    return np.stack(pool)
 
 
 def image_pool(size: int, image_dir: str = "", max_images: int = 1024) -> np.ndarray:

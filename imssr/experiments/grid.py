@@ -7,6 +7,7 @@ finds its earlier runs again; ``imssr.experiments.sweep`` decides what each one 
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Optional
@@ -75,6 +76,7 @@ class SweepConfig:
         return cfg
 
     def validate(self) -> "SweepConfig":
+        from imssr.config import MAX_SEED, SEED_RULE
         from imssr.envs import get_task
         from imssr.presets import get_algo
 
@@ -94,11 +96,13 @@ class SweepConfig:
             (self.steps is None or self.steps >= 1, "--steps must be >= 1"),
             (self.frames is None or self.frames >= 1, "--frames must be >= 1"),
             (self.retries >= 0, "--retries must be >= 0"),
-            (self.cpus_per_run > 0, "--cpus-per-run must be > 0"),
-            (self.gpus_per_run >= 0, "--gpus-per-run must be >= 0"),
+            (0 < self.cpus_per_run < math.inf, "--cpus-per-run must be a finite number > 0"),
+            (0 <= self.gpus_per_run < math.inf, "--gpus-per-run must be a finite number >= 0"),
             (self.max_parallel >= 0, "--max-parallel must be >= 0"),
-            (all(s >= 0 for s in self.seeds), "seeds must be >= 0"),
-            (all(b >= 0 for b in self.beta0), "--beta0 values must be >= 0"),
+            # The same rule as imssr train's (train.seed): a seed it refuses would fail every run.
+            (all(0 <= s <= MAX_SEED for s in self.seeds),
+             f"seeds must be {SEED_RULE}, got {next((s for s in self.seeds if not 0 <= s <= MAX_SEED), None)}"),
+            (all(0 <= b < math.inf for b in self.beta0), "--beta0 values must be >= 0 and finite"),
         ]
         for ok, message in checks:
             if not ok:
@@ -188,7 +192,9 @@ def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, tuple[int, i
             "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), steps=budgets[r.dir][0],
                           frames=budgets[r.dir][1]) for r in runs]}
     path = os.path.join(root, SWEEP_PLAN)
-    atomic_write_text(path, json.dumps(plan, indent=2) + "\n")
+    from imssr.jsonio import dumps
+
+    atomic_write_text(path, dumps(plan, indent=2) + "\n")
     return path
 
 
@@ -243,8 +249,8 @@ def parse_floats(text: Any, what: str) -> list[float]:
             value = float(item)
         except (TypeError, ValueError):
             raise ImssrError(f"bad {what} value {item!r}: expected numbers like 0.001,0.01") from None
-        if not value >= 0:  # also NaN
-            raise ImssrError(f"{what} values must be >= 0, got {item!r}")
+        if not 0 <= value < math.inf:  # also NaN
+            raise ImssrError(f"{what} values must be >= 0 and finite, got {item!r}")
         values.append(value)
     if not values:
         raise ImssrError(f"no {what} values given")

@@ -39,7 +39,7 @@ def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> s
     return path
 
 
-def save_video(frames: list[np.ndarray], path: str, fps: int = 25) -> str:
+def save_video(frames: list[np.ndarray], path: str, fps: float = 25) -> str:
     """Write ``(H, W, 3)`` uint8 frames as a gif or an mp4 (by the file suffix)."""
     import imageio.v2 as imageio
 

@@ -7,7 +7,8 @@ Files written under ``out``:
 - ``aggregates.csv``   rliable IQM and probability of improvement with 95% CIs
 - ``curves.png``       learning curves against agent steps, one panel per task and mode
 - ``beta0.png``        final return against beta_0 (only for a beta sweep)
-- ``report.md``        all of the above in one page, with notes on what is missing
+- ``report.md``        all of the above in one page, with the runs that failed in the sweep
+                       (``sweep_status.json``) and notes on what is missing
 
 T and its fractions count agent steps, as the paper's do; frames are given beside them.
 """
@@ -68,11 +69,13 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
 def _markdown(results, root_name: str, rows, aggregates, notes, with_paper: bool, beta_plot: bool,
               reps: int) -> str:
     n_evals = sum(len(r.evals) for r in results.runs)
+    failed = (f" **{len(results.failures)} failed** in the sweep (see Failed runs)." if results.failures else "")
     parts = [
         f"# Sweep report: `{root_name}`\n",
-        f"{len(results.runs)} runs, {n_evals} evaluations. Cells: mean ± std over seeds (ddof 0) of each "
+        f"{len(results.runs)} runs, {n_evals} evaluations.{failed} Cells: mean ± std over seeds (ddof 0) of each "
         "seed's last evaluation return at or before the point's agent step; **bold**: best mean of the task at that "
-        "point; `(n/N)`: only n of the N expected seeds reached the point."
+        "point; `(n/N)`: only n of the N expected seeds reached the point; `k failed`: k of them failed in "
+        "the sweep."
         + (" `paper` columns: the published numbers (Tables I and II)." if with_paper else "") + "\n",
         "## Table\n",
         "T is the budget in agent steps; each task's points in agent steps and environment frames:\n",
@@ -90,6 +93,13 @@ def _markdown(results, root_name: str, rows, aggregates, notes, with_paper: bool
     if beta_plot:
         parts += ["## Beta_0 sensitivity\n", "Return at 1.0T against beta_0 (log axis); dashed lines: the "
                   "base algorithms (beta_0 = 0).\n", "![beta_0](beta0.png)\n"]
+    if results.failures:
+        parts.append("## Failed runs\n")
+        parts.append("Runs that `sweep_status.json` lists as failed after every attempt, with the last error "
+                     "(the full output is in each run's `sweep.log`); their evaluations up to the failure "
+                     "count where they reach.\n")
+        parts.append("\n".join(f"- `{os.path.relpath(d, results.root)}`: {e}"
+                               for d, e in sorted(results.failures.items())) + "\n")
     parts.append("## Notes\n")
     parts.append("\n".join(f"- {n}" for n in notes) + "\n" if notes else "Every expected seed reached every point.\n")
     return "\n".join(parts)

@@ -6,7 +6,8 @@ when budgets counted frames reports with the agent steps it trained.
 
 Runs are found by their ``config.json`` at any depth below the root, so a report also works
 on hand-assembled directories and on sweeps that are still running.  ``sweep.json`` (written
-by ``imssr sweep``) adds the runs that were planned but have not written anything yet.
+by ``imssr sweep``) adds the runs that were planned but have not written anything yet, and
+``sweep_status.json`` the runs that failed every attempt, with their last error.
 """
 from __future__ import annotations
 
@@ -44,6 +45,8 @@ class RunResult:
     """Run directory."""
     evals: list[tuple[str, int, int, float]] = field(default_factory=list)
     """``(mode, step, frame, return_mean)`` of every evaluation, in file order."""
+    failure: Optional[str] = None
+    """The last error of a run that ``sweep_status.json`` lists as failed; None otherwise."""
 
     @property
     def frames(self) -> int:
@@ -72,6 +75,8 @@ class PlannedRun:
     steps: int
     """Budget in agent steps."""
     dir: str
+    failure: Optional[str] = None
+    """The last error when ``sweep_status.json`` lists the run as failed."""
 
     @property
     def label(self) -> str:
@@ -86,6 +91,8 @@ class SweepResults:
     runs: list[RunResult]
     planned: list[PlannedRun]
     notes: list[str]
+    failures: dict[str, str] = field(default_factory=dict)
+    """Run directory (absolute) -> last error, for every run ``sweep_status.json`` lists as failed."""
 
     @property
     def is_beta_sweep(self) -> bool:
@@ -124,13 +131,38 @@ def collect(root: str) -> SweepResults:
         if run is not None:
             runs.append(run)
     planned = _read_plan(root, runs, notes)
+    failures = read_failures(root)
+    for item in (*runs, *planned):
+        item.failure = failures.get(os.path.abspath(item.dir))
     found = {os.path.abspath(r.dir) for r in runs}
     for p in planned:
-        if p.dir not in found:
+        if p.dir not in found and p.failure is None:
             notes.append(f"{os.path.relpath(p.dir, root)}: planned but not started (no config.json)")
     if not runs:
         raise ImssrError(f"no runs under {root} (a run directory holds config.json and eval.csv)")
-    return SweepResults(root, runs, planned, notes)
+    return SweepResults(root, runs, planned, notes, failures)
+
+
+def read_failures(root: str) -> dict[str, str]:
+    """Runs that the last ``imssr sweep`` over ``root`` gave up on (state ``failed`` in
+    ``sweep_status.json``): absolute run directory -> the last attempt's error line.  A run
+    finished since (it has ``done.json``) is not failed."""
+    from imssr.experiments.runner import read_done
+    from imssr.experiments.sweep import status_of
+
+    status = status_of(root)
+    runs = status.get("runs") if isinstance(status, dict) else None
+    out = {}
+    for run in runs if isinstance(runs, list) else []:
+        if not isinstance(run, dict) or run.get("state") != "failed" or not isinstance(run.get("dir"), str):
+            continue
+        run_dir = os.path.abspath(os.path.join(root, run["dir"]))
+        if read_done(run_dir) is not None:
+            continue
+        errors = run.get("errors")
+        last = errors[-1] if isinstance(errors, list) and errors and isinstance(errors[-1], str) else ""
+        out[run_dir] = last.removeprefix("imssr: error: ") or "no error recorded"
+    return out
 
 
 def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:

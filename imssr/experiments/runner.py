@@ -15,6 +15,7 @@ import time
 from typing import Optional
 
 from imssr.config import steps_for_frames
+from imssr.jsonio import dumps
 from imssr.training.logger import read_csv
 from imssr.utils import atomic_write_text
 
@@ -191,7 +192,7 @@ def write_done(run_dir: str, steps: int, final_step: int, attempt: int, resumed:
             "final_step": final_step, "final_frame": last_frame(os.path.join(run_dir, "eval.csv")),
             "evaluations": len(evals), "attempt": attempt, "resumed": resumed, "seconds": seconds,
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    atomic_write_text(os.path.join(run_dir, DONE_FILE), json.dumps(done, indent=2) + "\n")
+    atomic_write_text(os.path.join(run_dir, DONE_FILE), dumps(done, indent=2) + "\n")
 
 
 def _last_line(path: str, offset: int) -> str:

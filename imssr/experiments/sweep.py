@@ -20,6 +20,7 @@ from typing import Optional
 from imssr.errors import ImssrError
 from imssr.experiments.grid import Run, SweepConfig, build_run_config, expand, save_plan
 from imssr.experiments.runner import LOG_FILE, has_checkpoint, is_done, last_frame, last_step, read_done
+from imssr.jsonio import dumps
 from imssr.utils import atomic_write_text
 
 STATUS_FILE = "sweep_status.json"
@@ -91,7 +92,7 @@ def write_status(cfg: SweepConfig, statuses: list[RunStatus], started: float, fi
     data = {"root": root, "started": _iso(started), "updated": _iso(time.time()), "finished": finished,
             "retries": cfg.retries, "counts": counts, "runs": [s.to_dict(root) for s in statuses]}
     path = os.path.join(root, STATUS_FILE)
-    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
+    atomic_write_text(path, dumps(data, indent=2) + "\n")
     return path
 
 
@@ -211,7 +212,19 @@ class _Progress:
 
 
 def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> list[RunStatus]:
-    """Run every run of the sweep that is not done; return the final status of each."""
+    """Run every run of the sweep that is not done; return the final status of each.
+
+    The sweep holds a lock on its root (:mod:`imssr.training.lock`), so a second sweep over the
+    same root fails at once ("ROOT is in use by PID n"); each run's training locks its own
+    directory as ``imssr train`` does.
+    """
+    from imssr.training.lock import DirectoryLock
+
+    with DirectoryLock(cfg.root):
+        return _run_sweep(cfg, progress, poll_s)
+
+
+def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatus]:
     statuses = plan_runs(cfg)
     root = os.path.abspath(cfg.root)
     os.makedirs(root, exist_ok=True)

@@ -8,7 +8,9 @@ the evaluation interval divides it, as the paper's 10,000 steps divide its point
 when budgets counted frames evaluated at the first step at or after each scheduled frame, which
 is the same step.  A seed whose evaluations stop before ``p`` (an unfinished run) has no value
 there, and the cell says how many of the expected seeds it averages.  Std is over seeds with
-ddof = 0 (numpy's default, as RL papers' tables use), so one seed has std 0.
+ddof = 0 (numpy's default, as RL papers' tables use), so one seed has std 0.  A seed whose run
+``sweep_status.json`` lists as failed and that has no value at a point is counted as failed
+there ("(2/3, 1 failed)"), not as merely missing.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from imssr.experiments.results import RunResult, SweepResults
 
 FRACTIONS = (0.2, 0.5, 1.0)
 TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",
-                 "seeds", "expected_seeds", "best", "paper_mean", "paper_std"]
+                 "seeds", "expected_seeds", "failed_seeds", "best", "paper_mean", "paper_std"]
 
 
 @dataclass
@@ -42,6 +44,8 @@ class Cell:
     """Seed -> return of its evaluation at the point."""
     expected: int = 0
     """Seeds the sweep planned (or that any algo of the task ran) for this group."""
+    failed: set[int] = field(default_factory=set)
+    """Seeds without a value here whose run failed (``sweep_status.json``)."""
     best: bool = False
     """Highest mean of its (mode, task) row group at this fraction."""
     paper: Optional[tuple[float, float]] = None
@@ -144,13 +148,22 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
                         evals = [(s, v) for m, s, _, v in run.evals if m == mode]
                         value = value_at(evals, point)
                         if value is None:
-                            late.append(f"{run.seed} ({_why_missing(evals, point)})")
+                            why = f"failed: {run.failure}" if run.failure else _why_missing(evals, point)
+                            late.append(f"{run.seed} ({why})")
+                            if run.failure:
+                                cell.failed.add(run.seed)
                         else:
                             cell.values[run.seed] = value
                     absent = sorted(want - {r.seed for r in runs})
-                    if late or absent:
+                    # Planned runs that failed before writing their config.json.
+                    failed_early = {p.seed: p.failure for p in results.planned
+                                    if p.task == task and p.label == label and p.failure and p.seed in absent}
+                    cell.failed |= set(failed_early)
+                    absent = [s for s in absent if s not in failed_early]
+                    if late or absent or failed_early:
                         parts = ([f"no value for seed(s) {', '.join(late)}"] if late else []) + \
-                                ([f"no run for seed(s) {', '.join(map(str, absent))}"] if absent else [])
+                                ([f"no run for seed(s) {', '.join(map(str, absent))}"] if absent else []) + \
+                                [f"seed {s} failed before writing anything ({e})" for s, e in failed_early.items()]
                         notes.append(f"{mode} / {task} / {label} at {fraction:.1f}T (step {point}): "
                                      + "; ".join(parts))
                     if paper is not None and beta0 is None and algo in ALGOS:
@@ -213,10 +226,11 @@ def _fmt(mean: float, std: float) -> str:
 
 
 def cell_text(cell: Cell) -> str:
+    failed = f", {len(cell.failed)} failed" if cell.failed else ""
     if not cell.n:
-        return f"– (0/{cell.expected})"
+        return f"– (0/{cell.expected}{failed})"
     text = f"**{cell.mean:.1f}** ± {cell.std:.1f}" if cell.best else _fmt(cell.mean, cell.std)
-    return text if cell.n >= cell.expected else f"{text} ({cell.n}/{cell.expected})"
+    return text if cell.n >= cell.expected and not failed else f"{text} ({cell.n}/{cell.expected}{failed})"
 
 
 def point_text(step: int, frame: Optional[int]) -> str:
@@ -262,7 +276,7 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
                 if with_paper:
                     cols.append(_fmt(*cell.paper) if cell.paper else "")
             final = row.cells[-1]
-            cols.append(f"{final.n}/{final.expected}")
+            cols.append(f"{final.n}/{final.expected}" + (f", {len(final.failed)} failed" if final.failed else ""))
             out.append("| " + " | ".join(cols) + " |")
         out.append("")
     return "\n".join(out)
@@ -279,6 +293,6 @@ def write_table_csv(rows: list[Row], path: str) -> str:
                        "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.step,
                        "" if cell.frame is None else cell.frame,
                        "" if not cell.n else f"{cell.mean:.6g}", "" if not cell.n else f"{cell.std:.6g}",
-                       cell.n, cell.expected, int(cell.best), *paper]
+                       cell.n, cell.expected, len(cell.failed), int(cell.best), *paper]
 
     return atomic_write_csv(path, TABLE_COLUMNS, lines())

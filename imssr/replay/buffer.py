@@ -14,6 +14,7 @@ is live (not the write head) and every frame of its stack is still live.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import warnings
 from typing import Optional
@@ -21,12 +22,17 @@ from typing import Optional
 import numpy as np
 
 from imssr.errors import ImssrError
+from imssr.integrity import HashingWriter, check_zip, seal_zip
 from imssr.utils import atomic_path
 
 
 def frames_path(path: str) -> str:
     """Where :meth:`FrameReplayBuffer.save` puts the frames that go with ``path``."""
     return path + ".frames.npy"
+
+
+class ReplayFileError(ImssrError):
+    """A saved replay buffer that is missing, unreadable or damaged (a resume may refill instead)."""
 
 
 class ReplayMemoryWarning(UserWarning):
@@ -188,27 +194,40 @@ class FrameReplayBuffer:
 
     def save(self, path: str) -> None:
         """Write the live contents atomically: ``path`` (small fields, ``.npz``) and
-        ``path + '.frames.npy'`` (frames, raw, so that loading can stream them)."""
+        ``path + '.frames.npy'`` (frames, raw, so that loading can stream them).
+
+        The frames' sha256 (hashed as they are written) is stored in the ``.npz``, and the
+        ``.npz`` is sealed with its own (:mod:`imssr.integrity`); :meth:`load` verifies both.
+        """
         n = self._extent()
-        with atomic_path(frames_path(path)) as tmp:
+        frames = self.frames[:n]  # a view: no copy of the frames in memory
+        with atomic_path(frames_path(path), needed=frames.nbytes + 128) as tmp:
             with open(tmp, "wb") as fh:
-                np.save(fh, self.frames[:n])  # a view: no copy of the frames in memory
-        with atomic_path(path) as tmp:
+                # Through a writer that is not a file: numpy then writes chunks with write()
+                # (hashed on the way) instead of tofile(), whose full-disk error has no errno.
+                writer = HashingWriter(fh)
+                np.save(writer, frames)
+        small = (self.actions[:n], self.rewards[:n], self.discounts[:n], self.step_in_episode[:n])
+        with atomic_path(path, needed=sum(x.nbytes for x in small) + 4096) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, actions=self.actions[:n], rewards=self.rewards[:n],
-                         discounts=self.discounts[:n], step_in_episode=self.step_in_episode[:n],
+                np.savez(fh, actions=small[0], rewards=small[1], discounts=small[2], step_in_episode=small[3],
                          meta=np.array([self.capacity, self.head, self.size, int(self._open_episode)]),
-                         frame_shape=np.array(self.frame_shape))
+                         frame_shape=np.array(self.frame_shape), frames_sha256=np.array(writer.digest))
+            seal_zip(tmp)
 
     def _extent(self) -> int:
         # Slots ever written: a prefix until the ring wraps, then all of it.
         return self.capacity if self.size == self.capacity else self.head
 
     def load(self, path: str, rng_state: Optional[dict] = None) -> None:
+        """Load what :meth:`save` wrote, verifying its checksums (files written before
+        checksums load unverified); :class:`ReplayFileError` when a file is missing or damaged."""
         for p in (path, frames_path(path)):
             if not os.path.exists(p):
-                raise ImssrError(f"replay buffer file not found: {p}")
+                raise ReplayFileError(f"replay buffer file not found: {p}")
         try:
+            if check_zip(path) is False:
+                raise ReplayFileError(f"replay buffer {path} is damaged (checksum mismatch)")
             with np.load(path) as data:
                 capacity, head, size, open_ = (int(x) for x in data["meta"])
                 if capacity != self.capacity or tuple(data["frame_shape"]) != self.frame_shape:
@@ -220,22 +239,56 @@ class FrameReplayBuffer:
                 self.rewards[:n] = data["rewards"]
                 self.discounts[:n] = data["discounts"]
                 self.step_in_episode[:n] = data["step_in_episode"]
-            # Memory-mapped and copied in chunks: peak memory stays one buffer, not two.
-            frames = np.load(frames_path(path), mmap_mode="r")
-            if frames.shape != (n, *self.frame_shape):
-                raise ImssrError(f"replay frames {frames_path(path)} have shape {frames.shape}, "
-                                 f"expected {(n, *self.frame_shape)}")
-            for lo in range(0, n, 4096):
-                hi = min(lo + 4096, n)
-                self.frames[lo:hi] = frames[lo:hi]
-            del frames
+                expected = str(data["frames_sha256"]) if "frames_sha256" in data.files else None
+            self._read_frames(frames_path(path), n, expected)
         except ImssrError:
             raise
         except Exception as exc:  # noqa: BLE001 - zip/npy corruption has many faces
-            raise ImssrError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
+            raise ReplayFileError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
         self.head, self.size, self._open_episode = head, size, bool(open_)
         if rng_state is not None:
             self.rng.bit_generator.state = rng_state
 
+    def _read_frames(self, fpath: str, n: int, expected: Optional[str]) -> None:
+        """Read ``n`` frames straight into the ring, in chunks (peak memory stays one buffer),
+        hashing the file on the way; ``expected`` is its sha256 (None: not verified)."""
+        h = hashlib.sha256()
+        with open(fpath, "rb") as fh:
+            reader = _HashingReader(fh, h)
+            version = np.lib.format.read_magic(reader)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(reader)
+            elif version == (2, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(reader)
+            else:
+                raise ValueError(f"npy format version {version}")
+            if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
+                raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
+                                      f"expected {(n, *self.frame_shape)} (uint8)")
+            flat = memoryview(self.frames).cast("B")
+            total, pos = n * int(np.prod(self.frame_shape)), 0
+            while pos < total:
+                got = fh.readinto(flat[pos:min(pos + (1 << 24), total)])
+                if not got:
+                    raise ReplayFileError(f"replay frames {fpath} are truncated")
+                h.update(flat[pos:pos + got])
+                pos += got
+            if fh.read(1):
+                raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
+        if expected is not None and h.hexdigest() != expected:
+            raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
+
     def __len__(self) -> int:
         return self.size
+
+
+class _HashingReader:
+    """Reads from ``fh`` and hashes what it returns (for the ``.npy`` header)."""
+
+    def __init__(self, fh, h):
+        self.fh, self.h = fh, h
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.fh.read(size)
+        self.h.update(data)
+        return data

@@ -5,6 +5,8 @@ from typing import Optional
 
 import numpy as np
 
+from imssr.errors import DivergedError
+
 
 def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[float]:
     """Undiscounted returns of ``episodes`` episodes of ``env``.
@@ -20,13 +22,24 @@ def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[f
             record.append(_hwc(info["frame"]))
         done, total = False, 0.0
         while not done:
-            obs, reward, terminated, truncated, info = env.step(agent.act(obs, deterministic=True))
+            action = agent.act(obs, deterministic=True)
+            if not np.isfinite(action).all():
+                # The simulator would end in a PhysicsError traceback; the trainer adds the step.
+                raise DivergedError(f"evaluation action {non_finite_text(action)}")
+            obs, reward, terminated, truncated, info = env.step(action)
             if keep:
                 record.append(_hwc(info["frame"]))
             total += reward
             done = terminated or truncated
         returns.append(total)
     return [float(r) for r in np.asarray(returns)]
+
+
+def non_finite_text(values) -> str:
+    """The first non-finite value of ``values`` as text: ``nan``, ``inf`` or ``-inf``."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    bad = values[~np.isfinite(values)]
+    return str(float(bad[0])) if bad.size else "finite"
 
 
 def _hwc(frame: np.ndarray) -> np.ndarray:

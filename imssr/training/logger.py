@@ -12,7 +12,7 @@ import os
 import shutil
 from typing import Iterable, Optional
 
-from imssr.utils import atomic_write_text
+from imssr.utils import atomic_write_text, disk_full_as_error
 
 TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
                  "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
@@ -31,7 +31,8 @@ class CSVLog:
             atomic_write_text(path, ",".join(columns) + "\n")
 
     def write(self, row: dict) -> None:
-        with open(self.path, "a", newline="") as fh:
+        # A line cut short by a full disk is dropped on resume (truncate_after).
+        with disk_full_as_error(self.path), open(self.path, "a", newline="") as fh:
             csv.DictWriter(fh, self.columns, extrasaction="ignore").writerow(
                 {k: _fmt(row.get(k)) for k in self.columns})
             fh.flush()

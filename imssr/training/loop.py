@@ -9,7 +9,9 @@ reset from the saved task RNG, so ``--resume`` reproduces the uninterrupted run.
 """
 from __future__ import annotations
 
+import math
 import os
+import sys
 import time
 from collections import defaultdict
 from typing import Optional
@@ -21,18 +23,27 @@ from imssr.agents import SACAgent
 from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import make_env
-from imssr.errors import ImssrError
+from imssr.errors import DivergedError, ImssrError, NonFiniteError
 from imssr.presets import get_algo
 from imssr.replay import FrameReplayBuffer
-from imssr.training.checkpoint import checkpoint_dir, latest_path, load_checkpoint, save_checkpoint
-from imssr.training.evaluate import eval_row, evaluate
+from imssr.replay.buffer import ReplayFileError, frames_path
+from imssr.training.checkpoint import checkpoint_dir, latest_path, save_checkpoint, usable_checkpoint
+from imssr.training.lock import DirectoryLock
+from imssr.training.evaluate import eval_row, evaluate, non_finite_text
 from imssr.training.logger import Logger
 from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
 RESUMABLE_CHANGES = {"train.steps", "train.device", "train.progress", "train.tensorboard",
                      "train.torch_threads", "train.eval_episodes", "train.eval_every_steps",
-                     "train.checkpoint_every_steps", "train.eval_modes"}
+                     "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer"}
+
+PROGRESS_EVERY_S = 60.0
+"""Seconds of wall time between progress lines when stdout is not a terminal (a SLURM or nohup
+log): agent step, frames per second, ETA and the last episode's return."""
+# Training metrics in the order a divergence names them (the critic's loss first).
+DIVERGENCE_ORDER = ("critic_loss", "actor_loss", "alpha_loss", "aux_loss", "rnd_loss", "q_mean",
+                    "alpha", "entropy")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -69,10 +80,33 @@ class Trainer:
     Args:
         cfg: the run's configuration.
         out_dir: run directory (config.json, CSV logs, checkpoints, tb/).
-        resume: continue from ``out_dir/checkpoints/latest.pt``.
+        resume: continue from ``out_dir/checkpoints/latest.pt`` (or, when it is damaged, from
+            the newest retained ``step-*.pt`` that verifies).
+        refill_buffer: on resume, when the saved replay buffer is missing or damaged, start
+            with an empty buffer refilled by random actions (not an exact resume) instead of
+            failing.
+
+    The trainer holds an exclusive lock on ``out_dir`` (:mod:`imssr.training.lock`) from
+    before it writes or deletes anything there until :meth:`close`.
     """
 
-    def __init__(self, cfg: RunConfig, out_dir: str, resume: bool = False):
+    def __init__(self, cfg: RunConfig, out_dir: str, resume: bool = False, refill_buffer: bool = False):
+        if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+            raise ImssrError(f"--out {out_dir} is a file, not a directory")
+        # A second process on the same directory fails here, before the Logger of a fresh
+        # run deletes the first one's logs and tb/.
+        self._lock = DirectoryLock(out_dir).acquire()
+        self.refill_buffer = refill_buffer
+        self._replay_file: Optional[str] = None  # the replay file that latest.pt names
+        self.resumed_from: Optional[str] = None
+        self._fallback = False
+        try:
+            self._setup(cfg, out_dir, resume)
+        except BaseException:
+            self.close()
+            raise
+
+    def _setup(self, cfg: RunConfig, out_dir: str, resume: bool) -> None:
         if not resume:
             # Sources named by environment variables are written into the run's
             # config, so a resume or `imssr evaluate` in another shell uses the same.
@@ -85,6 +119,11 @@ class Trainer:
         ckpt = None
         if resume:
             ckpt = self._check_resume()
+            if ckpt["step"] > cfg.train.steps:
+                # Refused before anything (config.json) is rewritten with the smaller budget.
+                raise ImssrError(f"the run in {out_dir} is already at agent step {ckpt['step']:,}, past the "
+                                 f"budget of {cfg.train.steps:,} steps asked for; resume with --steps "
+                                 f"{ckpt['step']} or more")
         elif os.path.exists(latest_path(out_dir)):
             raise ImssrError(f"{out_dir} already holds a run; pass --resume to continue it "
                              "or choose another --out")
@@ -93,6 +132,10 @@ class Trainer:
         warning = contention_warning(torch.get_num_threads())
         if warning:
             print(warning, flush=True)
+        if ckpt is not None:
+            warning = thread_warning(ckpt.get("torch_threads"), torch.get_num_threads(), self.device)
+            if warning:
+                print(warning, flush=True)
         seed_everything(cfg.train.seed)
         e = cfg.env
         env_kwargs = dict(action_repeat=e.action_repeat, image_size=e.image_size,
@@ -105,6 +148,9 @@ class Trainer:
                                       footage_path=e.footage_dir, **env_kwargs) for m in self.eval_modes}
         self.action_dim = self.env.action_space.shape[0]
         self.agent = build_agent(cfg, self.env.observation_space.shape, self.action_dim, self.device)
+        if self.agent.aux is not None:
+            # SODA's overlay images: a bad folder fails now, not after the seed phase.
+            self.agent.aux.load_data(self.device)
         # Independent streams for the replay sampler and the seed-phase actions.
         replay_seq, action_seq = np.random.SeedSequence(cfg.train.seed).spawn(2)
         self.replay = FrameReplayBuffer(cfg.train.replay_capacity, (3, e.image_size, e.image_size),
@@ -118,8 +164,6 @@ class Trainer:
         # without a saved buffer: the buffer refills with random actions first).
         self.learning_starts = cfg.train.seed_steps
         self.eval_history: list[dict] = []
-        if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-            raise ImssrError(f"--out {out_dir} is a file, not a directory")
         os.makedirs(out_dir, exist_ok=True)
         if ckpt is not None:
             self._restore(ckpt)
@@ -131,13 +175,15 @@ class Trainer:
         if ckpt is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
             self.logger.rewrite_eval(self.eval_history)
+            print(f"imssr: resuming from agent step {self.step:,} (frame {self.frame:,}) of "
+                  f"{cfg.train.steps:,}", flush=True)
 
     # -- resume ------------------------------------------------------------------
     def _check_resume(self) -> dict:
-        path = latest_path(self.out_dir)
-        if not os.path.exists(path):
-            raise ImssrError(f"nothing to resume: {path} does not exist")
-        ckpt = load_checkpoint(path)
+        ckpt, path, note = usable_checkpoint(self.out_dir)
+        if note:
+            print(f"imssr: {note}", flush=True)
+        self.resumed_from, self._fallback = path, path != latest_path(self.out_dir)
         # Through the config class, so settings added since the run started read as defaults.
         try:
             saved = _flatten(RunConfig.from_dict(ckpt["config"]).to_dict())
@@ -176,17 +222,48 @@ class Trainer:
                 env.set_rng_state(saved[mode])
         self.action_rng.bit_generator.state = ckpt["action_rng"]
         set_rng_states(ckpt["global_rng"])
+        refill = None if ckpt.get("replay_file") else "checkpoint holds no replay buffer"
         if ckpt.get("replay_file"):
             path = os.path.join(checkpoint_dir(self.out_dir), ckpt["replay_file"])
-            self.replay.load(path, ckpt["replay_state"]["rng"])
-            if self.replay.state_dict()["head"] != ckpt["replay_state"]["head"]:
-                raise ImssrError(f"replay buffer {path} does not match the checkpoint")
-        else:
+            try:
+                self.replay.load(path, ckpt["replay_state"]["rng"])
+            except ReplayFileError as exc:
+                # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
+                if self._fallback and not (os.path.exists(path) and os.path.exists(frames_path(path))):
+                    refill = f"no replay buffer was kept for {os.path.basename(self.resumed_from)}"
+                elif self.refill_buffer:
+                    refill = str(exc)
+                else:
+                    raise ImssrError(f"{exc}; `imssr train --resume --refill-buffer` continues with an empty "
+                                     "buffer refilled by random actions (not an exact resume)") from None
+            else:
+                if self.replay.state_dict()["head"] != ckpt["replay_state"]["head"]:
+                    raise ImssrError(f"replay buffer {path} does not match the checkpoint")
+                self._replay_file = ckpt["replay_file"]
+        if refill:
             self.learning_starts = self.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
-            print("imssr: warning: checkpoint holds no replay buffer; refilling it with random "
+            print(f"imssr: warning: {refill}; refilling it with random "
                   f"actions until agent step {self.learning_starts} (the resume is not exact)", flush=True)
 
     def save(self) -> None:
+        """Checkpoint now.  A save that fails (a full disk) leaves the previous checkpoint as it
+        was and removes the replay files it wrote, which no checkpoint names."""
+        latest = latest_path(self.out_dir)
+        before = _identity(latest)
+        try:
+            self._save()
+        except ImssrError:
+            replay_file = f"replay-{self.step:09d}.npz"
+            if (self.cfg.train.save_buffer and replay_file != self._replay_file
+                    and _identity(latest) == before):
+                path = os.path.join(checkpoint_dir(self.out_dir), replay_file)
+                for p in (path, frames_path(path)):
+                    if os.path.exists(p):
+                        os.unlink(p)
+            raise
+        self._replay_file = f"replay-{self.step:09d}.npz" if self.cfg.train.save_buffer else None
+
+    def _save(self) -> None:
         replay_file = None
         if self.cfg.train.save_buffer:
             replay_file = f"replay-{self.step:09d}.npz"
@@ -200,6 +277,8 @@ class Trainer:
             "env_rng": self.env.get_rng_state(), "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
             "action_rng": self.action_rng.bit_generator.state, "global_rng": rng_states(),
             "replay_file": replay_file, "replay_state": self.replay.state_dict(),
+            # A resume with another thread count is valid but not bit-identical (thread_warning).
+            "torch_threads": torch.get_num_threads(),
         }
         save_checkpoint(self.out_dir, state, keep=self.cfg.train.keep_checkpoints)
 
@@ -221,9 +300,18 @@ class Trainer:
         self.last_eval_step = self.step
         return rows
 
+    progress_every_s: float = PROGRESS_EVERY_S
+    """Seconds between progress lines when stdout is not a terminal (see :data:`PROGRESS_EVERY_S`)."""
+
     def train(self, stop_at_step: Optional[int] = None) -> None:
         """Train to ``cfg.train.steps`` agent steps.  ``stop_at_step`` stops early after the
-        first checkpoint at or past it, as a killed process would (for tests)."""
+        first checkpoint at or past it, as a killed process would (for tests).
+
+        A NaN or infinite action (checked on the host before the simulator sees it), training
+        metric (checked once per episode, with the episode's metrics) or intrinsic signal stops
+        the run with :class:`DivergedError` ("diverged at agent step N: critic loss nan"); the
+        last checkpoint is from before it, since nothing is saved after a divergence.
+        """
         cfg, t = self.cfg, self.cfg.train
         total_steps = cfg.total_steps
         try:
@@ -237,6 +325,10 @@ class Trainer:
         ep_return, ep_frames, ep_start = 0.0, 0, time.time()
         sums: dict[str, float] = defaultdict(float)
         counts: dict[str, int] = defaultdict(int)
+        # A line every progress_every_s seconds where no progress bar shows (a log file).
+        log_progress = (bar is None or bar.disable) and not _isatty(sys.stdout)
+        started, start_step, start_frame = time.monotonic(), self.step, self.frame
+        next_progress, last_return = started + self.progress_every_s, None
         try:
             while self.step < total_steps:
                 if need_reset:
@@ -248,6 +340,8 @@ class Trainer:
                     action = self.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
                 else:
                     action = self.agent.act(obs, deterministic=False)
+                    if not np.isfinite(action).all():  # a few host values: no device sync
+                        raise DivergedError(f"action {non_finite_text(action)}")
                     # The burst: once, when the first seed phase ends (not after a refill).
                     n_updates = max(1, t.burst_updates) if self.step == t.seed_steps else 1
                     for _ in range(n_updates):
@@ -261,6 +355,11 @@ class Trainer:
                 ep_frames += info["sim_steps"]
                 if bar is not None:
                     bar.update(1)
+                if log_progress and time.monotonic() >= next_progress:
+                    now = time.monotonic()
+                    next_progress = now + self.progress_every_s
+                    print(_progress_line(self.step, total_steps, self.frame - start_frame,
+                                         self.step - start_step, now - started, last_return), flush=True)
                 if self.next_eval_step is not None and self.step >= self.next_eval_step:
                     rows = self.run_eval()
                     self.next_eval_step += t.eval_every_steps
@@ -273,7 +372,11 @@ class Trainer:
                            "wall_time": time.time()}
                     # One host sync per episode, not one per metric per update.
                     row.update({k: float(sums[k]) / counts[k] for k in sums})
+                    bad = _first_non_finite(row, sums)
+                    if bad:
+                        raise DivergedError(bad)
                     self.logger.log_train(row)
+                    last_return = ep_return
                     if bar is not None:
                         bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}", frame=self.frame)
                     self.episode += 1
@@ -293,15 +396,79 @@ class Trainer:
                 if self.last_eval_step != self.step:
                     self.run_eval()
                 self.save()
+        except NonFiniteError as exc:
+            # Named by the first non-finite training metric of the episode so far (one host
+            # sync, only now), else by what was found (the action, the intrinsic signal).
+            what = _first_non_finite({k: float(v) for k, v in sums.items()}, sums) or str(exc)
+            raise DivergedError(f"diverged at agent step {self.step}: {what}") from None
         finally:
             if bar is not None:
                 bar.close()
             self.logger.close()
 
     def close(self) -> None:
-        self.env.close()
-        for env in self.eval_envs.values():
-            env.close()
+        """Close the envs and release the run directory (also after a failed ``__init__``)."""
+        try:
+            if getattr(self, "env", None) is not None:
+                self.env.close()
+            for env in getattr(self, "eval_envs", {}).values():
+                env.close()
+        finally:
+            self._lock.release()
+
+
+def _identity(path: str) -> Optional[tuple]:
+    """Which file ``path`` is now (None if none): tells whether a save replaced it."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_mtime_ns, st.st_size
+
+
+def thread_warning(saved: Optional[int], now: int, device) -> Optional[str]:
+    """A one-line warning when a CPU run resumes with another torch thread count than it was
+    trained with (None when equal, unknown, or on a GPU): CPU kernels split their reductions
+    by thread, so float sums round differently and the run drifts from the uninterrupted one."""
+    if saved is None or saved == now or torch.device(device).type != "cpu":
+        return None
+    return (f"imssr: warning: this run was trained with {saved} torch thread(s) and resumes with {now}: "
+            "it stays valid but is no longer bit-identical to an uninterrupted run "
+            f"(--set train.torch_threads={saved} keeps it exact)")
+
+
+def _first_non_finite(values: dict, keys) -> Optional[str]:
+    """``"critic loss nan"`` for the first of ``keys`` (in :data:`DIVERGENCE_ORDER`, then the
+    rest) whose value in ``values`` is NaN or infinite; None when all are finite."""
+    ordered = [k for k in DIVERGENCE_ORDER if k in keys] + sorted(k for k in keys if k not in DIVERGENCE_ORDER)
+    for k in ordered:
+        v = values.get(k)
+        if isinstance(v, float) and not math.isfinite(v):
+            return f"{k.replace('_', ' ')} {v}"
+    return None
+
+
+def _isatty(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+def _progress_line(step: int, total: int, frames: int, steps: int, seconds: float,
+                   last_return: Optional[float]) -> str:
+    """``imssr: agent step 1,200/500,000 (0.2%), 310 frames/s, ETA 3:12:40, last episode return 12.5``:
+    rates over this process's training so far."""
+    seconds = max(seconds, 1e-9)
+    eta = "unknown" if steps <= 0 else _hms((total - step) * seconds / steps)
+    ret = "none yet" if last_return is None else f"{last_return:.1f}"
+    return (f"imssr: agent step {step:,}/{total:,} ({100 * step / max(total, 1):.1f}%), "
+            f"{frames / seconds:,.0f} frames/s, ETA {eta}, last episode return {ret}")
+
+
+def _hms(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
 def _next_multiple(step: int, every: int) -> Optional[int]:

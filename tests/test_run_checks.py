@@ -1,0 +1,141 @@
+"""Guards of a real training run: divergence stops in one line and keeps the last checkpoint,
+resume says where it resumes and warns on another thread count, a smaller budget is refused,
+progress lines for logs, and a bad image folder fails before the seed phase."""
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import tiny_config
+from imssr.errors import DivergedError, ImssrError
+from imssr.training import Trainer
+from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.training.logger import read_csv
+
+TASK = "cartpole_swingup_sparse"
+# cartpole episodes are 1000 frames: at action repeat 50 an episode is 20 agent steps.
+FAST = ["--steps", "60", "--seed-steps", "10", "--batch-size", "8", "--eval-every", "0", "--eval-episodes", "1",
+        "--replay-capacity", "1000", "--no-progress", "--no-tensorboard", "--set", "agent.hidden_dim=32",
+        "--set", "agent.feature_dim=16", "--set", "train.burst_updates=0", "--set", "env.action_repeat=50"]
+
+
+def fast(algo="curl", **train):
+    """tiny_config with 20-step episodes and a 10-step seed phase, checkpoints at episode ends."""
+    cfg = tiny_config(algo, TASK, **{"steps": 60, "seed_steps": 10, "eval_every_steps": 0,
+                                     "checkpoint_every_steps": 20, **train})
+    cfg.env.action_repeat = 50
+    return cfg
+
+
+def test_divergence_stops_in_one_line_and_keeps_the_last_good_checkpoint(tmp_path):
+    out = str(tmp_path / "run")
+    t = Trainer(fast(), out)
+    update = t.agent.update
+
+    def poisoned(replay, step):
+        if step == 25:  # after the checkpoint at the end of episode 1 (agent step 20)
+            with torch.no_grad():
+                next(t.agent.nets.critic.parameters()).fill_(float("nan"))
+        return update(replay, step)
+
+    t.agent.update = poisoned
+    try:
+        # The action of step 26 is NaN (checked on the host before the simulator sees it); the
+        # message names the first non-finite loss of the episode so far.
+        with pytest.raises(DivergedError, match=r"^diverged at agent step 26: critic loss nan$"):
+            t.train()
+    finally:
+        t.close()
+    ckpt = load_checkpoint(latest_path(out))
+    assert ckpt["step"] == 20  # nothing saved after the divergence
+    assert [int(r["step"]) for r in read_csv(f"{out}/train.csv")] == [20]
+    resumed = Trainer(fast(), out, resume=True)  # the last good checkpoint loads and resumes
+    try:
+        assert resumed.step == 20 and all(torch.isfinite(p).all() for p in resumed.agent.nets.parameters())
+    finally:
+        resumed.close()
+
+
+def test_divergence_in_evaluation_is_caught_before_the_simulator(tmp_path):
+    t = Trainer(fast(eval_every_steps=15), str(tmp_path / "run"))
+    act = t.agent.act
+    t.agent.act = lambda obs, deterministic: (np.full(1, np.inf, np.float32) if deterministic
+                                              else act(obs, deterministic))
+    try:
+        with pytest.raises(DivergedError, match=r"^diverged at agent step 15: evaluation action inf$"):
+            t.train()
+    finally:
+        t.close()
+
+
+def test_a_real_diverging_run_is_one_line_that_the_sweep_records(tmp_path):
+    """critic_lr=1e6 (the issue's example) diverges in its first updates: before, dm_control
+    ended it in a 26-line PhysicsError traceback."""
+    from imssr.experiments.runner import LOG_FILE, execute_run
+
+    run = tmp_path / "run"
+    args = ["--algo", "curl", "--task", TASK, "--seed", "1", *FAST, "--set", "agent.critic_lr=1e6"]
+    result = execute_run(str(run), args, 60, attempt=1)
+    assert not result["ok"] and result["returncode"] == 2
+    assert re.fullmatch(r"imssr: error: diverged at agent step \d+: [a-z ]+ (nan|inf|-inf)", result["error"]), result
+    log = (run / LOG_FILE).read_text()
+    assert "Traceback" not in log and "PhysicsError" not in log
+
+
+def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_smaller_budget(tmp_path, capsys):
+    out = str(tmp_path / "run")
+    try:
+        t = Trainer(fast(steps=40, torch_threads=1), out)
+        try:
+            t.train(stop_at_step=20)
+        finally:
+            t.close()
+        assert load_checkpoint(latest_path(out))["torch_threads"] == 1
+        capsys.readouterr()
+        config = (tmp_path / "run" / "config.json").read_text()
+        with pytest.raises(ImssrError, match=r"already at agent step 20, past the budget of 15 steps asked for; "
+                                             r"resume with --steps 20 or more"):
+            Trainer(fast(steps=15, torch_threads=1), out, resume=True)
+        assert (tmp_path / "run" / "config.json").read_text() == config  # not rewritten
+        resumed = Trainer(fast(steps=40, torch_threads=2), out, resume=True)
+        resumed.close()
+        said = capsys.readouterr().out
+        assert "imssr: resuming from agent step 20 (frame 1,000) of 40" in said
+        assert ("imssr: warning: this run was trained with 1 torch thread(s) and resumes with 2: it stays valid "
+                "but is no longer bit-identical to an uninterrupted run (--set train.torch_threads=1 keeps it "
+                "exact)") in said
+        resumed = Trainer(fast(steps=40, torch_threads=1), out, resume=True)
+        resumed.close()
+        assert "torch thread" not in capsys.readouterr().out
+    finally:
+        torch.set_num_threads(2)  # conftest's
+
+
+def test_progress_lines_when_stdout_is_not_a_terminal(tmp_path, capsys):
+    from imssr.training.loop import PROGRESS_EVERY_S
+
+    assert PROGRESS_EVERY_S == 60.0
+    # Mostly the seed phase: two updates after the first episode.
+    t = Trainer(fast(steps=22, seed_steps=20, checkpoint_every_steps=0), str(tmp_path / "run"))
+    t.progress_every_s = 0.0  # a line every agent step; pytest's captured stdout is no terminal
+    try:
+        t.train()
+    finally:
+        t.close()
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("imssr: agent step")]
+    assert len(lines) == 22, lines
+    pattern = (r"imssr: agent step \d+/22 \(\d+\.\d%\), [\d,]+ frames/s, ETA \d+:\d\d:\d\d, "
+               r"last episode return (none yet|-?\d+\.\d)")
+    assert all(re.fullmatch(pattern, line) for line in lines), lines
+    assert lines[-1].split("last episode return ")[1] != "none yet"  # after the first episode
+
+
+def test_a_bad_image_folder_fails_when_the_trainer_is_built(tmp_path):
+    folder = tmp_path / "images"
+    folder.mkdir()
+    (folder / "a.jpg").write_bytes(b"not a jpeg")
+    cfg = fast("soda")
+    cfg.aux.image_dir = str(folder)
+    with pytest.raises(ImssrError, match=r"no readable images under .*images: all 1 .jpg/.jpeg/.png files failed"):
+        Trainer(cfg, str(tmp_path / "run"))

@@ -1,0 +1,446 @@
+"""Faults around a run's files: two writers, a full disk, damaged files, file permissions.
+
+Tiny runs on cartpole (125 agent steps per episode, checkpoints at every episode end) with a
+seed phase that lasts almost to the end, so that they cost seconds and still make a few updates.
+"""
+import contextlib
+import errno
+import os
+import re
+import shutil
+import stat
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import assert_same_nets, filled_buffer, tiny_config
+from imssr.cli import main
+from imssr.errors import ImssrError
+from imssr.replay import FrameReplayBuffer
+from imssr.training import Trainer
+from imssr.training.checkpoint import CheckpointDamaged, latest_path, load_checkpoint, save_checkpoint
+from imssr.training.lock import LOCK_FILE, DirectoryLock
+from imssr.training.logger import CSVLog, read_csv
+from imssr.utils import atomic_write_csv, atomic_write_text
+
+TASK = "cartpole_swingup_sparse"
+NO_SPACE = r"no space left on (?P<device>/\S*) while writing (?P<path>\S+) \(\d+\.\d+ MB needed\)"
+
+
+def _cfg():
+    # 3 episodes; learning starts at agent step 360, so the last 15 steps update the agent.
+    cfg = tiny_config("curl", TASK, steps=375, seed_steps=360, eval_every_steps=0,
+                      checkpoint_every_steps=125, keep_checkpoints=2)
+    cfg.agent.encoder_filters = 8
+    return cfg
+
+
+def _train(out, stop_at_step=None, resume=False, **kw):
+    t = Trainer(_cfg(), str(out), resume=resume, **kw)
+    try:
+        t.train(stop_at_step=stop_at_step)
+        return t
+    finally:
+        t.close()
+
+
+def _strip(rows, drop=("wall_time", "fps")):
+    return [{k: v for k, v in r.items() if k not in drop} for r in rows]
+
+
+def _assert_same_run(a, a_dir, b, b_dir):
+    """Two finished runs reached the same weights, replay buffer and logs."""
+    assert a.step == b.step
+    assert_same_nets(a.agent, b.agent)
+    assert a.replay.size == b.replay.size
+    assert np.array_equal(a.replay.frames[: a.replay.size], b.replay.frames[: b.replay.size])
+    for name in ("train.csv", "eval.csv"):
+        assert _strip(read_csv(os.path.join(a_dir, name))) == _strip(read_csv(os.path.join(b_dir, name))), name
+
+
+@pytest.fixture(scope="module")
+def full(tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    return str(out), _train(out)
+
+
+@pytest.fixture(scope="module")
+def stopped(tmp_path_factory):
+    """A run "killed" after its checkpoint at agent step 250 (step-125 and step-250 retained)."""
+    out = tmp_path_factory.mktemp("stopped")
+    _train(out, stop_at_step=250)
+    return str(out)
+
+
+@pytest.fixture
+def run(stopped, tmp_path):
+    """A private copy of the stopped run."""
+    path = str(tmp_path / "run")
+    shutil.copytree(stopped, path)
+    return path
+
+
+def _ckpt(run_dir, name):
+    return os.path.join(run_dir, "checkpoints", name)
+
+
+def _flip(path, count=64):
+    """Invert ``count`` bytes in the middle of ``path``."""
+    data = bytearray(open(path, "rb").read())
+    mid = len(data) // 2
+    data[mid:mid + count] = bytes(b ^ 0xFF for b in data[mid:mid + count])
+    with open(path, "wb") as fh:
+        fh.write(data)
+
+
+# -- two writers ---------------------------------------------------------------------------
+
+HOLD = ("import sys\nfrom imssr.training.lock import DirectoryLock\n"
+        "DirectoryLock(sys.argv[1]).acquire()\nprint('locked', flush=True)\nsys.stdin.read()\n")
+
+
+@contextlib.contextmanager
+def held_by_another_process(directory):
+    child = subprocess.Popen([sys.executable, "-c", HOLD, str(directory)], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "locked"
+        yield child
+    finally:
+        if child.poll() is None:
+            child.kill()
+        child.wait()
+
+
+def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_taken_over(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    # Logs of a run that never checkpointed: a fresh run would delete them.
+    (out / "train.csv").write_text("frame,step\n1000,125\n")
+    (out / "tb").mkdir()
+    (out / "tb" / "events").write_text("x")
+    with held_by_another_process(out) as child:
+        with pytest.raises(ImssrError, match=rf"^{re.escape(str(out))} is in use by PID {child.pid}\b"):
+            Trainer(_cfg(), str(out))
+        code = main(["train", "--algo", "curl", "--task", TASK, "--steps", "10", "--out", str(out),
+                     "--no-progress"])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1 and f"{out} is in use by PID {child.pid}" in err
+        child.kill()
+    assert (out / "train.csv").read_text() == "frame,step\n1000,125\n" and (out / "tb" / "events").exists()
+    # kill -9 left the lock file behind; the kernel dropped the lock with the process.
+    assert (out / LOCK_FILE).exists()
+    t = Trainer(_cfg(), str(out))
+    try:
+        assert (out / LOCK_FILE).read_text().split()[0] == str(os.getpid())
+    finally:
+        t.close()
+    assert not (out / LOCK_FILE).exists()
+
+
+def test_a_resume_in_a_second_process_is_refused_and_evaluate_still_reads(run, capsys):
+    t = Trainer(_cfg(), run, resume=True)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "imssr", "train", "--resume", "--out", run, "--no-progress"],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 2, proc.stderr
+        assert proc.stderr.count("\n") == 1 and f"{run} is in use by PID {os.getpid()}" in proc.stderr
+        # Readers take no lock.
+        assert main(["evaluate", "--run", run, "--episodes", "1"]) == 0
+        assert "step 250" in capsys.readouterr().out
+    finally:
+        t.close()
+
+
+def test_two_sweeps_over_one_root_and_the_sweep_lock(tmp_path, monkeypatch):
+    from imssr.experiments import sweep
+    from imssr.experiments.grid import SweepConfig
+
+    root = tmp_path / "sweep"
+    cfg = SweepConfig(root=str(root), algos=["curl"], tasks=[TASK], seeds=[1], steps=10)
+    with held_by_another_process(root) as child:
+        with pytest.raises(ImssrError, match=rf"{re.escape(str(root))} is in use by PID {child.pid}"):
+            sweep.run_sweep(cfg, progress=False)
+
+    def body(cfg, progress, poll_s):  # the sweep holds its root while it runs
+        with pytest.raises(ImssrError, match=f"is in use by PID {os.getpid()}"):
+            DirectoryLock(str(root)).acquire()
+        return []
+
+    monkeypatch.setattr(sweep, "_run_sweep", body)
+    assert sweep.run_sweep(cfg, progress=False) == []
+    DirectoryLock(str(root)).acquire().release()  # released when the sweep ends
+
+
+def test_a_refused_run_releases_its_directory(tmp_path):
+    out = tmp_path / "new" / "run"
+    with pytest.raises(ImssrError, match="nothing to resume"):
+        Trainer(_cfg(), str(out), resume=True)
+    assert not (tmp_path / "new").exists()  # nothing left behind, and no lock held
+    DirectoryLock(str(out)).acquire().release()
+
+
+# -- damaged files -------------------------------------------------------------------------
+
+def test_numbered_checkpoints_are_real_copies(stopped):
+    latest, numbered = latest_path(stopped), _ckpt(stopped, "step-000000250.pt")
+    assert os.stat(latest).st_nlink == 1 and os.stat(numbered).st_nlink == 1
+    assert not os.path.samefile(latest, numbered)
+    assert open(latest, "rb").read() == open(numbered, "rb").read()
+    assert sorted(os.listdir(os.path.join(stopped, "checkpoints"))) == [
+        "latest.pt", "replay-000000250.npz", "replay-000000250.npz.frames.npy",
+        "step-000000125.pt", "step-000000250.pt"]
+
+
+def test_flipped_bytes_in_latest_are_caught_and_resume_falls_back_exactly(run, full, capsys):
+    _flip(latest_path(run))
+    with pytest.raises(CheckpointDamaged, match=r"latest\.pt is damaged \(checksum mismatch\)$"):
+        load_checkpoint(latest_path(run))
+    assert load_checkpoint(_ckpt(run, "step-000000250.pt"))["step"] == 250  # the copy is intact
+    resumed = _train(run, resume=True)
+    out = capsys.readouterr().out
+    assert ("imssr: latest.pt is damaged (checksum mismatch); resuming from step-000000250.pt "
+            "at agent step 250\n") in out
+    assert "refilling" not in out  # the copy holds latest's step: its replay buffer is there
+    _assert_same_run(resumed, run, full[1], full[0])
+
+
+def test_an_older_checkpoint_resumes_with_a_refilled_buffer(run, capsys):
+    _flip(latest_path(run))
+    _flip(_ckpt(run, "step-000000250.pt"))
+    t = _train(run, resume=True)
+    out = capsys.readouterr().out
+    assert ("imssr: latest.pt is damaged (checksum mismatch); resuming from step-000000125.pt "
+            "at agent step 125\n") in out
+    assert "no replay buffer was kept for step-000000125.pt; refilling it with random actions" in out
+    assert t.step == 375 and load_checkpoint(latest_path(run))["step"] == 375
+    _flip(latest_path(run))
+    _flip(_ckpt(run, "step-000000375.pt"))
+    _flip(_ckpt(run, "step-000000250.pt"))
+    with pytest.raises(ImssrError, match=r"latest\.pt is damaged \(checksum mismatch\), and no retained "
+                                         r"step-\*\.pt checkpoint .* is valid"):
+        Trainer(_cfg(), run, resume=True)
+
+
+@pytest.mark.parametrize("fault", ["damaged", "missing"])
+def test_a_lost_replay_buffer_needs_refill_buffer(run, fault, capsys):
+    replay = _ckpt(run, "replay-000000250.npz")
+    if fault == "damaged":
+        _flip(replay + ".frames.npy")
+        expected = r"replay-000000250\.npz\.frames\.npy is damaged \(checksum mismatch\)"
+    else:
+        os.unlink(replay)
+        expected = r"replay buffer file not found: .*replay-000000250\.npz"
+    with pytest.raises(ImssrError, match=expected + r"; `imssr train --resume --refill-buffer` continues"):
+        Trainer(_cfg(), run, resume=True)
+    t = Trainer(_cfg(), run, resume=True, refill_buffer=True)  # the failed attempt released the run
+    try:
+        assert t.step == 250 and t.learning_starts == 250 + 360 and t.replay.size == 0
+    finally:
+        t.close()
+    assert "refilling it with random actions until agent step 610" in capsys.readouterr().out
+    # Through the CLI, which trains the last episode and saves a buffer again.
+    assert main(["train", "--resume", "--refill-buffer", "--out", run, "--no-progress"]) == 0
+    state = load_checkpoint(latest_path(run))
+    assert state["step"] == 375 and os.path.exists(_ckpt(run, state["replay_file"]))
+    assert main(["train", "--refill-buffer", "--out", run]) == 2
+    assert "--refill-buffer goes with --resume" in capsys.readouterr().err
+
+
+def test_files_from_before_checksums_still_load(run):
+    """Checkpoints and replay files without checksums (imssr before them) load unverified."""
+    path = latest_path(run)
+    state = torch.load(path, weights_only=False)
+    torch.save(state, path)  # as earlier versions wrote it: no seal
+    replay = _ckpt(run, state["replay_file"])
+    with np.load(replay) as data:
+        fields = {k: data[k] for k in data.files if k != "frames_sha256"}
+    with open(replay, "wb") as fh:
+        np.savez(fh, **fields)
+    frames = np.load(replay + ".frames.npy")
+    np.save(replay + ".frames.npy", frames)
+    t = Trainer(_cfg(), run, resume=True)
+    try:
+        assert t.step == 250 and t.replay.size == frames.shape[0]
+        assert np.array_equal(t.replay.frames[: t.replay.size], frames)
+    finally:
+        t.close()
+
+
+def test_evaluate_picks_a_checkpoint(run, capsys):
+    assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", "125"]) == 0
+    assert "step 125" in capsys.readouterr().out
+    assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", "999"]) == 2
+    assert "no checkpoint at agent step 999" in capsys.readouterr().err
+    _flip(latest_path(run))
+    assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", latest_path(run)]) == 2
+    assert "latest.pt is damaged (checksum mismatch)" in capsys.readouterr().err
+    # Without --checkpoint, a damaged latest.pt falls back as --resume does.
+    assert main(["evaluate", "--run", run, "--episodes", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "latest.pt is damaged (checksum mismatch); evaluating step-000000250.pt at agent step 250" in out
+
+
+# -- a full disk ---------------------------------------------------------------------------
+
+def _after_failed_save(run_dir):
+    """The previous checkpoint is whole and nothing of the failed save is left."""
+    assert load_checkpoint(latest_path(run_dir))["step"] == 250
+    assert sorted(os.listdir(os.path.join(run_dir, "checkpoints"))) == [
+        "latest.pt", "replay-000000250.npz", "replay-000000250.npz.frames.npy",
+        "step-000000125.pt", "step-000000250.pt"]
+
+
+def test_checkpoint_write_on_a_full_disk_keeps_the_previous_one(run, full, monkeypatch):
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    t = Trainer(_cfg(), run, resume=True)
+    monkeypatch.setattr(torch, "save", full_disk)
+    try:
+        with pytest.raises(ImssrError) as err:
+            t.train()
+    finally:
+        t.close()
+        monkeypatch.undo()
+    match = re.fullmatch(NO_SPACE, str(err.value))
+    assert match and match["path"] == latest_path(run), str(err.value)
+    _after_failed_save(run)
+    _assert_same_run(_train(run, resume=True), run, full[1], full[0])
+
+
+@pytest.mark.parametrize("error", [OSError(errno.ENOSPC, "No space left on device"),
+                                   OSError("7560000 requested and 4239232 written"),
+                                   OSError(errno.EDQUOT, "Disk quota exceeded")])
+def test_replay_write_on_a_full_disk(tmp_path, monkeypatch, error):
+    buf = filled_buffer(60, capacity=100, size=8)
+    path = str(tmp_path / "replay.npz")
+    buf.save(path)
+
+    def half_then_fail(fh, array, *args, **kwargs):
+        fh.write(b"\x93NUMPY" + bytes(100))
+        raise error
+
+    monkeypatch.setattr(np, "save", half_then_fail)
+    with pytest.raises(ImssrError) as err:
+        buf.save(path)
+    assert re.fullmatch(NO_SPACE.replace("no space left", r"no space left( \(disk quota exceeded\))?"),
+                        str(err.value)), str(err.value)
+    assert f"while writing {path}.frames.npy (" in str(err.value)
+    monkeypatch.undo()
+    assert sorted(os.listdir(tmp_path)) == ["replay.npz", "replay.npz.frames.npy"]
+    FrameReplayBuffer(100, (3, 8, 8), 1).load(path)  # the old files are whole
+
+
+@pytest.fixture
+def tiny_fs(tmp_path):
+    """A small tmpfs (needs root); ``mount(size)`` returns its mount point."""
+    mounted = []
+
+    def mount(size):
+        point = tmp_path / f"fs{len(mounted)}"
+        point.mkdir()
+        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(point)],
+                              capture_output=True, text=True)
+        if proc.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.strip()}")
+        mounted.append(point)
+        return str(point)
+
+    yield mount
+    for point in mounted:
+        subprocess.run(["umount", "-l", str(point)], check=False)
+
+
+def _fill(directory, leave=0):
+    """Fill the file system of ``directory`` up to ``leave`` free bytes; return the filler."""
+    path = os.path.join(directory, "filler")
+    st = os.statvfs(directory)
+    with open(path, "wb") as fh:
+        try:
+            fh.write(bytes(max(0, st.f_bavail * st.f_frsize - leave)))
+            fh.flush()
+            while not leave:
+                fh.write(bytes(1 << 16))
+                fh.flush()
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+    return path
+
+
+def test_a_run_on_a_full_file_system_stops_in_one_line_and_resumes(stopped, full, tiny_fs):
+    mnt = tiny_fs("64m")
+    run = os.path.join(mnt, "run")
+    shutil.copytree(stopped, run)
+    filler = _fill(mnt, leave=1_000_000)  # room for logs, not for the next replay buffer
+    t = Trainer(_cfg(), run, resume=True)
+    try:
+        with pytest.raises(ImssrError) as err:
+            t.train()
+    finally:
+        t.close()
+    match = re.fullmatch(NO_SPACE, str(err.value))
+    assert match and match["device"] == mnt, str(err.value)
+    assert match["path"] == _ckpt(run, "replay-000000375.npz.frames.npy")
+    _after_failed_save(run)
+    os.unlink(filler)
+    _assert_same_run(_train(run, resume=True), run, full[1], full[0])
+
+
+def test_every_writer_reports_a_full_file_system(tiny_fs):
+    mnt = tiny_fs("2m")
+    run = os.path.join(mnt, "run")
+    save_checkpoint(run, {"step": 1, "w": torch.zeros(10), "replay_file": None})
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {latest_path(run)} "
+                                         r"\(4\.0 MB needed\)$"):
+        save_checkpoint(run, {"step": 2, "w": torch.zeros(1_000_000), "replay_file": None})
+    assert load_checkpoint(latest_path(run))["step"] == 1
+    assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["latest.pt", "step-000000001.pt"]
+    notes = os.path.join(mnt, "notes.json")
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {notes} \(3\.0 MB needed\)$"):
+        atomic_write_text(notes, "x" * 3_000_000)
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {mnt}/table.csv$"):
+        atomic_write_csv(os.path.join(mnt, "table.csv"), ["a"], [["x" * 1000]] * 3000)
+    buf = filled_buffer(60, capacity=100, size=100)  # 1.8 MB of frames
+    log = CSVLog(os.path.join(run, "train.csv"), ["frame", "note"])
+    _fill(mnt)
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing .*replay\.npz\.frames\.npy"):
+        buf.save(os.path.join(run, "replay.npz"))
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/train.csv$"):
+        for i in range(10_000):  # fills the file's last page first
+            log.write({"frame": i, "note": "x" * 100})
+    assert not [f for f in os.listdir(mnt) + os.listdir(run) if f.startswith(".tmp-")]
+
+
+# -- permissions ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_output_files_honour_the_umask(tmp_path, umask):
+    run = tmp_path / "run"
+    old = os.umask(umask)
+    try:
+        atomic_write_text(str(run / "config.json"), "{}\n")
+        atomic_write_csv(str(run / "table.csv"), ["a"], [[1]])
+        CSVLog(str(run / "train.csv"), ["frame"]).write({"frame": 1})
+        filled_buffer(60, capacity=100, size=8).save(str(run / "checkpoints" / "replay-000000003.npz"))
+        save_checkpoint(str(run), {"step": 3, "replay_file": "replay-000000003.npz"}, keep=1)
+        lock = DirectoryLock(str(run)).acquire()
+        lock_mode = stat.S_IMODE(os.stat(run / LOCK_FILE).st_mode)
+        lock.release()
+    finally:
+        os.umask(old)
+    files = ["config.json", "table.csv", "train.csv", "checkpoints/replay-000000003.npz",
+             "checkpoints/replay-000000003.npz.frames.npy", "checkpoints/latest.pt", "checkpoints/step-000000003.pt"]
+    modes = {f: oct(stat.S_IMODE(os.stat(run / f).st_mode)) for f in files}
+    assert modes == {f: oct(0o666 & ~umask) for f in files}
+    assert lock_mode == 0o666 & ~umask
+
+
+def test_a_runs_files_are_not_private(stopped):
+    umask = os.umask(0)
+    os.umask(umask)
+    for name in ("config.json", "train.csv", "checkpoints/latest.pt", "checkpoints/replay-000000250.npz"):
+        assert stat.S_IMODE(os.stat(os.path.join(stopped, name)).st_mode) == 0o666 & ~umask, name
