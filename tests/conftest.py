@@ -36,6 +36,24 @@ def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **
     return cfg
 
 
+def train_run(cfg, out, stop_at_step=None, resume=False, **trainer_kw):
+    """Train ``cfg`` into ``out`` (stopping after the first checkpoint at or past ``stop_at_step``,
+    as a killed process would) and release the run directory; returns the closed Trainer."""
+    from imssr.training import Trainer
+
+    t = Trainer(cfg, str(out), resume=resume, **trainer_kw)
+    try:
+        t.train(stop_at_step=stop_at_step)
+        return t
+    finally:
+        t.close()
+
+
+def without_timing(rows, drop=("wall_time", "fps")):
+    """Log rows without the columns that measure time, which differ between equal runs."""
+    return [{k: v for k, v in r.items() if k not in drop} for r in rows]
+
+
 def filled_buffer(n_steps: int = 200, action_dim: int = 1, seed: int = 0, episode_len: int = 50,
                   capacity: int = 1000, size: int = 100) -> FrameReplayBuffer:
     """A buffer of random frames in episodes of ``episode_len`` transitions."""

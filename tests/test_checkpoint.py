@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config
+from conftest import tiny_config, train_run, without_timing
 from imssr.errors import ImssrError
 from imssr.training import Trainer
 from imssr.training.checkpoint import latest_path, load_checkpoint
@@ -18,17 +18,11 @@ def _cfg():
                        checkpoint_every_steps=125)
 
 
-def _train(out, stop_at_step=None, resume=False):
-    t = Trainer(_cfg(), str(out), resume=resume)
-    try:
-        t.train(stop_at_step=stop_at_step)
-        return t
-    finally:
-        t.close()
+def _train(out, stop_at_step=None, resume=False, **kw):
+    return train_run(_cfg(), out, stop_at_step, resume, **kw)
 
 
-def _strip(rows, drop=("wall_time", "fps")):
-    return [{k: v for k, v in r.items() if k not in drop} for r in rows]
+_strip = without_timing
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_same_nets, filled_buffer, tiny_config
+from conftest import assert_same_nets, filled_buffer, tiny_config, train_run, without_timing
 from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
@@ -39,16 +39,10 @@ def _cfg():
 
 
 def _train(out, stop_at_step=None, resume=False, **kw):
-    t = Trainer(_cfg(), str(out), resume=resume, **kw)
-    try:
-        t.train(stop_at_step=stop_at_step)
-        return t
-    finally:
-        t.close()
+    return train_run(_cfg(), out, stop_at_step, resume, **kw)
 
 
-def _strip(rows, drop=("wall_time", "fps")):
-    return [{k: v for k, v in r.items() if k not in drop} for r in rows]
+_strip = without_timing
 
 
 def _assert_same_run(a, a_dir, b, b_dir):
