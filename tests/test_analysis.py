@@ -1,6 +1,7 @@
 """imssr analyze: recorded physics states, re-rendering, the three measures, the command end to end."""
 import csv
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -170,15 +171,22 @@ def _snapshot(run):
             for d, _, files in os.walk(run) for f in files}
 
 
-def test_analyze_runs_end_to_end_on_a_tiny_run(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny IM-CURL run with two retained checkpoints (agent steps 125 and 250) and its replay."""
     cfg = tiny_config(keep_checkpoints=2)
-    run = tmp_path / "run"
+    run = tmp_path_factory.mktemp("analyze") / "run"
     train_run(cfg, run)
+    return cfg, run
+
+
+def test_analyze_runs_end_to_end_on_a_tiny_run(tiny_run, capsys):
+    cfg, run = tiny_run
     before = _snapshot(str(run))
     assert main(["analyze", "--run", str(run), "--states", "12", "--modes", "training,color_hard",
                  "--reps", "50", "--neighbors", "2", "--top-k", "2"]) == 0
-    assert _snapshot(str(run)) == {**before, **{k: v for k, v in _snapshot(str(run)).items()
-                                                if k.startswith("analysis")}}  # only analysis/ is new
+    after = _snapshot(str(run))
+    assert {k: v for k, v in after.items() if not k.startswith("analysis")} == before  # the run is only read
     out = run / "analysis"
     for name in ("states.csv", "correlations.csv", "analysis.png", "montage.png"):
         assert (out / name).stat().st_size > 0
@@ -188,21 +196,30 @@ def test_analyze_runs_end_to_end_on_a_tiny_run(tmp_path, capsys):
     assert any(float(r["nuisance_color_hard"]) > 0 for r in rows)
     assert all(int(r["agent_step"]) >= int(r["first_visit_step"]) >= 0 for r in rows)
     assert all(np.isfinite(float(r["signal"])) and float(r["novelty_all"]) >= 0 for r in rows)
+    # The early checkpoint's novelty is measured against the states stored by its step only.
+    early = [r for r in rows if r["checkpoint_step"] == "125"]
+    assert all(r["seen_by_checkpoint"] == str(int(int(r["first_visit_step"]) <= 125)) for r in early)
     text = capsys.readouterr().out
     assert "12 of 12 stacks equal the stored frames" in text
     corr = _rows(out / "correlations.csv")
     assert {c["against"] for c in corr} >= {"novelty", "nuisance_color_hard", "nuisance_mean"}
+    assert {c["checkpoint_step"] for c in corr} == {"125", "250"}
 
-    # Rollouts of the policy instead of the replay: no agent steps, still every output.
+
+def test_analyze_rolls_out_the_policy_when_the_replay_has_no_physics(tiny_run, tmp_path, capsys):
+    cfg, run = tiny_run
+    # Rollouts on request: agent steps unknown, still every output.
     assert main(["analyze", "--run", str(run), "--states", "8", "--modes", "color_hard", "--checkpoint", "250",
                  "--source", "rollouts", "--reps", "20", "--out", str(tmp_path / "roll")]) == 0
     rows = _rows(tmp_path / "roll" / "states.csv")
     assert len(rows) == 8 and all(r["first_visit_step"] == "-1" for r in rows)
 
     # A replay written before physics were recorded: auto falls back to rollouts and says why.
-    from imssr.training.checkpoint import load_checkpoint, latest_path
+    from imssr.training.checkpoint import latest_path, load_checkpoint
 
-    path = os.path.join(run, "checkpoints", load_checkpoint(latest_path(str(run)))["replay_file"])
+    copy = tmp_path / "old-run"
+    shutil.copytree(run, copy)
+    path = os.path.join(copy, "checkpoints", load_checkpoint(latest_path(str(copy)))["replay_file"])
     full = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, physics_dim=4, warn_memory=False)
     full.load(path)
     old = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, warn_memory=False)
@@ -211,22 +228,31 @@ def test_analyze_runs_end_to_end_on_a_tiny_run(tmp_path, capsys):
     old.head, old.size, old._open_episode = full.head, full.size, full._open_episode
     old.save(path)
     capsys.readouterr()
-    assert main(["analyze", "--run", str(run), "--states", "6", "--modes", "color_hard", "--checkpoint", "250",
-                 "--reps", "20", "--out", str(tmp_path / "old")]) == 0
-    assert "fresh rollouts" in capsys.readouterr().out and "before replay buffers recorded" in \
-        open(tmp_path / "old" / "states.csv").read() or True
-    assert len(_rows(tmp_path / "old" / "states.csv")) == 6
+    assert main(["analyze", "--run", str(copy), "--states", "6", "--modes", "color_hard", "--checkpoint", "250",
+                 "--reps", "20"]) == 0
+    text = capsys.readouterr().out
+    assert "fresh rollouts" in text and "before replay buffers recorded physics states" in text
+    assert len(_rows(copy / "analysis" / "states.csv")) == 6
+    assert main(["analyze", "--run", str(copy), "--source", "replay", "--checkpoint", "250"]) == 2
+    assert "--source rollouts" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv, message", [
     (["--modes", "nope"], "unknown mode"),
+    (["--modes", ","], "--modes names no scene"),
     (["--checkpoint", "999"], "no checkpoint at agent step 999"),
-    (["--source", "replay", "--states", "2"], "--states must be >= 3"),
+    (["--states", "2"], "--states must be >= 3"),
 ])
-def test_analyze_bad_input_is_one_line(tmp_path, capsys, argv, message):
-    cfg = tiny_config(steps=70, checkpoint_every_steps=0, eval_every_steps=0)
-    run = tmp_path / "run"
-    train_run(cfg, run)
+def test_analyze_bad_input_is_one_line(tiny_run, capsys, argv, message):
+    _, run = tiny_run
     assert main(["analyze", "--run", str(run), *argv]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_analyze_refuses_a_run_without_intrinsic_reward(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(tiny_config("curl").to_json())
+    assert main(["analyze", "--run", str(run)]) == 2
+    assert "no intrinsic reward" in capsys.readouterr().err

@@ -14,8 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from imssr.analysis.measures import (first_visit, intrinsic_signal, knn_distance, nuisance_distance,
-                                     signal_of_states, standardise, state_coordinates)
+from imssr.analysis.adapter import batch_size, fix_draws, has_signal, intrinsic_signal
+from imssr.analysis.measures import (first_visit, knn_distance, nuisance_distance, signal_of_states, standardise,
+                                     state_coordinates)
 from imssr.analysis.report import plot_correlations, save_extremes, spearman_ci, write_rows
 from imssr.analysis.states import SOURCES, StateSample, collect
 from imssr.errors import ImssrError
@@ -100,6 +101,9 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
     if not os.path.isdir(run_dir):
         raise ImssrError(f"run directory not found: {run_dir}")
     cfg = load_config(os.path.join(run_dir, "config.json"))
+    if not cfg.intrinsic.enabled:
+        raise ImssrError(f"the run's algorithm {cfg.algo} has no intrinsic reward to analyse (choose an im-, "
+                         "+rnd or +re3 algorithm's run)")
     paths = ([select_checkpoint(run_dir, c) for c in opts.checkpoints] if opts.checkpoints
              else numbered_checkpoints(run_dir) or [latest_path(run_dir)])
     ckpts = {}
@@ -127,8 +131,7 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
                 raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
             return agent
 
-        if agent.signal is None:
-            raise ImssrError(f"the run's algorithm {cfg.algo} has no intrinsic reward to analyse")
+        assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)
         rollout_env = make_env(e.task, seed=opts.seed + 40_000, mode=e.mode, footage_split="test",
                                footage_path=e.footage_dir, **kwargs) if e.mode != "training" else env
@@ -152,13 +155,12 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
                                   footage_path=e.footage_dir, **kwargs)
             shifted[mode] = np.stack([envs[mode].render_stack(s) for s in sample.stack_physics])
         novelty_all, per_step_novelty, first = _novelty(sample, env, steps, opts.neighbors)
-        padding = sample.buffer.gather(sample.buffer.sample_indices(agent.cfg.batch_size))
+        padding = sample.buffer.gather(sample.buffer.sample_indices(batch_size(agent)))
         rows, corr = [], []
         for step in steps:
             load(ckpts[step])
             # The same crops and extra views at every checkpoint: only the weights differ.
-            agent.gen.manual_seed(opts.seed)
-            agent.intrinsic_gen.manual_seed(opts.seed + 2)
+            fix_draws(agent, opts.seed)
             signal = signal_of_states(agent, sample.batch, padding)
             nuisance = {m: nuisance_distance(agent, clean, shifted[m]) for m in opts.modes}
             mean_nuisance = np.mean([nuisance[m] for m in opts.modes], axis=0)

@@ -1,7 +1,8 @@
 """The three per-state quantities of ``imssr analyze`` (paper, Section III, inequality finalbound).
 
-* :func:`intrinsic_signal`: the left-hand side, ``rho(z', z)``: the agent's raw per-sample SSL
-  loss of ``o'``, before the in-batch normalisation and ``beta_t`` (Algorithm 1).
+* :func:`signal_of_states`: the left-hand side, ``rho(z', z)``: the agent's raw per-sample SSL
+  loss of ``o'``, before the in-batch normalisation and ``beta_t`` (Algorithm 1), through
+  :func:`imssr.analysis.adapter.intrinsic_signal`.
 * :func:`nuisance_distance`: term (ii), ``rho(h(x, n), h(x, n0))``, measured as the Euclidean
   distance between the encoder's latents of the same physics state ``x`` (its whole frame stack)
   rendered in a test scene ``n`` and in ``training`` ``n0``.
@@ -15,42 +16,16 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-import torch
 
-from imssr.augmentations import center_crop
+from imssr.analysis.adapter import batch_size, encoder_latents, intrinsic_signal
 from imssr.errors import ImssrError
 
 
 # -- (lhs) the intrinsic signal ---------------------------------------------------------------
-def intrinsic_signal(agent, sample: dict[str, np.ndarray]) -> torch.Tensor:
-    """The agent's raw intrinsic signal of each ``o'`` of ``sample`` (a replay batch), shape ``(B,)``.
-
-    The one place where the analysis reaches into the agent: it builds the batch and the
-    ``NextObsContext`` exactly as ``SACAgent.update_critic`` does for its Bellman target
-    (random crops from ``agent.gen``, the online trunk and the target encoder on the crop of
-    ``o'``, extra views from ``agent.intrinsic_gen``), without a gradient.  Once the agent has
-    ``intrinsic_signal(batch, enc)``, the body becomes that call.  Like the agent's, the value of
-    a contrastive loss depends on the batch it is in (the other samples are its negatives).
-    """
-    from imssr.auxiliary import NextObsContext
-
-    if agent.signal is None:
-        raise ImssrError("the run's algorithm has no intrinsic reward to analyse (choose an im-, +rnd or "
-                         "+re3 algorithm's run)")
-    n = agent.nets
-    with torch.no_grad():
-        batch = agent.to_batch(sample)
-        next_trunk = n.critic.encoder.trunk(batch.next_obs)
-        target_latent = n.critic_target.encoder(batch.next_obs)
-        ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
-                             agent.intrinsic_gen, agent.intrinsic.cfg.form, batch, None)
-        return agent.signal(ctx).detach().flatten()
-
-
 def signal_of_states(agent, sample: dict[str, np.ndarray], padding: dict[str, np.ndarray]) -> np.ndarray:
     """:func:`intrinsic_signal` of every transition of ``sample`` in batches of the agent's RL batch
     size, the last one topped up from ``padding`` (more replay transitions), as the agent sees them."""
-    size = agent.cfg.batch_size
+    size = batch_size(agent)
     n = len(sample["obs"])
     out = np.empty(n)
     for start in range(0, n, size):
@@ -63,19 +38,6 @@ def signal_of_states(agent, sample: dict[str, np.ndarray], padding: dict[str, np
 
 
 # -- (ii) nuisance sensitivity ----------------------------------------------------------------------
-def encoder_latents(agent, stacks: np.ndarray, chunk: int = 64) -> np.ndarray:
-    """``h(o)``: the critic encoder's latent (trunk + projection, the ``z`` of the SSL loss) of
-    each uint8 stack, centre-cropped as when acting; computed in fixed chunks so that equal
-    inputs give bit-equal latents whatever scene they came from."""
-    size = agent.cfg.crop_size
-    out = []
-    with torch.no_grad():
-        for start in range(0, len(stacks), chunk):
-            x = torch.as_tensor(stacks[start:start + chunk], device=agent.device)
-            out.append(agent.nets.critic.encoder(center_crop(x, size)).double().cpu().numpy())
-    return np.concatenate(out)
-
-
 def nuisance_distance(agent, clean: np.ndarray, shifted: np.ndarray) -> np.ndarray:
     """``||h(x, n) - h(x, n0)||`` per state: ``clean`` the stacks in ``training`` (n0), ``shifted``
     the same physics states in a test scene (n).  Zero where the pixels are equal."""
