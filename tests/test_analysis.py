@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from conftest import tiny_config, train_run
-from imssr.analysis import measures
+from imssr.analysis import adapter, measures
 from imssr.analysis.report import spearman_ci
 from imssr.analysis.states import candidates
 from imssr.cli import main
@@ -144,18 +144,17 @@ def test_adapter_gives_the_signal_the_agent_adds_to_its_reward():
     agent = build_agent(cfg, (9, 100, 100), 1, "cpu")
     sample = buf.gather(buf.sample_indices(cfg.agent.batch_size))
     seen = []
-    original = agent.intrinsic.__call__
-    agent.intrinsic.__call__ = None  # instances do not override dunder calls; wrap the class method below
-    cls = type(agent.intrinsic)
 
-    class Recording(cls):
+    class Recording(type(agent.intrinsic)):
+        """The agent's own IntrinsicReward, keeping the raw signal it is handed."""
+
         def __call__(self, losses, step, signal="intrinsic signal"):
             seen.append(losses.detach().clone())
-            return original(losses, step, signal)
+            return super().__call__(losses, step, signal)
 
-    agent.intrinsic.__class__ = Recording
+    agent.intrinsic.__class__ = Recording  # a call goes through the class, not the instance
     gen_state, int_state = agent.gen.get_state(), agent.intrinsic_gen.get_state()
-    ours = measures.intrinsic_signal(agent, sample)
+    ours = adapter.intrinsic_signal(agent, sample)
     agent.gen.set_state(gen_state); agent.intrinsic_gen.set_state(int_state)
     agent.update_critic(agent.to_batch(sample), step=1)
     assert torch.equal(ours, seen[0])

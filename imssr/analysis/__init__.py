@@ -133,7 +133,7 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
 
         assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)
-        rollout_env = make_env(e.task, seed=opts.seed + 40_000, mode=e.mode, footage_split="test",
+        rollout_env = make_env(e.task, seed=opts.seed + 40_000, mode=e.mode, footage_split="train",
                                footage_path=e.footage_dir, **kwargs) if e.mode != "training" else env
         if rollout_env is not env:
             envs["rollouts"] = rollout_env
@@ -180,9 +180,13 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
                        **{f"nuisance_{m}": nuisance[m] for m in opts.modes}}
             for key, x in against.items():
                 c = spearman_ci(signal, x, opts.reps, opts.seed)
-                corr.append({"checkpoint_step": step, "against": key, **c})
+                # The medians show how the terms themselves move between checkpoints (the paper
+                # argues the nuisance term vanishes as the encoder converges).
+                corr.append({"checkpoint_step": step, "against": key, **c,
+                             "signal_median": float(np.median(signal)), "median": float(np.nanmedian(x))
+                             if np.isfinite(x).any() else float("nan")})
                 log(f"  step {step:,}: signal vs {key}: Spearman rho {c['rho']:.3f} "
-                    f"(95% CI {c['ci_low']:.3f} to {c['ci_high']:.3f}, n {c['n']})")
+                    f"(95% CI {c['ci_low']:.3f} to {c['ci_high']:.3f}, n {c['n']}); median {corr[-1]['median']:.3g}")
             last_signal = signal
         title = f"{cfg.algo} on {e.task}, seed {cfg.train.seed}: {len(sample)} states ({sample.source})"
         os.makedirs(out, exist_ok=True)
