@@ -1,4 +1,4 @@
-"""Command-line interface: ``imssr {train,demo,evaluate,plot,sweep,report,tasks,algos,modes,config}``."""
+"""Command-line interface: ``imssr {train,demo,evaluate,analyze,plot,sweep,report,tasks,algos,modes,config}``."""
 from __future__ import annotations
 
 import argparse
@@ -141,6 +141,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="save the first episode of each scene as RUN/videos/MODE.gif|mp4 (default: none)")
     e.add_argument("--montage", action="store_true", help="save montage.png: one frame per scene")
     e.add_argument("--footage", metavar="PATH", help="footage for video scenes (default: the run's)")
+
+    an = sub.add_parser("analyze", help="measure a run's intrinsic signal against state novelty and "
+                        "nuisance sensitivity (paper, Section III), per checkpoint: CSV, figure, montage")
+    an.add_argument("--run", required=True, help="run directory (read only; no lock is taken)")
+    an.add_argument("--checkpoint", nargs="+", metavar="FILE|STEP",
+                    help="checkpoints to analyse: files, or agent steps of retained RUN/checkpoints/step-*.pt "
+                         "(default: every retained step-*.pt)")
+    an.add_argument("--states", type=_positive_int, default=64, help="states (transitions) to analyse")
+    an.add_argument("--modes", metavar="A,B,...", default="color_hard,video_hard,distracting_hard",
+                    help="test scenes whose renderings of the same states are compared with training's")
+    an.add_argument("--source", choices=["auto", "replay", "rollouts"], default="auto",
+                    help="where the states come from: the run's saved replay, fresh rollouts of its policy, "
+                         "or auto (the replay if it recorded physics states)")
+    an.add_argument("--neighbors", type=_positive_int, default=5, help="k of the k-NN novelty")
+    an.add_argument("--top-k", type=_positive_int, default=4, help="states per row of the montage")
+    an.add_argument("--reps", type=_positive_int, default=1000, help="bootstrap resamples per CI")
+    an.add_argument("--seed", type=_seed_type(), default=0, help="seed of the state draw, crops, scenes, bootstrap")
+    an.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
+    an.add_argument("--out", help="output directory (default RUN/analysis)")
 
     mo = sub.add_parser("modes", help="list scenes; --montage renders one frame of each")
     mo.add_argument("--task", default="walker_walk", help="task the montage shows")
@@ -436,6 +455,20 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_analyze(args) -> int:
+    from imssr.analysis import AnalysisOptions, analyze_run
+
+    _check_out(args.out)
+    modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
+    opts = AnalysisOptions(checkpoints=list(args.checkpoint or []), states=args.states, modes=modes, out=args.out,
+                           device=args.device, seed=args.seed, neighbors=args.neighbors, top_k=args.top_k,
+                           reps=args.reps, source=args.source)
+    res = analyze_run(args.run, opts)
+    for path in (res.states_csv, res.correlations_csv, res.figure, res.montage):
+        print(path)
+    return 0
+
+
 def cmd_modes(args) -> int:
     from imssr.envs import get_task, make_env
     from imssr.envs.scenes import MODES
@@ -507,7 +540,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"train": cmd_train, "demo": lambda a: cmd_train(a, demo=True),
-                "evaluate": cmd_evaluate, "tasks": cmd_tasks, "algos": cmd_algos,
+                "evaluate": cmd_evaluate, "analyze": cmd_analyze, "tasks": cmd_tasks, "algos": cmd_algos,
                 "config": cmd_config, "plot": cmd_plot, "modes": cmd_modes,
                 "sweep": cmd_sweep, "report": cmd_report}
     try:

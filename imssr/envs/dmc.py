@@ -9,7 +9,11 @@ Design choices, each for speed or faithfulness:
   third of the render time for a difference of hundredths of a grey level;
 * rewards are summed per sub-step (after the task's reward transform);
 * the frame stack is channels-first and repeats the first frame after reset;
-* test scenes (``mode``) change pixels only, through :class:`imssr.envs.scenes.Scene`.
+* test scenes (``mode``) change pixels only, through :class:`imssr.envs.scenes.Scene`;
+* the physics state (``qpos, qvel, act``: dm_control's ``physics.get_state()``) of the newest
+  frame is read into one preallocated array (:meth:`DMCEnv.physics_state`) and any recorded
+  state can be rendered again, alone or as a frame stack, in any scene (:meth:`DMCEnv.render_stack`);
+  ``imssr analyze`` renders the same states under other nuisances this way.
 """
 from __future__ import annotations
 
@@ -101,6 +105,8 @@ class DMCEnv(gym.Env):
             0, 255, shape=(3 * frame_stack, image_size, image_size), dtype=np.uint8
         )
         self._frames: deque[np.ndarray] = deque(maxlen=frame_stack)
+        # Filled in place by physics_state(): recording costs no allocation per step.
+        self._state = np.zeros(sum(x.size for x in self.physics._physics_state_items()), np.float64)
         # Simulator steps per episode (1000 for every task of the paper).
         self.episode_sim_steps = int(round(self._env._step_limit))
         self.max_episode_steps = -(-self.episode_sim_steps // self.action_repeat)
@@ -172,6 +178,54 @@ class DMCEnv(gym.Env):
         self._env.task.random.set_state(state["task"])
         if self.scene is not None and "scene" in state:
             self.scene.set_rng_state(state["scene"])
+
+    # -- physics states ------------------------------------------------------------
+    @property
+    def physics_state_dim(self) -> int:
+        """Length of :meth:`physics_state` (cartpole 4, walker 18)."""
+        return self._state.size
+
+    def physics_state(self) -> np.ndarray:
+        """The full physics state of the newest frame, float64, as dm_control's
+        ``physics.get_state()`` lays it out.  The array is reused by the next call: copy it to keep it.
+
+        Reading it draws no random number and changes nothing in the simulation.
+        """
+        np.concatenate(self.physics._physics_state_items(), out=self._state)
+        return self._state
+
+    def set_physics_state(self, state: np.ndarray) -> None:
+        """Put the simulation in ``state`` with positions and velocities derived (``mj_forward``),
+        as after a step, so that a render shows it.  Ends the current episode's consistency:
+        for rendering recorded states, not for stepping on."""
+        state = np.asarray(state, dtype=np.float64)
+        if state.shape != self._state.shape:
+            raise ImssrError(f"physics state of shape {state.shape}, expected {self._state.shape} for "
+                             f"{self.task_name}")
+        with self.physics.reset_context():
+            self.physics.set_state(state)
+
+    def render_stack(self, states: np.ndarray) -> np.ndarray:
+        """Render recorded physics states ``(k, D)``, oldest first, as one ``(3k, H, W)`` stack.
+
+        In a test scene the stack is a fresh episode of it (a new draw of its colours, footage
+        and camera), stepped between frames as :meth:`step` does; a state equal to the one
+        before is the stack's repeated first frame after a reset and is copied, as the env does.
+        In ``training`` a recorded state renders exactly its recorded frame.
+        """
+        states = np.asarray(states, dtype=np.float64)
+        if self.scene is not None:
+            self.scene.reset()
+        frames: list[np.ndarray] = []
+        for j, state in enumerate(states):
+            if j and np.array_equal(state, states[j - 1]):
+                frames.append(frames[-1])
+                continue
+            if j and self.scene is not None:
+                self.scene.step()
+            self.set_physics_state(state)
+            frames.append(self._render())
+        return np.concatenate(frames, axis=0)
 
     # -- internals -------------------------------------------------------------
     @property

@@ -11,6 +11,13 @@ never mixes episodes (the first frame repeats, as the env does on reset).
 
 Slots are written in a ring.  A slot ``i`` can start a transition when ``i+1``
 is live (not the write head) and every frame of its stack is still live.
+
+With ``physics_dim > 0`` each slot also keeps the simulator state its frame was rendered
+from (``physics[i]``, float64, dm_control's ``physics.get_state()``) and the agent step at
+which it was stored (``agent_step[i]``), so that ``imssr analyze`` can render the very same
+states again under other nuisances and place them in the true state space: 8 bytes per state
+coordinate + 4 per slot (cartpole +20 B, walker +76 B on a 30 KB frame).  Slots whose state
+was not recorded (loaded from a replay file written before this) hold NaN and step -1.
 """
 from __future__ import annotations
 
@@ -61,16 +68,18 @@ class FrameReplayBuffer:
         action_dim: size of the action vector.
         frame_stack: frames per observation.
         seed: seed of the sampling generator.
+        physics_dim: length of the recorded physics state (0: none recorded).
     """
 
     def __init__(self, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,
-                 frame_stack: int = 3, seed: int = 0, warn_memory: bool = True):
+                 frame_stack: int = 3, seed: int = 0, warn_memory: bool = True, physics_dim: int = 0):
         if capacity < 2:
             raise ImssrError(f"replay capacity must be >= 2, got {capacity}")
         self.capacity = int(capacity)
         self.frame_shape = tuple(frame_shape)
         self.action_dim = int(action_dim)
         self.frame_stack = int(frame_stack)
+        self.physics_dim = int(physics_dim)
         if warn_memory:
             need, avail = self.nbytes_expected(), available_memory_bytes()
             if avail is not None and need > avail:
@@ -89,6 +98,9 @@ class FrameReplayBuffer:
         self.rewards = np.zeros((self.capacity,), dtype=np.float32)
         self.discounts = np.ones((self.capacity,), dtype=np.float32)
         self.step_in_episode = np.zeros((self.capacity,), dtype=np.int32)
+        # Zeros, not NaN/-1 fills: pages are committed only as slots are written.
+        self.physics = np.zeros((self.capacity if self.physics_dim else 0, self.physics_dim), dtype=np.float64)
+        self.agent_step = np.zeros((self.capacity if self.physics_dim else 0,), dtype=np.int32)
         self.head = 0  # next slot to write
         self.size = 0  # live slots
         self.rng = np.random.default_rng(seed)
@@ -96,22 +108,26 @@ class FrameReplayBuffer:
 
     # -- memory ----------------------------------------------------------------
     def bytes_per_slot(self) -> int:
-        return int(np.prod(self.frame_shape)) + 4 * self.action_dim + 4 + 4 + 4
+        physics = 8 * self.physics_dim + 4 if self.physics_dim else 0  # state + agent step
+        return int(np.prod(self.frame_shape)) + 4 * self.action_dim + 4 + 4 + 4 + physics
 
     def nbytes_expected(self) -> int:
         return self.capacity * self.bytes_per_slot()
 
     # -- writing ---------------------------------------------------------------
-    def add_first(self, frame: np.ndarray) -> None:
-        """Start an episode with the newest frame of its first observation."""
-        self._write(frame, step=0)
+    def add_first(self, frame: np.ndarray, physics: Optional[np.ndarray] = None, agent_step: int = -1) -> None:
+        """Start an episode with the newest frame of its first observation (and, for a buffer
+        with ``physics_dim``, the physics state it shows and the agent step it was stored at)."""
+        self._write(frame, step=0, physics=physics, agent_step=agent_step)
         self._open_episode = True
 
-    def add(self, action: np.ndarray, reward: float, discount: float, next_frame: np.ndarray) -> None:
+    def add(self, action: np.ndarray, reward: float, discount: float, next_frame: np.ndarray,
+            physics: Optional[np.ndarray] = None, agent_step: int = -1) -> None:
         """Record the transition out of the newest observation and the next frame.
 
         ``discount`` is 0 for a true terminal state and 1 otherwise (a time
-        limit is not terminal: the critic keeps bootstrapping).
+        limit is not terminal: the critic keeps bootstrapping).  ``physics`` and
+        ``agent_step`` go with ``next_frame``, as in :meth:`add_first`.
         """
         if not self._open_episode:
             raise RuntimeError("add_first() must start an episode before add()")
@@ -119,11 +135,17 @@ class FrameReplayBuffer:
         self.actions[last] = action
         self.rewards[last] = reward
         self.discounts[last] = discount
-        self._write(next_frame, step=int(self.step_in_episode[last]) + 1)
+        self._write(next_frame, step=int(self.step_in_episode[last]) + 1, physics=physics, agent_step=agent_step)
 
-    def _write(self, frame: np.ndarray, step: int) -> None:
+    def _write(self, frame: np.ndarray, step: int, physics: Optional[np.ndarray], agent_step: int) -> None:
         self.frames[self.head] = frame
         self.step_in_episode[self.head] = step
+        if self.physics_dim:
+            if physics is None:
+                self.physics[self.head] = np.nan
+            else:
+                self.physics[self.head] = physics
+            self.agent_step[self.head] = agent_step
         self.head = (self.head + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -136,6 +158,10 @@ class FrameReplayBuffer:
         nxt = (idx + 1) % self.capacity
         same_episode = self.step_in_episode[nxt] == self.step_in_episode[idx] + 1
         return (age < newest) & (age >= history) & same_episode
+
+    def live_slots(self) -> np.ndarray:
+        """Indices of the live slots, oldest first."""
+        return (self.head - self.size + np.arange(self.size)) % self.capacity
 
     def num_transitions(self) -> int:
         if self.size < 2:
@@ -207,10 +233,13 @@ class FrameReplayBuffer:
                 # (hashed on the way) instead of tofile(), whose full-disk error has no errno.
                 writer = HashingWriter(fh)
                 np.save(writer, frames)
-        small = (self.actions[:n], self.rewards[:n], self.discounts[:n], self.step_in_episode[:n])
-        with atomic_path(path, needed=sum(x.nbytes for x in small) + 4096) as tmp:
+        small = {"actions": self.actions[:n], "rewards": self.rewards[:n], "discounts": self.discounts[:n],
+                 "step_in_episode": self.step_in_episode[:n]}
+        if self.physics_dim:
+            small.update(physics=self.physics[:n], agent_step=self.agent_step[:n])
+        with atomic_path(path, needed=sum(x.nbytes for x in small.values()) + 4096) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, actions=small[0], rewards=small[1], discounts=small[2], step_in_episode=small[3],
+                np.savez(fh, **small,
                          meta=np.array([self.capacity, self.head, self.size, int(self._open_episode)]),
                          frame_shape=np.array(self.frame_shape), frames_sha256=np.array(writer.digest))
             seal_zip(tmp)
@@ -239,6 +268,7 @@ class FrameReplayBuffer:
                 self.rewards[:n] = data["rewards"]
                 self.discounts[:n] = data["discounts"]
                 self.step_in_episode[:n] = data["step_in_episode"]
+                self._read_physics(data, path, n)
                 expected = str(data["frames_sha256"]) if "frames_sha256" in data.files else None
             self._read_frames(frames_path(path), n, expected)
         except ImssrError:
@@ -248,6 +278,21 @@ class FrameReplayBuffer:
         self.head, self.size, self._open_episode = head, size, bool(open_)
         if rng_state is not None:
             self.rng.bit_generator.state = rng_state
+
+    def _read_physics(self, data, path: str, n: int) -> None:
+        """The recorded physics states and agent steps of a file; a file written before they
+        were recorded (or by a buffer without them) leaves NaN states and step -1."""
+        if not self.physics_dim:
+            return
+        if "physics" not in data.files:
+            self.physics[:n] = np.nan
+            self.agent_step[:n] = -1
+            return
+        if data["physics"].shape != (n, self.physics_dim):
+            raise ImssrError(f"replay buffer {path} has physics states of shape {data['physics'].shape}, "
+                             f"expected {(n, self.physics_dim)}")
+        self.physics[:n] = data["physics"]
+        self.agent_step[:n] = data["agent_step"]
 
     def _read_frames(self, fpath: str, n: int, expected: Optional[str]) -> None:
         """Read ``n`` frames straight into the ring, in chunks (peak memory stays one buffer),

@@ -153,8 +153,10 @@ class Trainer:
             self.agent.aux.load_data(self.device)
         # Independent streams for the replay sampler and the seed-phase actions.
         replay_seq, action_seq = np.random.SeedSequence(cfg.train.seed).spawn(2)
+        # Each frame's physics state goes in too (a few dozen bytes): `imssr analyze` renders it again.
         self.replay = FrameReplayBuffer(cfg.train.replay_capacity, (3, e.image_size, e.image_size),
-                                        self.action_dim, e.frame_stack, seed=replay_seq)
+                                        self.action_dim, e.frame_stack, seed=replay_seq,
+                                        physics_dim=self.env.physics_state_dim)
         self.action_rng = np.random.default_rng(action_seq)
         self.frame = self.step = self.episode = 0
         self.next_eval_step = cfg.train.eval_every_steps or None
@@ -333,7 +335,7 @@ class Trainer:
             while self.step < total_steps:
                 if need_reset:
                     obs, info = self.env.reset()
-                    self.replay.add_first(info["frame"])
+                    self.replay.add_first(info["frame"], self.env.physics_state(), self.step)
                     need_reset, ep_return, ep_frames, ep_start = False, 0.0, 0, time.time()
                     sums.clear(); counts.clear()
                 if self.step < self.learning_starts:
@@ -348,7 +350,8 @@ class Trainer:
                         for k, v in self.agent.update(self.replay, self.step).items():
                             sums[k] += v; counts[k] += 1
                 obs, reward, terminated, truncated, info = self.env.step(action)
-                self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"])
+                self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"],
+                                self.env.physics_state(), self.step + 1)
                 self.step += 1
                 self.frame += info["sim_steps"]
                 ep_return += reward

@@ -1,0 +1,71 @@
+"""The analysis's only contact with the agent's internals.
+
+Everything ``imssr analyze`` needs from a :class:`~imssr.agents.SACAgent` goes through these
+functions, so that a change of the agent's update changes this file only.  The one that knows
+how the update is computed is :func:`intrinsic_signal`; the others read public attributes.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from imssr.augmentations import center_crop
+from imssr.errors import ImssrError
+
+
+def intrinsic_signal(agent, sample: dict[str, np.ndarray]) -> torch.Tensor:
+    """The agent's raw intrinsic signal of each ``o'`` of ``sample`` (a replay batch), shape ``(B,)``:
+    the per-sample SSL loss of ``o'`` (or RND's error, RE3's distance) before the in-batch
+    normalisation and ``beta_t`` of Algorithm 1, i.e. the left-hand side of the paper's bound.
+
+    Built exactly as ``SACAgent.update_critic`` builds it for its Bellman target (random crops
+    from ``agent.gen``, the online trunk and the target encoder on the crop of ``o'``, extra
+    views from ``agent.intrinsic_gen``), without a gradient.  The fused schedule's IM-PAD hands
+    the training pass's loss over instead of recomputing it; here it is recomputed (equal up to
+    float rounding).  Like the agent's, a contrastive loss depends on the batch it is in (the
+    other samples are its negatives).  When the agent has a public
+    ``intrinsic_signal(batch, encode(batch))``, this body becomes that call under ``no_grad``.
+    """
+    from imssr.auxiliary import NextObsContext
+
+    if agent.signal is None:
+        raise ImssrError("the run's algorithm has no intrinsic reward to analyse (choose an im-, +rnd or "
+                         "+re3 algorithm's run)")
+    n = agent.nets
+    with torch.no_grad():
+        batch = agent.to_batch(sample)
+        next_trunk = n.critic.encoder.trunk(batch.next_obs)
+        target_latent = n.critic_target.encoder(batch.next_obs)
+        ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
+                             agent.intrinsic_gen, agent.intrinsic.cfg.form, batch, None)
+        return agent.signal(ctx).detach().flatten()
+
+
+def has_signal(agent) -> bool:
+    """Whether the agent adds an intrinsic reward at all."""
+    return agent.signal is not None
+
+
+def batch_size(agent) -> int:
+    """The RL batch size: the batches the agent computes its signal in."""
+    return int(agent.cfg.batch_size)
+
+
+def fix_draws(agent, seed: int) -> None:
+    """Seed the agent's crop and extra-view generators, so that two checkpoints see the same
+    crops and views of the same states and differ only by their weights."""
+    agent.gen.manual_seed(seed)
+    agent.intrinsic_gen.manual_seed(seed + 2)
+
+
+def encoder_latents(agent, stacks: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """``h(o)``: the critic encoder's latent (trunk + projection, the ``z`` the SSL losses compare)
+    of each uint8 stack, centre-cropped as when acting, float64 ``(N, feature_dim)``.  Computed in
+    fixed chunks so that equal inputs give bit-equal latents whatever scene they came from."""
+    size = agent.cfg.crop_size
+    out = []
+    with torch.no_grad():
+        for start in range(0, len(stacks), chunk):
+            x = torch.as_tensor(stacks[start:start + chunk], device=agent.device)
+            out.append(agent.nets.critic.encoder(center_crop(x, size)).double().cpu().numpy())
+    return np.concatenate(out)
