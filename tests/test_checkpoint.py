@@ -121,7 +121,7 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
     cfg.train.checkpoint_every_steps = 0
     t = Trainer(cfg, str(tmp_path), resume=True)
     try:
-        assert t.next_eval_step is None and t.next_ckpt_step is None
+        assert t.eval_schedule.next_step is None and t.ckpt_schedule.next_step is None
         assert t.learning_starts == 125 + 60  # refill the empty buffer with random actions first
         t.train()
     finally:
