@@ -41,10 +41,10 @@ def test_intrinsic_loss_is_per_sample_without_gradients_and_uses_views():
     n = agent.nets
     enc = agent.encode(batch)
     trunk, target = enc.next_trunk, enc.next_latent  # online trunk and target encoder on o'
-    shared = agent.aux.intrinsic_loss(NextObsContext(batch=batch, enc=enc, generator=torch.Generator().manual_seed(0),
-                                                     form="authors"))
-    indep = agent.aux.intrinsic_loss(NextObsContext(batch=batch, enc=enc, generator=torch.Generator().manual_seed(0),
-                                                    form="training"))
+    def ctx(form):
+        return NextObsContext(batch=batch, enc=enc, generator=torch.Generator().manual_seed(0), form=form)
+
+    shared, indep = agent.aux.intrinsic_loss(ctx("authors")), agent.aux.intrinsic_loss(ctx("training"))
     assert shared.shape == indep.shape == (8,)
     assert not shared.requires_grad and not indep.requires_grad
     # "authors" pairs the online and momentum encoders on the same crop.
