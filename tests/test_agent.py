@@ -1,8 +1,12 @@
 """SAC agent: actions, determinism, save/load round trip, update schedule."""
 import numpy as np
+import pytest
+import torch
 
 from conftest import assert_same_nets, filled_buffer, tiny_config
 from imssr.agents import SACAgent
+from imssr.batch import NextObsContext
+from imssr.errors import ImssrError
 
 
 def _agent(seed=0, algo="curl"):
@@ -66,3 +70,44 @@ def test_target_networks_track_with_their_own_rates():
     dq = (next(n.critic_target.q.parameters()) - before_q[0]).mean().item()
     de = (next(n.critic_target.encoder.parameters()) - before_enc[0]).mean().item()
     assert abs(dq - 0.01) < 1e-4 and abs(de - 0.05) < 1e-4
+
+
+def test_task_optimisers_keep_the_parameter_order_of_saved_checkpoints():
+    """Adam's saved state is per parameter position: each task's optimiser lists its parameters
+    as imssr's checkpoints always did, so older checkpoints resume."""
+    for algo, old_order in (
+            ("curl", lambda a: [a.aux.W, *a.nets.critic.encoder.parameters()]),
+            ("pad", lambda a: [*a.nets.critic.encoder.trunk.convs.parameters(), *a.aux.parameters()]),
+            ("soda", lambda a: [*a.nets.critic.encoder.trunk.parameters(), *a.aux.projection.parameters(),
+                                *a.aux.predictor.parameters()])):
+        agent = _agent(algo=algo)
+        (group,) = agent.aux.optimizer.param_groups
+        assert [id(p) for p in group["params"]] == [id(p) for p in old_order(agent)], algo
+    assert _agent(algo="svea").aux.optimizer is None  # no loss of its own, nothing to step
+
+
+def test_deterministic_policy_output_is_the_mean_without_a_sample():
+    agent = _agent()
+    obs = torch.as_tensor(filled_buffer(action_dim=2).sample(4)["obs"][:, :, :84, :84])
+    with torch.no_grad():
+        trunk = agent.nets.critic.encoder.trunk(obs)
+    state = agent.noise_gen.get_state()
+    policy = agent.nets.actor(trunk, generator=agent.noise_gen, sample=False)
+    assert policy.action is policy.mean and policy.log_prob is None
+    assert torch.equal(agent.noise_gen.get_state(), state)  # no noise drawn
+    sampled = agent.nets.actor(trunk, generator=agent.noise_gen)
+    assert sampled.log_prob.shape == (4, 1) and not torch.equal(sampled.action, sampled.mean)
+
+
+def test_intrinsic_signal_is_the_raw_per_sample_signal_of_the_next_observation():
+    agent = _agent(algo="im-curl")
+    batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
+    enc = agent.encode(batch)
+    gen = agent.gen.get_state()
+    signal = agent.intrinsic_signal(batch, enc)
+    assert signal.shape == (8,) and not signal.requires_grad
+    assert torch.equal(agent.gen.get_state(), gen)  # the base algorithm's stream is untouched
+    ctx = NextObsContext(batch=batch, enc=enc, generator=torch.Generator(), form=agent.intrinsic.cfg.form)
+    torch.testing.assert_close(signal, agent.aux.intrinsic_loss(ctx))
+    with pytest.raises(ImssrError, match="no intrinsic signal"):
+        _agent(algo="curl").intrinsic_signal(batch, enc)

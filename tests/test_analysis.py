@@ -156,7 +156,8 @@ def test_adapter_gives_the_signal_the_agent_adds_to_its_reward():
     gen_state, int_state = agent.gen.get_state(), agent.intrinsic_gen.get_state()
     ours = adapter.intrinsic_signal(agent, sample)
     agent.gen.set_state(gen_state); agent.intrinsic_gen.set_state(int_state)
-    agent.update_critic(agent.to_batch(sample), step=1)
+    batch = agent.to_batch(sample)
+    agent.update_critic(batch, agent.encode(batch), step=1)
     assert torch.equal(ours, seen[0])
 
 

@@ -8,7 +8,7 @@ import torch.nn.functional as F
 from conftest import filled_buffer, tiny_config
 from imssr.agents import SACAgent
 from imssr.augmentations import center_crop
-from imssr.auxiliary import NextObsContext
+from imssr.batch import NextObsContext
 
 
 def _agent(algo, seed=0, action_dim=2):
@@ -17,12 +17,8 @@ def _agent(algo, seed=0, action_dim=2):
 
 
 def _ctx(agent, batch):
-    n = agent.nets
-    with torch.no_grad():
-        trunk = n.critic.encoder.trunk(batch.next_obs)
-        target = n.critic_target.encoder(batch.next_obs)
-    return NextObsContext(batch.raw_next_obs, batch.next_obs, trunk, target, agent.intrinsic_gen,
-                          "independent", batch)
+    return NextObsContext(batch=batch, enc=agent.encode(batch), generator=agent.intrinsic_gen,
+                          form="independent")
 
 
 @pytest.mark.parametrize("algo", ["soda", "pad"])
@@ -138,7 +134,7 @@ def test_svea_critic_loss_matches_the_weighted_sum():
         target = batch.reward + batch.discount * 0.99 * tq
         expected = sum(w * sum(F.mse_loss(q, target) for q in n.critic(v, batch.action)) for v, w in views)
     agent.noise_gen.set_state(noise_state)
-    got = agent.update_critic(batch, 0)[0]["critic_loss"]
+    got = agent.update_critic(batch, agent.encode(batch), 0)["critic_loss"]
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
 
 

@@ -10,6 +10,7 @@ from imssr.errors import ImssrError
 from imssr.training import Trainer
 from imssr.training.checkpoint import latest_path, load_checkpoint
 from imssr.training.logger import read_csv
+from imssr.training.loop import StepSchedule
 
 
 def _cfg():
@@ -121,7 +122,7 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
     cfg.train.checkpoint_every_steps = 0
     t = Trainer(cfg, str(tmp_path), resume=True)
     try:
-        assert t.next_eval_step is None and t.next_ckpt_step is None
+        assert t.eval_schedule.next_step is None and t.ckpt_schedule.next_step is None
         assert t.learning_starts == 125 + 60  # refill the empty buffer with random actions first
         t.train()
     finally:
@@ -169,3 +170,18 @@ def test_checkpoint_from_before_new_settings_still_resumes(full_run, tmp_path):
     t = Trainer(cfg, str(tmp_path / "old"), resume=True)
     t.close()
     assert t.frame == 3000
+
+
+def test_step_schedule_saves_itself_under_the_checkpoint_key_and_resumes():
+    s = StepSchedule("eval", 100)
+    assert not s.due(99) and s.due(100)
+    s.advance(250)  # checked late (at an episode end): the next one after 250
+    assert s.next_step == 300 and s.state_dict() == {"next_eval_step": 300}
+    same = StepSchedule("eval", 100)
+    same.load_state_dict({"next_eval_step": 300}, step=260, saved_every=100)
+    assert same.next_step == 300
+    changed = StepSchedule("eval", 40)  # interval changed on resume: the next multiple of it
+    changed.load_state_dict({"next_eval_step": 300}, step=260, saved_every=100)
+    assert changed.next_step == 280
+    off = StepSchedule("ckpt", 0)
+    assert off.next_step is None and not off.due(10**9) and off.state_dict() == {"next_ckpt_step": None}

@@ -3,7 +3,8 @@ import torch
 
 from conftest import filled_buffer, tiny_config
 from imssr.agents import SACAgent
-from imssr.auxiliary import AUX_TASKS, AuxiliaryTask, NextObsContext
+from imssr.auxiliary import AUX_TASKS, AuxiliaryTask
+from imssr.batch import NextObsContext
 
 
 def _agent(seed=0):
@@ -38,13 +39,12 @@ def test_intrinsic_loss_is_per_sample_without_gradients_and_uses_views():
     agent, _ = _agent()
     batch = agent.to_batch(filled_buffer().sample(8))
     n = agent.nets
-    with torch.no_grad():
-        trunk = n.critic.encoder.trunk(batch.next_obs)
-        target = n.critic_target.encoder(batch.next_obs)
-    shared = agent.aux.intrinsic_loss(NextObsContext(batch.raw_next_obs, batch.next_obs, trunk, target,
-                                                     torch.Generator().manual_seed(0), "authors"))
-    indep = agent.aux.intrinsic_loss(NextObsContext(batch.raw_next_obs, batch.next_obs, trunk, target,
-                                                    torch.Generator().manual_seed(0), "training"))
+    enc = agent.encode(batch)
+    trunk, target = enc.next_trunk, enc.next_latent  # online trunk and target encoder on o'
+    def ctx(form):
+        return NextObsContext(batch=batch, enc=enc, generator=torch.Generator().manual_seed(0), form=form)
+
+    shared, indep = agent.aux.intrinsic_loss(ctx("authors")), agent.aux.intrinsic_loss(ctx("training"))
     assert shared.shape == indep.shape == (8,)
     assert not shared.requires_grad and not indep.requires_grad
     # "authors" pairs the online and momentum encoders on the same crop.

@@ -5,7 +5,7 @@ import torch
 
 from conftest import filled_buffer, tiny_config
 from imssr.agents import SACAgent
-from imssr.auxiliary import NextObsContext
+from imssr.batch import NextObsContext
 from imssr.intrinsic import RE3, RND
 
 
@@ -15,8 +15,7 @@ def _agent(algo):
 
 
 def _ctx(batch):
-    return NextObsContext(batch.raw_next_obs, batch.next_obs, None, None, torch.Generator(),
-                          "independent", batch)
+    return NextObsContext(batch=batch, enc=None, generator=torch.Generator(), form="independent")
 
 
 def test_one_setting_swaps_the_signal():

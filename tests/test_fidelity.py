@@ -102,8 +102,7 @@ def _same_batch(agent, sample):
 
 
 def _critic_loss(agent, batch, step=0):
-    metrics, _ = agent.update_critic(batch, step)
-    return metrics["critic_loss"]
+    return agent.update_critic(batch, agent.encode(batch), step)["critic_loss"]
 
 
 @torch.no_grad()

@@ -1,11 +1,13 @@
 """The fused update schedule: one encoder pass and one backward for critic + CURL or PAD."""
+from dataclasses import replace
+
 import pytest
 import torch
 import torch.nn.functional as F
 
 from conftest import assert_same_nets, filled_buffer, tiny_config
 from imssr.agents import SACAgent
-from imssr.auxiliary import NextObsContext
+from imssr.batch import Encoding, NextObsContext
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 
@@ -30,7 +32,8 @@ def test_fused_gradient_is_the_sum_of_the_critic_and_task_gradients(algo):
     enc, own = list(n.critic.encoder.parameters()), list(agent.aux.parameters())
     # By hand, at the same weights and random draws: each loss's gradient separately.
     with torch.no_grad():
-        _, a2, logp, _ = n.actor(n.critic.encoder.trunk(batch.next_obs), generator=agent.noise_gen)
+        next_trunk = n.critic.encoder.trunk(batch.next_obs)
+        _, a2, logp, _ = n.actor(next_trunk, generator=agent.noise_gen)
         tq = torch.min(*n.critic_target(batch.next_obs, a2)) - agent.alpha * logp
         target = batch.reward + batch.discount * 0.99 * tq
     features = n.critic.encoder.trunk.shared_features(batch.obs)
@@ -38,12 +41,17 @@ def test_fused_gradient_is_the_sum_of_the_critic_and_task_gradients(algo):
     q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), batch.action)
     critic_loss = F.mse_loss(q1, target) + F.mse_loss(q2, target)
     # PAD runs its own pass over o' here; the agent shares one pass over o and o'.
-    task_loss = agent.aux.loss_from_trunk(batch, trunk, features).mean()
+    next_features = n.critic.encoder.trunk.shared_features(batch.next_obs) if algo == "pad" else None
+    by_hand = Encoding(view_weights=(1.0,), features=features, trunk=trunk, next_trunk=next_trunk,
+                       next_latent=n.critic_target.encoder(batch.next_obs).detach(), next_features=next_features)
+    task_loss = agent.aux.per_sample_loss(batch, by_hand).mean()
     g_critic = torch.autograd.grad(critic_loss, enc, retain_graph=True, allow_unused=True)
     g_task = torch.autograd.grad(task_loss, enc + own, allow_unused=True)
     agent.gen.set_state(gen)
     agent.noise_gen.set_state(noise)
-    metrics, obs_trunk = agent.update_critic(batch, 0, fuse_aux=True)
+    fused_enc = agent.encode(batch, with_task_loss=True)
+    metrics = agent.update_critic(batch, fused_enc, 0)
+    obs_trunk = fused_enc.obs_trunk.detach()  # update_fused's actor input
     # The agent's passes run over other batch sizes (o and o' together): rounding differs.
     torch.testing.assert_close(metrics["critic_loss"], critic_loss.detach(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(metrics["aux_loss"], task_loss.detach(), rtol=1e-5, atol=1e-6)
@@ -76,11 +84,8 @@ def test_fused_im_pad_reward_is_the_training_loss_it_reuses():
     """The reused fused loss equals IM-PAD's intrinsic loss computed from scratch."""
     agent = _agent("im-pad")
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    n = agent.nets
-    features = n.critic.encoder.trunk.shared_features(batch.obs)
-    fused = agent.aux.loss_from_trunk(batch, n.critic.encoder.trunk.head(features).flatten(1), features)
-    ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, None, None, agent.intrinsic_gen,
-                         batch=batch)
+    fused = agent.encode(batch, with_task_loss=True).aux_loss
+    ctx = NextObsContext(batch=batch, enc=None, generator=agent.intrinsic_gen)
     torch.testing.assert_close(agent.aux.intrinsic_loss(ctx), fused.detach(), rtol=1e-5, atol=1e-6)
 
 
@@ -89,19 +94,24 @@ def test_fused_im_pad_update_hands_its_training_loss_to_the_reward():
     seen = []
     compute = agent.aux.intrinsic_loss
 
-    def spy(ctx):  # records what the agent passes, then runs the real method
-        seen.append((ctx.fused_loss, compute(NextObsContext(**{**vars(ctx), "fused_loss": None}))))
-        return compute(ctx)
+    def spy(ctx):  # records what the agent passes and what the task returns from it
+        handed = ctx.enc.aux_loss
+        got = compute(ctx)
+        seen.append((handed, got, compute(replace(ctx, enc=replace(ctx.enc, aux_loss=None)))))
+        return got
 
-    agent.aux.intrinsic_loss = spy
-    metrics, _ = agent.update_critic(agent.to_batch(filled_buffer(action_dim=2).sample(8)), 0, fuse_aux=True)
-    ((handed, recomputed),) = seen
-    assert handed is not None and not handed.requires_grad
-    torch.testing.assert_close(handed, recomputed, rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(metrics["aux_loss"], handed.mean())
+    agent.signal.task_loss = spy
+    batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
+    metrics = agent.update_critic(batch, agent.encode(batch, with_task_loss=True), 0)
+    ((handed, got, recomputed),) = seen
+    assert handed is not None and not got.requires_grad
+    torch.testing.assert_close(got, handed.detach())
+    torch.testing.assert_close(got, recomputed, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(metrics["aux_loss"], got.mean())
     # Sequential schedule: nothing to hand over, the reward computes the loss itself.
     seen.clear()
-    agent.update_critic(agent.to_batch(filled_buffer(action_dim=2).sample(8)), 1, fuse_aux=False)
+    batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
+    agent.update_critic(batch, agent.encode(batch), 1)
     assert seen[0][0] is None
 
 
@@ -146,7 +156,7 @@ def test_pad_on_its_own_batch_is_not_fused_and_still_trains_the_shared_layers():
     cfg.agent.update_schedule = "fused"
     assert cfg.aux.own_batch  # Table III: PAD's SSL batch is its own (256)
     agent = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
-    assert not agent.aux.fuses(cfg.agent)
+    assert not agent.fuse_aux
     convs = agent.nets.critic.encoder.trunk.convs
     owned = {id(p) for g in agent.aux.optimizer.param_groups for p in g["params"]}
     assert all(id(p) in owned for p in convs.parameters())

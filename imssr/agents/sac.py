@@ -1,21 +1,25 @@
 """Pixel SAC with a pluggable auxiliary task and an optional intrinsic reward.
 
-One agent step's update (order as in the CURL / DMC-GB code bases):
-  1. critic, every ``critic_update_every`` steps, on ``r + beta_t * r_int``, over
-     the observation views the auxiliary task asks for (SVEA: clean + augmented);
+One agent step's update, :meth:`SACAgent.update` (order as in the CURL / DMC-GB code bases):
+  1. critic, every ``critic_update_every`` steps: ``encode`` the batch once, ``bellman_target``
+     on ``r + beta_t * r_int``, ``critic_loss`` over the observation views the auxiliary task
+     asks for (SVEA: clean + augmented);
   2. actor and temperature, every ``actor_update_every`` steps;
   3. soft update of the target Q heads (``critic_tau``) and target encoder
      (``encoder_tau``), every ``target_update_every`` steps;
   4. the auxiliary task, every ``aux.update_every`` steps;
   5. the intrinsic signal's own networks, if it has any (RND's predictor).
-With ``agent.update_schedule = fused`` the actor reuses the critic's encoding of
-``o`` and a task that can (CURL, PAD) adds its loss to the critic's in step 1.
+``agent.update_schedule`` picks one of two paths, each read top to bottom:
+:meth:`SACAgent.update_sequential` (the reference) and :meth:`SACAgent.update_fused` (the actor
+reuses the critic's encoding of ``o``; a task that can read the critic's pass adds its loss to
+the critic's backward in step 1).
 The time limit is not terminal: ``discount`` is 0 only for true terminal states.
 """
 from __future__ import annotations
 
 import copy
 import math
+from dataclasses import replace
 from typing import Optional
 
 import numpy as np
@@ -24,11 +28,15 @@ import torch.nn.functional as F
 from torch import nn
 
 from imssr.augmentations import center_crop, random_crop
-from imssr.auxiliary import AuxiliaryTask, Batch, NextObsContext, SharedNetworks, make_aux
+from imssr.auxiliary import AuxiliaryTask, SharedNetworks, make_aux
+from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig, IntrinsicConfig
+from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
 from imssr.networks import Actor, ConvTrunk, Critic, Encoder, weight_init
 from imssr.replay import FrameReplayBuffer
+
+Metrics = dict[str, "torch.Tensor | float"]
 
 
 class SACNetworks(nn.Module):
@@ -69,9 +77,20 @@ class SACAgent:
                                           betas=(cfg.actor_beta1, 0.999))
         self.alpha_opt = torch.optim.Adam([n.log_alpha], lr=cfg.alpha_lr, betas=(cfg.alpha_beta1, 0.999))
         self.aux: Optional[AuxiliaryTask] = None
+        self.fuse_aux = False
+        """Whether the task's loss is read from the critic's pass and joins its backward: the fused
+        schedule, a task that can (:attr:`AuxiliaryTask.reads_critic_pass`), on the RL batch (a
+        batch of its own needs a pass of its own)."""
         if aux_cfg is not None:
-            shared = SharedNetworks(n.critic.encoder, n.critic_target.encoder, action_dim)
+            shared = SharedNetworks(encoder=n.critic.encoder, target_encoder=n.critic_target.encoder,
+                                    action_dim=action_dim)
             self.aux = make_aux(aux_cfg.name, shared, aux_cfg, cfg).to(self.device)
+            self.fuse_aux = (cfg.update_schedule == "fused" and self.aux.reads_critic_pass is not None
+                             and not aux_cfg.own_batch)
+            if self.aux.trains:
+                # Fused, the critic's optimiser steps the shared encoder once on the summed gradient.
+                params = self.aux.own_parameters() if self.fuse_aux else self.aux.trained_parameters()
+                self.aux.optimizer = torch.optim.Adam(params, lr=aux_cfg.lr)
         self.intrinsic: Optional[IntrinsicReward] = None
         self.signal: Optional[IntrinsicSignal] = None
         if intrinsic_cfg is not None and intrinsic_cfg.enabled:
@@ -96,9 +115,8 @@ class SACAgent:
         x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
         x = center_crop(x, self.cfg.crop_size)
         trunk = self.nets.critic.encoder.trunk(x)
-        mu, pi, _, _ = self.nets.actor(trunk, generator=self.noise_gen, sample=not deterministic)
-        out = mu if deterministic else pi
-        return out[0].cpu().numpy().astype(np.float32)
+        policy = self.nets.actor(trunk, generator=self.noise_gen, sample=not deterministic)
+        return policy.action[0].cpu().numpy().astype(np.float32)
 
     # -- learning ----------------------------------------------------------------
     def to_batch(self, sample: dict[str, np.ndarray]) -> Batch:
@@ -114,121 +132,152 @@ class SACAgent:
             next_obs=random_crop(raw_next, size, self.gen),
             raw_obs=raw_obs, raw_next_obs=raw_next, generator=self.gen)
 
-    def update(self, replay: FrameReplayBuffer, step: int) -> dict[str, torch.Tensor | float]:
+    def update(self, replay: FrameReplayBuffer, step: int) -> Metrics:
         """All updates of one agent step; ``step`` counts agent steps."""
-        c = self.cfg
-        fused = c.update_schedule == "fused"
-        batch = self.to_batch(replay.sample(c.batch_size))
-        metrics: dict[str, torch.Tensor | float] = {}
-        aux_due = self.aux is not None and self.aux.trains and step % self.aux.cfg.update_every == 0
-        # Fused: the task's loss rides on the critic's encoder pass and backward (only when
-        # it trains on the RL batch: a task with a batch of its own needs its own pass).
-        fuse_aux = aux_due and self.aux.fuses(c)
-        obs_trunk = None
-        if step % c.critic_update_every == 0:
-            critic_metrics, obs_trunk = self.update_critic(batch, step, fuse_aux)
-            metrics.update(critic_metrics)
-        if step % c.actor_update_every == 0:
-            metrics.update(self.update_actor_and_alpha(batch, obs_trunk if fused else None))
-        if step % c.target_update_every == 0:
-            self.soft_update_targets()
-        if aux_due and not fuse_aux:
-            aux_batch = self.to_batch(replay.sample(self.aux.cfg.batch_size)) if self.aux.cfg.own_batch else batch
-            metrics.update(self.aux.update(aux_batch, step))
+        batch = self.to_batch(replay.sample(self.cfg.batch_size))
+        if self.cfg.update_schedule == "fused":
+            metrics = self.update_fused(replay, batch, step)
+        else:
+            metrics = self.update_sequential(replay, batch, step)
         if self.signal is not None:
             metrics.update(self.signal.update(batch, step))
         self.updates += 1
         return metrics
 
-    def update_critic(self, batch: Batch, step: int, fuse_aux: bool = False
-                      ) -> tuple[dict[str, torch.Tensor | float], torch.Tensor]:
-        """Critic step (plus the auxiliary step if ``fuse_aux``).
+    def update_sequential(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
+        """The CURL / DMC-GB order: critic; actor on a fresh encoding of o after the critic's
+        step; target EMA; the auxiliary task on passes of its own."""
+        c, metrics = self.cfg, {}
+        if step % c.critic_update_every == 0:
+            metrics.update(self.update_critic(batch, self.encode(batch), step))
+        if step % c.actor_update_every == 0:
+            with torch.no_grad():  # the actor never trains the convolutions: no graph
+                trunk = self.nets.critic.encoder.trunk(batch.obs)
+            metrics.update(self.update_actor_and_alpha(trunk))
+        if step % c.target_update_every == 0:
+            self.soft_update_targets()
+        if self.aux_due(step):
+            metrics.update(self.update_aux(replay, batch, step))
+        return metrics
 
-        Returns the metrics and the online trunk's output on ``batch.obs`` from
-        before the step, detached (the fused schedule's actor input).
-        """
-        n, c = self.nets, self.cfg
-        metrics: dict[str, torch.Tensor | float] = {}
+    def update_fused(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
+        """One online pass over o serves the critic, the actor (the encoding from before the
+        critic's step, detached, as DrQ-v2) and a task that reads it (CURL, PAD): its loss
+        joins the critic's backward.  Needs ``critic_update_every = 1`` (validated)."""
+        c = self.cfg
+        fuse = self.fuse_aux and self.aux_due(step)
+        enc = self.encode(batch, with_task_loss=fuse)
+        metrics = self.update_critic(batch, enc, step)
+        if step % c.actor_update_every == 0:
+            metrics.update(self.update_actor_and_alpha(enc.obs_trunk.detach()))
+        if step % c.target_update_every == 0:
+            self.soft_update_targets()
+        if self.aux_due(step) and not fuse:
+            metrics.update(self.update_aux(replay, batch, step))
+        return metrics
+
+    def encode(self, batch: Batch, with_task_loss: bool = False) -> Encoding:
+        """The update's encoder passes (:class:`~imssr.batch.Encoding`): the online trunk over
+        the critic's views of o in one pass, with grad; o' through the online trunk and the
+        target encoder, without.  ``with_task_loss``: the auxiliary task's per-sample loss read
+        from this pass too (``Encoding.aux_loss``; PAD's also needs o' with grad, in the same
+        pass).  Computed before the Bellman target, whose intrinsic signal may reuse it (IM-PAD);
+        the two draw from different generators, so the order changes no random draw."""
+        trunk_net = self.nets.critic.encoder.trunk
         views = self.aux.critic_views(batch) if self.aux is not None else [(batch.obs, 1.0)]
-        # All views in one forward pass; each is regressed to the same (clean) target.
         obs = views[0][0] if len(views) == 1 else torch.cat([v for v, _ in views])
-        encoder_trunk = n.critic.encoder.trunk
         next_features = None
-        if fuse_aux and self.aux.fused_next_features:
-            # One pass of the shared layers over o and o' (PAD): o' with grad for the task's
-            # loss, and detached for the Bellman target's online encoding below.
-            both = encoder_trunk.shared_features(torch.cat([obs, batch.next_obs]))
+        if with_task_loss and self.aux.reads_critic_pass == "obs+next_obs":
+            both = trunk_net.shared_features(torch.cat([obs, batch.next_obs]))
             features, next_features = both[:len(obs)], both[len(obs):]
         else:
-            features = encoder_trunk.shared_features(obs)
-        trunk = encoder_trunk.head(features).flatten(1)  # = encoder_trunk(obs)
-        # Fused: the task's loss from this same pass, computed before the target so that a
-        # task whose intrinsic loss is this quantity (PAD) can hand it over.  No generator
-        # is shared with the target's, so the order changes no random draw.
-        aux_per_sample = self.aux.loss_from_trunk(batch, trunk[:len(batch)], features[:len(batch)],
-                                                  next_features) if fuse_aux else None
+            features = trunk_net.shared_features(obs)
         with torch.no_grad():
-            next_trunk = encoder_trunk(batch.next_obs) if next_features is None \
-                else encoder_trunk.head(next_features.detach()).flatten(1)
-            _, next_action, next_log_pi, _ = n.actor(next_trunk, generator=self.noise_gen)
-            target_latent = n.critic_target.encoder(batch.next_obs)
-            tq1, tq2 = n.critic_target.q(target_latent, next_action)
-            target_v = torch.min(tq1, tq2) - self.alpha * next_log_pi
-            reward = batch.reward
-            if self.intrinsic is not None:
-                # Algorithm 1: per-sample SSL loss of o', normalised in the batch,
-                # r <- r + beta_t * r_int (Eq. 1).
-                ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
-                                     self.intrinsic_gen, self.intrinsic.cfg.form, batch,
-                                     None if aux_per_sample is None else aux_per_sample.detach())
-                bonus, stats = self.intrinsic(self.signal(ctx), step, self.signal.label)
-                reward = reward + bonus
-                metrics.update(stats)
-            target_q = reward + batch.discount * c.discount * target_v
-        action = batch.action.repeat(len(views), 1)
-        q1_all, q2_all = n.critic.q(n.critic.encoder.projection(trunk), action)
-        loss = 0.0
-        for q1, q2, (_, weight) in zip(q1_all.chunk(len(views)), q2_all.chunk(len(views)), views):
-            loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
-        total = loss
-        if fuse_aux:
-            aux_loss = aux_per_sample.mean()
-            total = loss + aux_loss
-            self.aux.optimizer.zero_grad(set_to_none=True)
-            metrics["aux_loss"] = aux_loss.detach()
-        self.critic_opt.zero_grad(set_to_none=True)
-        total.backward()
-        self.critic_opt.step()
-        if fuse_aux:
-            self.aux.apply_gradients(step)
-        metrics.update(critic_loss=loss.detach(), q_mean=q1_all[:len(batch)].detach().mean())
-        return metrics, trunk[:len(batch)].detach()
+            next_trunk = trunk_net(batch.next_obs) if next_features is None \
+                else trunk_net.head(next_features.detach()).flatten(1)
+            next_latent = self.nets.critic_target.encoder(batch.next_obs)
+        enc = Encoding(view_weights=tuple(w for _, w in views), features=features,
+                       trunk=trunk_net.head(features).flatten(1),  # = trunk_net(obs)
+                       next_trunk=next_trunk, next_latent=next_latent, next_features=next_features)
+        if with_task_loss:
+            enc = replace(enc, aux_loss=self.aux.per_sample_loss(batch, enc))
+        return enc
 
-    def update_actor_and_alpha(self, batch: Batch, trunk: Optional[torch.Tensor] = None
-                               ) -> dict[str, torch.Tensor]:
-        """Actor and temperature step on ``trunk`` (the online encoding of ``batch.obs``).
-
-        Sequential schedule (``trunk`` None): the trunk is recomputed after the
-        critic step, as the reference code does, without a graph since the actor
-        never trains the convolutions.  Fused: the critic pass's detached encoding.
-        """
+    @torch.no_grad()
+    def bellman_target(self, batch: Batch, enc: Encoding, step: int) -> tuple[torch.Tensor, Metrics]:
+        """``y = r + beta_t * r_int + gamma * d * (min_i Q*_i(z*', a') - alpha log pi(a'|o'))``,
+        ``a' ~ pi(. | o')``, and the intrinsic reward's statistics.  The reward is the paper's
+        Eq. (1) with Algorithm 1's ``r_int``: the signal of o', normalised in the batch."""
         n = self.nets
-        if trunk is None:
-            with torch.no_grad():
-                trunk = n.critic.encoder.trunk(batch.obs)
-        _, pi, log_pi, log_std = n.actor(trunk, generator=self.noise_gen)
-        q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), pi)
-        actor_loss = (self.alpha.detach() * log_pi - torch.min(q1, q2)).mean()
-        self.actor_opt.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        self.actor_opt.step()
-        alpha_loss = (self.alpha * (-log_pi - self.target_entropy).detach()).mean()
-        self.alpha_opt.zero_grad(set_to_none=True)
-        alpha_loss.backward()
-        self.alpha_opt.step()
+        next_policy = n.actor(enc.next_trunk, generator=self.noise_gen)
+        tq1, tq2 = n.critic_target.q(enc.next_latent, next_policy.action)
+        target_v = torch.min(tq1, tq2) - self.alpha * next_policy.log_prob
+        reward, stats = batch.reward, {}
+        if self.intrinsic is not None:
+            bonus, stats = self.intrinsic(self.intrinsic_signal(batch, enc), step, self.signal.label)
+            reward = reward + bonus
+        return reward + batch.discount * self.cfg.discount * target_v, stats
+
+    @torch.no_grad()
+    def intrinsic_signal(self, batch: Batch, enc: Encoding) -> torch.Tensor:
+        """The raw per-sample signal of o' (the task's loss, RND's error, RE3's distance),
+        ``(B,)``, before normalisation and beta; draws fresh views from ``intrinsic_gen`` only."""
+        if self.signal is None:
+            raise ImssrError("this agent has no intrinsic signal (intrinsic.enabled is false)")
+        ctx = NextObsContext(batch=batch, enc=enc, generator=self.intrinsic_gen, form=self.intrinsic.cfg.form)
+        return self.signal(ctx)
+
+    def critic_loss(self, batch: Batch, enc: Encoding, target_q: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``sum_v w_v (||Q1(z_v, a) - y||^2 + ||Q2(z_v, a) - y||^2)`` over the views of o, each
+        regressed to the same clean target (one view of weight 1 unless a task adds some: SVEA's
+        Eq. L_SVEA), and the mean Q1 of ``batch.obs`` (detached)."""
+        n, views = self.nets, len(enc.view_weights)
+        q1_all, q2_all = n.critic.q(n.critic.encoder.projection(enc.trunk), batch.action.repeat(views, 1))
+        loss = 0.0
+        for q1, q2, weight in zip(q1_all.chunk(views), q2_all.chunk(views), enc.view_weights, strict=True):
+            loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
+        return loss, q1_all[:len(batch)].detach().mean()
+
+    def update_critic(self, batch: Batch, enc: Encoding, step: int) -> Metrics:
+        """One critic step on :meth:`critic_loss`.  With the task's loss in ``enc`` (fused), one
+        backward serves both: each optimiser steps its own parameters, the shared encoder's
+        once (the critic's) on the summed gradient."""
+        target_q, metrics = self.bellman_target(batch, enc, step)
+        loss, q_mean = self.critic_loss(batch, enc, target_q)
+        if enc.aux_loss is None:
+            _step(loss, self.critic_opt)
+        else:
+            aux_loss = enc.aux_loss.mean()
+            metrics["aux_loss"] = aux_loss.detach()
+            _step(loss + aux_loss, self.critic_opt, self.aux.optimizer)
+            self.aux.after_step(step)
+        metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
+        return metrics
+
+    def update_actor_and_alpha(self, trunk: torch.Tensor) -> Metrics:
+        """Actor and temperature step on ``trunk``, the online trunk's output on ``batch.obs``
+        without a graph (SAC's policy and temperature losses)."""
+        n = self.nets
+        policy = n.actor(trunk, generator=self.noise_gen)
+        q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), policy.action)
+        actor_loss = (self.alpha.detach() * policy.log_prob - torch.min(q1, q2)).mean()
+        _step(actor_loss, self.actor_opt)
+        alpha_loss = (self.alpha * (-policy.log_prob - self.target_entropy).detach()).mean()
+        _step(alpha_loss, self.alpha_opt)
+        log_std = policy.log_std
         entropy = 0.5 * log_std.shape[1] * (1.0 + math.log(2 * math.pi)) + log_std.sum(dim=-1)
         return {"actor_loss": actor_loss.detach(), "alpha": self.alpha.detach(),
                 "alpha_loss": alpha_loss.detach(), "entropy": entropy.detach().mean()}
+
+    def aux_due(self, step: int) -> bool:
+        """Whether the auxiliary task trains at agent step ``step``."""
+        return self.aux is not None and self.aux.trains and step % self.aux.cfg.update_every == 0
+
+    def update_aux(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
+        """The task's own step, on the RL batch or on a batch of its own (``aux.own_batch``)."""
+        own = self.aux.cfg.own_batch
+        return self.aux.update(self.to_batch(replay.sample(self.aux.cfg.batch_size)) if own else batch, step)
 
     @torch.no_grad()
     def soft_update_targets(self) -> None:
@@ -280,6 +329,15 @@ class SACAgent:
             self.signal.load_full_state_dict(state["signal"])
 
 
+def _step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> None:
+    """Backpropagate ``loss`` and step each optimiser on its parameters' fresh gradients."""
+    for opt in optimizers:
+        opt.zero_grad(set_to_none=True)
+    loss.backward()
+    for opt in optimizers:
+        opt.step()
+
+
 def _ema(src: nn.Module, dst: nn.Module, tau: float) -> None:
-    for p, tp in zip(src.parameters(), dst.parameters()):
+    for p, tp in zip(src.parameters(), dst.parameters(), strict=True):
         tp.data.lerp_(p.data, tau)

@@ -18,27 +18,19 @@ def intrinsic_signal(agent, sample: dict[str, np.ndarray]) -> torch.Tensor:
     the per-sample SSL loss of ``o'`` (or RND's error, RE3's distance) before the in-batch
     normalisation and ``beta_t`` of Algorithm 1, i.e. the left-hand side of the paper's bound.
 
-    Built exactly as ``SACAgent.update_critic`` builds it for its Bellman target (random crops
-    from ``agent.gen``, the online trunk and the target encoder on the crop of ``o'``, extra
-    views from ``agent.intrinsic_gen``), without a gradient.  The fused schedule's IM-PAD hands
-    the training pass's loss over instead of recomputing it; here it is recomputed (equal up to
-    float rounding).  Like the agent's, a contrastive loss depends on the batch it is in (the
-    other samples are its negatives).  When the agent has a public
-    ``intrinsic_signal(batch, encode(batch))``, this body becomes that call under ``no_grad``.
+    Built as the agent builds it for its Bellman target (:meth:`SACAgent.intrinsic_signal` on
+    :meth:`SACAgent.encode` of the batch: random crops from ``agent.gen``, extra views from
+    ``agent.intrinsic_gen``), without a gradient.  The fused schedule's IM-PAD hands the training
+    pass's loss over instead of recomputing it; here it is recomputed (equal up to float
+    rounding).  Like the agent's, a contrastive loss depends on the batch it is in (the other
+    samples are its negatives).
     """
-    from imssr.auxiliary import NextObsContext
-
     if agent.signal is None:
         raise ImssrError("the run's algorithm has no intrinsic reward to analyse (choose an im-, +rnd or "
                          "+re3 algorithm's run)")
-    n = agent.nets
     with torch.no_grad():
         batch = agent.to_batch(sample)
-        next_trunk = n.critic.encoder.trunk(batch.next_obs)
-        target_latent = n.critic_target.encoder(batch.next_obs)
-        ctx = NextObsContext(batch.raw_next_obs, batch.next_obs, next_trunk, target_latent,
-                             agent.intrinsic_gen, agent.intrinsic.cfg.form, batch, None)
-        return agent.signal(ctx).detach().flatten()
+        return agent.intrinsic_signal(batch, agent.encode(batch)).detach().flatten()
 
 
 def has_signal(agent) -> bool:

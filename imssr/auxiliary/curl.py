@@ -18,29 +18,34 @@ IM-CURL's signal of o' (``intrinsic.form``):
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from imssr.augmentations import random_crop
-from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
+from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
+from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig
 
 
 class CURL(AuxiliaryTask):
     name = "curl"
-    fuses_with_critic = True  # the query is the critic's own encoding of the RL crop
+    reads_critic_pass = "obs"  # the query is the critic's own encoding of the RL crop
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
         dim = shared.encoder.out_dim
         self.W = nn.Parameter(torch.rand(dim, dim))
-        # Sequential schedule: one optimiser over W and the online encoder, so the
-        # contrastive loss trains the encoder that the critic uses.  Fused: W only;
-        # the encoder takes the summed gradient through the critic's optimiser.
-        params = self.fused_parameters() if self.fuses(agent_cfg) \
-            else [self.W, *shared.encoder.parameters()]
-        self.optimizer = torch.optim.Adam(params, lr=cfg.lr)
+
+    def shared_parameters(self) -> list[nn.Parameter]:
+        # The whole online encoder: the contrastive loss trains the encoder the critic uses.
+        return list(self.shared.encoder.parameters())
+
+    def trained_parameters(self) -> list[nn.Parameter]:
+        # W first: the order of CURL's saved optimiser state since imssr 0.1.
+        return [*self.own_parameters(), *self.shared_parameters()]
 
     def logits(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
         logits = z_query @ (self.W @ z_key.T)
@@ -51,10 +56,9 @@ class CURL(AuxiliaryTask):
         labels = torch.arange(z_query.shape[0], device=z_query.device)
         return F.cross_entropy(self.logits(z_query, z_key), labels, reduction="none")
 
-    def per_sample_loss(self, batch: Batch) -> torch.Tensor:
-        return self.loss_from_trunk(batch, self.shared.encoder.trunk(batch.obs), None)
-
-    def loss_from_trunk(self, batch: Batch, trunk: torch.Tensor, features, next_features=None) -> torch.Tensor:
+    def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:
+        # The anchor: the RL crop of o (encoded by the critic's pass when ``enc`` is given).
+        trunk = self.shared.encoder.trunk(batch.obs) if enc is None else enc.obs_trunk
         positive = random_crop(batch.raw_obs, self.agent_cfg.crop_size, batch.generator)
         z_query = self.shared.encoder.projection(trunk)
         with torch.no_grad():
@@ -64,10 +68,10 @@ class CURL(AuxiliaryTask):
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         # Query: the online encoder on the Bellman target's crop (its trunk output is reused).
-        z_query = self.shared.encoder.projection(ctx.online_trunk)
+        z_query = self.shared.encoder.projection(ctx.enc.next_trunk)
         if ctx.form == "authors":
-            z_key = ctx.target_latent  # the target encoder on that same crop
+            z_key = ctx.enc.next_latent  # the target encoder on that same crop
         else:
-            positive = random_crop(ctx.raw_next_obs, self.agent_cfg.crop_size, ctx.generator)
+            positive = random_crop(ctx.batch.raw_next_obs, self.agent_cfg.crop_size, ctx.generator)
             z_key = self.shared.target_encoder(positive)
         return self.loss_from_latents(z_query, z_key)

@@ -22,13 +22,15 @@ steps), so IM-SODA's signal is computed on the RL batch's crop of o'
 from __future__ import annotations
 
 import copy
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from imssr.augmentations import random_crop, random_overlay
-from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext, SharedNetworks
+from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
+from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig
 from imssr.data import image_pool
 from imssr.networks import weight_init
@@ -59,11 +61,13 @@ class SODA(AuxiliaryTask):
         self.target_projection = copy.deepcopy(self.projection)
         for p in [*self.target_trunk.parameters(), *self.target_projection.parameters()]:
             p.requires_grad_(False)
-        self.optimizer = torch.optim.Adam(
-            [*trunk.parameters(), *self.projection.parameters(), *self.predictor.parameters()], lr=cfg.lr)
         # Loaded on first use (evaluation never overlays) and not saved: it is
         # rebuilt from its source.
         self.images: torch.Tensor | None = None
+
+    def shared_parameters(self) -> list[nn.Parameter]:
+        # The whole online trunk (the critic's projection is not on SODA's path).
+        return list(self.shared.encoder.trunk.parameters())
 
     def load_data(self, device) -> None:
         pool = image_pool(self.agent_cfg.crop_size, self.cfg.image_dir, self.cfg.image_pool_size)
@@ -82,7 +86,7 @@ class SODA(AuxiliaryTask):
             target = self.target_projection(self.target_trunk(target_view))
         return (F.normalize(h, dim=1) - F.normalize(target, dim=1)).pow(2)
 
-    def per_sample_loss(self, batch: Batch) -> torch.Tensor:
+    def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:
         # Independent crops: the clean view is the batch's crop of o, the overlaid
         # view a fresh crop of the same observation.
         augmented = self.overlay(random_crop(batch.raw_obs, self.agent_cfg.crop_size, batch.generator),
@@ -91,7 +95,7 @@ class SODA(AuxiliaryTask):
 
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
-        clean = ctx.next_view
+        clean = ctx.batch.next_obs
         augmented = self.overlay(clean, ctx.generator)  # same crop
         if ctx.form == "authors":
             return torch.log1p(self.squared_distance(clean, augmented).sum(dim=1))
@@ -102,5 +106,5 @@ class SODA(AuxiliaryTask):
         tau = self.cfg.tau
         online = [*self.shared.encoder.trunk.parameters(), *self.projection.parameters()]
         target = [*self.target_trunk.parameters(), *self.target_projection.parameters()]
-        for p, tp in zip(online, target):
+        for p, tp in zip(online, target, strict=True):
             tp.lerp_(p, tau)

@@ -12,10 +12,13 @@ are already computed by the Bellman target, so the signal costs no encoder pass.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from imssr.augmentations import random_conv
-from imssr.auxiliary.base import AuxiliaryTask, Batch, NextObsContext
+from imssr.auxiliary.base import AuxiliaryTask
+from imssr.batch import Batch, Encoding, NextObsContext
 
 
 class SVEA(AuxiliaryTask):
@@ -26,7 +29,7 @@ class SVEA(AuxiliaryTask):
         return [(batch.obs, self.cfg.svea_alpha),
                 (random_conv(batch.obs, batch.generator), self.cfg.svea_beta)]
 
-    def per_sample_loss(self, batch: Batch) -> torch.Tensor:
+    def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:
         """Online-vs-target latent distance of ``o`` (what IM-SVEA measures; not trained on)."""
         with torch.no_grad():
             target = self.shared.target_encoder(batch.obs)
@@ -34,5 +37,5 @@ class SVEA(AuxiliaryTask):
 
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
-        z_hat = self.shared.encoder.projection(ctx.online_trunk)
-        return (z_hat - ctx.target_latent).pow(2).sum(dim=1)
+        z_hat = self.shared.encoder.projection(ctx.enc.next_trunk)
+        return (z_hat - ctx.enc.next_latent).pow(2).sum(dim=1)

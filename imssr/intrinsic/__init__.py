@@ -12,11 +12,12 @@ from imssr.intrinsic.rnd import RND
 
 def make_signal(cfg: IntrinsicConfig, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
                 aux=None) -> IntrinsicSignal:
-    """The signal named by ``cfg.source``; ``ssl`` needs the auxiliary task."""
+    """The signal named by ``cfg.source``; ``ssl`` needs the auxiliary task (anything with a
+    ``name`` and an ``intrinsic_loss(ctx)``)."""
     if cfg.source == "ssl":
         if aux is None:
             raise ImssrError("intrinsic.source=ssl needs an auxiliary task")
-        return SSLSignal(aux)
+        return SSLSignal(aux.intrinsic_loss, aux.name)
     if cfg.source == "rnd":
         return RND(obs_shape[0], agent_cfg.crop_size, cfg)
     if cfg.source == "re3":

@@ -8,11 +8,11 @@ and everything else stay the same.
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 import torch
 
-from imssr.auxiliary import AuxiliaryTask, Batch, NextObsContext
+from imssr.batch import Batch, NextObsContext
 from imssr.networks.module import ModuleWithOptimizer
 
 
@@ -40,14 +40,16 @@ class SSLSignal(IntrinsicSignal):
 
     name = "ssl"
 
-    def __init__(self, aux: AuxiliaryTask):
+    def __init__(self, task_loss: Callable[[NextObsContext], torch.Tensor], task_name: str):
         super().__init__()
-        self.__dict__["aux"] = aux  # the agent owns and saves the task
+        # The task's bound ``intrinsic_loss``, not the task: the agent owns and saves the task.
+        self.task_loss = task_loss
+        self.task_name = task_name
 
     @property
     def label(self) -> str:
-        return f"{self.aux.name} per-sample loss of o'"
+        return f"{self.task_name} per-sample loss of o'"
 
     @torch.no_grad()
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
-        return self.aux.intrinsic_loss(ctx)
+        return self.task_loss(ctx)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from imssr.auxiliary import NextObsContext
+from imssr.batch import NextObsContext
 from imssr.config import AgentConfig, IntrinsicConfig
 from imssr.intrinsic.base import IntrinsicSignal
 from imssr.networks import ConvTrunk, Projection, weight_init
@@ -31,7 +31,7 @@ class RE3(IntrinsicSignal):
 
     @torch.no_grad()
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
-        y = self.encoder(ctx.next_view)
+        y = self.encoder(ctx.batch.next_obs)
         dist = torch.cdist(y, y)
         # The 0-th smallest distance is the sample to itself.
         kth = dist.kthvalue(self.k + 1, dim=1).values

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from imssr.auxiliary import Batch, NextObsContext
+from imssr.batch import Batch, NextObsContext
 from imssr.config import IntrinsicConfig
 from imssr.intrinsic.base import IntrinsicSignal
 
@@ -56,7 +56,7 @@ class RND(IntrinsicSignal):
 
     @torch.no_grad()
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
-        return self.error(ctx.next_view)
+        return self.error(ctx.batch.next_obs)
 
     def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
         loss = self.error(batch.next_obs).mean()

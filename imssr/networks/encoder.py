@@ -128,11 +128,8 @@ class Encoder(nn.Module):
         self.projection = Projection(trunk.out_dim, feature_dim, tanh)
         self.out_dim = feature_dim
 
-    def forward(self, obs: torch.Tensor, detach_trunk: bool = False) -> torch.Tensor:
-        h = self.trunk(obs)
-        if detach_trunk:
-            h = h.detach()
-        return self.projection(h)
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.projection(self.trunk(obs))
 
 
 def weight_init(m: nn.Module) -> None:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import torch
 from torch import nn
@@ -14,6 +14,19 @@ def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(),
                          nn.Linear(hidden, hidden), nn.ReLU(),
                          nn.Linear(hidden, out_dim))
+
+
+class PolicyOutput(NamedTuple):
+    """What the actor returns for a batch of trunk features."""
+
+    mean: torch.Tensor
+    """``tanh(mu)``: the deterministic action, ``(B, |A|)``."""
+    action: torch.Tensor
+    """A squashed sample ``tanh(mu + sigma * eps)``, or ``mean`` when not sampling, ``(B, |A|)``."""
+    log_prob: Optional[torch.Tensor]
+    """``log pi(action)`` with the tanh correction, ``(B, 1)``; None when not sampling."""
+    log_std: torch.Tensor
+    """The squashed log standard deviation, ``(B, |A|)``."""
 
 
 class Actor(nn.Module):
@@ -31,19 +44,20 @@ class Actor(nn.Module):
         self.log_std_min, self.log_std_max = log_std_min, log_std_max
 
     def forward(self, trunk_features: torch.Tensor, generator: Optional[torch.Generator] = None,
-                sample: bool = True):
+                sample: bool = True) -> PolicyOutput:
         mu, log_std = self.net(self.projection(trunk_features)).chunk(2, dim=-1)
         log_std = torch.tanh(log_std)
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1)
         if not sample:
-            return torch.tanh(mu), None, None, log_std
+            mean = torch.tanh(mu)
+            return PolicyOutput(mean=mean, action=mean, log_prob=None, log_std=log_std)
         noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         pi = mu + noise * log_std.exp()
         log_pi = (-0.5 * noise.pow(2) - log_std).sum(-1, keepdim=True) \
             - 0.5 * math.log(2 * math.pi) * mu.shape[-1]
         mu, pi = torch.tanh(mu), torch.tanh(pi)
         log_pi = log_pi - torch.log(torch.relu(1 - pi.pow(2)) + 1e-6).sum(-1, keepdim=True)
-        return mu, pi, log_pi, log_std
+        return PolicyOutput(mean=mu, action=pi, log_prob=log_pi, log_std=log_std)
 
 
 class QHeads(nn.Module):
@@ -67,5 +81,5 @@ class Critic(nn.Module):
         self.encoder = encoder
         self.q = QHeads(encoder.out_dim, action_dim, hidden_dim)
 
-    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_trunk: bool = False):
-        return self.q(self.encoder(obs, detach_trunk=detach_trunk), action)
+    def forward(self, obs: torch.Tensor, action: torch.Tensor):
+        return self.q(self.encoder(obs), action)

@@ -14,6 +14,7 @@ import os
 import sys
 import time
 from collections import defaultdict
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -44,6 +45,44 @@ log): agent step, frames per second, ETA and the last episode's return."""
 # Training metrics in the order a divergence names them (the critic's loss first).
 DIVERGENCE_ORDER = ("critic_loss", "actor_loss", "alpha_loss", "aux_loss", "rnd_loss", "q_mean",
                     "alpha", "entropy")
+
+
+@dataclass
+class StepSchedule:
+    """An event every ``every`` agent steps (0: never): due at the first agent step checked at or
+    past ``next_step``.  It saves itself under ``next_<name>_step``, the checkpoint key imssr has
+    always used, so older checkpoints resume."""
+
+    name: str
+    """``eval`` or ``ckpt``: names the checkpoint key."""
+    every: int
+    """Agent steps between two events; 0 turns the event off."""
+    next_step: Optional[int] = None
+    """The agent step at or after which the event is next due; None when off."""
+
+    def __post_init__(self):
+        if self.next_step is None and self.every:
+            self.next_step = self.every
+
+    @property
+    def key(self) -> str:
+        return f"next_{self.name}_step"
+
+    def due(self, step: int) -> bool:
+        return self.next_step is not None and step >= self.next_step
+
+    def advance(self, step: int) -> None:
+        """Move past ``step``: the next event falls on the first multiple after it of the schedule."""
+        while self.due(step):
+            self.next_step += self.every
+
+    def state_dict(self) -> dict:
+        return {self.key: self.next_step}
+
+    def load_state_dict(self, counters: dict, step: int, saved_every: int) -> None:
+        """Resume at agent step ``step``: the saved next step if the interval is unchanged
+        (``saved_every``), else the first multiple of the new interval after ``step``."""
+        self.next_step = counters[self.key] if saved_every == self.every else _next_multiple(step, self.every)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -159,8 +198,8 @@ class Trainer:
                                         physics_dim=self.env.physics_state_dim)
         self.action_rng = np.random.default_rng(action_seq)
         self.frame = self.step = self.episode = 0
-        self.next_eval_step = cfg.train.eval_every_steps or None
-        self.next_ckpt_step = cfg.train.checkpoint_every_steps or None
+        self.eval_schedule = StepSchedule("eval", cfg.train.eval_every_steps)
+        self.ckpt_schedule = StepSchedule("ckpt", cfg.train.checkpoint_every_steps)
         self.last_eval_step = -1
         # Agent step from which the agent acts and learns (later after a resume
         # without a saved buffer: the buffer refills with random actions first).
@@ -210,13 +249,9 @@ class Trainer:
         counters = _step_counters(ckpt, self.cfg.env.action_repeat)
         self.last_eval_step = counters["last_eval_step"]
         saved_train = RunConfig.from_dict(ckpt["config"]).train
-        t = self.cfg.train
         # Intervals may change on resume: keep the saved schedule only when they did not.
-        self.next_eval_step = (counters["next_eval_step"] if saved_train.eval_every_steps == t.eval_every_steps
-                               else _next_multiple(self.step, t.eval_every_steps))
-        self.next_ckpt_step = (counters["next_ckpt_step"]
-                               if saved_train.checkpoint_every_steps == t.checkpoint_every_steps
-                               else _next_multiple(self.step, t.checkpoint_every_steps))
+        self.eval_schedule.load_state_dict(counters, self.step, saved_train.eval_every_steps)
+        self.ckpt_schedule.load_state_dict(counters, self.step, saved_train.checkpoint_every_steps)
         self.env.set_rng_state(ckpt["env_rng"])
         saved = ckpt.get("eval_env_rngs") or {self.cfg.env.mode: ckpt.get("eval_env_rng")}
         for mode, env in self.eval_envs.items():
@@ -273,7 +308,7 @@ class Trainer:
         state = {
             "config": self.cfg.to_dict(), "frame": self.frame, "step": self.step,
             "episode": self.episode, "agent": self.agent.state_dict(),
-            "next_eval_step": self.next_eval_step, "next_ckpt_step": self.next_ckpt_step,
+            **self.eval_schedule.state_dict(), **self.ckpt_schedule.state_dict(),
             "last_eval_step": self.last_eval_step, "learning_starts": self.learning_starts,
             "eval_history": self.eval_history,
             "env_rng": self.env.get_rng_state(), "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
@@ -363,9 +398,9 @@ class Trainer:
                     next_progress = now + self.progress_every_s
                     print(_progress_line(self.step, total_steps, self.frame - start_frame,
                                          self.step - start_step, now - started, last_return), flush=True)
-                if self.next_eval_step is not None and self.step >= self.next_eval_step:
+                if self.eval_schedule.due(self.step):
                     rows = self.run_eval()
-                    self.next_eval_step += t.eval_every_steps
+                    self.eval_schedule.advance(self.step)
                     _say(bar, f"eval step {self.step} frame {self.frame}: return " + _summary(rows))
                 if terminated or truncated:
                     dt = max(time.time() - ep_start, 1e-9)
@@ -388,9 +423,8 @@ class Trainer:
                     if last and self.last_eval_step != self.step:
                         rows = self.run_eval()
                         _say(bar, f"final eval step {self.step} frame {self.frame}: return " + _summary(rows))
-                    if last or (self.next_ckpt_step is not None and self.step >= self.next_ckpt_step):
-                        while self.next_ckpt_step is not None and self.next_ckpt_step <= self.step:
-                            self.next_ckpt_step += t.checkpoint_every_steps
+                    if last or self.ckpt_schedule.due(self.step):
+                        self.ckpt_schedule.advance(self.step)
                         self.save()
                         if stop_at_step is not None and self.step >= stop_at_step and not last:
                             return
