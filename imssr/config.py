@@ -529,18 +529,22 @@ def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
         section, name = key.split(".", 1)
         if section not in SECTIONS:
             raise ImssrError(f"unknown config section {section!r} in override {item!r}")
-        data.setdefault(section, {})[name] = _unquoted(text)
+        data.setdefault(section, {})[name] = _override_value(key, text)
         raw[key] = text
     return _merged(cfg, data, raw)
 
 
-def _unquoted(text: str) -> str:
-    if text.startswith('"'):
-        try:
-            value = json.loads(text)
-        except json.JSONDecodeError:
-            return text
-        return value if isinstance(value, str) else text
+def _override_value(key: str, text: str) -> Any:
+    """What OmegaConf gets for ``key=text``: the text itself, except a JSON string (unquoted)
+    and, for an integer field, a JSON number with an integral value (``1e3``, ``64.0``)."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        return text
+    if isinstance(value, str):
+        return value
+    if FIELD_TYPES.get(key) is int and isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        return int(value)
     return text
 
 

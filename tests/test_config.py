@@ -138,7 +138,8 @@ def test_config_json_never_holds_bare_infinity_or_nan():
 
 
 def test_binary_and_partial_config_files(tmp_path):
-    from imssr.config import load_config, load_partial_config
+    from imssr.config import load_config
+    from imssr.presets import load_partial_config
 
     binary = tmp_path / "model.pt"
     binary.write_bytes(bytes(range(256)) * 4)
