@@ -441,9 +441,9 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
 SECTIONS = {"env": EnvConfig, "agent": AgentConfig, "aux": AuxConfig, "intrinsic": IntrinsicConfig,
             "train": TrainConfig}
 """Config sections and their dataclasses, in the order of :class:`RunConfig`."""
-FIELD_TYPES = {f"{name}.{f.name}": type(getattr(cls(), f.name)) for name, cls in SECTIONS.items()
-               for f in fields(cls)}
-"""``section.field`` -> its type (bool, int, float or str)."""
+FIELD_TYPES = {"algo": str, "version": int, **{f"{name}.{f.name}": type(getattr(cls(), f.name))
+                                                for name, cls in SECTIONS.items() for f in fields(cls)}}
+"""``section.field`` (and the top-level ``algo``, ``version``) -> its type: bool, int, float or str."""
 TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 
 
@@ -462,6 +462,8 @@ def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunCon
         # OverflowError: an integer too large for a float field (no key attached).
         key = getattr(exc, "full_key", None) or _overflowing(data)
         value = getattr(exc, "value", None)
+        if isinstance(exc, OverflowError) and key not in raw:
+            raise ImssrError(f"{key} must be a finite number, got an integer too large for a float") from None
         if key in raw:
             raise ImssrError(f"{key} expects {_expected(key)}, got {raw[key]!r}") from None
         raise ImssrError(f"{key} must be a {FIELD_TYPES.get(key, str).__name__}, got {value!r}") from None
@@ -487,8 +489,8 @@ def _overflowing(data: dict[str, Any]) -> str:
 
 
 def _get(cfg: RunConfig, key: str) -> Any:
-    section, name = key.split(".", 1)
-    return getattr(getattr(cfg, section), name)
+    section, _, name = key.rpartition(".")
+    return getattr(getattr(cfg, section) if section else cfg, name)
 
 
 def _check_types(cfg: RunConfig) -> None:

@@ -67,6 +67,19 @@ def test_grid_directories_and_beta_level(tmp_path):
     assert build_run_config(plain[0], cfg).intrinsic.beta0 == 0.01
 
 
+def test_a_sweep_run_config_is_what_imssr_train_builds_from_its_arguments(tmp_path):
+    from imssr.cli import _run_config, build_parser
+
+    for cfg in [SweepConfig(root=str(tmp_path), algos=["im-soda"], tasks=["finger_spin"], seeds=[4], steps=50,
+                            beta0=[0.2], gpus_per_run=0.5, overrides=["agent.batch_size=8", "train.eval_episodes=2"]),
+                SweepConfig(root=str(tmp_path), algos=["curl+rnd"], tasks=[TASK], seeds=[1], frames=3001)]:
+        for run in expand(cfg.validate()):
+            args = build_parser().parse_args(["train", *run.train_args(cfg), "--out", run.dir])
+            built = build_run_config(run, cfg)
+            assert built == _run_config(args, demo=False)
+            assert built.train.device == ("cuda" if cfg.gpus_per_run else "cpu")
+
+
 def test_run_arguments_and_done_marker(tmp_path):
     from imssr.sweep.runner import is_done, last_frame, last_step, read_done, write_done
     from imssr.sweep.sweep import plan_runs
