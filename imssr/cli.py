@@ -274,7 +274,6 @@ def _sweep_config(args):
 
 
 def cmd_sweep(args) -> int:
-
     cfg = _sweep_config(args)
     if args.dry_run:
         print(format_plan(plan_runs(cfg), cfg))
