@@ -82,7 +82,7 @@ class FieldFlag:
 
     def help(self, demo: bool) -> str:
         default = self.default or ("the demo's" if demo else "the preset's; with --resume or --config the file's")
-        doc = _help_text(field_docs()[self.field])
+        doc = _help_text(field_docs().get(self.field, self.field))
         if self.switch:
             return f"set {self.field} to false: {doc}"
         return f"{doc} ({self.field}; default: {default})"
@@ -138,10 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="with --resume: if the saved replay buffer is missing or damaged, continue with an "
                             "empty buffer refilled by random actions (not an exact resume) instead of failing")
         t.add_argument("--beta0", type=_nonneg_float,
-                       help=f"{_help_text(field_docs()['intrinsic.beta0'])} Algos with an intrinsic reward only "
+                       help=f"{_help_text(field_docs().get('intrinsic.beta0', ''))} Algos with an intrinsic reward only "
                             f"(im-X, X+rnd, X+re3; default: {preset}, Table V)")
         t.add_argument("--batch-size", type=_positive_int,
-                       help=f"{_help_text(field_docs()['agent.batch_size'])} Also the auxiliary batch of a task that "
+                       help=f"{_help_text(field_docs().get('agent.batch_size', ''))} Also the auxiliary batch of a task that "
                             f"trains on the RL batch (default: {preset}, 128)")
         for f in FIELD_FLAGS:
             if f.switch:

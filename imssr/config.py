@@ -554,7 +554,10 @@ def _override_value(key: str, text: str) -> Any:
 def field_docs() -> dict[str, str]:
     """``section.field`` -> the field's docstring (whitespace collapsed), read once from this
     module's source: the CLI's help texts and ``imssr config --explain`` use them."""
-    tree = ast.parse(inspect.getsource(inspect.getmodule(RunConfig)))
+    try:
+        tree = ast.parse(inspect.getsource(inspect.getmodule(RunConfig)))
+    except (OSError, TypeError):  # installed without sources (a zipped or compiled-only build)
+        return {}
     classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
     docs = {}
     for section, cls in SECTIONS.items():
