@@ -1,15 +1,28 @@
-"""Command-line interface: ``imssr {train,demo,evaluate,analyze,plot,sweep,report,tasks,algos,modes,config}``."""
+"""Command-line interface: ``imssr {train,demo,evaluate,analyze,plot,sweep,report,tasks,algos,modes,config}``.
+
+Argument parsing and dispatch only: each command calls one function of the package.
+"""
 from __future__ import annotations
 
 import argparse
 import os
 import sys
 import time
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
 
-import numpy as np
-from typing import Optional
-
+from imssr.analysis import AnalysisOptions, analyze_run
+from imssr.config import MAX_SEED, SEED_RULE, field_docs
+from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import ImssrError
+from imssr.plots.curves import plot_learning_curve
+from imssr.plots.media import scenes_montage
+from imssr.presets import ALGOS, build_run_config, explain, make_config
+from imssr.sweep.grid import SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
+from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
+from imssr.training import Trainer
+from imssr.training.demo import record_episode, summary
+from imssr.training.evaluate import evaluate_run
 
 
 def _number(kind, minimum, label, maximum=None):
@@ -31,12 +44,7 @@ def _number(kind, minimum, label, maximum=None):
 _positive_int = _number(int, 1, "a positive integer")
 _nonneg_int = _number(int, 0, "an integer >= 0")
 _nonneg_float = _number(float, 0.0, "a number >= 0")
-
-
-def _seed_type():
-    from imssr.config import MAX_SEED, SEED_RULE
-
-    return _number(int, 0, f"a seed, {SEED_RULE}", MAX_SEED)
+_seed = _number(int, 0, f"a seed, {SEED_RULE}", MAX_SEED)
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -51,29 +59,77 @@ class _HelpFormatter(argparse.HelpFormatter):
         return text
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from imssr.presets import ALGOS
+@dataclass(frozen=True)
+class FieldFlag:
+    """A ``train`` / ``demo`` flag that sets one config field when given; its help is the
+    field's docstring (:func:`imssr.config.field_docs`)."""
 
+    flag: str
+    field: str
+    """Dotted config field, ``section.name``."""
+    type: Optional[Callable[[str], Any]] = None
+    """argparse type (None: the text); a switch (``--no-X``) sets the field to false."""
+    metavar: Optional[str] = None
+    default: str = ""
+    """What the help says the default is; empty: the preset's value (the demo's for ``demo``)."""
+
+    @property
+    def switch(self) -> bool:
+        return self.flag.startswith("--no-")
+
+    @property
+    def dest(self) -> str:
+        return self.flag.removeprefix("--").replace("-", "_")
+
+    def help(self, demo: bool) -> str:
+        default = self.default or ("the demo's" if demo else "the preset's; with --resume or --config the file's")
+        doc = _help_text(field_docs().get(self.field, self.field))
+        if self.switch:
+            return f"set {self.field} to false: {doc}"
+        return f"{doc} ({self.field}; default: {default})"
+
+
+def _help_text(doc: str) -> str:
+    """A field's docstring as argparse help: no reST literals, ``%`` escaped."""
+    return doc.replace("``", "").replace("%", "%%")
+
+
+FIELD_FLAGS = (
+    FieldFlag("--seed", "train.seed", _nonneg_int, default="0, or the config's"),
+    FieldFlag("--steps", "train.steps", _positive_int),
+    FieldFlag("--eval-every", "train.eval_every_steps", _nonneg_int, "STEPS"),
+    FieldFlag("--eval-episodes", "train.eval_episodes", _positive_int, "K"),
+    FieldFlag("--device", "train.device", default="cpu"),
+    FieldFlag("--mode", "env.mode", default="training"),
+    FieldFlag("--eval-modes", "train.eval_modes", metavar="A,B,...", default="empty"),
+    FieldFlag("--footage", "env.footage_dir", metavar="PATH", default="empty"),
+    FieldFlag("--image-dir", "aux.image_dir", metavar="DIR", default="empty"),
+    FieldFlag("--seed-steps", "train.seed_steps", _nonneg_int, "STEPS"),
+    FieldFlag("--replay-capacity", "train.replay_capacity", _positive_int, "TRANSITIONS"),
+    FieldFlag("--checkpoint-every", "train.checkpoint_every_steps", _nonneg_int, "STEPS"),
+    FieldFlag("--no-buffer-in-checkpoint", "train.save_buffer"),
+    FieldFlag("--no-tensorboard", "train.tensorboard"),
+    FieldFlag("--no-progress", "train.progress"),
+)
+"""The flags of ``train`` and ``demo`` that map onto one field each.  Flags with a rule of their
+own (``--frames``, ``--batch-size``, ``--beta0``) are written out in :func:`build_parser`."""
+
+
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="imssr", description="IM-SSR: self-supervised losses as "
                                 "intrinsic rewards for pixel-based SAC on DeepMind Control.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def add_run_options(t: argparse.ArgumentParser, demo: bool = False) -> None:
-        def preset(value: str) -> str:
-            """The default of a preset setting: the paper's preset's value, or the demo's own."""
-            return "default: the demo's" if demo else f"default: the preset's, {value}"
-
+        preset = "the demo's" if demo else "the preset's"
         t.add_argument("--algo", choices=list(ALGOS),
                        help="algorithm, see imssr algos (default: none: a new train run needs it; with "
                             "--config or --resume the file's; demo: the demo's)")
         t.add_argument("--task", help="task name, e.g. cartpole_swingup_sparse, see imssr tasks (default: none: "
                                       "a new train run needs it; with --config or --resume the file's; demo: the demo's)")
-        t.add_argument("--seed", type=_nonneg_int, help="run seed, 0 to 2147483647 (default: 0, or the config's)")
-        t.add_argument("--steps", type=_positive_int,
-                       help="budget T in agent steps (" + preset("the paper's 500000") + "; with --resume the run's)")
         t.add_argument("--frames", type=_positive_int,
-                       help="budget in environment frames instead: steps = frames / action repeat, rounded up "
-                            "(default: none, --steps decides)")
+                       help="budget in environment frames instead of --steps: steps = frames / action repeat, "
+                            "rounded up (default: none, --steps decides)")
         t.add_argument("--network", choices=["dmcgb", "official-curl"],
                        help="encoder layout of a new run: dmcgb (what the authors ran; default) or "
                             "official-curl (50-d projection without tanh, ReLU after the last conv)")
@@ -82,38 +138,17 @@ def build_parser() -> argparse.ArgumentParser:
         t.add_argument("--refill-buffer", action="store_true",
                        help="with --resume: if the saved replay buffer is missing or damaged, continue with an "
                             "empty buffer refilled by random actions (not an exact resume) instead of failing")
-        t.add_argument("--eval-every", type=_nonneg_int, metavar="STEPS",
-                       help=f"agent steps between evaluations (0: only at the end; {preset('10000')})")
-        t.add_argument("--eval-episodes", type=_positive_int, metavar="K",
-                       help=f"episodes per evaluation ({preset('30')})")
         t.add_argument("--beta0", type=_nonneg_float,
-                       help="initial intrinsic coefficient beta_0 of im-, +rnd and +re3 algos "
-                            "(" + preset("the paper's Table V") + ")")
-        t.add_argument("--device", help="cpu, cuda, cuda:N or auto (default: cpu)")
+                       help=f"{_help_text(field_docs().get('intrinsic.beta0', ''))} Algos with an intrinsic reward only "
+                            f"(im-X, X+rnd, X+re3; default: {preset}, Table V)")
         t.add_argument("--batch-size", type=_positive_int,
-                       help="RL batch size, and the auxiliary batch of tasks that train on it "
-                            f"({preset('128')})")
-        t.add_argument("--mode", help="scene to train in, see imssr modes (default: training)")
-        t.add_argument("--eval-modes", metavar="A,B,...",
-                       help="scenes to evaluate in at each evaluation point (default: the training scene)")
-        t.add_argument("--footage", metavar="PATH",
-                       help="videos / frame folders (mp4, DAVIS JPEGImages/480p) for video backgrounds "
-                            "(default: $IMSSR_FOOTAGE_DIR, else built-in footage)")
-        t.add_argument("--image-dir", metavar="DIR",
-                       help="natural images (jpg/png tree, e.g. Places365) for SODA's overlay "
-                            "(default: $IMSSR_IMAGE_DIR, else built-in photographs)")
-        t.add_argument("--seed-steps", type=_nonneg_int, metavar="STEPS",
-                       help=f"agent steps of random actions before learning ({preset('1000')})")
-        t.add_argument("--replay-capacity", type=_positive_int, metavar="TRANSITIONS",
-                       help=f"replay capacity in transitions ({preset('100000 for CURL and 500000 for SODA, PAD and SVEA')})")
-        t.add_argument("--checkpoint-every", type=_nonneg_int, metavar="STEPS",
-                       help=f"agent steps between checkpoints (0: only at the end; {preset('50000')})")
-        t.add_argument("--no-buffer-in-checkpoint", action="store_true",
-                       help="do not save the replay buffer (smaller checkpoints, inexact resume)")
-        t.add_argument("--no-tensorboard", action="store_true", help="write no TensorBoard files (CSV logs only)")
-        t.add_argument("--no-progress", action="store_true",
-                       help="no progress bar (output that is not a terminal still gets a progress line "
-                            "every minute)")
+                       help=f"{_help_text(field_docs().get('agent.batch_size', ''))} Also the auxiliary batch of a task that "
+                            f"trains on the RL batch (default: {preset}, 128)")
+        for f in FIELD_FLAGS:
+            if f.switch:
+                t.add_argument(f.flag, action="store_true", help=f.help(demo))
+            else:
+                t.add_argument(f.flag, type=f.type, metavar=f.metavar, help=f.help(demo))
         t.add_argument("--config", metavar="FILE",
                        help="JSON config, complete (a run's config.json) or partial: what it leaves out comes "
                             "from the preset of its algo and task (default: none, the preset)")
@@ -135,7 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--episodes", type=_positive_int, default=10, help="episodes per scene")
     e.add_argument("--modes", metavar="A,B,...",
                    help="scenes to evaluate in, e.g. training,color_hard,video_hard (default: the run's eval modes)")
-    e.add_argument("--seed", type=_seed_type(), help="eval env seed (default: run seed + 20000)")
+    e.add_argument("--seed", type=_seed, help="eval env seed (default: run seed + 20000)")
     e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
     e.add_argument("--video", choices=["gif", "mp4"],
                    help="save the first episode of each scene as RUN/videos/MODE.gif|mp4 (default: none)")
@@ -165,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     mo.add_argument("--task", default="walker_walk", help="task the montage shows")
     mo.add_argument("--montage", metavar="PNG",
                     help="write a montage of every scene (random actions) (default: none, only list the scenes)")
-    mo.add_argument("--seed", type=_seed_type(), default=0, help="env seed")
+    mo.add_argument("--seed", type=_seed, default=0, help="env seed")
     mo.add_argument("--steps", type=_nonneg_int, default=20, help="agent steps before the frame is taken")
     mo.add_argument("--footage", metavar="PATH",
                     help="footage for video scenes (default: $IMSSR_FOOTAGE_DIR, else built-in footage)")
@@ -233,8 +268,6 @@ def add_sweep_parsers(sub) -> None:
 
 
 def _sweep_config(args):
-    from imssr.experiments.grid import SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
-
     if args.steps is not None and args.frames is not None:
         raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
     cfg = load_sweep_file(args.file) if args.file else SweepConfig()
@@ -261,8 +294,6 @@ def _sweep_config(args):
 
 
 def cmd_sweep(args) -> int:
-    from imssr.experiments.sweep import format_plan, plan_runs, run_sweep, summarize
-
     cfg = _sweep_config(args)
     if args.dry_run:
         print(format_plan(plan_runs(cfg), cfg))
@@ -280,7 +311,8 @@ def _check_out(out: Optional[str], flag: str = "--out") -> None:
 
 
 def cmd_report(args) -> int:
-    from imssr.experiments.report import write_report
+    # Imported here, not at the top: the report imports rliable, the report extra.
+    from imssr.report.report import write_report
 
     _check_out(args.out)
     out = args.out or os.path.join(args.root, "report")
@@ -290,83 +322,24 @@ def cmd_report(args) -> int:
 
 
 def _run_config(args, demo: bool):
-    from imssr.config import apply_overrides, load_config, load_partial_config
-    from imssr.presets import demo_config, get_algo, make_config
-    from imssr.envs import get_task
-    from imssr.config import RunConfig
-
+    """The run's config from ``train`` / ``demo`` arguments (:func:`imssr.presets.build_run_config`)."""
     _check_out(args.out)
-    saved_path = os.path.join(args.out, "config.json") if args.out else None
-    if args.config:
-        # A partial file is merged onto the preset of its algo and task; a complete one reads as written.
-        cfg = load_partial_config(args.config, args.algo, args.task)
-    elif args.resume:
-        if not args.out:
-            raise ImssrError("--resume needs --out RUN_DIR")
-        if not os.path.exists(saved_path):
-            raise ImssrError(f"nothing to resume: {saved_path} does not exist")
-        cfg = load_config(saved_path)
-    else:
-        algo = args.algo or ("im-curl" if demo else None)
-        task = args.task or ("cartpole_swingup" if demo else None)
-        if algo is None or task is None:
-            raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
-        get_algo(algo)
-        get_task(task)
-        network = args.network or "dmcgb"
-        cfg = demo_config(algo, task, network) if demo else make_config(algo, task, network)
-    if args.resume or args.config:
-        # Explicit --algo/--task must agree with the loaded config.
-        if args.algo and args.algo != cfg.algo:
-            raise ImssrError(f"--algo {args.algo} differs from the run's algo {cfg.algo}")
-        if args.task and args.task != cfg.env.task:
-            raise ImssrError(f"--task {args.task} differs from the run's task {cfg.env.task}")
-        if args.network:
-            raise ImssrError("--network chooses the preset of a new run; with --resume or --config "
-                             "set agent.final_relu / feature_dim / projection_tanh instead")
-    assert isinstance(cfg, RunConfig)
-    # Flag -> train field, for flags that set a value when given.
-    if args.steps is not None and args.frames is not None:
-        raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
-    if args.frames is not None:
-        from imssr.config import steps_for_frames
-
-        cfg.train.steps = steps_for_frames(args.frames, cfg.env.action_repeat)
-    for flag, field_name in (("seed", "seed"), ("steps", "steps"), ("eval_every", "eval_every_steps"),
-                             ("eval_episodes", "eval_episodes"), ("device", "device"),
-                             ("seed_steps", "seed_steps"), ("replay_capacity", "replay_capacity"),
-                             ("checkpoint_every", "checkpoint_every_steps")):
-        if getattr(args, flag) is not None:
-            setattr(cfg.train, field_name, getattr(args, flag))
-    # Switches that turn a default-on feature off.
-    for flag, field_name in (("no_buffer_in_checkpoint", "save_buffer"), ("no_tensorboard", "tensorboard"),
-                             ("no_progress", "progress")):
-        if getattr(args, flag):
-            setattr(cfg.train, field_name, False)
-    if args.batch_size is not None:
-        cfg.agent.batch_size = args.batch_size
-        if not cfg.aux.own_batch:
-            cfg.aux.batch_size = args.batch_size  # the task trains on the RL batch
-    if args.image_dir is not None:
-        cfg.aux.image_dir = args.image_dir
-    if args.mode is not None:
-        cfg.env.mode = args.mode
-    if args.eval_modes is not None:
-        cfg.train.eval_modes = args.eval_modes
-    if args.footage is not None:
-        cfg.env.footage_dir = args.footage
-    if args.beta0 is not None:
-        if not cfg.intrinsic.enabled:
-            raise ImssrError(f"--beta0 applies to algorithms with an intrinsic reward, not {cfg.algo}")
-        cfg.intrinsic.beta0 = args.beta0
-    apply_overrides(cfg, args.set)
-    return cfg.validate()
+    if args.resume and not args.config and not args.out:
+        raise ImssrError("--resume needs --out RUN_DIR")
+    values = {}
+    for f in FIELD_FLAGS:
+        given = getattr(args, f.dest)
+        if f.switch and given:
+            values[f.field] = False
+        elif not f.switch and given is not None:
+            values[f.field] = given
+    return build_run_config(args.algo, args.task, network=args.network, config_file=args.config,
+                            resume_dir=args.out if args.resume and not args.config else None, demo=demo,
+                            values=values, frames=args.frames, batch_size=args.batch_size, beta0=args.beta0,
+                            overrides=args.set)
 
 
 def cmd_train(args, demo: bool = False) -> int:
-    from imssr.experiments import plot_learning_curve
-    from imssr.training import Trainer
-
     refill = getattr(args, "refill_buffer", False)
     if refill and not args.resume:
         raise ImssrError("--refill-buffer goes with --resume")
@@ -380,8 +353,6 @@ def cmd_train(args, demo: bool = False) -> int:
         trainer.train()
         png = plot_learning_curve(out)
         if demo:
-            from imssr.training.demo import record_episode, summary
-
             gif = record_episode(trainer, os.path.join(out, "episode.gif"))
             print(summary(cfg, out, (time.time() - started) / 60, gif, png), flush=True)
         else:
@@ -392,72 +363,13 @@ def cmd_train(args, demo: bool = False) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from imssr.config import load_config
-    from imssr.envs import make_env
-    from imssr.envs.scenes import get_mode
-    from imssr.experiments.media import save_montage, save_video
-    from imssr.training import build_agent, eval_row, evaluate, resolve_device
-    from imssr.training.checkpoint import load_checkpoint, select_checkpoint, usable_checkpoint
-    from imssr.training.logger import CSVLog, EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, write_eval
-
-    if not os.path.isdir(args.run):
-        raise ImssrError(f"run directory not found: {args.run}")
-    cfg = load_config(os.path.join(args.run, "config.json"))
-    modes = ([m.strip() for m in args.modes.split(",") if m.strip()] if args.modes
-             else cfg.train.eval_mode_list(cfg.env.mode))
-    for mode in modes:
-        get_mode(mode)
-    if args.checkpoint:
-        ckpt = load_checkpoint(select_checkpoint(args.run, args.checkpoint))
-    else:
-        ckpt, _, note = usable_checkpoint(args.run, verb="evaluating")
-        if note:
-            print(f"imssr: {note}", flush=True)
-    device = resolve_device(args.device)
-    e = cfg.env
-    seed = cfg.train.seed + 20_000 if args.seed is None else args.seed
-    footage = e.footage_dir if args.footage is None else args.footage
-    agent = None
-    montage = {}
-    summary = CSVLog(os.path.join(args.run, "evaluate.csv"), EVAL_COLUMNS)
-    episodes_log = CSVLog(os.path.join(args.run, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS)
-    for mode in dict.fromkeys(modes):
-        # Unseen footage: evaluation draws from the test pool.
-        env = make_env(e.task, seed=seed, mode=mode, action_repeat=e.action_repeat, image_size=e.image_size,
-                       frame_stack=e.frame_stack, footage_split="test", footage_path=footage,
-                       shadow_size=e.shadow_size)
-        if agent is None:
-            agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
-            try:
-                agent.load_state_dict(ckpt["agent"], restore_rng=False)
-            except (RuntimeError, KeyError, ValueError) as exc:
-                raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
-        frames: list = [] if (args.video or args.montage) else None
-        try:
-            returns = evaluate(agent, env, args.episodes, record=frames)
-        finally:
-            env.close()
-        row = eval_row(ckpt["frame"], ckpt["step"], mode, returns)
-        write_eval(summary, episodes_log, row, returns)
-        print(f"{mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
-              f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
-        if args.video:
-            path = save_video(frames, os.path.join(args.run, "videos", f"{mode}.{args.video}"))
-            print(f"  video: {path}")
-        if args.montage:
-            montage[mode] = frames[min(len(frames) - 1, 20)]
-    if montage:
-        path = save_montage(montage, os.path.join(args.run, "montage.png"),
-                            f"{cfg.algo} on {e.task}, frame {ckpt['frame']}")
-        print(f"montage: {path}")
-    # Appended to, one summary row per scene and one row per episode (with the checkpoint's step).
-    print(f"imssr: evaluation written to {summary.path} and {episodes_log.path}")
+    evaluate_run(args.run, checkpoint=args.checkpoint, episodes=args.episodes, modes=args.modes,
+                 seed=args.seed, device=args.device, video=args.video, montage=args.montage,
+                 footage=args.footage)
     return 0
 
 
 def cmd_analyze(args) -> int:
-    from imssr.analysis import AnalysisOptions, analyze_run
-
     _check_out(args.out)
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     opts = AnalysisOptions(checkpoints=list(args.checkpoint or []), states=args.states, modes=modes, out=args.out,
@@ -470,35 +382,15 @@ def cmd_analyze(args) -> int:
 
 
 def cmd_modes(args) -> int:
-    from imssr.envs import get_task, make_env
-    from imssr.envs.scenes import MODES
-
     if not args.montage:
         for spec in MODES.values():
             print(f"{spec.name}\t{spec.description}")
         return 0
-    from imssr.experiments.media import save_montage
-
-    get_task(args.task)
-    frames = {}
-    for mode in MODES:
-        env = make_env(args.task, seed=args.seed, mode=mode, footage_split="test",
-                       footage_path=args.footage or "")
-        try:
-            env.action_space.seed(args.seed)
-            obs, _ = env.reset()
-            for _ in range(args.steps):
-                obs, *_ = env.step(env.action_space.sample())
-            frames[mode] = np.moveaxis(obs[-3:], 0, -1)
-        finally:
-            env.close()
-    print(save_montage(frames, args.montage, f"{args.task}: every scene (seed {args.seed})"))
+    print(scenes_montage(args.task, args.montage, seed=args.seed, steps=args.steps, footage=args.footage or ""))
     return 0
 
 
 def cmd_tasks(_args) -> int:
-    from imssr.envs import PAPER_TASKS, get_task, list_tasks
-
     print("# paper tasks (action repeat)")
     for name in PAPER_TASKS:
         print(f"{name}\t{get_task(name).action_repeat}")
@@ -509,16 +401,12 @@ def cmd_tasks(_args) -> int:
 
 
 def cmd_algos(_args) -> int:
-    from imssr.presets import ALGOS
-
     for spec in ALGOS.values():
         print(f"{spec.name}\t{spec.description}")
     return 0
 
 
 def cmd_config(args) -> int:
-    from imssr.presets import explain, make_config
-
     if args.explain:
         print(explain(args.algo, args.task, args.network))
     else:
@@ -527,8 +415,6 @@ def cmd_config(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from imssr.experiments import plot_learning_curve
-
     if not os.path.isdir(args.run):
         raise ImssrError(f"run directory not found: {args.run}")
     _check_out(args.out)

@@ -12,14 +12,24 @@ is read through :func:`migrate` so that its run resumes and reports as it ran.
 """
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
+import inspect
 import json
 import math
 import os
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from omegaconf import OmegaConf
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
+
+from imssr.algos import get_algo
+from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
+from imssr.jsonio import dumps
+from imssr.networks.encoder import conv_output_size
 
 CONFIG_VERSION = 2
 """2: budgets in agent steps, ``agent.final_relu``, ``aux.own_batch``, ``intrinsic.form`` and
@@ -262,35 +272,24 @@ class RunConfig:
         return dataclasses.asdict(self)
 
     def to_json(self) -> str:
-        from imssr.jsonio import dumps
-
         return dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
+        """A config from its JSON object (any version: see :func:`migrate`); fields it lacks are
+        the dataclass defaults.  Unknown fields and values of the wrong type are one-line errors."""
         if not isinstance(data, dict):
             raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
         data = migrate(data)
-        sections = {f.name: f.type for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        classes = {"env": EnvConfig, "agent": AgentConfig, "aux": AuxConfig,
-                   "intrinsic": IntrinsicConfig, "train": TrainConfig}
         for key, value in data.items():
-            if key not in sections:
-                raise ImssrError(f"unknown config section {key!r}")
-            if key in classes:
-                kwargs[key] = _build(classes[key], value, key)
-            else:
-                kwargs[key] = value
-        return cls(**kwargs)
+            if key in SECTIONS and not isinstance(value, dict):
+                raise ImssrError(f"config section {key!r} must be an object, got {type(value).__name__}")
+        return _merged(cls(), data, raw={})
 
     def validate(self) -> "RunConfig":
         """Reject bad values with one-line errors."""
-        for section in (self.env, self.agent, self.aux, self.intrinsic, self.train):
-            _check_types(section)
+        _check_types(self)
         e, a, x, i, t = self.env, self.agent, self.aux, self.intrinsic, self.train
-        from imssr.networks.encoder import conv_output_size
-
         checks = [
             (e.action_repeat >= 1, "env.action_repeat must be >= 1"),
             (e.frame_stack >= 1, "env.frame_stack must be >= 1"),
@@ -355,16 +354,12 @@ class RunConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
-        from imssr.envs.scenes import get_mode
-
         for mode in [e.mode, *t.eval_mode_list(e.mode)]:
             get_mode(mode)
         if e.footage_dir and not os.path.exists(os.path.expanduser(e.footage_dir)):
             raise ImssrError(f"footage not found: {e.footage_dir} (env.footage_dir / --footage)")
         if x.image_dir and not os.path.isdir(os.path.expanduser(x.image_dir)):
             raise ImssrError(f"image folder not found: {x.image_dir} (aux.image_dir / --image-dir)")
-        from imssr.presets import get_algo
-
         algo = get_algo(self.algo)
         if algo.aux != x.name or algo.intrinsic_enabled != i.enabled or \
                 (algo.intrinsic_enabled and algo.intrinsic != i.source):
@@ -440,26 +435,78 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
     return data
 
 
-def _check_types(section) -> None:
-    """Reject values of the wrong type (e.g. from a hand-edited JSON file)."""
-    name = type(section).__name__.replace("Config", "").lower()
-    defaults = type(section)()
-    for f in fields(section):
-        value, default = getattr(section, f.name), getattr(defaults, f.name)
-        if isinstance(default, bool):
-            ok = isinstance(value, bool)
-        elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
-        elif isinstance(default, float):
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-            if ok and not _is_finite(value):
-                # NaN and infinity pass every comparison check below or break them; they only
-                # end a run later, in a simulator traceback.
-                raise ImssrError(f"{name}.{f.name} must be a finite number, got {value!r}")
-        else:
-            ok = isinstance(value, type(default))
-        if not ok:
-            raise ImssrError(f"{name}.{f.name} must be a {type(default).__name__}, got {value!r}")
+# -- types and overrides, through OmegaConf structured configs ---------------------------------
+# OmegaConf holds the dataclasses' schema: it rejects unknown keys and values it cannot convert
+# to a field's type.  imssr adds what OmegaConf allows and a run must not: NaN and infinity.
+SECTIONS = {"env": EnvConfig, "agent": AgentConfig, "aux": AuxConfig, "intrinsic": IntrinsicConfig,
+            "train": TrainConfig}
+"""Config sections and their dataclasses, in the order of :class:`RunConfig`."""
+FIELD_TYPES = {"algo": str, "version": int, **{f"{name}.{f.name}": type(getattr(cls(), f.name))
+                                                for name, cls in SECTIONS.items() for f in fields(cls)}}
+"""``section.field`` (and the top-level ``algo``, ``version``) -> its type: bool, int, float or str."""
+TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
+def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunConfig:
+    """``cfg`` with the (nested) ``data`` merged on by OmegaConf; ``raw`` maps an override's
+    dotted key to its text, for errors that quote what was typed."""
+    try:
+        merged = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(cfg), data))
+    except ConfigKeyError as exc:  # also ConfigAttributeError
+        section, _, name = str(exc.full_key).partition(".")
+        if not name:
+            raise ImssrError(f"unknown config section {section!r}") from None
+        raise ImssrError(f"unknown setting {exc.full_key!r}; {section} has: "
+                         f"{', '.join(sorted(f.name for f in fields(SECTIONS[section])))}") from None
+    except (ValidationError, OverflowError) as exc:
+        # OverflowError: an integer too large for a float field (no key attached).
+        key = getattr(exc, "full_key", None) or _overflowing(data)
+        value = getattr(exc, "value", None)
+        if isinstance(exc, OverflowError) and key not in raw:
+            raise ImssrError(f"{key} must be a finite number, got an integer too large for a float") from None
+        if key in raw:
+            raise ImssrError(f"{key} expects {_expected(key)}, got {raw[key]!r}") from None
+        raise ImssrError(f"{key} must be a {FIELD_TYPES.get(key, str).__name__}, got {value!r}") from None
+    for key, text in raw.items():
+        if FIELD_TYPES[key] is float and not _is_finite(_get(merged, key)):
+            raise ImssrError(f"{key} expects a finite number, got {text!r}")
+    return merged
+
+
+def _expected(key: str) -> str:
+    kind = FIELD_TYPES.get(key, str)
+    return "a finite number" if kind is float else TYPE_WORDS[kind]
+
+
+def _overflowing(data: dict[str, Any]) -> str:
+    """The first ``section.field`` of ``data`` that holds an integer too large for a float
+    (OmegaConf's OverflowError names none)."""
+    for section, values in data.items():
+        for name, value in (values.items() if isinstance(values, dict) else ()):
+            if isinstance(value, int) and FIELD_TYPES.get(f"{section}.{name}") is float and not _is_finite(value):
+                return f"{section}.{name}"
+    return "a config value"
+
+
+def _get(cfg: RunConfig, key: str) -> Any:
+    section, _, name = key.rpartition(".")
+    return getattr(getattr(cfg, section) if section else cfg, name)
+
+
+def _check_types(cfg: RunConfig) -> None:
+    """Reject values of the wrong type (e.g. set in code, or from a hand-edited JSON file): a
+    value OmegaConf refuses or would have to convert (``"5"`` for an int, ``1`` for a bool), and
+    NaN or infinity, which pass every comparison check or break them and end a run only later,
+    in a simulator traceback."""
+    for key, kind in FIELD_TYPES.items():
+        value = _get(cfg, key)
+        if kind is float and isinstance(value, (int, float)) and not _is_finite(value):
+            raise ImssrError(f"{key} must be a finite number, got {value!r}")
+    typed = _merged(cfg, {}, raw={})
+    for key, kind in FIELD_TYPES.items():
+        value = _get(cfg, key)
+        if _get(typed, key) != value or isinstance(value, bool) != (kind is bool):
+            raise ImssrError(f"{key} must be a {kind.__name__}, got {value!r}")
 
 
 def _is_finite(value) -> bool:
@@ -469,57 +516,58 @@ def _is_finite(value) -> bool:
         return False
 
 
-def _build(cls, values: dict[str, Any], section: str):
-    if not isinstance(values, dict):
-        raise ImssrError(f"config section {section!r} must be an object, got {type(values).__name__}")
-    names = {f.name for f in fields(cls)}
-    unknown = set(values) - names
-    if unknown:
-        raise ImssrError(f"unknown {section} setting(s): {', '.join(sorted(unknown))}")
-    return cls(**values)
-
-
 def apply_overrides(cfg: RunConfig, overrides: list[str]) -> RunConfig:
-    """Apply ``section.field=value`` strings (values parsed as JSON, else strings)."""
+    """``cfg`` with ``section.field=value`` strings applied (the CLI's ``--set``).
+
+    A value is converted to its field's type by OmegaConf (``64``, ``1e-3``, ``true``); a
+    JSON string (``"a b"``) is unquoted; anything else is the text itself.
+    """
+    data: dict[str, dict[str, Any]] = {}
+    raw: dict[str, str] = {}
     for item in overrides:
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise ImssrError(f"override {item!r} must look like section.field=value")
-        key, raw = item.split("=", 1)
+        key, text = item.split("=", 1)
         section, name = key.split(".", 1)
-        target = getattr(cfg, section, None)
-        if target is None or not dataclasses.is_dataclass(target):
+        if section not in SECTIONS:
             raise ImssrError(f"unknown config section {section!r} in override {item!r}")
-        ftypes = {f.name: f.type for f in fields(target)}
-        if name not in ftypes:
-            raise ImssrError(
-                f"unknown setting {key!r}; {section} has: {', '.join(sorted(ftypes))}")
-        try:
-            value = json.loads(raw)
-        except json.JSONDecodeError:
-            value = raw
-        current = getattr(target, name)
-        if isinstance(current, bool):
-            if not isinstance(value, bool):
-                raise ImssrError(f"{key} expects true or false, got {raw!r}")
-        elif isinstance(current, int):
-            # NaN, Infinity and 1e400 (which JSON reads as infinity) are no integers.
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or \
-                    (isinstance(value, float) and not (math.isfinite(value) and value.is_integer())):
-                raise ImssrError(f"{key} expects an integer, got {raw!r}")
-            value = int(value)
-        elif isinstance(current, float):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ImssrError(f"{key} expects a number, got {raw!r}")
-            try:
-                value = float(value)
-            except OverflowError:  # an integer too large for a float
-                raise ImssrError(f"{key} expects a finite number, got {raw!r}") from None
-            if not math.isfinite(value):
-                raise ImssrError(f"{key} expects a finite number, got {raw!r}")
-        elif isinstance(current, str) and not isinstance(value, str):
-            value = raw
-        setattr(target, name, value)
-    return cfg
+        data.setdefault(section, {})[name] = _override_value(key, text)
+        raw[key] = text
+    return _merged(cfg, data, raw)
+
+
+def _override_value(key: str, text: str) -> Any:
+    """What OmegaConf gets for ``key=text``: the text itself, except a JSON string (unquoted)
+    and, for an integer field, a JSON number with an integral value (``1e3``, ``64.0``)."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        return text
+    if isinstance(value, str):
+        return value
+    if FIELD_TYPES.get(key) is int and isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        return int(value)
+    return text
+
+
+@functools.cache
+def field_docs() -> dict[str, str]:
+    """``section.field`` -> the field's docstring (whitespace collapsed), read once from this
+    module's source: the CLI's help texts and ``imssr config --explain`` use them."""
+    try:
+        tree = ast.parse(inspect.getsource(inspect.getmodule(RunConfig)))
+    except (OSError, TypeError):  # installed without sources (a zipped or compiled-only build)
+        return {}
+    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
+    docs = {}
+    for section, cls in SECTIONS.items():
+        body = classes[cls.__name__].body
+        for node, after in zip(body, body[1:]):
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and \
+                    isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) and \
+                    isinstance(after.value.value, str):
+                docs[f"{section}.{node.target.id}"] = " ".join(after.value.value.split())
+    return docs
 
 
 def read_config_file(path: str) -> Any:
@@ -541,41 +589,3 @@ def load_config(path: str) -> RunConfig:
     """A complete config file, such as a run's ``config.json`` (fields it lacks read as the
     dataclass defaults; see :func:`load_partial_config` for a file written by hand)."""
     return RunConfig.from_dict(read_config_file(path))
-
-
-def load_partial_config(path: str, algo: str | None = None, task: str | None = None,
-                        network: str = "dmcgb") -> RunConfig:
-    """A config file merged onto the preset of its algo and task (``imssr train --config``).
-
-    Every field the file gives wins; every field it leaves out is the preset's
-    (:func:`imssr.presets.make_config`), so ``{"algo": "curl", "env": {"task": "walker_walk"}}``
-    is the preset of CURL on walker_walk (action repeat 4), and a complete file (a run's
-    ``config.json``) reads back exactly as it was written.  The file's ``algo`` and
-    ``env.task`` win over ``algo`` and ``task`` (the CLI's ``--algo`` / ``--task``, which
-    must then agree); a config that names neither is an error.
-    """
-    from imssr.presets import make_config
-
-    data = read_config_file(path)
-    if not isinstance(data, dict):
-        raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
-    data = migrate(data)
-    file_algo = data.get("algo")
-    file_task = data["env"].get("task") if isinstance(data.get("env"), dict) else None
-    # A value of the wrong type is left for the type checks to name.
-    algo = file_algo if isinstance(file_algo, str) else algo
-    task = file_task if isinstance(file_task, str) else task
-    # A preset is chosen only by name: a file that names none would otherwise train a default.
-    if algo is None or task is None:
-        missing = " and ".join(n for n, v in (("algo", algo), ("env.task", task)) if v is None)
-        raise ImssrError(f"config {path} names no {missing}; add it to the file or pass "
-                         f"{' and '.join('--' + n.split('.')[-1] for n, v in (('algo', algo), ('env.task', task)) if v is None)}")
-    merged = make_config(algo, task, network).to_dict()
-    for key, value in data.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key].update(value)
-        else:
-            merged[key] = value
-    return RunConfig.from_dict(merged)
-
-

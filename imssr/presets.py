@@ -10,61 +10,16 @@ the exploration peers ``X+rnd`` and ``X+re3``.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
 
-from imssr.config import RunConfig
-from imssr.envs.tasks import get_task
+from imssr.algos import ALGOS, BASES, SIGNALS, AlgoSpec, get_algo  # noqa: F401 (re-exported)
+from imssr.config import (RunConfig, apply_overrides, load_config, migrate, read_config_file,
+                          steps_for_frames)
+from imssr.envs.tasks import PAPER_TASKS, get_task
 from imssr.errors import ImssrError
 
-
-@dataclass(frozen=True)
-class AlgoSpec:
-    name: str
-    aux: str
-    """Name of the auxiliary task in :data:`imssr.auxiliary.AUX_TASKS`."""
-    intrinsic: str
-    """Intrinsic signal: ``none`` (the base), ``ssl`` (IM-SSR), ``rnd`` or ``re3`` (peers)."""
-    paper_name: str
-    """Label in the paper's tables and in reports."""
-    description: str
-
-    @property
-    def intrinsic_enabled(self) -> bool:
-        return self.intrinsic != "none"
-
-    @property
-    def base(self) -> str:
-        """The algo without intrinsic reward that this one is compared with."""
-        return self.aux
-
-
-# Each base is an auxiliary task; every base X has im-X (its own per-sample loss
-# as intrinsic reward) and the exploration peers X+rnd and X+re3, which swap
-# only the signal.
-BASES = {
-    "curl": ("CURL", "SAC + CURL: InfoNCE between two crops, momentum key encoder (Srinivas et al. 2020)"),
-    "soda": ("SODA", "SAC + SODA: BYOL-style consistency of overlay vs clean view (Hansen & Wang 2021)"),
-    "pad": ("PAD", "SAC + PAD's inverse-dynamics task, shared 8 of 11 conv layers (Hansen et al. 2021)"),
-    "svea": ("SVEA", "SAC + SVEA: critic regressed on clean and random-conv views (Hansen et al. 2021)"),
-}
-SIGNALS = {
-    "ssl": ("im-{b}", "IM-{B}", "{B} with its per-sample self-supervised loss of o' as intrinsic reward"),
-    "rnd": ("{b}+rnd", "{B}+RND", "{B} with random network distillation error of o' as intrinsic reward"),
-    "re3": ("{b}+re3", "{B}+RE3", "{B} with RE3's k-NN state entropy (fixed random encoder) as intrinsic reward"),
-}
-
-
-def _algos() -> dict[str, AlgoSpec]:
-    algos = {}
-    for b, (label, description) in BASES.items():
-        algos[b] = AlgoSpec(b, b, "none", label, description)
-        for signal, (name, paper, text) in SIGNALS.items():
-            spec = AlgoSpec(name.format(b=b), b, signal, paper.format(B=label), text.format(B=label))
-            algos[spec.name] = spec
-    return algos
-
-
-ALGOS = _algos()
 
 # Table V: beta_0 per task (../shared/spec/paper_beta0.csv; tests check the copy).
 PAPER_BETA0 = {
@@ -80,12 +35,6 @@ DEFAULT_BETA0 = 0.01
 # The paper's text keeps beta fixed on this task and decays it (x0.8 / 100k steps) elsewhere;
 # the authors' IM-CURL script decays it there too (see _intrinsic).
 CONSTANT_BETA_TASKS = ("cartpole_swingup_sparse",)
-
-
-def get_algo(name: str) -> AlgoSpec:
-    if name not in ALGOS:
-        raise ImssrError(f"unknown algo {name!r}; valid algos: {', '.join(ALGOS)}")
-    return ALGOS[name]
 
 
 def paper_beta0(algo: str, task: str) -> float:
@@ -354,6 +303,97 @@ def make_config(algo: str, task: str, network: str = "dmcgb") -> RunConfig:
     return cfg
 
 
+def load_partial_config(path: str, algo: str | None = None, task: str | None = None,
+                        network: str = "dmcgb") -> RunConfig:
+    """A config file merged onto the preset of its algo and task (``imssr train --config``).
+
+    Every field the file gives wins; every field it leaves out is the preset's
+    (:func:`make_config`), so ``{"algo": "curl", "env": {"task": "walker_walk"}}``
+    is the preset of CURL on walker_walk (action repeat 4), and a complete file (a run's
+    ``config.json``) reads back exactly as it was written.  The file's ``algo`` and
+    ``env.task`` win over ``algo`` and ``task`` (the CLI's ``--algo`` / ``--task``, which
+    must then agree); a config that names neither is an error.
+    """
+    data = read_config_file(path)
+    if not isinstance(data, dict):
+        raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
+    data = migrate(data)
+    file_algo = data.get("algo")
+    file_task = data["env"].get("task") if isinstance(data.get("env"), dict) else None
+    # A value of the wrong type is left for the type checks to name.
+    algo = file_algo if isinstance(file_algo, str) else algo
+    task = file_task if isinstance(file_task, str) else task
+    # A preset is chosen only by name: a file that names none would otherwise train a default.
+    if algo is None or task is None:
+        missing = " and ".join(n for n, v in (("algo", algo), ("env.task", task)) if v is None)
+        raise ImssrError(f"config {path} names no {missing}; add it to the file or pass "
+                         f"{' and '.join('--' + n.split('.')[-1] for n, v in (('algo', algo), ('env.task', task)) if v is None)}")
+    merged = make_config(algo, task, network).to_dict()
+    for key, value in data.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key].update(value)
+        else:
+            merged[key] = value
+    return RunConfig.from_dict(merged)
+
+
+def build_run_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
+                     config_file: str | None = None, resume_dir: str | None = None, demo: bool = False,
+                     values: Mapping[str, Any] | None = None, frames: int | None = None,
+                     batch_size: int | None = None, beta0: float | None = None,
+                     overrides: Sequence[str] = ()) -> RunConfig:
+    """The validated config of one run, as ``imssr train`` and every sweep run build it.
+
+    Its base is, in this order: the file ``config_file`` (a partial one merged onto the preset
+    of its algo and task, :func:`load_partial_config`), the saved ``config.json`` of
+    ``resume_dir``, or the preset of ``algo`` on ``task`` (the demo's with ``demo``).  Then, in
+    order: ``values`` (``section.field`` -> value, the CLI's flags that set one field each),
+    ``frames`` (the budget in frames: ``train.steps`` rounded up), ``batch_size`` (the RL batch,
+    and the auxiliary batch of a task that trains on it), ``beta0`` (algos with an intrinsic
+    reward only) and the ``section.field=value`` ``overrides`` (``--set``).
+    """
+    values = dict(values or {})
+    if config_file:
+        cfg = load_partial_config(config_file, algo, task)
+    elif resume_dir:
+        saved = os.path.join(resume_dir, "config.json")
+        if not os.path.exists(saved):
+            raise ImssrError(f"nothing to resume: {saved} does not exist")
+        cfg = load_config(saved)
+    else:
+        algo = algo or ("im-curl" if demo else None)
+        task = task or ("cartpole_swingup" if demo else None)
+        if algo is None or task is None:
+            raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
+        get_algo(algo)
+        get_task(task)
+        cfg = (demo_config if demo else make_config)(algo, task, network or "dmcgb")
+    if config_file or resume_dir:
+        # An explicit algo / task must agree with the loaded config.
+        if algo and algo != cfg.algo:
+            raise ImssrError(f"--algo {algo} differs from the run's algo {cfg.algo}")
+        if task and task != cfg.env.task:
+            raise ImssrError(f"--task {task} differs from the run's task {cfg.env.task}")
+        if network:
+            raise ImssrError("--network chooses the preset of a new run; with --resume or --config "
+                             "set agent.final_relu / feature_dim / projection_tanh instead")
+    if frames is not None:
+        if values.get("train.steps") is not None:
+            raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
+        cfg.train.steps = steps_for_frames(frames, cfg.env.action_repeat)
+    for dotted, value in values.items():
+        set_field(cfg, dotted, value)
+    if batch_size is not None:
+        cfg.agent.batch_size = batch_size
+        if not cfg.aux.own_batch:
+            cfg.aux.batch_size = batch_size  # the task trains on the RL batch
+    if beta0 is not None:
+        if not cfg.intrinsic.enabled:
+            raise ImssrError(f"--beta0 applies to algorithms with an intrinsic reward, not {cfg.algo}")
+        cfg.intrinsic.beta0 = beta0
+    return apply_overrides(cfg, list(overrides)).validate()
+
+
 def explain(algo: str, task: str, network: str = "dmcgb") -> str:
     """The preset as a Markdown table: field, value, source, note."""
     lines = [f"# {algo} on {task}: {make_config(algo, task, network).budget_text()}", "",
@@ -399,8 +439,6 @@ def provenance_markdown() -> str:
            "| task | action repeat (Table III) | T in frames | IM-CURL beta_0 | IM-CURL schedule | "
            "IM-SODA beta_0 | IM-SODA schedule | IM-PAD / IM-SVEA beta_0 |",
            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    from imssr.envs import PAPER_TASKS
-
     for t in PAPER_TASKS:
         c, so, p = make_config("im-curl", t), make_config("im-soda", t), make_config("im-pad", t)
         out.append(f"| {t} | {c.env.action_repeat} | {c.total_frames:,} | {c.intrinsic.beta0} | "

@@ -138,7 +138,8 @@ def test_config_json_never_holds_bare_infinity_or_nan():
 
 
 def test_binary_and_partial_config_files(tmp_path):
-    from imssr.config import load_config, load_partial_config
+    from imssr.config import load_config
+    from imssr.presets import load_partial_config
 
     binary = tmp_path / "model.pt"
     binary.write_bytes(bytes(range(256)) * 4)
@@ -179,3 +180,33 @@ def test_train_config_flag_merges_a_partial_file(tmp_path):
     partial.write_text('{"algo": "curl", "env": {"task": "walker_walk"}}')
     args = build_parser().parse_args(["train", "--config", str(partial), "--out", str(tmp_path / "r")])
     assert _run_config(args, demo=False) == make_config("curl", "walker_walk")
+
+
+def test_every_field_documents_itself_and_each_field_flag_shows_it():
+    from imssr.cli import FIELD_FLAGS, build_parser
+    from imssr.config import FIELD_TYPES, field_docs
+
+    docs = field_docs()
+    assert set(docs) == {key for key in FIELD_TYPES if "." in key}  # one docstring per field
+    assert docs["train.seed"].startswith("Seed of the agent, the replay sampler")
+    help_text = " ".join(build_parser()._subparsers._group_actions[0].choices["train"].format_help().split())
+    for flag in FIELD_FLAGS:
+        assert flag.field in FIELD_TYPES
+        assert docs[flag.field].replace("``", "").split(".")[0] in help_text, flag.flag
+
+
+def test_overrides_go_through_the_typed_schema():
+    cfg = apply_overrides(make_config("im-curl", "walker_walk"),
+                          ["train.eval_modes=", "agent.batch_size=64.0", "agent.critic_lr=1", 'env.mode="color_hard"'])
+    assert (cfg.train.eval_modes, cfg.agent.batch_size, cfg.env.mode) == ("", 64, "color_hard")
+    assert cfg.agent.critic_lr == 1.0 and isinstance(cfg.agent.critic_lr, float)
+    for bad, message in [("train.save_buffer=maybe", "train.save_buffer expects true or false, got 'maybe'"),
+                         ("agent.critic_lr=fast", "agent.critic_lr expects a finite number, got 'fast'"),
+                         ("agent.batch_size=8.5", "agent.batch_size expects an integer, got '8.5'")]:
+        with pytest.raises(ImssrError, match=message):
+            apply_overrides(make_config("curl", "walker_walk"), [bad])
+    # A value set in code must have its field's type: OmegaConf would convert "5", validation refuses it.
+    cfg = make_config("curl", "walker_walk")
+    cfg.train.steps = "5"
+    with pytest.raises(ImssrError, match="train.steps must be a int, got '5'"):
+        cfg.validate()

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from imssr.experiments.report import write_report
+from imssr.report.report import write_report
 from imssr.presets import make_config
 from imssr.training.logger import EVAL_COLUMNS, read_csv
 
@@ -153,7 +153,7 @@ def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
 
 
 def test_points_are_agent_steps_rounded_up():
-    from imssr.experiments.tables import point_step, value_at
+    from imssr.report.tables import point_step, value_at
 
     # The paper's points, whatever the task's action repeat.
     assert [point_step(f, 500_000) for f in (0.2, 0.5, 1.0)] == [100_000, 250_000, 500_000]
@@ -191,7 +191,7 @@ def test_missing_paper_results_drops_the_column_with_a_note(tmp_path):
 
 
 def test_default_paper_results_are_the_spec_copy():
-    from imssr.experiments.tables import default_paper_results, load_paper_results
+    from imssr.report.tables import default_paper_results, load_paper_results
 
     path = default_paper_results()
     if not os.path.exists(path):

@@ -72,7 +72,7 @@ def test_divergence_in_evaluation_is_caught_before_the_simulator(tmp_path):
 def test_a_real_diverging_run_is_one_line_that_the_sweep_records(tmp_path):
     """critic_lr=1e6 (the issue's example) diverges in its first updates: before, dm_control
     ended it in a 26-line PhysicsError traceback."""
-    from imssr.experiments.runner import LOG_FILE, execute_run
+    from imssr.sweep.runner import LOG_FILE, execute_run
 
     run = tmp_path / "run"
     args = ["--algo", "curl", "--task", TASK, "--seed", "1", *FAST, "--set", "agent.critic_lr=1e6"]

@@ -150,8 +150,8 @@ def test_a_resume_in_a_second_process_is_refused_and_evaluate_still_reads(run, c
 
 
 def test_two_sweeps_over_one_root_and_the_sweep_lock(tmp_path, monkeypatch):
-    from imssr.experiments import sweep
-    from imssr.experiments.grid import SweepConfig
+    from imssr.sweep import sweep
+    from imssr.sweep.grid import SweepConfig
 
     root = tmp_path / "sweep"
     cfg = SweepConfig(root=str(root), algos=["curl"], tasks=[TASK], seeds=[1], steps=10)

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from imssr.cli import main
-from imssr.experiments.grid import SweepConfig, build_run_config, expand, load_sweep_file, parse_seeds
-from imssr.experiments.runner import DONE_FILE, LOG_FILE
+from imssr.sweep.grid import SweepConfig, build_run_config, expand, load_sweep_file, parse_seeds
+from imssr.sweep.runner import DONE_FILE, LOG_FILE
 from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"  # 1000 frames = 125 agent steps per episode, action repeat 8
@@ -67,9 +67,22 @@ def test_grid_directories_and_beta_level(tmp_path):
     assert build_run_config(plain[0], cfg).intrinsic.beta0 == 0.01
 
 
+def test_a_sweep_run_config_is_what_imssr_train_builds_from_its_arguments(tmp_path):
+    from imssr.cli import _run_config, build_parser
+
+    for cfg in [SweepConfig(root=str(tmp_path), algos=["im-soda"], tasks=["finger_spin"], seeds=[4], steps=50,
+                            beta0=[0.2], gpus_per_run=0.5, overrides=["agent.batch_size=8", "train.eval_episodes=2"]),
+                SweepConfig(root=str(tmp_path), algos=["curl+rnd"], tasks=[TASK], seeds=[1], frames=3001)]:
+        for run in expand(cfg.validate()):
+            args = build_parser().parse_args(["train", *run.train_args(cfg), "--out", run.dir])
+            built = build_run_config(run, cfg)
+            assert built == _run_config(args, demo=False)
+            assert built.train.device == ("cuda" if cfg.gpus_per_run else "cpu")
+
+
 def test_run_arguments_and_done_marker(tmp_path):
-    from imssr.experiments.runner import is_done, last_frame, last_step, read_done, write_done
-    from imssr.experiments.sweep import plan_runs
+    from imssr.sweep.runner import is_done, last_frame, last_step, read_done, write_done
+    from imssr.sweep.sweep import plan_runs
 
     cfg = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[2], steps=375,
                       gpus_per_run=0.5, overrides=["agent.batch_size=8"])
@@ -236,7 +249,7 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
         assert os.path.getmtime(os.path.join(run.dir, "eval.csv")) == mtimes[run.dir]
 
     # The report reads the sweep back: one seed each, the final evaluation at T = 250 agent steps.
-    from imssr.experiments.report import write_report
+    from imssr.report.report import write_report
 
     write_report(root, str(tmp_path / "report"), reps=50)
     final = {r["label"]: r for r in read_csv(tmp_path / "report" / "table.csv") if r["fraction"] == "1.0"}
@@ -280,9 +293,9 @@ def old_config(algo, task, seed, frames):
 def test_old_run_directories_are_done_and_reported_in_agent_steps(tmp_path):
     """A sweep made when budgets counted frames: config.json with train.frames (no version),
     done.json and sweep.json with frames.  2000 frames at action repeat 8 are 250 agent steps."""
-    from imssr.experiments.report import write_report
-    from imssr.experiments.runner import done_steps, is_done
-    from imssr.experiments.sweep import plan_runs, run_sweep
+    from imssr.report.report import write_report
+    from imssr.sweep.runner import done_steps, is_done
+    from imssr.sweep.sweep import plan_runs, run_sweep
 
     root = str(tmp_path / "sweep")
     cfg = SweepConfig(root=root, algos=["curl", "im-curl"], tasks=[TASK], seeds=[1], steps=250, overrides=TINY)
@@ -340,8 +353,8 @@ def test_old_run_directories_are_done_and_reported_in_agent_steps(tmp_path):
 
 def test_status_and_done_files_are_strict_json(tmp_path):
     """No bare NaN / Infinity in the JSON files a sweep writes (strict parsers refuse them)."""
-    from imssr.experiments.runner import write_done
-    from imssr.experiments.sweep import RunStatus, write_status
+    from imssr.sweep.runner import write_done
+    from imssr.sweep.sweep import RunStatus, write_status
 
     def strict(path):
         with open(path) as fh:

@@ -19,7 +19,13 @@ from imssr.analysis.measures import (first_visit, knn_distance, nuisance_distanc
                                      state_coordinates)
 from imssr.analysis.report import plot_correlations, save_extremes, spearman_ci, write_rows
 from imssr.analysis.states import SOURCES, StateSample, collect
+from imssr.config import load_config
+from imssr.envs import make_env
+from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
+from imssr.training import build_agent, resolve_device
+from imssr.training.checkpoint import (latest_path, load_checkpoint, numbered_checkpoints, select_checkpoint,
+                                       usable_checkpoint)
 
 __all__ = ["AnalysisOptions", "AnalysisResult", "analyze_run", "intrinsic_signal", "SOURCES", "DEFAULT_MODES"]
 
@@ -54,8 +60,6 @@ class AnalysisOptions:
     """``replay``, ``rollouts`` or ``auto`` (the replay when it recorded physics states)."""
 
     def validate(self) -> "AnalysisOptions":
-        from imssr.envs.scenes import get_mode
-
         for value, name in ((self.states, "states"), (self.neighbors, "neighbors"), (self.top_k, "top-k"),
                             (self.reps, "reps")):
             if value < 1:
@@ -91,12 +95,6 @@ class AnalysisResult:
 
 def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResult:
     """Analyse the run in ``run_dir``; see the module docstring and docs/analysis.md."""
-    from imssr.config import load_config
-    from imssr.envs import make_env
-    from imssr.training import build_agent, resolve_device
-    from imssr.training.checkpoint import (latest_path, load_checkpoint, numbered_checkpoints, select_checkpoint,
-                                           usable_checkpoint)
-
     opts.validate()
     if not os.path.isdir(run_dir):
         raise ImssrError(f"run directory not found: {run_dir}")

@@ -23,6 +23,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from imssr.data.images import IMAGE_SUFFIXES, _read_rgb, _square_resize, source_files
 from imssr.errors import ImssrError
@@ -81,8 +82,7 @@ def builtin_footage(size: int, split: str = "test", clips: int = 8, length: int 
 
 def read_video(path: Path, size: int, max_frames: int = 500) -> np.ndarray:
     """Frames of a video file, centre-square resized to ``size``."""
-    import imageio.v2 as imageio
-    from PIL import Image
+    import imageio.v2 as imageio  # heavy (ffmpeg plugins): only for user videos
 
     frames = []
     try:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from PIL import Image
 
 from imssr.errors import ImssrError
 
@@ -60,8 +61,6 @@ def source_files(role: str) -> list[Path]:
 
 
 def _read_rgb(path: Path):
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             return im.convert("RGB")
@@ -71,8 +70,6 @@ def _read_rgb(path: Path):
 
 
 def _square_resize(image, size: int, box: Optional[tuple[int, int, int, int]] = None) -> np.ndarray:
-    from PIL import Image
-
     if box is None:  # centre square
         w, h = image.size
         s = min(w, h)

@@ -17,8 +17,9 @@ Design choices, each for speed or faithfulness:
 """
 from __future__ import annotations
 
+import os
 from collections import deque
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -27,6 +28,9 @@ from imssr._gl import check_gl
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
+
+if TYPE_CHECKING:  # the config imports the scene registry of this package
+    from imssr.config import EnvConfig
 
 
 class DMCEnv(gym.Env):
@@ -242,8 +246,6 @@ class DMCEnv(gym.Env):
 
 
 def _gl_backend() -> str:
-    import os
-
     return os.environ.get("MUJOCO_GL", "egl")
 
 
@@ -256,3 +258,14 @@ def make_env(task: str, seed: int = 0, mode: str = "training", **kwargs) -> DMCE
     per-task value.
     """
     return DMCEnv(task, seed=seed, mode=mode, **kwargs)
+
+
+def env_from_config(cfg: EnvConfig, *, seed: int, footage_split: str, mode: Optional[str] = None,
+                    footage_path: Optional[str] = None) -> DMCEnv:
+    """The env that ``cfg`` describes, seeded with ``seed``; ``mode`` and ``footage_path`` replace
+    the config's scene and footage when given.  ``footage_split``: ``train`` for the training
+    env, ``test`` (unseen clips) for evaluation envs."""
+    return make_env(cfg.task, seed=seed, mode=cfg.mode if mode is None else mode,
+                    action_repeat=cfg.action_repeat, image_size=cfg.image_size,
+                    frame_stack=cfg.frame_stack, shadow_size=cfg.shadow_size, footage_split=footage_split,
+                    footage_path=cfg.footage_dir if footage_path is None else footage_path)

@@ -25,6 +25,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from imssr.data import footage_pool
 from imssr.errors import ImssrError
 
 
@@ -96,8 +97,6 @@ class Scene:
         self.geom_type = int(mujoco.mjtObj.mjOBJ_GEOM)
         self.clips: tuple[np.ndarray, ...] = ()
         if self.spec.video:
-            from imssr.data import footage_pool
-
             self.clips = footage_pool(image_size, footage_split, footage_path)
         self.colors = self.mat_rgba0[:, :3].copy()
         self.base_colors = self.colors.copy()

@@ -1,5 +1,6 @@
 """Training and evaluation loops, logs and checkpoints."""
-from imssr.training.evaluate import eval_row, evaluate
-from imssr.training.loop import Trainer, build_agent, resolve_device
+from imssr.training.build import build_agent, resolve_device
+from imssr.training.evaluate import eval_row, evaluate, evaluate_run
+from imssr.training.loop import Trainer
 
-__all__ = ["Trainer", "build_agent", "resolve_device", "evaluate", "eval_row"]
+__all__ = ["Trainer", "build_agent", "resolve_device", "evaluate", "eval_row", "evaluate_run"]

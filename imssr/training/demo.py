@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 
 from imssr.config import RunConfig
+from imssr.plots.media import save_video
 from imssr.training.evaluate import evaluate
 from imssr.training.logger import read_csv
 
@@ -21,8 +22,6 @@ PAPER_STEPS = 500_000
 def record_episode(trainer, path: str) -> str:
     """Run one deterministic evaluation episode of ``trainer``'s agent in its first evaluation
     scene and save what the agent sees as a GIF at the task's real-time rate."""
-    from imssr.experiments.media import save_video
-
     frames: list = []
     evaluate(trainer.agent, trainer.eval_env, 1, record=frames)
     # One frame per agent step; dm_control's control step is 10 ms for cartpole, so

@@ -1,11 +1,20 @@
-"""Evaluation: deterministic policy (tanh of the mean), centre crop, K episodes."""
+"""Evaluation: deterministic policy (tanh of the mean), centre crop, K episodes; and the
+evaluation of a saved run (``imssr evaluate``)."""
 from __future__ import annotations
 
-from typing import Optional
+import os
+from typing import Callable, Optional
 
 import numpy as np
 
-from imssr.errors import DivergedError
+from imssr.config import load_config
+from imssr.envs import env_from_config
+from imssr.envs.scenes import get_mode
+from imssr.errors import DivergedError, ImssrError
+from imssr.plots.media import save_montage, save_video
+from imssr.training.build import build_agent, resolve_device
+from imssr.training.checkpoint import load_checkpoint, select_checkpoint, usable_checkpoint
+from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, CSVLog, write_eval
 
 
 def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[float]:
@@ -52,3 +61,78 @@ def eval_row(frame: int, step: int, mode: str, returns: list[float]) -> dict:
             "return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)),
             "episodes": len(returns), "return_min": float(np.min(returns)),
             "return_max": float(np.max(returns))}
+
+
+def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int = 10,
+                 modes: Optional[str] = None, seed: Optional[int] = None, device: str = "cpu",
+                 video: Optional[str] = None, montage: bool = False, footage: Optional[str] = None,
+                 log: Optional[Callable[[str], None]] = None) -> None:
+    """Evaluate a saved run's checkpoint in each scene; append the results to
+    ``RUN/evaluate.csv`` (one row per scene) and ``RUN/evaluate_episodes.csv`` (one per episode).
+
+    Args:
+        run_dir: the run directory (its ``config.json`` and checkpoints).
+        checkpoint: a checkpoint file, or the agent step of a retained ``step-*.pt``; None: the
+            latest that verifies.
+        episodes: episodes per scene.
+        modes: comma-separated scenes; None: the run's evaluation scenes.
+        seed: seed of the evaluation envs; None: the run seed + 20,000 (no env of training or of
+            its evaluations used it).
+        device: torch device name (``auto`` allowed).
+        video: ``gif`` or ``mp4``: save each scene's first episode as ``RUN/videos/MODE.EXT``.
+        montage: save ``RUN/montage.png``, one frame per scene.
+        footage: footage for video scenes; None: the run's.
+        log: where progress lines go (default: stdout, flushed).
+    """
+    log = log or _say
+    if not os.path.isdir(run_dir):
+        raise ImssrError(f"run directory not found: {run_dir}")
+    cfg = load_config(os.path.join(run_dir, "config.json"))
+    scenes = ([m.strip() for m in modes.split(",") if m.strip()] if modes
+              else cfg.train.eval_mode_list(cfg.env.mode))
+    for mode in scenes:
+        get_mode(mode)
+    if checkpoint:
+        ckpt = load_checkpoint(select_checkpoint(run_dir, checkpoint))
+    else:
+        ckpt, _, note = usable_checkpoint(run_dir, verb="evaluating")
+        if note:
+            log(f"imssr: {note}")
+    torch_device = resolve_device(device)
+    seed = cfg.train.seed + 20_000 if seed is None else seed
+    agent = None
+    pictures = {}
+    summary = CSVLog(os.path.join(run_dir, "evaluate.csv"), EVAL_COLUMNS)
+    episodes_log = CSVLog(os.path.join(run_dir, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS)
+    for mode in dict.fromkeys(scenes):
+        # Unseen footage: evaluation draws from the test pool.
+        env = env_from_config(cfg.env, seed=seed, mode=mode, footage_split="test", footage_path=footage)
+        if agent is None:
+            agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], torch_device)
+            try:
+                agent.load_state_dict(ckpt["agent"], restore_rng=False)
+            except (RuntimeError, KeyError, ValueError) as exc:
+                raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
+        frames: Optional[list] = [] if (video or montage) else None
+        try:
+            returns = evaluate(agent, env, episodes, record=frames)
+        finally:
+            env.close()
+        row = eval_row(ckpt["frame"], ckpt["step"], mode, returns)
+        write_eval(summary, episodes_log, row, returns)
+        log(f"{mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
+            f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
+        if video:
+            log(f"  video: {save_video(frames, os.path.join(run_dir, 'videos', f'{mode}.{video}'))}")
+        if montage:
+            pictures[mode] = frames[min(len(frames) - 1, 20)]
+    if pictures:
+        path = save_montage(pictures, os.path.join(run_dir, "montage.png"),
+                            f"{cfg.algo} on {cfg.env.task}, frame {ckpt['frame']}")
+        log(f"montage: {path}")
+    # Appended to, one summary row per scene and one row per episode (with the checkpoint's step).
+    log(f"imssr: evaluation written to {summary.path} and {episodes_log.path}")
+
+
+def _say(text: str) -> None:
+    print(text, flush=True)

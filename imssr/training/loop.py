@@ -20,14 +20,14 @@ from typing import Optional
 import numpy as np
 import torch
 
-from imssr.agents import SACAgent
 from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
-from imssr.envs import make_env
+from imssr.envs import env_from_config
 from imssr.errors import DivergedError, ImssrError, NonFiniteError
 from imssr.presets import get_algo
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError, frames_path
+from imssr.training.build import build_agent, resolve_device
 from imssr.training.checkpoint import checkpoint_dir, latest_path, save_checkpoint, usable_checkpoint
 from imssr.training.lock import DirectoryLock
 from imssr.training.evaluate import eval_row, evaluate, non_finite_text
@@ -83,26 +83,6 @@ class StepSchedule:
         """Resume at agent step ``step``: the saved next step if the interval is unchanged
         (``saved_every``), else the first multiple of the new interval after ``step``."""
         self.next_step = counters[self.key] if saved_every == self.every else _next_multiple(step, self.every)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ImssrError(f"unknown device {name!r}; use cpu, cuda, cuda:N or auto") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ImssrError(f"device {name!r} requested but CUDA is not available; use --device cpu")
-    if device.type not in ("cpu", "cuda"):
-        raise ImssrError(f"unsupported device {name!r}; use cpu, cuda, cuda:N or auto")
-    return device
-
-
-def build_agent(cfg: RunConfig, obs_shape, action_dim: int, device) -> SACAgent:
-    algo = get_algo(cfg.algo)
-    return SACAgent(obs_shape, action_dim, cfg.agent, aux_cfg=cfg.aux if algo.aux else None,
-                    intrinsic_cfg=cfg.intrinsic, device=device, seed=cfg.train.seed)
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
@@ -177,14 +157,11 @@ class Trainer:
                 print(warning, flush=True)
         seed_everything(cfg.train.seed)
         e = cfg.env
-        env_kwargs = dict(action_repeat=e.action_repeat, image_size=e.image_size,
-                          frame_stack=e.frame_stack, shadow_size=e.shadow_size)
         # Training footage and evaluation footage come from disjoint pools.
-        self.env = make_env(e.task, seed=cfg.train.seed, mode=e.mode, footage_split="train",
-                            footage_path=e.footage_dir, **env_kwargs)
+        self.env = env_from_config(e, seed=cfg.train.seed, footage_split="train")
         self.eval_modes = cfg.train.eval_mode_list(e.mode)
-        self.eval_envs = {m: make_env(e.task, seed=cfg.train.seed + 10_000, mode=m, footage_split="test",
-                                      footage_path=e.footage_dir, **env_kwargs) for m in self.eval_modes}
+        self.eval_envs = {m: env_from_config(e, seed=cfg.train.seed + 10_000, mode=m, footage_split="test")
+                          for m in self.eval_modes}
         self.action_dim = self.env.action_space.shape[0]
         self.agent = build_agent(cfg, self.env.observation_space.shape, self.action_dim, self.device)
         if self.agent.aux is not None:

@@ -17,8 +17,8 @@ from __future__ import annotations
 import os
 from typing import Optional
 
-from imssr.experiments import aggregate, figures, tables
-from imssr.experiments.results import collect, write_evaluations
+from imssr.report import aggregate, figures, tables
+from imssr.report.results import collect, write_evaluations
 from imssr.utils import atomic_write_text
 
 PAPER_T = 500_000

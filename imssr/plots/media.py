@@ -5,6 +5,7 @@ import os
 
 import numpy as np
 
+from imssr.envs import MODES, get_task, make_env
 from imssr.errors import ImssrError
 from imssr.utils import atomic_path
 
@@ -59,3 +60,21 @@ def save_video(frames: list[np.ndarray], path: str, fps: float = 25) -> str:
                 for frame in frames:
                     writer.append_data(frame)
     return path
+
+
+def scenes_montage(task: str, path: str, seed: int = 0, steps: int = 20, footage: str = "") -> str:
+    """A montage PNG of ``task`` in every scene, each after ``steps`` random agent steps
+    (``imssr modes --montage``); video scenes draw unseen (test) footage."""
+    get_task(task)
+    frames = {}
+    for mode in MODES:
+        env = make_env(task, seed=seed, mode=mode, footage_split="test", footage_path=footage)
+        try:
+            env.action_space.seed(seed)
+            obs, _ = env.reset()
+            for _ in range(steps):
+                obs, *_ = env.step(env.action_space.sample())
+            frames[mode] = np.moveaxis(obs[-3:], 0, -1)
+        finally:
+            env.close()
+    return save_montage(frames, path, f"{task}: every scene (seed {seed})")

@@ -2,7 +2,7 @@
 
 A run's directory is a pure function of its grid point, ``ROOT/<task>/<algo>/seed_<n>``
 (``ROOT/<task>/<algo>/beta0_<value>/seed_<n>`` in a beta_0 sweep), so re-running a sweep
-finds its earlier runs again; ``imssr.experiments.sweep`` decides what each one still needs.
+finds its earlier runs again; ``imssr.sweep.sweep`` decides what each one still needs.
 """
 from __future__ import annotations
 
@@ -12,7 +12,13 @@ import os
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Optional
 
+from imssr.config import MAX_SEED, SEED_RULE, RunConfig
+from imssr.envs import get_task
 from imssr.errors import ImssrError
+from imssr.jsonio import dumps
+from imssr.presets import ALGOS, get_algo
+from imssr.presets import build_run_config as build_config
+from imssr.utils import atomic_write_text
 
 SWEEP_PLAN = "sweep.json"
 """File under ROOT with the expanded grid (the report reads it for T and the expected seeds).
@@ -76,10 +82,6 @@ class SweepConfig:
         return cfg
 
     def validate(self) -> "SweepConfig":
-        from imssr.config import MAX_SEED, SEED_RULE
-        from imssr.envs import get_task
-        from imssr.presets import get_algo
-
         if not self.algos:
             raise ImssrError("a sweep needs --algos (see imssr algos)")
         if not self.tasks:
@@ -108,8 +110,6 @@ class SweepConfig:
             if not ok:
                 raise ImssrError(message)
         if self.beta0:
-            from imssr.presets import ALGOS
-
             if not any(ALGOS[a].intrinsic_enabled for a in self.algos):
                 raise ImssrError("--beta0 needs an algo with an intrinsic reward (im-X, X+rnd, X+re3)")
         return self
@@ -136,6 +136,11 @@ class Run:
         beta = "" if self.beta0 is None else f" beta0={beta_label(self.beta0)}"
         return f"{self.algo} {self.task}{beta} seed {self.seed}"
 
+    def on_gpu(self, cfg: SweepConfig) -> bool:
+        """Whether the run trains on ``cuda`` because the sweep gives it a GPU (an override of
+        ``train.device`` wins)."""
+        return cfg.gpus_per_run > 0 and not any(o.startswith("train.device=") for o in cfg.overrides)
+
     def train_args(self, cfg: SweepConfig) -> list[str]:
         """``imssr train`` arguments of this run (without --out / --resume)."""
         args = ["--algo", self.algo, "--task", self.task, "--seed", str(self.seed)]
@@ -145,7 +150,7 @@ class Run:
             args += ["--frames", str(cfg.frames)]
         if self.beta0 is not None:
             args += ["--beta0", repr(float(self.beta0))]
-        if cfg.gpus_per_run > 0 and not any(o.startswith("train.device=") for o in cfg.overrides):
+        if self.on_gpu(cfg):
             args += ["--device", "cuda"]
         for item in cfg.overrides:
             args += ["--set", item]
@@ -159,8 +164,6 @@ def beta_label(value: float) -> str:
 
 def expand(cfg: SweepConfig) -> list[Run]:
     """Every run of the grid, in a stable order (task, algo, beta_0, seed)."""
-    from imssr.presets import ALGOS
-
     root = os.path.abspath(cfg.root)
     runs = []
     for task in cfg.tasks:
@@ -174,25 +177,27 @@ def expand(cfg: SweepConfig) -> list[Run]:
     return runs
 
 
-def build_run_config(run: Run, cfg: SweepConfig):
-    """The run's RunConfig exactly as ``imssr train`` would build it (same parser, same code)."""
-    from imssr.cli import _run_config, build_parser
-
-    args = build_parser().parse_args(["train", *run.train_args(cfg), "--out", run.dir])
-    return _run_config(args, demo=False)
+def build_run_config(run: Run, cfg: SweepConfig) -> RunConfig:
+    """The run's RunConfig as ``imssr train`` builds it from :meth:`Run.train_args` (the same
+    :func:`imssr.presets.build_run_config`; a test checks that the two agree)."""
+    values: dict[str, Any] = {"train.seed": run.seed}
+    if cfg.steps is not None:
+        values["train.steps"] = cfg.steps
+    if run.on_gpu(cfg):
+        values["train.device"] = "cuda"
+    return build_config(run.algo, run.task, values=values,
+                        frames=cfg.frames if cfg.steps is None else None, beta0=run.beta0,
+                        overrides=cfg.overrides)
 
 
 def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, tuple[int, int]]) -> str:
     """Write ``ROOT/sweep.json``: the sweep's settings and every run with its budget;
     ``budgets`` maps a run's directory to its ``(agent steps, frames)``."""
-    from imssr.utils import atomic_write_text
-
     root = os.path.abspath(cfg.root)
     plan = {"sweep": asdict(cfg),
             "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), steps=budgets[r.dir][0],
                           frames=budgets[r.dir][1]) for r in runs]}
     path = os.path.join(root, SWEEP_PLAN)
-    from imssr.jsonio import dumps
 
     atomic_write_text(path, dumps(plan, indent=2) + "\n")
     return path

@@ -16,10 +16,14 @@ import os
 from dataclasses import dataclass, field
 from typing import Optional
 
-from imssr.config import steps_for_frames
+from imssr.config import load_config, steps_for_frames
+from imssr.envs import get_task
 from imssr.errors import ImssrError
-from imssr.experiments.grid import SWEEP_PLAN, beta_label
+from imssr.sweep.grid import SWEEP_PLAN, beta_label
+from imssr.sweep.runner import read_done
+from imssr.sweep.sweep import status_of
 from imssr.training.logger import read_csv
+from imssr.utils import atomic_write_csv
 
 EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0"]
 
@@ -147,9 +151,6 @@ def read_failures(root: str) -> dict[str, str]:
     """Runs that the last ``imssr sweep`` over ``root`` gave up on (state ``failed`` in
     ``sweep_status.json``): absolute run directory -> the last attempt's error line.  A run
     finished since (it has ``done.json``) is not failed."""
-    from imssr.experiments.runner import read_done
-    from imssr.experiments.sweep import status_of
-
     status = status_of(root)
     runs = status.get("runs") if isinstance(status, dict) else None
     out = {}
@@ -166,8 +167,6 @@ def read_failures(root: str) -> dict[str, str]:
 
 
 def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
-    from imssr.config import load_config
-
     rel = os.path.relpath(run_dir, root)
     try:
         # Through the config reader, which migrates a run made when budgets counted frames.
@@ -232,15 +231,11 @@ def _read_plan(root: str, runs: list[RunResult], notes: list[str]) -> list[Plann
 
 
 def _task_action_repeat(task: str) -> int:
-    from imssr.envs import get_task
-
     return get_task(task).action_repeat
 
 
 def write_evaluations(results: SweepResults, path: str) -> str:
     """Every evaluation of every run: ``algo,task,mode,seed,step,frame,return,beta0``."""
-    from imssr.utils import atomic_write_csv
-
     rows = sorted((r.algo, r.task, mode, r.seed, step, frame, ret, "" if r.beta0 is None else beta_label(r.beta0))
                   for r in results.runs for mode, step, frame, ret in r.evals)
     return atomic_write_csv(path, EVALUATIONS_COLUMNS,

@@ -23,7 +23,9 @@ from typing import Optional
 
 import numpy as np
 
-from imssr.experiments.results import RunResult, SweepResults
+from imssr.presets import ALGOS
+from imssr.report.results import RunResult, SweepResults
+from imssr.utils import atomic_write_csv
 
 FRACTIONS = (0.2, 0.5, 1.0)
 TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",
@@ -107,8 +109,6 @@ def mode_order(modes) -> list[str]:
 
 def label_order(results: SweepResults) -> list[str]:
     """Algos in registry order (curl, im-curl, ...), beta sweeps by increasing beta_0."""
-    from imssr.presets import ALGOS
-
     rank = {name: i for i, name in enumerate(ALGOS)}
     keys = {(r.label, r.algo, r.beta0) for r in results.runs} | \
            {(p.label, p.algo, p.beta0) for p in results.planned}
@@ -118,8 +118,6 @@ def label_order(results: SweepResults) -> list[str]:
 
 def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[list[Row], list[str]]:
     """Every (mode, task, label) row, and notes on missing seeds and evaluation points."""
-    from imssr.presets import ALGOS
-
     notes: list[str] = []
     labels = label_order(results)
     by_group: dict[tuple[str, str], list[RunResult]] = {}
@@ -283,8 +281,6 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
 
 
 def write_table_csv(rows: list[Row], path: str) -> str:
-    from imssr.utils import atomic_write_csv
-
     def lines():
         for row in rows:
             for cell in row.cells:

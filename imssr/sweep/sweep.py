@@ -1,7 +1,7 @@
 """Dispatch a sweep's runs through Ray, idempotently, with bounded retries and a status file.
 
 Each run is one Ray task that runs ``imssr train`` in a subprocess
-(:func:`imssr.experiments.runner.execute_run`).  Before anything starts, every run is
+(:func:`imssr.sweep.runner.execute_run`).  Before anything starts, every run is
 classified from its directory: ``done.json`` with a budget (in agent steps) at least the
 sweep's means done (skipped), a checkpoint means resume, nothing means a fresh start.  A failed attempt is
 retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
@@ -10,17 +10,25 @@ still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
+import socket
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Optional
 
+from tqdm import tqdm
+
 from imssr.errors import ImssrError
-from imssr.experiments.grid import Run, SweepConfig, build_run_config, expand, save_plan
-from imssr.experiments.runner import LOG_FILE, has_checkpoint, is_done, last_frame, last_step, read_done
+from imssr.extras import require
 from imssr.jsonio import dumps
+from imssr.sweep.grid import Run, SweepConfig, build_run_config, expand, save_plan
+from imssr.sweep.runner import (LOG_FILE, execute_run, has_checkpoint, is_done, last_frame, last_step,
+                                read_done)
+from imssr.training.lock import DirectoryLock
 from imssr.utils import atomic_write_text
 
 STATUS_FILE = "sweep_status.json"
@@ -119,8 +127,6 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
     gives up; a plain TCP connect answers in at most ``timeout_s``.  Addresses that are not
     ``[ray://]HOST:PORT`` (``auto``) are left to Ray.
     """
-    import socket
-
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not host or not port.isdigit():
         return
@@ -132,14 +138,9 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
 
 
 def _init_ray(cfg: SweepConfig):
-    import logging
-
     # No usage-stats prompt or upload from a batch job (and none on machines without network).
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    try:
-        import ray
-    except ImportError:  # pragma: no cover - ray is a dependency
-        raise ImssrError("imssr sweep needs ray: pip install 'ray==2.60.0'") from None
+    ray = require("ray", "sweep")
     # Workers' output goes to each run's sweep.log, not to the driver's terminal.
     common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
                   configure_logging=True)
@@ -182,8 +183,6 @@ class _Progress:
     """Live summary across runs: a tqdm bar over finished runs plus the state counts."""
 
     def __init__(self, statuses: list[RunStatus], enabled: bool):
-        from tqdm import tqdm
-
         self.statuses = statuses
         self.bar = tqdm(total=len(statuses), unit="run", desc="sweep", dynamic_ncols=True,
                         disable=None if enabled else True)
@@ -218,8 +217,7 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> l
     same root fails at once ("ROOT is in use by PID n"); each run's training locks its own
     directory as ``imssr train`` does.
     """
-    from imssr.training.lock import DirectoryLock
-
+    require("ray", "sweep")  # before anything is written
     with DirectoryLock(cfg.root):
         return _run_sweep(cfg, progress, poll_s)
 
@@ -301,8 +299,6 @@ def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatu
 def _sigterm_as_interrupt():
     """Treat SIGTERM (a batch scheduler's stop, `kill`) like Ctrl-C, so the status file says
     which runs were cut short; returns the previous handler (None off the main thread)."""
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         return None
 
@@ -314,8 +310,6 @@ def _sigterm_as_interrupt():
 
 def _remote_run(run_dir: str, train_args: list[str], steps: int, attempt: int, threads: int) -> dict:
     """The Ray task body (module level, so workers import it rather than unpickle code)."""
-    from imssr.experiments.runner import execute_run
-
     return execute_run(run_dir, train_args, steps, attempt, threads)
 
 

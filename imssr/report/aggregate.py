@@ -7,12 +7,20 @@ intrinsic reward (IM-X, and X+RND / X+RE3) beats its base X on a randomly drawn 
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
-from imssr.experiments.tables import FRACTIONS, Row, mode_order
+from imssr.extras import require
+from imssr.presets import ALGOS
+from imssr.report.tables import FRACTIONS, Row, mode_order
+from imssr.utils import atomic_write_csv
+
+# The report extra; imported with this module, which only `imssr report` imports.
+rly = require("rliable.library", "report")
+metrics = require("rliable.metrics", "report")
 
 DMC_MAX_RETURN = 1000.0
 AGGREGATE_COLUMNS = ["mode", "fraction", "metric", "label", "point", "ci_low", "ci_high", "tasks", "runs"]
@@ -48,11 +56,6 @@ def score_matrix(rows: list[Row], fraction_index: int, tasks: list[str]) -> np.n
 
 def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggregate], list[str]]:
     """IQM per label and probability of improvement per (intrinsic label, base) pair."""
-    from rliable import library as rly
-    from rliable import metrics
-
-    from imssr.presets import ALGOS
-
     out: list[Aggregate] = []
     notes: list[str] = []
 
@@ -78,7 +81,7 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggr
                     notes.append(f"{mode} at {fraction:.1f}T: IQM over {', '.join(common)} only "
                                  f"(not every algo has {', '.join(dropped)})")
                 matrices = {label: score_matrix(by_label[label], i, common) for label in scored}
-                point, ci = _estimates(rly, matrices, iqm, reps, seed)
+                point, ci = _estimates(matrices, iqm, reps, seed)
                 for label, m in matrices.items():
                     out.append(Aggregate(mode, fraction, "IQM", label, float(point[label][0]),
                                          float(ci[label][0][0]), float(ci[label][1][0]), common, m.shape[0]))
@@ -92,17 +95,15 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggr
                 x = score_matrix(by_label[label], i, tasks)
                 y = score_matrix(by_label[base], i, tasks)
                 key = f"{label} > {base}"
-                point, ci = _estimates(rly, {key: (x, y)}, metrics.probability_of_improvement, reps, seed)
+                point, ci = _estimates({key: (x, y)}, metrics.probability_of_improvement, reps, seed)
                 low, high = np.ravel(ci[key])
                 out.append(Aggregate(mode, fraction, "P(X > Y)", key, float(point[key]),
                                      float(low), float(high), tasks, min(x.shape[0], y.shape[0])))
     return out, notes
 
 
-def _estimates(rly, scores: dict, func, reps: int, seed: int):
+def _estimates(scores: dict, func, reps: int, seed: int):
     """rliable's bootstrap with a fixed seed, so a report is reproducible."""
-    import warnings
-
     with warnings.catch_warnings():
         # rliable 1.2 passes a RandomState through arch's deprecated `random_state` keyword.
         warnings.filterwarnings("ignore", message="random_state is deprecated", category=FutureWarning)
@@ -130,8 +131,6 @@ def markdown(aggregates: list[Aggregate]) -> str:
 
 
 def write_csv(aggregates: list[Aggregate], path: str) -> str:
-    from imssr.utils import atomic_write_csv
-
     return atomic_write_csv(path, AGGREGATE_COLUMNS, (
         [a.mode, f"{a.fraction:.1f}", a.metric, a.label, f"{a.point:.6g}",
          f"{a.ci_low:.6g}", f"{a.ci_high:.6g}", ";".join(a.tasks), a.runs] for a in aggregates))

@@ -6,8 +6,8 @@ from typing import Optional
 
 import numpy as np
 
-from imssr.experiments.results import SweepResults
-from imssr.experiments.tables import Row, label_order, mode_order
+from imssr.report.results import SweepResults
+from imssr.report.tables import Row, label_order, mode_order
 from imssr.utils import atomic_path
 
 

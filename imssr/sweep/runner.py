@@ -6,6 +6,7 @@ task) leaves only its last atomic checkpoint behind, from which the next attempt
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -14,7 +15,8 @@ import sys
 import time
 from typing import Optional
 
-from imssr.config import steps_for_frames
+from imssr.config import load_config, steps_for_frames
+from imssr.errors import ImssrError
 from imssr.jsonio import dumps
 from imssr.training.logger import read_csv
 from imssr.utils import atomic_write_text
@@ -50,9 +52,6 @@ def _is_int(value) -> bool:
 
 def action_repeat_of(run_dir: str) -> Optional[int]:
     """The run's action repeat from its ``config.json`` (any config version); None if unreadable."""
-    from imssr.config import load_config
-    from imssr.errors import ImssrError
-
     try:
         return load_config(os.path.join(run_dir, "config.json")).env.action_repeat
     except (ImssrError, OSError, TypeError, ValueError):
@@ -124,7 +123,6 @@ def last_frame(path: str) -> int:
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
     # If the Ray worker that waits on this training is killed (force-cancelled task, Ray
     # shut down), the training must not live on as an orphan holding CPUs.
-    import ctypes
 
     ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 

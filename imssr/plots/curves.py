@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import os
 
+from imssr.config import load_config
 from imssr.errors import ImssrError
 from imssr.training.logger import read_csv
+from imssr.utils import atomic_path
 
 
 def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
@@ -23,8 +25,6 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
     action_repeat = None
     cfg_path = os.path.join(run_dir, "config.json")
     if os.path.exists(cfg_path):
-        from imssr.config import load_config
-
         # Through the config reader, so a run from before budgets counted agent steps plots too.
         cfg = load_config(cfg_path)
         title = f"{cfg.algo} on {cfg.env.task} (seed {cfg.train.seed})"
@@ -53,7 +53,6 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    from imssr.utils import atomic_path
 
     with atomic_path(out_path) as tmp:
         fig.savefig(tmp, format="png")

@@ -1,0 +1,30 @@
+"""What a run is made of besides its envs: the torch device and the agent its config describes
+(shared by training and by the evaluation of a saved run)."""
+from __future__ import annotations
+
+import torch
+
+from imssr.agents import SACAgent
+from imssr.algos import get_algo
+from imssr.config import RunConfig
+from imssr.errors import ImssrError
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ImssrError(f"unknown device {name!r}; use cpu, cuda, cuda:N or auto") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ImssrError(f"device {name!r} requested but CUDA is not available; use --device cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise ImssrError(f"unsupported device {name!r}; use cpu, cuda, cuda:N or auto")
+    return device
+
+
+def build_agent(cfg: RunConfig, obs_shape, action_dim: int, device) -> SACAgent:
+    algo = get_algo(cfg.algo)
+    return SACAgent(obs_shape, action_dim, cfg.agent, aux_cfg=cfg.aux if algo.aux else None,
+                    intrinsic_cfg=cfg.intrinsic, device=device, seed=cfg.train.seed)

@@ -1,0 +1,162 @@
+"""The package's import structure: no import circle, and every module imports on its own."""
+import ast
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+import imssr
+
+PACKAGE_DIR = os.path.dirname(imssr.__file__)
+
+
+def _modules() -> dict[str, str]:
+    """Every module of the package: dotted name -> file."""
+    found = {}
+    for folder, _, files in os.walk(PACKAGE_DIR):
+        for name in files:
+            if not name.endswith(".py"):
+                continue
+            rel = os.path.relpath(os.path.join(folder, name), os.path.dirname(PACKAGE_DIR))
+            dotted = rel[:-3].replace(os.sep, ".").removesuffix(".__init__")
+            found[dotted] = os.path.join(folder, name)
+    return found
+
+
+def _type_checking_only(tree: ast.AST) -> set[int]:
+    """ids of the import nodes under ``if TYPE_CHECKING:`` (never run)."""
+    skipped = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skipped.update(id(n) for stmt in node.body for n in ast.walk(stmt))
+    return skipped
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the package's modules it imports, at the top or inside functions."""
+    modules = _modules()
+    graph = {}
+    for name, path in modules.items():
+        with open(path, encoding="utf-8") as fh:
+            tree = ast.parse(fh.read(), path)
+        skipped = _type_checking_only(tree)
+        package = name if path.endswith("__init__.py") else name.rpartition(".")[0]
+        edges = set()
+        for node in ast.walk(tree):
+            if id(node) in skipped:
+                continue
+            if isinstance(node, ast.Import):
+                edges.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = package.split(".")
+                    base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+                for alias in node.names:
+                    # `from pkg import mod` imports the module pkg.mod; `from mod import name` imports mod.
+                    edges.add(f"{base}.{alias.name}" if f"{base}.{alias.name}" in modules else base)
+        graph[name] = {e for e in edges if e in modules and e != name}
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One import circle as a path ``[a, b, ..., a]``, or [] when the graph is acyclic."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str]:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt):] + [nxt]
+            if nxt not in state:
+                cycle = visit(nxt)
+                if cycle:
+                    return cycle
+        path.pop()
+        state[node] = 2
+        return []
+
+    for node in sorted(graph):
+        if node not in state:
+            cycle = visit(node)
+            if cycle:
+                return cycle
+    return []
+
+
+def test_the_import_graph_has_no_circle():
+    graph = import_graph()
+    assert {"imssr.config", "imssr.presets", "imssr.cli", "imssr.sweep.grid"} <= set(graph)
+    assert "imssr.presets" in graph["imssr.sweep.grid"]  # in-function imports count too
+    cycle = find_cycle(graph)
+    assert not cycle, " -> ".join(cycle)
+
+
+def test_find_cycle_finds_one():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) == []
+
+
+# Each module is imported in a process of its own, forked from one that has imported the
+# heavy third-party libraries but no imssr module: each child starts without any of the
+# package in sys.modules, as `python -c "import imssr.X"` would, in a fraction of the time.
+_IMPORT_EACH = textwrap.dedent("""
+    import importlib, os, sys, traceback
+    import numpy, torch  # noqa: F401  (third-party only: the children share them)
+    for heavy in ("omegaconf", "gymnasium", "PIL.Image", "tqdm", "rliable.library", "rliable.metrics"):
+        try:
+            importlib.import_module(heavy)
+        except ImportError:  # an extra that is not installed: the child finds out
+            pass
+    assert not any(m == "imssr" or m.startswith("imssr.") for m in sys.modules)
+    failed = []
+    for name in sys.argv[1:]:
+        pid = os.fork()
+        if pid == 0:
+            try:
+                importlib.import_module(name)
+            except BaseException:
+                traceback.print_exc()
+                os._exit(1)
+            os._exit(0)
+        _, status = os.waitpid(pid, 0)
+        if status != 0:
+            failed.append(name)
+    print("FAILED:", " ".join(failed))
+    sys.exit(1 if failed else 0)
+""")
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_every_module_imports_on_its_own():
+    names = sorted(m for m in _modules() if not m.endswith("__main__"))  # __main__ runs the CLI
+    proc = subprocess.run([sys.executable, "-c", _IMPORT_EACH, *names], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    assert proc.stdout.strip() == "FAILED:"
+
+
+def test_a_missing_extra_is_one_line_naming_it(tmp_path):
+    """Without Ray, `imssr sweep` fails in one line naming the sweep extra; without rliable,
+    the report module does so for the report extra."""
+    code = textwrap.dedent(f"""
+        import sys
+        sys.modules["ray"] = None  # as if Ray were not installed
+        sys.modules["rliable"] = None
+        from imssr.cli import main
+        code = main(["sweep", "--algos", "curl", "--tasks", "walker_walk", "--steps", "10",
+                     "--root", {str(tmp_path / "sweep")!r}, "--no-progress"])
+        assert code == 2, code
+        code = main(["report", {str(tmp_path)!r}])
+        assert code == 2, code
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("imssr: error: ray is not installed") and "pip install 'imssr[sweep]'" in lines[0]
+    assert lines[1].startswith("imssr: error: rliable is not installed") and "pip install 'imssr[report]'" in lines[1]
+    assert not (tmp_path / "sweep").exists()  # nothing written before the error
