@@ -192,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--neighbors", type=_positive_int, default=5, help="k of the k-NN novelty")
     an.add_argument("--top-k", type=_positive_int, default=4, help="states per row of the montage")
     an.add_argument("--reps", type=_positive_int, default=1000, help="bootstrap resamples per CI")
-    an.add_argument("--seed", type=_seed_type(), default=0, help="seed of the state draw, crops, scenes, bootstrap")
+    an.add_argument("--seed", type=_seed, default=0, help="seed of the state draw, crops, scenes, bootstrap")
     an.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
     an.add_argument("--out", help="output directory (default RUN/analysis)")
 
