@@ -19,6 +19,7 @@ from typing import Optional
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
@@ -328,19 +329,15 @@ class Trainer:
         """
         cfg, t = self.cfg, self.cfg.train
         total_steps = cfg.total_steps
-        try:
-            from tqdm import tqdm
-            bar = tqdm(total=total_steps, initial=min(self.step, total_steps), unit="step",
-                       disable=None if t.progress else True, dynamic_ncols=True,
-                       desc=f"{cfg.algo} {cfg.env.task} s{t.seed}")
-        except ImportError:  # pragma: no cover - tqdm is a dependency
-            bar = None
+        bar = tqdm(total=total_steps, initial=min(self.step, total_steps), unit="step",
+                   disable=None if t.progress else True, dynamic_ncols=True,
+                   desc=f"{cfg.algo} {cfg.env.task} s{t.seed}")
         need_reset, obs = True, None
         ep_return, ep_frames, ep_start = 0.0, 0, time.time()
         sums: dict[str, float] = defaultdict(float)
         counts: dict[str, int] = defaultdict(int)
         # A line every progress_every_s seconds where no progress bar shows (a log file).
-        log_progress = (bar is None or bar.disable) and not _isatty(sys.stdout)
+        log_progress = bar.disable and not _isatty(sys.stdout)
         started, start_step, start_frame = time.monotonic(), self.step, self.frame
         next_progress, last_return = started + self.progress_every_s, None
         try:
@@ -368,8 +365,7 @@ class Trainer:
                 self.frame += info["sim_steps"]
                 ep_return += reward
                 ep_frames += info["sim_steps"]
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
                 if log_progress and time.monotonic() >= next_progress:
                     now = time.monotonic()
                     next_progress = now + self.progress_every_s
@@ -392,8 +388,7 @@ class Trainer:
                         raise DivergedError(bad)
                     self.logger.log_train(row)
                     last_return = ep_return
-                    if bar is not None:
-                        bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}", frame=self.frame)
+                    bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}", frame=self.frame)
                     self.episode += 1
                     need_reset = True
                     last = self.step >= total_steps
@@ -416,8 +411,7 @@ class Trainer:
             what = _first_non_finite({k: float(v) for k, v in sums.items()}, sums) or str(exc)
             raise DivergedError(f"diverged at agent step {self.step}: {what}") from None
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
             self.logger.close()
 
     def close(self) -> None:
@@ -509,7 +503,7 @@ def _summary(rows: list[dict]) -> str:
 
 
 def _say(bar, text: str) -> None:
-    if bar is not None and not bar.disable:
+    if not bar.disable:
         bar.write(text)
     else:
         print(text, flush=True)
