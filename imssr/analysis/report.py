@@ -1,12 +1,12 @@
 """What ``imssr analyze`` writes: the per-state CSV, the rank correlations, the figure, the montage."""
 from __future__ import annotations
 
-import os
 from typing import Sequence
 
 import numpy as np
 
-from imssr.utils import atomic_path, atomic_write_csv
+from imssr.plots.media import save_png
+from imssr.utils import atomic_write_csv
 
 
 def spearman_ci(x: np.ndarray, y: np.ndarray, reps: int = 1000, seed: int = 0,
@@ -82,10 +82,7 @@ def plot_correlations(rows: list[dict], corr: list[dict], modes: Sequence[str], 
             ax.tick_params(labelsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path)
 
 
 def save_extremes(high: list[tuple[np.ndarray, str]], low: list[tuple[np.ndarray, str]], path: str,
@@ -107,8 +104,4 @@ def save_extremes(high: list[tuple[np.ndarray, str]], low: list[tuple[np.ndarray
             ax.set_title(caption, fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path)

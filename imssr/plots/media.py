@@ -33,6 +33,14 @@ def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> s
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    return save_png(fig, path)
+
+
+def save_png(fig, path: str) -> str:
+    """Write a matplotlib figure as a PNG at 100 dpi, atomically (parent folders made), and
+    close it."""
+    import matplotlib.pyplot as plt
+
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
