@@ -20,7 +20,7 @@ from imssr.analysis.measures import (first_visit, knn_distance, nuisance_distanc
 from imssr.analysis.report import plot_correlations, save_extremes, spearman_ci, write_rows
 from imssr.analysis.states import SOURCES, StateSample, collect
 from imssr.config import load_config
-from imssr.envs import make_env
+from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.training import build_agent, resolve_device
@@ -114,10 +114,8 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
         log(f"imssr: {warn}")
     device = resolve_device(opts.device)
     e = cfg.env
-    kwargs = dict(action_repeat=e.action_repeat, image_size=e.image_size, frame_stack=e.frame_stack,
-                  shadow_size=e.shadow_size)
     out = opts.out or os.path.join(run_dir, "analysis")
-    env = make_env(e.task, seed=opts.seed + 30_000, mode="training", **kwargs)
+    env = env_from_config(e, seed=opts.seed + 30_000, mode="training", footage_split="train")
     envs = {}
     try:
         agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
@@ -131,8 +129,8 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
 
         assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)
-        rollout_env = make_env(e.task, seed=opts.seed + 40_000, mode=e.mode, footage_split="train",
-                               footage_path=e.footage_dir, **kwargs) if e.mode != "training" else env
+        rollout_env = (env_from_config(e, seed=opts.seed + 40_000, footage_split="train")
+                       if e.mode != "training" else env)
         if rollout_env is not env:
             envs["rollouts"] = rollout_env
         sample = collect(run_dir, cfg, latest, opts.states, rng, opts.source, rollout_env,
@@ -149,8 +147,7 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
             if mode == "training":
                 shifted[mode] = np.stack([env.render_stack(s) for s in sample.stack_physics])
                 continue
-            envs[mode] = make_env(e.task, seed=opts.seed + 50_000 + i, mode=mode, footage_split="test",
-                                  footage_path=e.footage_dir, **kwargs)
+            envs[mode] = env_from_config(e, seed=opts.seed + 50_000 + i, mode=mode, footage_split="test")
             shifted[mode] = np.stack([envs[mode].render_stack(s) for s in sample.stack_physics])
         novelty_all, per_step_novelty, first = _novelty(sample, env, steps, opts.neighbors)
         padding = sample.buffer.gather(sample.buffer.sample_indices(batch_size(agent)))
