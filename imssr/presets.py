@@ -124,8 +124,9 @@ def _common(task) -> list[Setting]:
                 "seed phase ends"),
         Setting("train.eval_every_steps", 10_000, AUTHORS, "eval_freq"),
         Setting("train.eval_episodes", 30, AUTHORS, "eval_episodes"),
-        Setting("train.eval_modes", "", IMSSR, "deviation: the authors also evaluate one test scene "
-                "(DMC-GB's eval_mode) at each point; add it with --eval-modes training,color_hard"),
+        Setting("train.eval_modes", "", IMSSR, "deviation: the authors also evaluate four test scenes "
+                "at each point (color_easy, color_hard, video_easy, video_hard; DMC-GB itself one); "
+                "add them with --eval-modes training,color_easy,color_hard,video_easy,video_hard"),
         Setting("train.checkpoint_every_steps", 50_000, IMSSR, "resumable checkpoints (the authors "
                 "save weights every 100k steps)"),
         Setting("train.seed", 0, "user"),
@@ -178,7 +179,8 @@ def _base(base: str) -> list[Setting]:
             Setting("agent.encoder_head_layers", 3, DMCGB, "8 shared + 3 head layers"),
             Setting("aux.name", "pad", "algo"),
             Setting("aux.lr", 1e-3, DMCGB, "aux_lr"),
-            Setting("aux.update_every", 1, TABLE3),
+            Setting("aux.update_every", 1, TABLE3, "deviation from DMC-GB and the authors' code (every "
+                    "2nd agent step, their parser default; their pad.sh sets nothing): Table III wins"),
             Setting("aux.own_batch", True, TABLE3, "deviation from DMC-GB (PAD on the RL batch of "
                     "128): Table III gives PAD an SSL batch of 256"),
             Setting("aux.batch_size", 256, TABLE3),
@@ -208,6 +210,11 @@ NORM_EPS = {"curl": (0.0, AUTHORS_SIGNAL, "z-score with the unbiased std, nothin
 SCRIPT_BETA0 = {("curl", "pendulum_swingup"): "deviation from the authors' script (--in_gamma 0.01): "
                 "Table V wins",
                 ("curl", "reacher_easy"): "deviation from the authors' script (--in_gamma 0.001): "
+                "Table V wins",
+                ("curl", "walker_walk"): "deviation from the authors' script (--in_gamma 0.05 in its "
+                "commented-out lines, which also turn the intrinsic reward on): Table V wins",
+                ("soda", "finger_spin"): "deviation from the authors' finger_spin SODA scripts "
+                "(scripts/nips/soda_finger_*.sh run in_gamma 0.001 to 10.0, 1.0 among them): "
                 "Table V wins"}
 
 
@@ -405,13 +412,21 @@ def explain(algo: str, task: str, network: str = "dmcgb") -> str:
 
 # Deviations from the authors' code that are not a preset value (docs/provenance.md).
 OTHER_DEVIATIONS = [
-    ("evaluation env seed", "training seed + 10,000 (a seed no training env uses)", "seed + 42"),
+    ("evaluation env seed", "training seed + 10,000 (a seed no training env uses), every scene",
+     "the training scene on the training env itself (its seed, its episode stream); the four test "
+     "scenes on envs built with seed + 42"),
     ("evaluation at step 0", "none: the first evaluation is after `eval_every_steps`", "one at step 0"),
     ("when an evaluation runs", "at the first agent step at or past each multiple of `eval_every_steps`, "
      "mid-episode if need be", "at the episode end where `step % eval_freq == 0` (the same steps for the "
      "paper's action repeats, whose episodes divide 10,000)"),
     ("SODA's overlay images", "Places365 or any folder given by `--image-dir`; offline, a pool cut from "
      "photographs that installed packages ship", "Places365 with random resized crops and flips"),
+    ("SVEA's crop", "random crop 100 -> 84 px of o and o' (Table III's image sizes, as every base)",
+     "no SVEA in the authors' code; DMC-GB renders 84 px and shifts (replicate-pad 4, random crop "
+     "back to 84)"),
+    ("SODA / IM-SODA action repeat on cartpole_swingup_sparse", "8 (Table III)",
+     "`scripts/soda_sparse.sh` passes no `--action_repeat`, so the parser default 4 applies (their "
+     "CURL script for the task passes 8)"),
     ("replay storage", "each frame stored once, stacks gathered at sampling (same transitions)",
      "obs and next_obs stored as separate stacked arrays"),
     ("IM-SODA / IM-PAD / IM-SVEA schedule", "the paper's text: x0.8 every 100k agent steps, fixed on "
