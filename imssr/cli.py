@@ -14,14 +14,14 @@ from typing import Any, Callable, Optional
 from imssr.analysis import AnalysisOptions, analyze_run
 from imssr.config import MAX_SEED, SEED_RULE, field_docs
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
-from imssr.errors import ImssrError
+from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, build_run_config, explain, make_config
 from imssr.sweep.grid import SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
-from imssr.training.loop import INTERRUPTED_EXIT, StopRequest, TrainingInterrupted
+from imssr.training.loop import StopRequest, TrainingInterrupted
 from imssr.training.demo import record_episode, summary
 from imssr.training.evaluate import evaluate_run
 

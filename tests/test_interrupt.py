@@ -7,6 +7,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 
 import pytest
 import torch
@@ -15,7 +16,11 @@ from conftest import without_timing
 from imssr.cli import main
 from imssr.training.checkpoint import latest_path, load_checkpoint
 from imssr.training.logger import read_csv
-from imssr.training.loop import INTERRUPTED_EXIT
+from imssr.errors import INTERRUPTED_EXIT
+from imssr.sweep.grid import SweepConfig
+from imssr.sweep.runner import execute_run, is_done
+from imssr.sweep.sweep import plan_runs, settle
+from imssr.training.lock import LOCK_FILE
 
 # Tiny curl on cartpole: 3 episodes of 125 agent steps, updates from agent step 100, no
 # periodic checkpoint before the end (the stop writes the only one).
@@ -90,3 +95,36 @@ def test_a_second_signal_stops_at_once_and_keeps_the_last_checkpoint(tmp_path):
     # Killed by the second signal, or (if its stop was quicker still) stopped by the first.
     assert proc.returncode in (-signal.SIGTERM, INTERRUPTED_EXIT)
     assert load_checkpoint(latest_path(str(out)))["step"] >= 125
+
+
+def _sweep_run(tmp_path, *overrides):
+    """A one-run sweep of the tiny training above: (config, its RunStatus)."""
+    sets = [TRAIN[i + 1] for i, a in enumerate(TRAIN) if a == "--set"]
+    cfg = SweepConfig(root=str(tmp_path / "sweep"), algos=["curl"], tasks=["cartpole_swingup_sparse"],
+                      seeds=[3], steps=375, overrides=sets + list(overrides), retries=0)
+    return cfg, plan_runs(cfg)[0]
+
+
+def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_path, reference):
+    cfg, st = _sweep_run(tmp_path)
+    run_dir, args = st.run.dir, st.run.train_args(cfg)
+    results = []
+    worker = threading.Thread(target=lambda: results.append(execute_run(run_dir, args, st.steps, 1)))
+    worker.start()
+    while len(read_csv(os.path.join(run_dir, "train.csv"))) < 1:  # the training subprocess learns
+        assert worker.is_alive()
+        os.sched_yield()
+    pid = int(open(os.path.join(run_dir, LOCK_FILE)).read().split()[0])
+    os.kill(pid, signal.SIGTERM)  # as a scheduler preempting the job would
+    worker.join()
+    result = results[0]
+    assert result["interrupted"] and not result["ok"] and result["returncode"] == INTERRUPTED_EXIT
+    assert STOPPED.fullmatch(result["error"]), result["error"]
+    line = settle(st, result, cfg.retries)  # retries=0: a failure would end the run here
+    assert st.state == "queued" and st.action == "resume" and st.errors == [] and st.interruptions == 1, line
+    assert line.startswith(f"resume  {st.run.name}: interrupted (imssr: stopped at agent step")
+    assert plan_runs(cfg)[0].action == "resume"
+    again = execute_run(run_dir, args, st.steps, 2)
+    assert again["ok"] and again["resumed"] and is_done(run_dir, st.steps)
+    assert without_timing(read_csv(os.path.join(run_dir, "eval.csv"))) == \
+        without_timing(read_csv(os.path.join(reference, "eval.csv")))

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
-from imssr.errors import DivergedError, ImssrError, NonFiniteError
+from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.presets import get_algo
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError, frames_path
@@ -86,12 +86,6 @@ class StepSchedule:
         """Resume at agent step ``step``: the saved next step if the interval is unchanged
         (``saved_every``), else the first multiple of the new interval after ``step``."""
         self.next_step = counters[self.key] if saved_every == self.every else _next_multiple(step, self.every)
-
-
-INTERRUPTED_EXIT = 130
-"""Exit status of ``imssr train`` stopped by SIGTERM or SIGINT (Ctrl-C): it checkpointed where it
-stopped (or, after a second signal, kept its last checkpoint) and ``--resume`` continues it.
-128 + SIGINT, as a shell reports an interrupted command."""
 
 
 class TrainingInterrupted(Exception):
@@ -517,7 +511,7 @@ class Trainer:
             # Named by the first non-finite training metric of the episode so far (one host
             # sync, only now), else by what was found (the action, the intrinsic signal).
             what = _first_non_finite({k: float(v) for k, v in sums.items()}, sums) or str(exc)
-            raise DivergedError(f"diverged at agent step {self.step}: {what}") from None
+            raise DivergedError(f"{DIVERGED_PREFIX} {self.step}: {what}") from None
         finally:
             bar.close()
             self.logger.close()
