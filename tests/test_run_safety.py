@@ -24,7 +24,7 @@ from imssr.training import Trainer
 from imssr.training.checkpoint import CheckpointDamaged, latest_path, load_checkpoint, save_checkpoint
 from imssr.training.lock import LOCK_FILE, DirectoryLock
 from imssr.training.logger import CSVLog, read_csv
-from imssr.utils import atomic_write_csv, atomic_write_text
+from imssr.utils import atomic_write_csv, atomic_write_text, random_state_from_plain
 
 TASK = "cartpole_swingup_sparse"
 NO_SPACE = r"no space left on (?P<device>/\S*) while writing (?P<path>\S+) \(\d+\.\d+ MB needed\)"
@@ -262,6 +262,23 @@ def test_files_from_before_checksums_still_load(run):
         assert np.array_equal(t.replay.frames[: t.replay.size], frames)
     finally:
         t.close()
+
+
+def test_a_checkpoint_with_numpy_rng_states_resumes_exactly(run, full):
+    """imssr 0.x wrote the numpy RNG states as RandomState tuples (a numpy array inside): such a
+    checkpoint still loads with weights_only=True (those numpy types are allow-listed) and resumes
+    to the uninterrupted run."""
+    path = latest_path(run)
+    state = load_checkpoint(path)
+    as_tuple = random_state_from_plain
+    state["global_rng"]["numpy"] = as_tuple(state["global_rng"]["numpy"])
+    state["env_rng"]["task"] = as_tuple(state["env_rng"]["task"])
+    for rng in state["eval_env_rngs"].values():
+        rng["task"] = as_tuple(rng["task"])
+    del state["episode_state"]
+    save_checkpoint(run, state, keep=0)
+    assert "numpy.ndarray" in torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    _assert_same_run(_train(run, resume=True), run, full[1], full[0])
 
 
 def test_evaluate_picks_a_checkpoint(run, capsys):
