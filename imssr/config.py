@@ -42,6 +42,9 @@ seed + 10,000 and + 20,000, so seeds stay below 2**31 (the sweep's seeds are che
 MAX_INT = 2**31 - 1
 """Largest value of any integer setting that has no tighter bound: counts, sizes and intervals
 beyond it are typing slips (``1e15``) and would end in an allocation or overflow traceback."""
+MAX_IMAGE_SIZE = 480
+"""Largest rendered image side: MuJoCo renders offscreen into the models' framebuffer, 640x480 in
+every DeepMind Control model (their shared visual settings)."""
 MAX_ADDRESSABLE_BYTES = sys.maxsize
 """Largest array a process can address (numpy's limit): bounds the replay buffer's frames."""
 SEED_RULE = f"an integer in [0, {MAX_SEED}] (numpy and dm_control take 32-bit seeds, and evaluation adds up to 20000)"
@@ -377,18 +380,18 @@ class RunConfig:
         return self
 
     def _check_upper_bounds(self) -> None:
-        """Integers bounded from above: the replay buffer by what a process can address, batches
-        by the replay buffer they are drawn from, every other integer by :data:`MAX_INT`."""
+        """Integers bounded from above: the replay buffer by what a process can address, the image
+        by the renderer, every other integer by :data:`MAX_INT` (layer counts are bounded by the
+        crop they must leave pixels of, in :meth:`validate`)."""
         e, t = self.env, self.train
         frame_bytes = 3 * e.image_size * e.image_size
         if t.replay_capacity > MAX_ADDRESSABLE_BYTES // frame_bytes:
             raise ImssrError(f"train.replay_capacity={t.replay_capacity} needs {t.replay_capacity * frame_bytes:.3g} "
                              f"bytes of {e.image_size}px frames, more than a process can address; "
                              "lower the replay capacity")
-        for key in ("agent.batch_size", "aux.batch_size"):
-            if _get(self, key) > t.replay_capacity:
-                raise ImssrError(f"{key}={_get(self, key)} exceeds train.replay_capacity={t.replay_capacity}, "
-                                 "the transitions it is drawn from")
+        if e.image_size > MAX_IMAGE_SIZE:
+            raise ImssrError(f"env.image_size must be at most {MAX_IMAGE_SIZE} (the offscreen framebuffer of "
+                             f"the suite's models is 640x{MAX_IMAGE_SIZE}), got {e.image_size}")
         for key, kind in FIELD_TYPES.items():
             if kind is int and key != "train.seed" and _get(self, key) > MAX_INT:
                 raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(self, key)}")
