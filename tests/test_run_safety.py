@@ -5,12 +5,14 @@ seed phase that lasts almost to the end, so that they cost seconds and still mak
 """
 import contextlib
 import errno
+import fcntl
 import os
 import re
 import shutil
 import stat
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -21,6 +23,7 @@ from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
 from imssr.training import Trainer
+from imssr.training.evaluate import evaluate_run
 from imssr.training.checkpoint import CheckpointDamaged, latest_path, load_checkpoint, save_checkpoint
 from imssr.training.lock import LOCK_FILE, DirectoryLock
 from imssr.training.logger import CSVLog, read_csv
@@ -293,6 +296,30 @@ def test_evaluate_picks_a_checkpoint(run, capsys):
     assert main(["evaluate", "--run", run, "--episodes", "1"]) == 0
     out = capsys.readouterr().out
     assert "latest.pt is damaged (checksum mismatch); evaluating step-000000250.pt at agent step 250" in out
+
+
+def test_two_evaluations_of_one_run_do_not_interleave_their_rows(run):
+    """Another evaluation holds evaluate.csv and writes its rows in two pieces; this one's rows,
+    ready meanwhile, go in after them, together."""
+    path = os.path.join(run, "evaluate.csv")
+    first_scene = threading.Event()
+
+    def log(line):
+        if ": return " in line:
+            first_scene.set()
+
+    worker = threading.Thread(target=evaluate_run, args=(run,),
+                              kwargs=dict(episodes=1, modes="training,color_easy", log=log))
+    with open(path, "a") as other:
+        fcntl.flock(other, fcntl.LOCK_EX)
+        other.write("frame,step,mode,return_mean,return_std,episodes,return_min,return_max,wall_time\n")
+        other.write("0,0,other-first,0,0,1,0,0,\n")
+        other.flush()
+        worker.start()
+        assert first_scene.wait(timeout=600)
+        other.write("0,0,other-second,0,0,1,0,0,\n")
+    worker.join()
+    assert [r["mode"] for r in read_csv(path)] == ["other-first", "other-second", "training", "color_easy"]
 
 
 # -- a full disk ---------------------------------------------------------------------------

@@ -7,6 +7,7 @@ continued from its checkpoint leaves the same files as an uninterrupted one.
 from __future__ import annotations
 
 import csv
+import fcntl
 import math
 import os
 import shutil
@@ -78,12 +79,30 @@ def read_csv(path: str) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+def episode_rows(row: dict, returns: Iterable[float]) -> list[dict]:
+    """The per-episode rows of the evaluation summarised by ``row``."""
+    return [{"frame": row["frame"], "step": row["step"], "mode": row["mode"], "episode": i, "return": ret}
+            for i, ret in enumerate(returns)]
+
+
 def write_eval(summary: CSVLog, episodes: CSVLog, row: dict, returns: Iterable[float]) -> None:
     """Append one evaluation: its summary row and one row per episode."""
     summary.write(row)
-    for i, ret in enumerate(returns):
-        episodes.write({"frame": row["frame"], "step": row["step"], "mode": row["mode"],
-                        "episode": i, "return": ret})
+    for episode in episode_rows(row, returns):
+        episodes.write(episode)
+
+
+def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
+    """Append ``rows`` to a CSV file that several processes may append to at once (two ``imssr
+    evaluate`` of one run): under an exclusive ``flock`` of the file, so the rows of one call stay
+    together, with the header first when the file is new."""
+    with disk_full_as_error(path), open(path, "a", newline="") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
+        if fh.seek(0, os.SEEK_END) == 0:
+            fh.write(",".join(columns) + "\n")
+        writer = csv.DictWriter(fh, columns, extrasaction="ignore")
+        writer.writerows({k: _fmt(r.get(k)) for k in columns} for r in rows)
+        fh.flush()
 
 
 class Logger:
