@@ -26,7 +26,7 @@ from imssr.training import Trainer
 from imssr.training.evaluate import evaluate_run
 from imssr.training.checkpoint import CheckpointDamaged, latest_path, load_checkpoint, save_checkpoint
 from imssr.training.lock import LOCK_FILE, DirectoryLock
-from imssr.training.logger import CSVLog, read_csv
+from imssr.training.logger import CSVLog, Logger, read_csv
 from imssr.utils import atomic_write_csv, atomic_write_text, random_state_from_plain
 
 TASK = "cartpole_swingup_sparse"
@@ -482,3 +482,24 @@ def test_a_runs_files_are_not_private(stopped):
     os.umask(umask)
     for name in ("config.json", "train.csv", "checkpoints/latest.pt", "checkpoints/replay-000000250.npz"):
         assert stat.S_IMODE(os.stat(os.path.join(stopped, name)).st_mode) == 0o666 & ~umask, name
+
+
+def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
+    """TensorBoard's writer thread and the sweep's log append each give the one disk-full line."""
+    from imssr.sweep.runner import execute_run
+
+    mnt = tiny_fs("1m")
+    run = os.path.join(mnt, "run")
+    log = Logger(run, tensorboard=True)
+    _fill(mnt)
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/tb$"):
+        for frame in range(100_000):  # queued events reach the disk at a flush
+            log.log_train({"frame": frame, "step": frame, "episode_return": 1.0})
+            if frame % 100 == 0:
+                log.tb.flush()
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/tb$"):
+        log.close()
+    assert "Traceback" not in capfd.readouterr().err  # nor the writer thread's
+    result = execute_run(os.path.join(mnt, "sweep-run"), ["--algo", "curl"], 10, 1)
+    assert not result["ok"] and result["returncode"] is None
+    assert re.fullmatch(rf"no space left on {mnt} while writing {mnt}/sweep-run/sweep.log", result["error"])

@@ -11,9 +11,10 @@ import fcntl
 import math
 import os
 import shutil
+import threading
 from typing import Iterable, Optional
 
-from imssr.utils import atomic_write_text, disk_full_as_error
+from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full
 
 TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
                  "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
@@ -128,6 +129,8 @@ class Logger:
             except ImportError:  # tensorboard is a dependency, but keep CSV logs working
                 SummaryWriter = None
             if SummaryWriter is not None:
+                _quiet_tensorboard_disk_full()
+                self.tb_dir = os.path.join(out_dir, "tb")
                 # purge_step drops events newer than the checkpoint on resume.
                 self.tb = SummaryWriter(os.path.join(out_dir, "tb"), purge_step=None if resume_frame is None else resume_frame + 1)
 
@@ -149,12 +152,38 @@ class Logger:
     def _tb(self, prefix: str, row: dict, skip: tuple) -> None:
         if self.tb is None:
             return
-        for k, v in row.items():
-            if k in skip or v is None or isinstance(v, str):
-                continue
-            self.tb.add_scalar(f"{prefix}/{k}", float(v), global_step=int(row["frame"]))
+        # TensorBoard writes in a thread of its own; a full disk there comes back here (the
+        # next add or flush re-raises it) and becomes the one-line error.
+        with disk_full_as_error(self.tb_dir):
+            for k, v in row.items():
+                if k in skip or v is None or isinstance(v, str):
+                    continue
+                self.tb.add_scalar(f"{prefix}/{k}", float(v), global_step=int(row["frame"]))
 
     def close(self) -> None:
         if self.tb is not None:
-            self.tb.flush()
-            self.tb.close()
+            tb, self.tb = self.tb, None
+            with disk_full_as_error(self.tb_dir):
+                try:
+                    tb.flush()
+                finally:
+                    tb.close()
+
+
+def _quiet_tensorboard_disk_full() -> None:
+    """Keep the traceback of TensorBoard's writer thread off stderr when the disk is full.
+
+    The thread stores the error, which the next ``add_scalar`` / ``flush`` re-raises in the
+    training thread (and :class:`Logger` reports in one line), and then raises it again to end
+    itself, which Python prints as "Exception in thread ...".  Other errors print as usual."""
+    previous = threading.excepthook
+    if getattr(previous, "imssr_tensorboard", False):
+        return
+
+    def hook(args):
+        if not (args.thread is not None and type(args.thread).__module__.startswith("tensorboard.")
+                and is_disk_full(args.exc_value)):
+            previous(args)
+
+    hook.imssr_tensorboard = True
+    threading.excepthook = hook
