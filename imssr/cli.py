@@ -14,15 +14,22 @@ from typing import Any, Callable, Optional
 from imssr.analysis import AnalysisOptions, analyze_run
 from imssr.config import MAX_SEED, SEED_RULE, field_docs
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
-from imssr.errors import ImssrError
+from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, build_run_config, explain, make_config
 from imssr.sweep.grid import SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
+from imssr.training.loop import StopRequest, TrainingInterrupted
 from imssr.training.demo import record_episode, summary
 from imssr.training.evaluate import evaluate_run
+
+
+EXIT_STATUS_TEXT = (f"Exit status: 0 done; 2 error (one line on stderr); {INTERRUPTED_EXIT} interrupted: "
+                    "SIGTERM or SIGINT (Ctrl-C) stops after the current agent step, writes a checkpoint "
+                    "and says how to continue (--resume); a second signal exits at once, keeping the "
+                    "last checkpoint.")
 
 
 def _number(kind, minimum, label, maximum=None):
@@ -156,10 +163,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override any config field, e.g. --set intrinsic.normalization=minmax; "
                             "repeatable (default: none)")
 
-    t = sub.add_parser("train", help="train one run")
+    t = sub.add_parser("train", help="train one run", epilog=EXIT_STATUS_TEXT)
     add_run_options(t)
     d = sub.add_parser("demo", help="a short IM-CURL run on cartpole_swingup that shows learning "
-                                   "(about 12 min on 2 CPU cores): curve, GIF and the paper-scale command")
+                                   "(about 12 min on 2 CPU cores): curve, GIF and the paper-scale command",
+                       epilog=EXIT_STATUS_TEXT)
     add_run_options(d, demo=True)
 
     e = sub.add_parser("evaluate", help="evaluate the latest checkpoint of a run (or --checkpoint)")
@@ -345,7 +353,16 @@ def cmd_train(args, demo: bool = False) -> int:
         raise ImssrError("--refill-buffer goes with --resume")
     cfg = _run_config(args, demo)
     out = args.out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
-    trainer = Trainer(cfg, out, resume=args.resume, refill_buffer=refill)
+    # From here on SIGTERM / SIGINT stop the run after the current agent step, with a checkpoint.
+    stop = StopRequest().install()
+    try:
+        return _train(cfg, out, args, refill, demo, stop)
+    finally:
+        stop.uninstall()
+
+
+def _train(cfg, out: str, args, refill: bool, demo: bool, stop: StopRequest) -> int:
+    trainer = Trainer(cfg, out, resume=args.resume, refill_buffer=refill, stop=stop)
     print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {out}",
           flush=True)
     started = time.time()
@@ -437,14 +454,17 @@ def main(argv: Optional[list[str]] = None) -> int:
     except OSError as exc:  # unwritable --out, full disk, ...
         print(f"imssr: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
         return 2
+    except TrainingInterrupted as exc:
+        print(f"imssr: {exc}", file=sys.stderr)
+        return INTERRUPTED_EXIT
     except KeyboardInterrupt:
         if args.command == "sweep":
             print("imssr: interrupted; re-running the same `imssr sweep` resumes every unfinished run "
                   "from its last checkpoint", file=sys.stderr)
-            return 130
+            return INTERRUPTED_EXIT
         print("imssr: interrupted; `imssr train --resume --out RUN` continues from the last checkpoint",
               file=sys.stderr)
-        return 130
+        return INTERRUPTED_EXIT
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -19,6 +19,7 @@ import inspect
 import json
 import math
 import os
+import sys
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -38,6 +39,14 @@ the normalisation fields.  1 (no ``version`` key): imssr 0.1."""
 MAX_SEED = 2**31 - 1
 """Largest run seed: numpy's and dm_control's seeds are 32-bit, and evaluation envs use the run
 seed + 10,000 and + 20,000, so seeds stay below 2**31 (the sweep's seeds are checked the same)."""
+MAX_INT = 2**31 - 1
+"""Largest value of any integer setting that has no tighter bound: counts, sizes and intervals
+beyond it are typing slips (``1e15``) and would end in an allocation or overflow traceback."""
+MAX_IMAGE_SIZE = 480
+"""Largest rendered image side: MuJoCo renders offscreen into the models' framebuffer, 640x480 in
+every DeepMind Control model (their shared visual settings)."""
+MAX_ADDRESSABLE_BYTES = sys.maxsize
+"""Largest array a process can address (numpy's limit): bounds the replay buffer's frames."""
 SEED_RULE = f"an integer in [0, {MAX_SEED}] (numpy and dm_control take 32-bit seeds, and evaluation adds up to 20000)"
 
 
@@ -354,6 +363,7 @@ class RunConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
+        self._check_upper_bounds()
         for mode in [e.mode, *t.eval_mode_list(e.mode)]:
             get_mode(mode)
         if e.footage_dir and not os.path.exists(os.path.expanduser(e.footage_dir)):
@@ -368,6 +378,23 @@ class RunConfig:
                              + (f", intrinsic.source={algo.intrinsic}" if algo.intrinsic_enabled else "")
                              + "; choose the algo instead of overriding these")
         return self
+
+    def _check_upper_bounds(self) -> None:
+        """Integers bounded from above: the replay buffer by what a process can address, the image
+        by the renderer, every other integer by :data:`MAX_INT` (layer counts are bounded by the
+        crop they must leave pixels of, in :meth:`validate`)."""
+        e, t = self.env, self.train
+        frame_bytes = 3 * e.image_size * e.image_size
+        if t.replay_capacity > MAX_ADDRESSABLE_BYTES // frame_bytes:
+            raise ImssrError(f"train.replay_capacity={t.replay_capacity} needs {t.replay_capacity * frame_bytes:.3g} "
+                             f"bytes of {e.image_size}px frames, more than a process can address; "
+                             "lower the replay capacity")
+        if e.image_size > MAX_IMAGE_SIZE:
+            raise ImssrError(f"env.image_size must be at most {MAX_IMAGE_SIZE} (the offscreen framebuffer of "
+                             f"the suite's models is 640x{MAX_IMAGE_SIZE}), got {e.image_size}")
+        for key, kind in FIELD_TYPES.items():
+            if kind is int and key != "train.seed" and _get(self, key) > MAX_INT:
+                raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(self, key)}")
 
 
 SCHEDULES = ("constant", "step")

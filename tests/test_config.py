@@ -210,3 +210,26 @@ def test_overrides_go_through_the_typed_schema():
     cfg.train.steps = "5"
     with pytest.raises(ImssrError, match="train.steps must be a int, got '5'"):
         cfg.validate()
+
+
+@pytest.mark.parametrize("override, message", [
+    ("train.replay_capacity=1e15", r"^train.replay_capacity=1000000000000000 needs 3e\+19 bytes of 100px "
+                                   r"frames, more than a process can address; lower the replay capacity$"),
+    ("agent.batch_size=1e12", r"^agent.batch_size must be at most 2,147,483,647, got 1000000000000$"),
+    ("train.steps=99999999999", r"^train.steps must be at most 2,147,483,647, got 99999999999$"),
+    ("env.image_size=100000", r"^env.image_size must be at most 480 \(the offscreen framebuffer"),
+    ("agent.encoder_layers=1e9", r"^agent.encoder_layers=1000000000 leaves no pixels of a 84px crop$"),
+])
+def test_huge_integers_are_one_line_errors(override, message):
+    with pytest.raises(ImssrError, match=message):
+        apply_overrides(make_config("im-curl", "walker_walk"), [override]).validate()
+
+
+def test_a_huge_replay_capacity_on_the_command_line_is_one_line(capsys):
+    from imssr.cli import main
+
+    assert main(["train", "--algo", "curl", "--task", "cartpole_swingup_sparse",
+                 "--set", "train.replay_capacity=1e15"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("imssr: error: train.replay_capacity=1000000000000000 needs")
+

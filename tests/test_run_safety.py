@@ -5,12 +5,14 @@ seed phase that lasts almost to the end, so that they cost seconds and still mak
 """
 import contextlib
 import errno
+import fcntl
 import os
 import re
 import shutil
 import stat
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -21,10 +23,11 @@ from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
 from imssr.training import Trainer
+from imssr.training.evaluate import evaluate_run
 from imssr.training.checkpoint import CheckpointDamaged, latest_path, load_checkpoint, save_checkpoint
 from imssr.training.lock import LOCK_FILE, DirectoryLock
-from imssr.training.logger import CSVLog, read_csv
-from imssr.utils import atomic_write_csv, atomic_write_text
+from imssr.training.logger import CSVLog, Logger, read_csv
+from imssr.utils import atomic_write_csv, atomic_write_text, random_state_from_plain
 
 TASK = "cartpole_swingup_sparse"
 NO_SPACE = r"no space left on (?P<device>/\S*) while writing (?P<path>\S+) \(\d+\.\d+ MB needed\)"
@@ -264,6 +267,23 @@ def test_files_from_before_checksums_still_load(run):
         t.close()
 
 
+def test_a_checkpoint_with_numpy_rng_states_resumes_exactly(run, full):
+    """imssr 0.x wrote the numpy RNG states as RandomState tuples (a numpy array inside): such a
+    checkpoint still loads with weights_only=True (those numpy types are allow-listed) and resumes
+    to the uninterrupted run."""
+    path = latest_path(run)
+    state = load_checkpoint(path)
+    as_tuple = random_state_from_plain
+    state["global_rng"]["numpy"] = as_tuple(state["global_rng"]["numpy"])
+    state["env_rng"]["task"] = as_tuple(state["env_rng"]["task"])
+    for rng in state["eval_env_rngs"].values():
+        rng["task"] = as_tuple(rng["task"])
+    del state["episode_state"]
+    save_checkpoint(run, state, keep=0)
+    assert "numpy.ndarray" in torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    _assert_same_run(_train(run, resume=True), run, full[1], full[0])
+
+
 def test_evaluate_picks_a_checkpoint(run, capsys):
     assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", "125"]) == 0
     assert "step 125" in capsys.readouterr().out
@@ -276,6 +296,30 @@ def test_evaluate_picks_a_checkpoint(run, capsys):
     assert main(["evaluate", "--run", run, "--episodes", "1"]) == 0
     out = capsys.readouterr().out
     assert "latest.pt is damaged (checksum mismatch); evaluating step-000000250.pt at agent step 250" in out
+
+
+def test_two_evaluations_of_one_run_do_not_interleave_their_rows(run):
+    """Another evaluation holds evaluate.csv and writes its rows in two pieces; this one's rows,
+    ready meanwhile, go in after them, together."""
+    path = os.path.join(run, "evaluate.csv")
+    first_scene = threading.Event()
+
+    def log(line):
+        if ": return " in line:
+            first_scene.set()
+
+    worker = threading.Thread(target=evaluate_run, args=(run,),
+                              kwargs=dict(episodes=1, modes="training,color_easy", log=log))
+    with open(path, "a") as other:
+        fcntl.flock(other, fcntl.LOCK_EX)
+        other.write("frame,step,mode,return_mean,return_std,episodes,return_min,return_max,wall_time\n")
+        other.write("0,0,other-first,0,0,1,0,0,\n")
+        other.flush()
+        worker.start()
+        assert first_scene.wait(timeout=600)
+        other.write("0,0,other-second,0,0,1,0,0,\n")
+    worker.join()
+    assert [r["mode"] for r in read_csv(path)] == ["other-first", "other-second", "training", "color_easy"]
 
 
 # -- a full disk ---------------------------------------------------------------------------
@@ -438,3 +482,24 @@ def test_a_runs_files_are_not_private(stopped):
     os.umask(umask)
     for name in ("config.json", "train.csv", "checkpoints/latest.pt", "checkpoints/replay-000000250.npz"):
         assert stat.S_IMODE(os.stat(os.path.join(stopped, name)).st_mode) == 0o666 & ~umask, name
+
+
+def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
+    """TensorBoard's writer thread and the sweep's log append each give the one disk-full line."""
+    from imssr.sweep.runner import execute_run
+
+    mnt = tiny_fs("1m")
+    run = os.path.join(mnt, "run")
+    log = Logger(run, tensorboard=True)
+    _fill(mnt)
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/tb$"):
+        for frame in range(100_000):  # queued events reach the disk at a flush
+            log.log_train({"frame": frame, "step": frame, "episode_return": 1.0})
+            if frame % 100 == 0:
+                log.tb.flush()
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/tb$"):
+        log.close()
+    assert "Traceback" not in capfd.readouterr().err  # nor the writer thread's
+    result = execute_run(os.path.join(mnt, "sweep-run"), ["--algo", "curl"], 10, 1)
+    assert not result["ok"] and result["returncode"] is None
+    assert re.fullmatch(rf"no space left on {mnt} while writing {mnt}/sweep-run/sweep.log", result["error"])

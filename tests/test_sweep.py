@@ -10,7 +10,9 @@ import torch
 
 from imssr.cli import main
 from imssr.sweep.grid import SweepConfig, build_run_config, expand, load_sweep_file, parse_seeds
-from imssr.sweep.runner import DONE_FILE, LOG_FILE
+from imssr.sweep.runner import DONE_FILE, LOG_FILE, execute_run, has_checkpoint
+from imssr.sweep.sweep import plan_runs, settle, write_status
+from imssr.training.checkpoint import latest_path, save_checkpoint
 from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"  # 1000 frames = 125 agent steps per episode, action repeat 8
@@ -82,8 +84,6 @@ def test_a_sweep_run_config_is_what_imssr_train_builds_from_its_arguments(tmp_pa
 
 def test_run_arguments_and_done_marker(tmp_path):
     from imssr.sweep.runner import is_done, last_frame, last_step, read_done, write_done
-    from imssr.sweep.sweep import plan_runs
-
     cfg = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[2], steps=375,
                       gpus_per_run=0.5, overrides=["agent.batch_size=8"])
     (run,) = expand(cfg)
@@ -221,7 +221,7 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
     proc = sweep_cli(*grid)
     assert "2 runs, 0 done, 1 to resume, 1 new" in proc.stdout
     runs = {r["algo"]: r for r in status(root)["runs"]}
-    assert status(root)["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0}
+    assert status(root)["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0, "interrupted": 0}
     assert (runs["im-curl"]["action"], runs["curl"]["action"]) == ("resume", "fresh")
     assert runs["im-curl"]["attempts"] == runs["curl"]["attempts"] == 1
     assert (runs["curl"]["steps"], runs["curl"]["frames"], runs["curl"]["final_step"]) == (250, 2000, 250)
@@ -367,3 +367,32 @@ def test_status_and_done_files_are_strict_json(tmp_path):
     os.makedirs(run.dir)
     write_done(run.dir, 10, 10, 1, False, seconds=float("inf"))
     assert strict(os.path.join(run.dir, DONE_FILE))["seconds"] is None
+
+
+def _one_run(tmp_path, *overrides, retries=3):
+
+    cfg = SweepConfig(root=str(tmp_path / "sweep"), algos=["curl"], tasks=[TASK], seeds=[3], steps=125,
+                      overrides=TINY + list(overrides), retries=retries)
+    return cfg, plan_runs(cfg)[0]
+
+
+def test_a_diverged_run_is_not_retried_and_the_status_says_so(tmp_path):
+    cfg, st = _one_run(tmp_path, "agent.critic_lr=1e30")
+    result = execute_run(st.run.dir, st.run.train_args(cfg), st.steps, 1)
+    assert result["diverged"] and not result["interrupted"], result
+    line = settle(st, result, cfg.retries)
+    assert st.state == "failed" and len(st.errors) == 1, line  # with 3 retries left
+    assert "not retried: it diverges again" in line
+    write_status(cfg, [st], 0.0)
+    run = status(cfg.root)["runs"][0]
+    assert run["state"] == "failed" and run["note"].startswith("diverged; not retried")
+    assert "diverged at agent step" in run["errors"][0]
+
+
+def test_a_run_with_only_numbered_checkpoints_resumes(tmp_path):
+    cfg, st = _one_run(tmp_path)
+    save_checkpoint(st.run.dir, {"step": 5, "replay_file": None}, keep=1)
+    os.unlink(latest_path(st.run.dir))  # lost; step-000000005.pt is what --resume falls back to
+    assert has_checkpoint(st.run.dir)
+    from imssr.sweep.sweep import plan_runs
+    assert plan_runs(cfg)[0].action == "resume"

@@ -28,6 +28,7 @@ from imssr._gl import check_gl
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
+from imssr.utils import random_state_from_plain, random_state_to_plain
 
 if TYPE_CHECKING:  # the config imports the scene registry of this package
     from imssr.config import EnvConfig
@@ -173,13 +174,13 @@ class DMCEnv(gym.Env):
             self.scene.reseed(seed)
 
     def get_rng_state(self) -> dict[str, Any]:
-        state: dict[str, Any] = {"task": self._env.task.random.get_state()}
+        state: dict[str, Any] = {"task": random_state_to_plain(self._env.task.random.get_state())}
         if self.scene is not None:
             state["scene"] = self.scene.get_rng_state()
         return state
 
     def set_rng_state(self, state: dict[str, Any]) -> None:
-        self._env.task.random.set_state(state["task"])
+        self._env.task.random.set_state(random_state_from_plain(state["task"]))
         if self.scene is not None and "scene" in state:
             self.scene.set_rng_state(state["scene"])
 

@@ -90,7 +90,7 @@ class FrameReplayBuffer:
         # np.empty/zeros map pages lazily: memory is committed as frames arrive.
         try:
             self.frames = np.zeros((self.capacity, *self.frame_shape), dtype=np.uint8)
-        except MemoryError:
+        except (MemoryError, ValueError):  # ValueError: more than a process can address
             raise ImssrError(
                 f"cannot allocate a replay buffer of {self.nbytes_expected() / 2**30:.1f} GiB "
                 f"({capacity} transitions); lower the replay capacity (--replay-capacity)") from None
@@ -257,7 +257,8 @@ class FrameReplayBuffer:
         try:
             if check_zip(path) is False:
                 raise ReplayFileError(f"replay buffer {path} is damaged (checksum mismatch)")
-            with np.load(path) as data:
+            # Arrays only: an object array in a replay file someone else wrote would unpickle.
+            with np.load(path, allow_pickle=False) as data:
                 capacity, head, size, open_ = (int(x) for x in data["meta"])
                 if capacity != self.capacity or tuple(data["frame_shape"]) != self.frame_shape:
                     raise ImssrError(

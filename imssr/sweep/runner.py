@@ -16,10 +16,11 @@ import time
 from typing import Optional
 
 from imssr.config import load_config, steps_for_frames
-from imssr.errors import ImssrError
+from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.jsonio import dumps
+from imssr.training.checkpoint import latest_path, numbered_checkpoints
 from imssr.training.logger import read_csv
-from imssr.utils import atomic_write_text
+from imssr.utils import atomic_write_text, disk_full_as_error
 
 DONE_FILE = "done.json"
 """Written atomically in the run directory once ``imssr train`` exits 0 having reached its budget.
@@ -29,8 +30,15 @@ LOG_FILE = "sweep.log"
 """Output of every attempt of the run, appended, one header line per attempt."""
 
 
+# Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
+# second signal (or one before its handlers were in place) ended it; it resumes either way.
+INTERRUPTED_STATUSES = (INTERRUPTED_EXIT, -signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM)
+
+
 def has_checkpoint(run_dir: str) -> bool:
-    return os.path.exists(os.path.join(run_dir, "checkpoints", "latest.pt"))
+    """Something ``imssr train --resume`` continues from: ``latest.pt`` or a retained ``step-*.pt``
+    (the resume falls back to those when ``latest.pt`` is missing or damaged)."""
+    return os.path.exists(latest_path(run_dir)) or bool(numbered_checkpoints(run_dir))
 
 
 def read_done(run_dir: str) -> Optional[dict]:
@@ -132,7 +140,9 @@ def execute_run(run_dir: str, train_args: list[str], steps: int, attempt: int,
     """Train (or resume) one run to ``steps`` agent steps; return what happened.
 
     Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
-    line when it failed), ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.
+    line when it failed), ``interrupted`` (stopped by a signal: resume it, it did not fail),
+    ``diverged`` (a resume would diverge again from the same checkpoint: do not retry),
+    ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.
     """
     os.makedirs(run_dir, exist_ok=True)
     resumed = has_checkpoint(run_dir)
@@ -148,10 +158,14 @@ def execute_run(run_dir: str, train_args: list[str], steps: int, attempt: int,
         env[var] = str(max(1, threads))
     log_path = os.path.join(run_dir, LOG_FILE)
     start = time.time()
-    with open(log_path, "a") as log:
-        log.write(f"==> attempt {attempt} ({'resume' if resumed else 'fresh'}) at "
-                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
-        log.flush()
+    header = (f"==> attempt {attempt} ({'resume' if resumed else 'fresh'}) at "
+              f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
+    try:
+        log = _open_log(log_path, header)
+    except ImssrError as exc:  # a full disk: the attempt fails in one line, nothing started
+        return {"ok": False, "returncode": None, "resumed": resumed, "error": str(exc), "interrupted": False,
+                "diverged": False, "final_step": 0, "final_frame": 0, "seconds": 0.0}
+    with log:
         offset = log.tell()
         preexec = _die_with_parent if sys.platform.startswith("linux") else None
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
@@ -168,9 +182,11 @@ def execute_run(run_dir: str, train_args: list[str], steps: int, attempt: int,
     eval_csv = os.path.join(run_dir, "eval.csv")
     final_step, final_frame = last_step(eval_csv), last_frame(eval_csv)
     result = {"ok": False, "returncode": returncode, "resumed": resumed, "error": "",
+              "interrupted": returncode in INTERRUPTED_STATUSES, "diverged": False,
               "final_step": final_step, "final_frame": final_frame, "seconds": round(time.time() - start, 1)}
     if returncode != 0:
         result["error"] = _last_line(log_path, offset) or f"exit status {returncode}"
+        result["diverged"] = DIVERGED_PREFIX in result["error"]
     elif final_step < steps:
         result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
                            f"before its budget of {steps} steps")
@@ -178,6 +194,19 @@ def execute_run(run_dir: str, train_args: list[str], steps: int, attempt: int,
         result["ok"] = True
         write_done(run_dir, steps, final_step, attempt, resumed, result["seconds"])
     return result
+
+
+def _open_log(path: str, header: str):
+    """``path`` opened for appending, ``header`` written; a full disk is one ImssrError line."""
+    with disk_full_as_error(path):
+        log = open(path, "a")
+        try:
+            log.write(header)
+            log.flush()
+        except BaseException:
+            log.close()
+            raise
+    return log
 
 
 def write_done(run_dir: str, steps: int, final_step: int, attempt: int, resumed: bool,

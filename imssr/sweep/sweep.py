@@ -5,7 +5,9 @@ Each run is one Ray task that runs ``imssr train`` in a subprocess
 classified from its directory: ``done.json`` with a budget (in agent steps) at least the
 sweep's means done (skipped), a checkpoint means resume, nothing means a fresh start.  A failed attempt is
 retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
-still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.
+still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.  A run that
+diverged is not retried (it diverges again from the same checkpoint); one stopped by a signal
+(preemption: ``imssr train`` checkpoints and exits 130) is interrupted, not failed, and resumes.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from typing import Optional
 
 from tqdm import tqdm
 
-from imssr.errors import ImssrError
+from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.extras import require
 from imssr.jsonio import dumps
 from imssr.sweep.grid import Run, SweepConfig, build_run_config, expand, save_plan
@@ -32,7 +34,10 @@ from imssr.training.lock import DirectoryLock
 from imssr.utils import atomic_write_text
 
 STATUS_FILE = "sweep_status.json"
-STATES = ("queued", "running", "done", "failed")
+STATES = ("queued", "running", "done", "failed", "interrupted")
+MAX_INTERRUPTIONS = 10
+"""Signal-stopped attempts of one run that a sweep resumes at once; past them the run is left
+``interrupted`` (a later sweep resumes it) instead of looping against whatever stops it."""
 # The local Ray started for a sweep only passes small results around: a small object
 # store keeps its start-up memory low on small machines.
 LOCAL_OBJECT_STORE_BYTES = 150 * 1024 ** 2
@@ -49,13 +54,18 @@ class RunStatus:
     frames: int
     """The same budget in environment frames (``steps * action_repeat``)."""
     state: str = "queued"
-    """queued, running, done or failed."""
+    """queued, running, done, failed, or interrupted (stopped by a signal with its checkpoint: the
+    next sweep over the root resumes it)."""
     action: str = "fresh"
     """What the sweep found: ``done`` (skipped), ``resume`` (a checkpoint) or ``fresh``."""
     attempts: int = 0
     """Attempts started by this invocation of the sweep."""
     errors: list[str] = field(default_factory=list)
     """Last output line of each failed attempt."""
+    interruptions: int = 0
+    """Attempts of this invocation stopped by a signal (resumed, not counted as failures)."""
+    note: str = ""
+    """Why the sweep did what it did when it is not plain (a divergence that is not retried)."""
     final_step: int = 0
     """Agent step of the run's last evaluation."""
     final_frame: int = 0
@@ -67,7 +77,8 @@ class RunStatus:
         return {"name": self.run.name, "dir": os.path.relpath(self.run.dir, root), "algo": self.run.algo,
                 "task": self.run.task, "seed": self.run.seed, "beta0": self.run.beta0,
                 "steps": self.steps, "frames": self.frames, "state": self.state, "action": self.action,
-                "attempts": self.attempts, "errors": self.errors, "final_step": self.final_step,
+                "attempts": self.attempts, "errors": self.errors, "interruptions": self.interruptions,
+                "note": self.note, "final_step": self.final_step,
                 "final_frame": self.final_frame,
                 "seconds": round(self.seconds, 1), "log": os.path.relpath(os.path.join(self.run.dir, LOG_FILE), root)}
 
@@ -258,32 +269,18 @@ def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatu
             for ref in ready:
                 st = inflight.pop(ref)
                 result = _result(ray, ref)
-                st.seconds += result.get("seconds", 0.0)
-                st.final_step = result.get("final_step", st.final_step)
-                st.final_frame = result.get("final_frame", st.final_frame)
-                if result["ok"]:
-                    st.state = "done"
-                    ui.say(f"done    {st.run.name}: step {st.final_step} (frame {st.final_frame})"
-                           f"{' (resumed)' if result.get('resumed') else ''}, {result.get('seconds', 0):.0f}s")
-                    continue
-                st.errors.append(result["error"])
-                if st.attempts <= cfg.retries:
-                    st.state = "queued"
+                ui.say(settle(st, result, cfg.retries))
+                if st.state == "queued":
                     todo.append(st)
-                    ui.say(f"retry   {st.run.name}: attempt {st.attempts} failed: {result['error']}")
-                else:
-                    st.state = "failed"
-                    ui.say(f"FAILED  {st.run.name} after {st.attempts} attempt(s): {result['error']} "
-                           f"(log: {os.path.join(st.run.dir, LOG_FILE)})")
             if ready:
                 write_status(cfg, statuses, started)
             ui.refresh()
     except KeyboardInterrupt:
-        # Running trainings die with their workers; each keeps its last checkpoint, so
+        # Running trainings get SIGTERM with their workers and checkpoint where they are, so
         # re-running the sweep resumes them.
         for st in statuses:
             if st.state == "running":
-                st.state = "queued"
+                st.state = "interrupted"
         write_status(cfg, statuses, started)
         raise
     finally:
@@ -294,6 +291,34 @@ def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatu
             signal.signal(signal.SIGTERM, previous)
     write_status(cfg, statuses, started, finished=True)
     return statuses
+
+
+def settle(st: RunStatus, result: dict, retries: int) -> str:
+    """Update ``st`` from one attempt's ``result`` (:func:`imssr.sweep.runner.execute_run`); returns
+    the line to show.  ``st.state`` becomes done, queued (to resume or retry), failed or interrupted."""
+    st.seconds += result.get("seconds", 0.0)
+    st.final_step = result.get("final_step", st.final_step)
+    st.final_frame = result.get("final_frame", st.final_frame)
+    log = os.path.join(st.run.dir, LOG_FILE)
+    if result["ok"]:
+        st.state = "done"
+        return (f"done    {st.run.name}: step {st.final_step} (frame {st.final_frame})"
+                f"{' (resumed)' if result.get('resumed') else ''}, {result.get('seconds', 0):.0f}s")
+    if result.get("interrupted"):
+        st.interruptions += 1
+        st.action = "resume"
+        st.state = "queued" if st.interruptions <= MAX_INTERRUPTIONS else "interrupted"
+        return f"resume  {st.run.name}: interrupted ({result['error']})"
+    st.errors.append(result["error"])
+    if result.get("diverged"):
+        st.state = "failed"
+        st.note = "diverged; not retried: a resume diverges again from the same checkpoint"
+        return f"FAILED  {st.run.name}: {result['error']} (not retried: it diverges again; log: {log})"
+    if len(st.errors) <= retries:
+        st.state = "queued"
+        return f"retry   {st.run.name}: attempt {st.attempts} failed: {result['error']}"
+    st.state = "failed"
+    return f"FAILED  {st.run.name} after {st.attempts} attempt(s): {result['error']} (log: {log})"
 
 
 def _sigterm_as_interrupt():
@@ -323,9 +348,14 @@ def _result(ray, ref) -> dict:
 
 
 def summarize(statuses: list[RunStatus]) -> tuple[str, int]:
-    """One closing line and the exit status: 0 when every run is done, 1 otherwise."""
+    """One closing line and the exit status: 0 when every run is done, 1 when one failed, 130
+    (:data:`INTERRUPTED_EXIT`) when the others are done and some were interrupted."""
     failed = [s for s in statuses if s.state == "failed"]
     done = sum(s.state == "done" for s in statuses)
+    interrupted = sum(s.state == "interrupted" for s in statuses)
+    if interrupted and not failed:
+        return (f"{interrupted} of {len(statuses)} runs interrupted, {done} done; re-running the same "
+                "`imssr sweep` resumes them"), INTERRUPTED_EXIT
     if failed:
         names = ", ".join(s.run.name for s in failed[:3]) + (" ..." if len(failed) > 3 else "")
         return (f"{len(failed)} of {len(statuses)} runs failed after retries ({names}); "

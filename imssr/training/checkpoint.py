@@ -21,6 +21,12 @@ separates a file from its checksum.  Loading verifies it; a mismatch is a
 falls back to the newest numbered checkpoint that verifies (:func:`usable_checkpoint`).
 Checkpoints written before checksums (no seal) load unverified.
 
+Every checkpoint is read with ``torch.load(weights_only=True)``: tensors and plain Python values
+only (RNG states are stored as such), plus the numpy types of the RNG states that older files
+hold.  A file that needs any other object (``os.system``, a class of its own) is refused in one
+line before anything in it runs: "PATH is not an imssr checkpoint: it contains objects of type
+os.system".
+
 A full disk during any of these writes is one "no space left on DEVICE while writing PATH"
 error; the files of the previous checkpoint are untouched (temporary files are removed).
 """
@@ -139,15 +145,48 @@ def load_checkpoint(path: str) -> dict[str, Any]:
     if intact is False:
         raise CheckpointDamaged(f"checkpoint {path} is damaged (checksum mismatch)", path, "checksum mismatch")
     try:
-        # Our own files hold numpy RNG states, which weights_only refuses.
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError, OSError) as exc:
+        # Never unpickle arbitrary objects: a checkpoint from a shared file system could run
+        # code.  The numpy types allowed here are the legacy RNG states of older files only.
+        with torch.serialization.safe_globals(_LEGACY_NUMPY_GLOBALS):
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        foreign = _foreign_globals(path)
+        if foreign:
+            raise CheckpointDamaged(f"{path} is not an imssr checkpoint: it contains objects of type "
+                                    f"{', '.join(foreign)}", path, "not an imssr checkpoint") from None
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
         raise CheckpointDamaged(f"{path} is not an imssr checkpoint of format {FORMAT_VERSION}", path,
                                 "not an imssr checkpoint")
     return state
+
+
+# What pickles a numpy RNG state of the legacy form ("MT19937", uint32 key array, ...), which
+# checkpoints of imssr 0.x hold; current files store it as plain values (imssr.utils.rng_states).
+_RECONSTRUCT = np.zeros(1).__reduce__()[0]  # numpy._core.multiarray._reconstruct (numpy 2)
+_LEGACY_NUMPY_GLOBALS = [_RECONSTRUCT, (_RECONSTRUCT, "numpy.core.multiarray._reconstruct"),  # numpy 1's name
+                         np.ndarray, np.dtype, type(np.dtype(np.uint32))]
+
+
+def _foreign_globals(path: str) -> list[str]:
+    """The globals (``module.name``) a checkpoint file needs beyond what :func:`load_checkpoint`
+    allows, as the user knows them (``posix.system`` is ``os.system``)."""
+    try:
+        names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    except Exception:  # noqa: BLE001 - a file too damaged to list: reported as corrupt instead
+        return []
+    allowed = {g[1] if isinstance(g, tuple) else f"{g.__module__}.{g.__qualname__}" for g in _LEGACY_NUMPY_GLOBALS}
+    shown = []
+    for name in names:
+        if name in allowed:
+            continue
+        module, _, attr = name.rpartition(".")
+        shown.append(f"os.{attr}" if module in ("posix", "nt") else name)
+    return sorted(set(shown))
 
 
 def usable_checkpoint(run_dir: str, verb: str = "resuming from") -> tuple[dict[str, Any], str, Optional[str]]:

@@ -14,7 +14,7 @@ from imssr.errors import DivergedError, ImssrError
 from imssr.plots.media import save_montage, save_video
 from imssr.training.build import build_agent, resolve_device
 from imssr.training.checkpoint import load_checkpoint, select_checkpoint, usable_checkpoint
-from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, CSVLog, write_eval
+from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, append_locked, episode_rows
 
 
 def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[float]:
@@ -102,8 +102,9 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
     seed = cfg.train.seed + 20_000 if seed is None else seed
     agent = None
     pictures = {}
-    summary = CSVLog(os.path.join(run_dir, "evaluate.csv"), EVAL_COLUMNS)
-    episodes_log = CSVLog(os.path.join(run_dir, "evaluate_episodes.csv"), EVAL_EPISODE_COLUMNS)
+    summary_path = os.path.join(run_dir, "evaluate.csv")
+    episodes_path = os.path.join(run_dir, "evaluate_episodes.csv")
+    rows, episodes_rows = [], []
     for mode in dict.fromkeys(scenes):
         # Unseen footage: evaluation draws from the test pool.
         env = env_from_config(cfg.env, seed=seed, mode=mode, footage_split="test", footage_path=footage)
@@ -119,7 +120,8 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
         finally:
             env.close()
         row = eval_row(ckpt["frame"], ckpt["step"], mode, returns)
-        write_eval(summary, episodes_log, row, returns)
+        rows.append(row)
+        episodes_rows += episode_rows(row, returns)
         log(f"{mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
             f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
         if video:
@@ -130,8 +132,11 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
         path = save_montage(pictures, os.path.join(run_dir, "montage.png"),
                             f"{cfg.algo} on {cfg.env.task}, frame {ckpt['frame']}")
         log(f"montage: {path}")
-    # Appended to, one summary row per scene and one row per episode (with the checkpoint's step).
-    log(f"imssr: evaluation written to {summary.path} and {episodes_log.path}")
+    # Appended to, one summary row per scene and one row per episode (with the checkpoint's step),
+    # each file in one locked append: two evaluations of the run at once never interleave.
+    append_locked(episodes_path, EVAL_EPISODE_COLUMNS, episodes_rows)
+    append_locked(summary_path, EVAL_COLUMNS, rows)
+    log(f"imssr: evaluation written to {summary_path} and {episodes_path}")
 
 
 def _say(text: str) -> None:

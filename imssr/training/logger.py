@@ -7,12 +7,14 @@ continued from its checkpoint leaves the same files as an uninterrupted one.
 from __future__ import annotations
 
 import csv
+import fcntl
 import math
 import os
 import shutil
+import threading
 from typing import Iterable, Optional
 
-from imssr.utils import atomic_write_text, disk_full_as_error
+from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full
 
 TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
                  "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
@@ -78,12 +80,30 @@ def read_csv(path: str) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+def episode_rows(row: dict, returns: Iterable[float]) -> list[dict]:
+    """The per-episode rows of the evaluation summarised by ``row``."""
+    return [{"frame": row["frame"], "step": row["step"], "mode": row["mode"], "episode": i, "return": ret}
+            for i, ret in enumerate(returns)]
+
+
 def write_eval(summary: CSVLog, episodes: CSVLog, row: dict, returns: Iterable[float]) -> None:
     """Append one evaluation: its summary row and one row per episode."""
     summary.write(row)
-    for i, ret in enumerate(returns):
-        episodes.write({"frame": row["frame"], "step": row["step"], "mode": row["mode"],
-                        "episode": i, "return": ret})
+    for episode in episode_rows(row, returns):
+        episodes.write(episode)
+
+
+def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
+    """Append ``rows`` to a CSV file that several processes may append to at once (two ``imssr
+    evaluate`` of one run): under an exclusive ``flock`` of the file, so the rows of one call stay
+    together, with the header first when the file is new."""
+    with disk_full_as_error(path), open(path, "a", newline="") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
+        if fh.seek(0, os.SEEK_END) == 0:
+            fh.write(",".join(columns) + "\n")
+        writer = csv.DictWriter(fh, columns, extrasaction="ignore")
+        writer.writerows({k: _fmt(r.get(k)) for k in columns} for r in rows)
+        fh.flush()
 
 
 class Logger:
@@ -109,6 +129,8 @@ class Logger:
             except ImportError:  # tensorboard is a dependency, but keep CSV logs working
                 SummaryWriter = None
             if SummaryWriter is not None:
+                _quiet_tensorboard_disk_full()
+                self.tb_dir = os.path.join(out_dir, "tb")
                 # purge_step drops events newer than the checkpoint on resume.
                 self.tb = SummaryWriter(os.path.join(out_dir, "tb"), purge_step=None if resume_frame is None else resume_frame + 1)
 
@@ -130,12 +152,38 @@ class Logger:
     def _tb(self, prefix: str, row: dict, skip: tuple) -> None:
         if self.tb is None:
             return
-        for k, v in row.items():
-            if k in skip or v is None or isinstance(v, str):
-                continue
-            self.tb.add_scalar(f"{prefix}/{k}", float(v), global_step=int(row["frame"]))
+        # TensorBoard writes in a thread of its own; a full disk there comes back here (the
+        # next add or flush re-raises it) and becomes the one-line error.
+        with disk_full_as_error(self.tb_dir):
+            for k, v in row.items():
+                if k in skip or v is None or isinstance(v, str):
+                    continue
+                self.tb.add_scalar(f"{prefix}/{k}", float(v), global_step=int(row["frame"]))
 
     def close(self) -> None:
         if self.tb is not None:
-            self.tb.flush()
-            self.tb.close()
+            tb, self.tb = self.tb, None
+            with disk_full_as_error(self.tb_dir):
+                try:
+                    tb.flush()
+                finally:
+                    tb.close()
+
+
+def _quiet_tensorboard_disk_full() -> None:
+    """Keep the traceback of TensorBoard's writer thread off stderr when the disk is full.
+
+    The thread stores the error, which the next ``add_scalar`` / ``flush`` re-raises in the
+    training thread (and :class:`Logger` reports in one line), and then raises it again to end
+    itself, which Python prints as "Exception in thread ...".  Other errors print as usual."""
+    previous = threading.excepthook
+    if getattr(previous, "imssr_tensorboard", False):
+        return
+
+    def hook(args):
+        if not (args.thread is not None and type(args.thread).__module__.startswith("tensorboard.")
+                and is_disk_full(args.exc_value)):
+            previous(args)
+
+    hook.imssr_tensorboard = True
+    threading.excepthook = hook

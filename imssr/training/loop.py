@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass
@@ -24,7 +26,7 @@ from tqdm import tqdm
 from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
-from imssr.errors import DivergedError, ImssrError, NonFiniteError
+from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.presets import get_algo
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError, frames_path
@@ -86,6 +88,46 @@ class StepSchedule:
         self.next_step = counters[self.key] if saved_every == self.every else _next_multiple(step, self.every)
 
 
+class TrainingInterrupted(Exception):
+    """Training stopped on a signal after checkpointing its last agent step; the message is the
+    line the CLI prints ("stopped at agent step N by SIGTERM; continue with: ...")."""
+
+
+class StopRequest:
+    """SIGTERM / SIGINT as a request to stop after the current agent step (SLURM sends SIGTERM
+    on preemption and at the time limit, some seconds before SIGKILL).
+
+    The first signal is recorded in :attr:`signal_name` and the default handlers come back, so
+    a second signal ends the process at once: SIGTERM kills it, SIGINT raises
+    ``KeyboardInterrupt``.  Checkpoint writes are atomic, so neither damages the last
+    checkpoint.  Handlers are installed only on the main thread (Python's rule)."""
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self):
+        self.signal_name: Optional[str] = None
+        self._previous: dict = {}
+
+    def install(self) -> "StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            for signum in self.SIGNALS:
+                self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.signal_name = signal.Signals(signum).name
+        # os.write, not print: a signal handler may run inside a print to the same stream.
+        os.write(2, f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
+                    "(a second signal stops at once)\n".encode())
+        for sig in self.SIGNALS:  # the next signal acts at once
+            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+
+    def uninstall(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+
 def _flatten(d: dict, prefix: str = "") -> dict:
     out = {}
     for k, v in d.items():
@@ -105,18 +147,27 @@ class Trainer:
         refill_buffer: on resume, when the saved replay buffer is missing or damaged, start
             with an empty buffer refilled by random actions (not an exact resume) instead of
             failing.
+        stop: the SIGTERM / SIGINT request the CLI installed (:class:`StopRequest`); when it is
+            set, :meth:`train` checkpoints after the current agent step and raises
+            :class:`TrainingInterrupted`.
 
     The trainer holds an exclusive lock on ``out_dir`` (:mod:`imssr.training.lock`) from
     before it writes or deletes anything there until :meth:`close`.
     """
 
-    def __init__(self, cfg: RunConfig, out_dir: str, resume: bool = False, refill_buffer: bool = False):
+    def __init__(self, cfg: RunConfig, out_dir: str, resume: bool = False, refill_buffer: bool = False,
+                 stop: Optional[StopRequest] = None):
         if os.path.exists(out_dir) and not os.path.isdir(out_dir):
             raise ImssrError(f"--out {out_dir} is a file, not a directory")
         # A second process on the same directory fails here, before the Logger of a fresh
         # run deletes the first one's logs and tb/.
         self._lock = DirectoryLock(out_dir).acquire()
         self.refill_buffer = refill_buffer
+        self.stop = stop or StopRequest()  # uninstalled: never set
+        # The open episode, so that a stop mid-episode can checkpoint it (see _episode_state).
+        self._episode_env_rng: Optional[dict] = None
+        self._episode_actions: list[np.ndarray] = []
+        self._resume_episode: Optional[dict] = None
         self._replay_file: Optional[str] = None  # the replay file that latest.pt names
         self.resumed_from: Optional[str] = None
         self._fallback = False
@@ -256,18 +307,22 @@ class Trainer:
                 if self.replay.state_dict()["head"] != ckpt["replay_state"]["head"]:
                     raise ImssrError(f"replay buffer {path} does not match the checkpoint")
                 self._replay_file = ckpt["replay_file"]
+        if ckpt.get("episode_state") is not None and not refill:
+            # Stopped mid-episode: train() rebuilds the open episode before it continues.
+            self._resume_episode = ckpt["episode_state"]
         if refill:
             self.learning_starts = self.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
             print(f"imssr: warning: {refill}; refilling it with random "
                   f"actions until agent step {self.learning_starts} (the resume is not exact)", flush=True)
 
-    def save(self) -> None:
-        """Checkpoint now.  A save that fails (a full disk) leaves the previous checkpoint as it
-        was and removes the replay files it wrote, which no checkpoint names."""
+    def save(self, episode: Optional[dict] = None) -> None:
+        """Checkpoint now (``episode``: the open episode's state, :meth:`_episode_state`, when
+        stopping mid-episode).  A save that fails (a full disk) leaves the previous checkpoint as
+        it was and removes the replay files it wrote, which no checkpoint names."""
         latest = latest_path(self.out_dir)
         before = _identity(latest)
         try:
-            self._save()
+            self._save(episode)
         except ImssrError:
             replay_file = f"replay-{self.step:09d}.npz"
             if (self.cfg.train.save_buffer and replay_file != self._replay_file
@@ -278,8 +333,35 @@ class Trainer:
                         os.unlink(p)
             raise
         self._replay_file = f"replay-{self.step:09d}.npz" if self.cfg.train.save_buffer else None
+        self._saved_step = self.step
 
-    def _save(self) -> None:
+    def _episode_state(self, ep_return: float, ep_frames: int, sums: dict, counts: dict) -> dict:
+        """The open episode as a checkpoint holds it: the env's RNG state at its reset and the
+        actions since, from which :meth:`_rebuild_episode` steps the env to where it stopped
+        (physics, scene and frame stack bit for bit, without storing simulator internals), and
+        the episode's sums so far.  Its transitions are in the saved replay buffer already."""
+        actions = (np.stack(self._episode_actions) if self._episode_actions
+                   else np.zeros((0, self.action_dim), np.float32))
+        return {"env_rng": self._episode_env_rng, "actions": torch.from_numpy(actions.astype(np.float32)),
+                "return": float(ep_return), "frames": int(ep_frames),
+                # Floats: the same values as the float32 sums (exact in float64), on any device.
+                "sums": {k: float(v) for k, v in sums.items()}, "counts": dict(counts)}
+
+    def _rebuild_episode(self, state: dict):
+        """Step the env through the saved open episode; returns its current observation."""
+        saved_rng = self.env.get_rng_state()
+        self.env.set_rng_state(state["env_rng"])
+        obs, _ = self.env.reset()
+        actions = state["actions"].numpy()
+        for action in actions:
+            obs, *_ = self.env.step(action)
+        if self.env.get_rng_state() != saved_rng:
+            raise ImssrError(f"cannot rebuild the episode open in {self.resumed_from}: the environment's "
+                             "random state differs from the saved one")
+        self._episode_env_rng, self._episode_actions = state["env_rng"], list(actions)
+        return obs
+
+    def _save(self, episode: Optional[dict] = None) -> None:
         replay_file = None
         if self.cfg.train.save_buffer:
             replay_file = f"replay-{self.step:09d}.npz"
@@ -295,6 +377,7 @@ class Trainer:
             "replay_file": replay_file, "replay_state": self.replay.state_dict(),
             # A resume with another thread count is valid but not bit-identical (thread_warning).
             "torch_threads": torch.get_num_threads(),
+            "episode_state": episode,
         }
         save_checkpoint(self.out_dir, state, keep=self.cfg.train.keep_checkpoints)
 
@@ -341,9 +424,18 @@ class Trainer:
         log_progress = bar.disable and not _isatty(sys.stdout)
         started, start_step, start_frame = time.monotonic(), self.step, self.frame
         next_progress, last_return = started + self.progress_every_s, None
+        self._saved_step = -1
+        if self._resume_episode is not None:
+            ep = self._resume_episode
+            obs, need_reset = self._rebuild_episode(ep), False
+            ep_return, ep_frames = ep["return"], ep["frames"]
+            sums.update(ep["sums"])
+            counts.update(ep["counts"])
+            self._resume_episode = None
         try:
             while self.step < total_steps:
                 if need_reset:
+                    self._episode_env_rng, self._episode_actions = self.env.get_rng_state(), []
                     obs, info = self.env.reset()
                     self.replay.add_first(info["frame"], self.env.physics_state(), self.step)
                     need_reset, ep_return, ep_frames, ep_start = False, 0.0, 0, time.time()
@@ -360,6 +452,7 @@ class Trainer:
                         for k, v in self.agent.update(self.replay, self.step).items():
                             sums[k] += v; counts[k] += 1
                 obs, reward, terminated, truncated, info = self.env.step(action)
+                self._episode_actions.append(action)
                 self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"],
                                 self.env.physics_state(), self.step + 1)
                 self.step += 1
@@ -401,6 +494,14 @@ class Trainer:
                         self.save()
                         if stop_at_step is not None and self.step >= stop_at_step and not last:
                             return
+                if self.stop.signal_name is not None and self.step < total_steps:
+                    # A periodic checkpoint (with the replay buffer) of this agent step, unless
+                    # the episode's end just wrote one.
+                    if self._saved_step != self.step:
+                        self.save(None if need_reset else self._episode_state(ep_return, ep_frames, sums, counts))
+                    raise TrainingInterrupted(
+                        f"stopped at agent step {self.step} by {self.stop.signal_name}; "
+                        f"continue with: imssr train --out {self.out_dir} --resume")
             if not need_reset:
                 # Budget ended mid-episode: evaluate and checkpoint what we have.
                 if self.last_eval_step != self.step:
@@ -410,7 +511,7 @@ class Trainer:
             # Named by the first non-finite training metric of the episode so far (one host
             # sync, only now), else by what was found (the action, the intrinsic signal).
             what = _first_non_finite({k: float(v) for k, v in sums.items()}, sums) or str(exc)
-            raise DivergedError(f"diverged at agent step {self.step}: {what}") from None
+            raise DivergedError(f"{DIVERGED_PREFIX} {self.step}: {what}") from None
         finally:
             bar.close()
             self.logger.close()

@@ -1,0 +1,130 @@
+"""SIGTERM / SIGINT on `imssr train`: real signals on real processes; the stopped run resumes to
+exactly the uninterrupted one (on CPU), and the sweep resumes such runs instead of failing them."""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+import torch
+
+from conftest import without_timing
+from imssr.cli import main
+from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.training.logger import read_csv
+from imssr.errors import INTERRUPTED_EXIT
+from imssr.sweep.grid import SweepConfig
+from imssr.sweep.runner import execute_run, is_done
+from imssr.sweep.sweep import plan_runs, settle
+from imssr.training.lock import LOCK_FILE
+
+# Tiny curl on cartpole: 3 episodes of 125 agent steps, updates from agent step 100, no
+# periodic checkpoint before the end (the stop writes the only one).
+TRAIN = ["train", "--algo", "curl", "--task", "cartpole_swingup_sparse", "--steps", "375", "--no-progress",
+         "--seed", "3", *[a for kv in (
+             "agent.hidden_dim=32", "agent.feature_dim=16", "agent.batch_size=8", "aux.batch_size=8",
+             "agent.encoder_filters=8", "train.replay_capacity=2000", "train.seed_steps=100",
+             "train.burst_updates=0", "train.eval_every_steps=250", "train.eval_episodes=1",
+             "train.checkpoint_every_steps=0", "train.tensorboard=false", "train.torch_threads=1")
+             for a in ("--set", kv)]]
+STOPPED = re.compile(r"imssr: stopped at agent step (\d+) by (SIGTERM|SIGINT); "
+                     r"continue with: imssr train --out (\S+) --resume")
+
+
+def _start(out, *extra):
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    return subprocess.Popen([sys.executable, "-m", "imssr", *TRAIN, *extra, "--out", str(out)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _after_first_episode(proc, out):
+    """Block until the run logged its first episode (agent step 125: the agent is learning)."""
+    path = os.path.join(str(out), "train.csv")
+    while len(read_csv(path)) < 1:
+        assert proc.poll() is None, proc.communicate()
+        os.sched_yield()
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reference")
+    assert main([*TRAIN, "--out", str(out)]) == 0
+    return str(out)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_checkpoints_the_current_step_and_the_resume_is_exact(reference, tmp_path, signum, capsys):
+    out = tmp_path / "run"
+    proc = _start(out)
+    _after_first_episode(proc, out)
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == INTERRUPTED_EXIT, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    match = STOPPED.fullmatch(lines[-1])
+    assert match, err
+    step = int(match[1])
+    assert match[2] == signal.Signals(signum).name and match[3] == str(out)
+    assert 125 <= step < 375, err  # after the first episode, before the budget
+    state = load_checkpoint(latest_path(str(out)))
+    assert state["step"] == step and state["replay_file"]
+    assert main([*TRAIN, "--out", str(out), "--resume"]) == 0
+    assert f"resuming from agent step {step:,}" in capsys.readouterr().out
+    for name in ("train.csv", "eval.csv"):
+        assert without_timing(read_csv(os.path.join(str(out), name))) == \
+            without_timing(read_csv(os.path.join(reference, name))), name
+    a = load_checkpoint(latest_path(str(out)))["agent"]["nets"]
+    b = load_checkpoint(latest_path(reference))["agent"]["nets"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_second_signal_stops_at_once_and_keeps_the_last_checkpoint(tmp_path):
+    out = tmp_path / "run"
+    proc = _start(out, "--set", "train.checkpoint_every_steps=125")
+    while not os.path.exists(latest_path(str(out))):  # the checkpoint of the first episode
+        assert proc.poll() is None, proc.communicate()
+        os.sched_yield()
+    proc.send_signal(signal.SIGTERM)
+    assert "stopping after this agent step" in proc.stderr.readline()
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=300)
+    # Killed by the second signal, or (if its stop was quicker still) stopped by the first.
+    assert proc.returncode in (-signal.SIGTERM, INTERRUPTED_EXIT)
+    assert load_checkpoint(latest_path(str(out)))["step"] >= 125
+
+
+def _sweep_run(tmp_path, *overrides):
+    """A one-run sweep of the tiny training above: (config, its RunStatus)."""
+    sets = [TRAIN[i + 1] for i, a in enumerate(TRAIN) if a == "--set"]
+    cfg = SweepConfig(root=str(tmp_path / "sweep"), algos=["curl"], tasks=["cartpole_swingup_sparse"],
+                      seeds=[3], steps=375, overrides=sets + list(overrides), retries=0)
+    return cfg, plan_runs(cfg)[0]
+
+
+def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_path, reference):
+    cfg, st = _sweep_run(tmp_path)
+    run_dir, args = st.run.dir, st.run.train_args(cfg)
+    results = []
+    worker = threading.Thread(target=lambda: results.append(execute_run(run_dir, args, st.steps, 1)))
+    worker.start()
+    while len(read_csv(os.path.join(run_dir, "train.csv"))) < 1:  # the training subprocess learns
+        assert worker.is_alive()
+        os.sched_yield()
+    pid = int(open(os.path.join(run_dir, LOCK_FILE)).read().split()[0])
+    os.kill(pid, signal.SIGTERM)  # as a scheduler preempting the job would
+    worker.join()
+    result = results[0]
+    assert result["interrupted"] and not result["ok"] and result["returncode"] == INTERRUPTED_EXIT
+    assert STOPPED.fullmatch(result["error"]), result["error"]
+    line = settle(st, result, cfg.retries)  # retries=0: a failure would end the run here
+    assert st.state == "queued" and st.action == "resume" and st.errors == [] and st.interruptions == 1, line
+    assert line.startswith(f"resume  {st.run.name}: interrupted (imssr: stopped at agent step")
+    assert plan_runs(cfg)[0].action == "resume"
+    again = execute_run(run_dir, args, st.steps, 2)
+    assert again["ok"] and again["resumed"] and is_done(run_dir, st.steps)
+    assert without_timing(read_csv(os.path.join(run_dir, "eval.csv"))) == \
+        without_timing(read_csv(os.path.join(reference, "eval.csv")))
