@@ -42,9 +42,8 @@ def host_reads_raise(monkeypatch, allowed: set[int]):
 
 
 def optimizer_step_counters(agent: SACAgent) -> set[int]:
-    """Adam's step counters.  Off CUDA graphs torch keeps them on the host by design (the
-    per-tensor and foreach Adam read them there, not a device sync); the fused Adam the agent
-    uses on CUDA keeps them on the device and reads nothing."""
+    """Adam's step counters: torch keeps them on the host by design (without ``capturable``),
+    and its per-tensor and foreach Adam read them there: not a device sync."""
     opts = [agent.critic_opt, agent.actor_opt, agent.alpha_opt]
     opts += [m.optimizer for m in (agent.aux, agent.signal) if m is not None and m.optimizer is not None]
     return {id(s["step"]) for opt in opts for s in opt.state.values()}

@@ -71,10 +71,14 @@ class SACAgent:
         self.nets = SACNetworks(obs_shape[0], action_dim, cfg).to(self.device)
         n = self.nets
         self.target_entropy = -float(action_dim)
-        self.critic_opt = self._adam(n.critic.parameters(), lr=cfg.critic_lr, betas=(cfg.critic_beta1, 0.999))
+        # torch's default implementation: the foreach kernels on CUDA (a few launches per step, no
+        # host sync), the per-tensor loop on CPU (the reference's numbers).
+        self.critic_opt = torch.optim.Adam(n.critic.parameters(), lr=cfg.critic_lr,
+                                           betas=(cfg.critic_beta1, 0.999))
         # The actor trains its projection and MLP only; the trunk is the critic's.
-        self.actor_opt = self._adam(n.actor.parameters(), lr=cfg.actor_lr, betas=(cfg.actor_beta1, 0.999))
-        self.alpha_opt = self._adam([n.log_alpha], lr=cfg.alpha_lr, betas=(cfg.alpha_beta1, 0.999))
+        self.actor_opt = torch.optim.Adam(n.actor.parameters(), lr=cfg.actor_lr,
+                                          betas=(cfg.actor_beta1, 0.999))
+        self.alpha_opt = torch.optim.Adam([n.log_alpha], lr=cfg.alpha_lr, betas=(cfg.alpha_beta1, 0.999))
         self.aux: Optional[AuxiliaryTask] = None
         self.fuse_aux = False
         """Whether the task's loss is read from the critic's pass and joins its backward: the fused
@@ -89,7 +93,7 @@ class SACAgent:
             if self.aux.trains:
                 # Fused, the critic's optimiser steps the shared encoder once on the summed gradient.
                 params = self.aux.own_parameters() if self.fuse_aux else self.aux.trained_parameters()
-                self.aux.optimizer = self._adam(params, lr=aux_cfg.lr)
+                self.aux.optimizer = torch.optim.Adam(params, lr=aux_cfg.lr)
         self.intrinsic: Optional[IntrinsicReward] = None
         self.signal: Optional[IntrinsicSignal] = None
         if intrinsic_cfg is not None and intrinsic_cfg.enabled:
@@ -119,12 +123,6 @@ class SACAgent:
                 module.compile(mode=mode)
         for module in (n.critic.q, n.critic_target.q, n.actor):
             module.compile(mode=mode)
-
-    def _adam(self, params, **kwargs) -> torch.optim.Optimizer:
-        """Adam over ``params``; on CUDA torch's fused kernel (one launch per step, no host
-        sync; it rounds differently from the per-tensor loop, which stays the CPU's, the
-        reference's, path)."""
-        return torch.optim.Adam(params, **kwargs, **({"fused": True} if self.device.type == "cuda" else {}))
 
     def autocast(self):
         """The context of the agent's forward passes: bfloat16 autocast under
