@@ -2,7 +2,7 @@
 
     python bench/step_time.py [--task cartpole_swingup_sparse] [--steps 100] [--threads 2]
         [--variants im-curl curl "im-curl:agent.channels_last=false"] [--device cpu]
-        [--baseline-rev GIT_REV]
+        [--baseline-rev GIT_REV] [--bf16 curl im-curl soda im-soda pad svea]
 
 Each variant is ``ALGO[:SECTION.FIELD=VALUE,...]`` with the paper's preset for
 ``ALGO`` and the overrides applied; ``rev:ALGO[:...]`` runs it with the code of
@@ -14,6 +14,9 @@ the variants take one training step each in turn (act, all updates, env step,
 replay add), so machine noise hits them alike.  Prints the median and mean
 over ``--steps`` steps after ``--warmup``, and the process's peak RSS.  On
 CUDA every step ends with a synchronisation so that queued kernels are counted.
+``--bf16 ALGO ...`` runs, for each ALGO, its preset at ``agent.precision=fp32`` and at
+``bf16`` (after any ``--variants``) and prints the ratio bf16 / fp32 of each pair (median and
+mean: SODA's auxiliary update runs every other step), against issue 20's target of 0.6.
 Timings never go in tests.
 """
 from __future__ import annotations
@@ -120,11 +123,15 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
     p.add_argument("--baseline-rev", default=None, help="git revision that rev:ALGO variants run")
+    p.add_argument("--bf16", nargs="*", default=[], metavar="ALGO",
+                   help="also run each ALGO at agent.precision=fp32 and bf16 and print their ratios")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     device = resolve_device(a.device)
     rev = import_revision(a.baseline_rev) if a.baseline_rev else None
-    runners = [Runner(v, a.task, a.seed_steps, device, a.batch, rev) for v in a.variants]
+    pairs = [(f"{algo}:agent.precision=fp32", f"{algo}:agent.precision=bf16") for algo in a.bf16]
+    specs = [*(a.variants if not pairs or "--variants" in sys.argv else []), *(s for pair in pairs for s in pair)]
+    runners = [Runner(v, a.task, a.seed_steps, device, a.batch, rev) for v in specs]
     for i in range(a.warmup + a.steps):
         for r in runners:
             r.train_step(record=i >= a.warmup)
@@ -134,6 +141,15 @@ def main() -> None:
         med, mean = statistics.median(r.times), statistics.fmean(r.times)
         print(f"{r.spec:45s} median {med:.3f} s/step  mean {mean:.3f}  ratio to {runners[0].spec}: "
               f"{med / base:.3f}")
+    by_spec = {r.spec: r for r in runners}
+    if pairs:
+        print("bf16 / fp32 of the whole training step, same process (issue 20's target: <= 0.6)")
+    for fp32, bf16 in pairs:
+        f, b = by_spec[fp32].times, by_spec[bf16].times
+        ratio_med = statistics.median(b) / statistics.median(f)
+        ratio_mean = statistics.fmean(b) / statistics.fmean(f)
+        print(f"{fp32.split(':')[0]:12s} fp32 median {statistics.median(f):.3f} s  bf16 median "
+              f"{statistics.median(b):.3f} s  ratio median {ratio_med:.3f}  mean {ratio_mean:.3f}")
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB (all variants)")
 
 

@@ -49,3 +49,27 @@ def check_gl() -> None:
                 f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
                 f"install the Debian package {package} (apt-get install {package}){hint}"
             )
+
+
+def gl_renderer(physics) -> str | None:
+    """``GL_RENDERER`` of the OpenGL context that ``physics`` (a dm_control Physics) renders
+    with, e.g. ``llvmpipe (LLVM 15.0.6, 256 bits)`` for Mesa's software renderer; None when it
+    cannot be read (no context, or a backend PyOpenGL cannot query)."""
+    try:
+        from OpenGL import GL
+        with physics.contexts.gl.make_current():
+            name = GL.glGetString(GL.GL_RENDERER)
+    except Exception:  # noqa: BLE001 - any failure only means "unknown"
+        return None
+    return name.decode(errors="replace") if isinstance(name, bytes) else None
+
+
+def software_rendering_warning(backend: str, renderer: str | None, gpu: bool) -> str | None:
+    """A one-line warning when EGL renders on Mesa's software rasteriser (llvmpipe) on a machine
+    with a CUDA GPU: every env step then renders on the CPU cores that feed the GPU.  None otherwise."""
+    if not gpu or backend != "egl" or renderer is None or "llvmpipe" not in renderer.lower():
+        return None
+    return (f"imssr: warning: MuJoCo renders with EGL on the CPU ({renderer}) although a CUDA GPU is present: "
+            "install the NVIDIA driver's EGL library (Debian/Ubuntu: libnvidia-gl-<driver version>, which "
+            "provides /usr/share/glvnd/egl_vendor.d/10_nvidia.json) or set "
+            "__EGL_VENDOR_LIBRARY_FILENAMES=/usr/share/glvnd/egl_vendor.d/10_nvidia.json")

@@ -11,12 +11,13 @@ def random_crop(x: torch.Tensor, size: int, generator: Optional[torch.Generator]
     """Independent random ``size x size`` crop per sample of ``(B, C, H, W)``.
 
     Offsets are drawn from ``0 .. H - size - 1`` as in the CURL / DMC-GB code
-    (0..15 for 100 -> 84).  ``generator`` is a CPU generator.
+    (0..15 for 100 -> 84).  ``generator`` lives on ``x``'s device: the offsets are drawn
+    there, with no copy from the host.
     """
     b, c, h, w = x.shape
     high_y, high_x = max(h - size, 1), max(w - size, 1)
-    oy = torch.randint(0, high_y, (b,), generator=generator).to(x.device)
-    ox = torch.randint(0, high_x, (b,), generator=generator).to(x.device)
+    oy = torch.randint(0, high_y, (b,), generator=generator, device=x.device)
+    ox = torch.randint(0, high_x, (b,), generator=generator, device=x.device)
     return crop_at(x, oy, ox, size)
 
 
@@ -45,10 +46,11 @@ def random_overlay(x: torch.Tensor, images: torch.Tensor, alpha: float = 0.5,
 
     ``x``: ``(B, 3k, S, S)`` pixels in [0, 255] (k stacked RGB frames); ``images``:
     a pool ``(N, 3, S, S)`` uint8 on ``x``'s device.  One image per sample, shared
-    by its k frames (as DMC-GB does).  Returns float pixels in [0, 255].
+    by its k frames (as DMC-GB does).  ``generator`` lives on ``x``'s device.  Returns float
+    pixels in [0, 255].
     """
     b, c = x.shape[:2]
-    idx = torch.randint(0, images.shape[0], (b,), generator=generator).to(x.device)
+    idx = torch.randint(0, images.shape[0], (b,), generator=generator, device=x.device)
     chosen = images[idx].float().repeat(1, c // 3, 1, 1)
     return torch.lerp(x.float(), chosen, alpha)
 
@@ -58,11 +60,12 @@ def random_conv(x: torch.Tensor, generator: Optional[torch.Generator] = None) ->
 
     Each sample's k frames share its kernel; edges are replicate-padded and the
     output squashed with a sigmoid, as in DMC-GB, but all samples run as one
-    grouped convolution instead of a Python loop.  Returns float pixels in [0, 255].
+    grouped convolution instead of a Python loop.  ``generator`` lives on ``x``'s device.
+    Returns float pixels in [0, 255].
     """
     b, c, h, w = x.shape
     k = c // 3
-    weights = torch.randn((b * 3, 3, 3, 3), generator=generator).to(x.device)
+    weights = torch.randn((b * 3, 3, 3, 3), generator=generator, device=x.device)
     # (B, k, 3, H, W) -> (k, B*3, H, W): frames as the batch, samples as groups.
     frames = (x.float() / 255.0).reshape(b, k, 3, h, w).transpose(0, 1).reshape(k, b * 3, h, w)
     out = F.conv2d(F.pad(frames, (1, 1, 1, 1), mode="replicate"), weights, groups=b)

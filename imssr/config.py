@@ -134,6 +134,20 @@ class AgentConfig:
     tasks that can reuse it (CURL, PAD), the auxiliary loss, whose gradient joins the critic's in one
     backward pass; fewer encoder passes (docs/performance.md), not update-for-update equal to
     the reference.  Needs ``critic_update_every = 1``."""
+    precision: str = "fp32"
+    """``fp32``: every pass in float32 (the paper's setting).  ``bf16``: mixed precision, the
+    forward passes of the update, acting and evaluation under bfloat16 autocast (CPU or CUDA)
+    while weights, gradients and Adam's state stay float32; the Bellman target, the InfoNCE
+    logits, the per-sample losses behind r_int and their normalisation, LayerNorm, BatchNorm
+    and the temperature stay float32 (docs/performance.md, "Mixed precision")."""
+    tf32: bool = False
+    """On CUDA, let matmuls and cuDNN convolutions use TensorFloat-32 (faster on Ampere and
+    later, about 10 mantissa bits instead of 23: numbers change).  False keeps full float32;
+    no effect on CPU."""
+    compile: str = "off"
+    """``torch.compile`` the actor, Q heads and conv trunks with this mode: ``off``, ``default``,
+    ``reduce-overhead`` (CUDA graphs on CUDA) or ``max-autotune``.  The first updates are slow
+    while it compiles; needs a C++ compiler on CPU.  Not measured on a GPU."""
 
 
 @dataclass
@@ -325,6 +339,8 @@ class RunConfig:
              f"agent.update_schedule must be one of {', '.join(UPDATE_SCHEDULES)}"),
             (a.update_schedule != "fused" or a.critic_update_every == 1,
              "agent.update_schedule=fused needs agent.critic_update_every=1"),
+            (a.precision in PRECISIONS, f"agent.precision must be one of {', '.join(PRECISIONS)}"),
+            (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
             (x.update_every >= 1, "aux.update_every must be >= 1"),
             (0.0 < x.tau <= 1.0, "aux.tau must be in (0, 1]"),
             (0.0 <= x.overlay_alpha <= 1.0, "aux.overlay_alpha must be in [0, 1]"),
@@ -401,6 +417,8 @@ SCHEDULES = ("constant", "step")
 NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 SOURCES = ("ssl", "rnd", "re3")
 UPDATE_SCHEDULES = ("sequential", "fused")
+PRECISIONS = ("fp32", "bf16")
+COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 FORMS = ("authors", "training")
 
 

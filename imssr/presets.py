@@ -117,6 +117,9 @@ def _common(task) -> list[Setting]:
         Setting("agent.update_schedule", "sequential", AUTHORS_LOOP,
                 "critic, actor + temperature, targets, auxiliary task, in that order"),
         Setting("agent.channels_last", True, IMSSR, "memory layout only: the same maths"),
+        Setting("agent.precision", "fp32", AUTHORS_LOOP, "every pass in float32"),
+        Setting("agent.tf32", False, AUTHORS_LOOP, "full float32 matmuls and convolutions on CUDA"),
+        Setting("agent.compile", "off", AUTHORS_LOOP, "eager PyTorch"),
         Setting("train.steps", 500_000, TABLE3, "T = 500,000 agent steps ('Number of training "
                 "steps'; the authors' train_steps); the paper's text says 'frames'"),
         Setting("train.seed_steps", 1000, AUTHORS, "init_steps: uniform random actions"),

@@ -57,6 +57,27 @@ def test_divergence_stops_in_one_line_and_keeps_the_last_good_checkpoint(tmp_pat
         resumed.close()
 
 
+def test_a_non_finite_intrinsic_signal_stops_the_run_naming_the_signal(tmp_path):
+    """The update does not look at r_int (no host sync); the loop's metrics check does, before
+    the critic's loss that it poisons in the same update."""
+    t = Trainer(fast("im-curl"), str(tmp_path / "run"))
+    signal = t.agent.signal
+    loss = signal.task_loss
+
+    def poisoned(ctx):
+        out = loss(ctx)
+        return out.index_fill(0, torch.tensor([1]), float("nan")) if t.step == 25 else out
+
+    signal.task_loss = poisoned
+    try:
+        # The poisoned update runs at agent step 25; the action of step 26 is NaN.
+        with pytest.raises(DivergedError, match=r"^diverged at agent step 26: intrinsic reward "
+                                                r"\(curl per-sample loss of o'\) nan$"):
+            t.train()
+    finally:
+        t.close()
+
+
 def test_divergence_in_evaluation_is_caught_before_the_simulator(tmp_path):
     t = Trainer(fast(eval_every_steps=15), str(tmp_path / "run"))
     act = t.agent.act

@@ -33,7 +33,8 @@ from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig, IntrinsicConfig
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
-from imssr.networks import Actor, ConvTrunk, Critic, Encoder, weight_init
+from imssr.networks import Actor, ConvTrunk, Critic, Encoder, ema, weight_init
+from imssr.precision import autocast, configure_cuda, full_precision, optimizer_step, warn_if_bf16_is_slow
 from imssr.replay import FrameReplayBuffer
 
 Metrics = dict[str, "torch.Tensor | float"]
@@ -70,6 +71,8 @@ class SACAgent:
         self.nets = SACNetworks(obs_shape[0], action_dim, cfg).to(self.device)
         n = self.nets
         self.target_entropy = -float(action_dim)
+        # torch's default implementation: the foreach kernels on CUDA (a few launches per step, no
+        # host sync), the per-tensor loop on CPU (the reference's numbers).
         self.critic_opt = torch.optim.Adam(n.critic.parameters(), lr=cfg.critic_lr,
                                            betas=(cfg.critic_beta1, 0.999))
         # The actor trains its projection and MLP only; the trunk is the critic's.
@@ -99,10 +102,32 @@ class SACAgent:
         # Separate generators: augmentations/policy noise, and the intrinsic
         # reward's extra views, so that computing r_int never shifts the
         # random stream of the base algorithm (beta = 0 is the baseline exactly).
-        self.gen = torch.Generator().manual_seed(seed)
+        # All on the agent's device: crop offsets, overlay indices and kernels are drawn where
+        # they are used, with no copy from the host in an update.
+        self.gen = torch.Generator(device=self.device).manual_seed(seed)
         self.noise_gen = torch.Generator(device=self.device).manual_seed(seed + 1)
-        self.intrinsic_gen = torch.Generator().manual_seed(seed + 2)
+        self.intrinsic_gen = torch.Generator(device=self.device).manual_seed(seed + 2)
         self.updates = 0
+        warn_if_bf16_is_slow(self.device, cfg.precision)
+        configure_cuda(self.device, cfg.tf32)
+        if cfg.compile != "off":
+            self._compile(None if cfg.compile == "default" else cfg.compile)
+
+    def _compile(self, mode: Optional[str]) -> None:
+        """``torch.compile`` (in place: state dicts keep their keys) every module the update and
+        acting call: the trunk's shared layers and head (``encode`` calls them apart), the
+        projections, the Q heads and the actor, online and target."""
+        n = self.nets
+        for encoder in (n.critic.encoder, n.critic_target.encoder):
+            for module in (encoder.trunk.convs, encoder.trunk.head, encoder.projection):
+                module.compile(mode=mode)
+        for module in (n.critic.q, n.critic_target.q, n.actor):
+            module.compile(mode=mode)
+
+    def autocast(self):
+        """The context of the agent's forward passes: bfloat16 autocast under
+        ``agent.precision = bf16`` (:mod:`imssr.precision`), else none."""
+        return autocast(self.device, self.cfg.precision)
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -114,8 +139,9 @@ class SACAgent:
         """Action in [-1, 1] for one stacked uint8 observation (centre crop)."""
         x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
         x = center_crop(x, self.cfg.crop_size)
-        trunk = self.nets.critic.encoder.trunk(x)
-        policy = self.nets.actor(trunk, generator=self.noise_gen, sample=not deterministic)
+        with self.autocast():
+            trunk = self.nets.critic.encoder.trunk(x)
+            policy = self.nets.actor(trunk, generator=self.noise_gen, sample=not deterministic)
         return policy.action[0].cpu().numpy().astype(np.float32)
 
     # -- learning ----------------------------------------------------------------
@@ -133,14 +159,16 @@ class SACAgent:
             raw_obs=raw_obs, raw_next_obs=raw_next, generator=self.gen)
 
     def update(self, replay: FrameReplayBuffer, step: int) -> Metrics:
-        """All updates of one agent step; ``step`` counts agent steps."""
+        """All updates of one agent step; ``step`` counts agent steps.  Metrics stay on the
+        device (the training loop reads them once per episode): no host sync in an update."""
         batch = self.to_batch(replay.sample(self.cfg.batch_size))
-        if self.cfg.update_schedule == "fused":
-            metrics = self.update_fused(replay, batch, step)
-        else:
-            metrics = self.update_sequential(replay, batch, step)
-        if self.signal is not None:
-            metrics.update(self.signal.update(batch, step))
+        with self.autocast():
+            if self.cfg.update_schedule == "fused":
+                metrics = self.update_fused(replay, batch, step)
+            else:
+                metrics = self.update_sequential(replay, batch, step)
+            if self.signal is not None:
+                metrics.update(self.signal.update(batch, step))
         self.updates += 1
         return metrics
 
@@ -211,12 +239,15 @@ class SACAgent:
         n = self.nets
         next_policy = n.actor(enc.next_trunk, generator=self.noise_gen)
         tq1, tq2 = n.critic_target.q(enc.next_latent, next_policy.action)
-        target_v = torch.min(tq1, tq2) - self.alpha * next_policy.log_prob
         reward, stats = batch.reward, {}
         if self.intrinsic is not None:
-            bonus, stats = self.intrinsic(self.intrinsic_signal(batch, enc), step, self.signal.label)
+            bonus, stats = self.intrinsic(self.intrinsic_signal(batch, enc), step)
             reward = reward + bonus
-        return reward + batch.discount * self.cfg.discount * target_v, stats
+        with full_precision(tq1):
+            # y in float32: r + beta r_int + gamma V' adds terms of different scales, and every
+            # regression of this update aims at it.
+            target_v = torch.min(tq1.float(), tq2.float()) - self.alpha * next_policy.log_prob
+            return reward + batch.discount * self.cfg.discount * target_v, stats
 
     @torch.no_grad()
     def intrinsic_signal(self, batch: Batch, enc: Encoding) -> torch.Tensor:
@@ -234,10 +265,12 @@ class SACAgent:
         Eq. L_SVEA), and the mean Q1 of ``batch.obs`` (detached)."""
         n, views = self.nets, len(enc.view_weights)
         q1_all, q2_all = n.critic.q(n.critic.encoder.projection(enc.trunk), batch.action.repeat(views, 1))
-        loss = 0.0
-        for q1, q2, weight in zip(q1_all.chunk(views), q2_all.chunk(views), enc.view_weights, strict=True):
-            loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
-        return loss, q1_all[:len(batch)].detach().mean()
+        with full_precision(q1_all):  # the TD errors against the float32 target, in float32
+            q1_all, q2_all = q1_all.float(), q2_all.float()
+            loss = 0.0
+            for q1, q2, weight in zip(q1_all.chunk(views), q2_all.chunk(views), enc.view_weights, strict=True):
+                loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
+            return loss, q1_all[:len(batch)].detach().mean()
 
     def update_critic(self, batch: Batch, enc: Encoding, step: int) -> Metrics:
         """One critic step on :meth:`critic_loss`.  With the task's loss in ``enc`` (fused), one
@@ -246,11 +279,11 @@ class SACAgent:
         target_q, metrics = self.bellman_target(batch, enc, step)
         loss, q_mean = self.critic_loss(batch, enc, target_q)
         if enc.aux_loss is None:
-            _step(loss, self.critic_opt)
+            optimizer_step(loss, self.critic_opt)
         else:
             aux_loss = enc.aux_loss.mean()
             metrics["aux_loss"] = aux_loss.detach()
-            _step(loss + aux_loss, self.critic_opt, self.aux.optimizer)
+            optimizer_step(loss + aux_loss, self.critic_opt, self.aux.optimizer)
             self.aux.after_step(step)
         metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
         return metrics
@@ -261,10 +294,13 @@ class SACAgent:
         n = self.nets
         policy = n.actor(trunk, generator=self.noise_gen)
         q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), policy.action)
-        actor_loss = (self.alpha.detach() * policy.log_prob - torch.min(q1, q2)).mean()
-        _step(actor_loss, self.actor_opt)
+        with full_precision(q1):  # float32 like alpha and log pi; min Q cast up to meet them
+            actor_loss = (self.alpha.detach() * policy.log_prob - torch.min(q1.float(), q2.float())).mean()
+        optimizer_step(actor_loss, self.actor_opt)
+        # The temperature's loss is float32 throughout: log_alpha is a float32 parameter and log pi
+        # comes from the actor's float32 Gaussian.
         alpha_loss = (self.alpha * (-policy.log_prob - self.target_entropy).detach()).mean()
-        _step(alpha_loss, self.alpha_opt)
+        optimizer_step(alpha_loss, self.alpha_opt)
         log_std = policy.log_std
         entropy = 0.5 * log_std.shape[1] * (1.0 + math.log(2 * math.pi)) + log_std.sum(dim=-1)
         return {"actor_loss": actor_loss.detach(), "alpha": self.alpha.detach(),
@@ -282,8 +318,8 @@ class SACAgent:
     @torch.no_grad()
     def soft_update_targets(self) -> None:
         n, c = self.nets, self.cfg
-        _ema(n.critic.q, n.critic_target.q, c.critic_tau)
-        _ema(n.critic.encoder, n.critic_target.encoder, c.encoder_tau)
+        ema(n.critic.q.parameters(), n.critic_target.q.parameters(), c.critic_tau)
+        ema(n.critic.encoder.parameters(), n.critic_target.encoder.parameters(), c.encoder_tau)
 
     # -- persistence ------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -305,8 +341,8 @@ class SACAgent:
         """Load weights, optimisers and (unless ``restore_rng`` is False) random states.
 
         Evaluation passes ``restore_rng=False``; a checkpoint written on another
-        device type (CPU vs CUDA generator states differ) reseeds the policy-noise
-        generator instead, since bit-exact resume across devices is impossible anyway.
+        device type (CPU vs CUDA generator states differ) reseeds the generators
+        instead, since bit-exact resume across devices is impossible anyway.
         """
         # Optimisers adopt loaded state tensors without copying them; copy so that
         # an in-memory state (e.g. another live agent's) is never shared.
@@ -317,27 +353,15 @@ class SACAgent:
         self.alpha_opt.load_state_dict(state["alpha_opt"])
         self.updates = state["updates"]
         if restore_rng:
-            self.gen.set_state(state["gen"])
-            self.intrinsic_gen.set_state(state["intrinsic_gen"])
-            try:
-                self.noise_gen.set_state(state["noise_gen"])
-            except RuntimeError:  # saved on another device type
-                self.noise_gen.manual_seed(int(self.gen.initial_seed()) + 1 + self.updates)
+            seed = int(self.gen.initial_seed())
+            for offset, (key, gen) in enumerate([("gen", self.gen), ("noise_gen", self.noise_gen),
+                                                  ("intrinsic_gen", self.intrinsic_gen)]):
+                try:
+                    gen.set_state(state[key])
+                except RuntimeError:  # saved on another device type
+                    gen.manual_seed(seed + offset + self.updates)
         if self.aux is not None:
             self.aux.load_full_state_dict(state["aux"])
         if self.signal is not None:
             self.signal.load_full_state_dict(state["signal"])
 
-
-def _step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> None:
-    """Backpropagate ``loss`` and step each optimiser on its parameters' fresh gradients."""
-    for opt in optimizers:
-        opt.zero_grad(set_to_none=True)
-    loss.backward()
-    for opt in optimizers:
-        opt.step()
-
-
-def _ema(src: nn.Module, dst: nn.Module, tau: float) -> None:
-    for p, tp in zip(src.parameters(), dst.parameters(), strict=True):
-        tp.data.lerp_(p.data, tau)

@@ -21,6 +21,7 @@ from torch import nn
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig
 from imssr.networks.module import ModuleWithOptimizer
+from imssr.precision import optimizer_step
 
 
 @dataclass(kw_only=True)
@@ -89,9 +90,7 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         """One step of the task's optimiser (built by the agent) on the mean of
         :meth:`per_sample_loss`, then :meth:`after_step`."""
         loss = self.per_sample_loss(batch).mean()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        optimizer_step(loss, self.optimizer)
         self.after_step(step)
         return {"aux_loss": loss.detach()}
 

@@ -28,6 +28,7 @@ from imssr.augmentations import random_crop
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig
+from imssr.precision import full_precision
 
 
 class CURL(AuxiliaryTask):
@@ -48,13 +49,18 @@ class CURL(AuxiliaryTask):
         return [*self.own_parameters(), *self.shared_parameters()]
 
     def logits(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
-        logits = z_query @ (self.W @ z_key.T)
-        # Subtracting the row max leaves the softmax unchanged and keeps exp() finite.
-        return logits - logits.max(dim=1, keepdim=True).values
+        with full_precision(z_query):
+            # Float32 under any autocast: the positive's logit competes with B - 1 others that
+            # differ from it in the last bits bfloat16 would drop (its loss is IM-CURL's r_int).
+            logits = z_query.float() @ (self.W @ z_key.float().T)
+            # Subtracting the row max leaves the softmax unchanged and keeps exp() finite.
+            return logits - logits.max(dim=1, keepdim=True).values
 
     def loss_from_latents(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
         labels = torch.arange(z_query.shape[0], device=z_query.device)
-        return F.cross_entropy(self.logits(z_query, z_key), labels, reduction="none")
+        logits = self.logits(z_query, z_key)
+        with full_precision(logits):  # log-softmax in float32
+            return F.cross_entropy(logits, labels, reduction="none")
 
     def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:
         # The anchor: the RL crop of o (encoded by the critic's pass when ``enc`` is given).

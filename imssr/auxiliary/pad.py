@@ -28,6 +28,7 @@ from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig
 from imssr.networks import Projection, mlp, weight_init
 from imssr.networks.encoder import conv_stack
+from imssr.precision import full_precision
 
 
 class PAD(AuxiliaryTask):
@@ -58,8 +59,10 @@ class PAD(AuxiliaryTask):
 
     @staticmethod
     def action_error(pred: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """``L_PAD`` per sample: mean squared error over the action's dimensions, ``(B,)``."""
-        return (pred - action).pow(2).mean(dim=1)
+        """``L_PAD`` per sample: mean squared error over the action's dimensions, ``(B,)``, in
+        float32 (it is IM-PAD's r_int before normalisation)."""
+        with full_precision(pred):
+            return (pred.float() - action).pow(2).mean(dim=1)
 
     def predict_action(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         # One encoder pass over both observations.

@@ -33,14 +33,15 @@ from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.config import AgentConfig, AuxConfig
 from imssr.data import image_pool
-from imssr.networks import weight_init
+from imssr.networks import ema, weight_init
+from imssr.precision import FP32BatchNorm1d, full_precision
 
 
 def bn_mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
     # BatchNorm always uses batch statistics: DMC-GB's SODA never leaves training
     # mode, so running statistics would never be used; keeping none makes the
     # no-grad intrinsic pass free of side effects.
-    return nn.Sequential(nn.Linear(in_dim, hidden), nn.BatchNorm1d(hidden, track_running_stats=False),
+    return nn.Sequential(nn.Linear(in_dim, hidden), FP32BatchNorm1d(hidden, track_running_stats=False),
                          nn.ReLU(), nn.Linear(hidden, out_dim))
 
 
@@ -84,7 +85,8 @@ class SODA(AuxiliaryTask):
         h = self.predictor(self.projection(self.shared.encoder.trunk(online_view)))
         with torch.no_grad():
             target = self.target_projection(self.target_trunk(target_view))
-        return (F.normalize(h, dim=1) - F.normalize(target, dim=1)).pow(2)
+        with full_precision(h):  # the loss behind IM-SODA's r_int: unit vectors compared in float32
+            return (F.normalize(h.float(), dim=1) - F.normalize(target.float(), dim=1)).pow(2)
 
     def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:
         # Independent crops: the clean view is the batch's crop of o, the overlaid
@@ -103,8 +105,5 @@ class SODA(AuxiliaryTask):
 
     @torch.no_grad()
     def after_step(self, step: int) -> None:
-        tau = self.cfg.tau
-        online = [*self.shared.encoder.trunk.parameters(), *self.projection.parameters()]
-        target = [*self.target_trunk.parameters(), *self.target_projection.parameters()]
-        for p, tp in zip(online, target, strict=True):
-            tp.lerp_(p, tau)
+        ema([*self.shared.encoder.trunk.parameters(), *self.projection.parameters()],
+            [*self.target_trunk.parameters(), *self.target_projection.parameters()], self.cfg.tau)

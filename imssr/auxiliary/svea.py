@@ -19,6 +19,7 @@ import torch
 from imssr.augmentations import random_conv
 from imssr.auxiliary.base import AuxiliaryTask
 from imssr.batch import Batch, Encoding, NextObsContext
+from imssr.precision import full_precision
 
 
 class SVEA(AuxiliaryTask):
@@ -38,4 +39,5 @@ class SVEA(AuxiliaryTask):
     @torch.no_grad()
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         z_hat = self.shared.encoder.projection(ctx.enc.next_trunk)
-        return (z_hat - ctx.enc.next_latent).pow(2).sum(dim=1)
+        with full_precision(z_hat):  # IM-SVEA's r_int before normalisation, in float32
+            return (z_hat.float() - ctx.enc.next_latent.float()).pow(2).sum(dim=1)

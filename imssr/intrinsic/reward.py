@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import torch
 
 from imssr.config import NORMALIZATIONS, SCHEDULES, IntrinsicConfig
-from imssr.errors import ImssrError, NonFiniteError
-
+from imssr.errors import ImssrError
+from imssr.precision import full_precision
 
 
 def normalize(losses: torch.Tensor, method: str = "zscore", eps: float = 0.0, unbiased: bool = True,
@@ -31,7 +31,8 @@ def normalize(losses: torch.Tensor, method: str = "zscore", eps: float = 0.0, un
     A batch whose spread (zscore: std; minmax: max - min) is at most ``rtol * max(|mean|, 1e-12)``
     gives zeros: the losses are equal up to float rounding, and dividing their rounding error by a
     tiny spread would hand out a large constant bonus (all 0.3: +0.75 per sample with eps 1e-8).
-    The caller checks that the losses are finite (:class:`IntrinsicReward`).
+    Non-finite losses give non-finite values; the training loop stops the run on them
+    (:class:`IntrinsicReward`).
     """
     if method == "none":
         return losses
@@ -81,24 +82,25 @@ class IntrinsicReward:
         self.cfg = cfg
         self.schedule = BetaSchedule(cfg.beta0, cfg.schedule, cfg.decay, cfg.decay_every_steps)
 
-    def __call__(self, losses: torch.Tensor, step: int, signal: str = "intrinsic signal"
-                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor | float]]:
-        """Return the bonus to add to the reward, shape ``(B, 1)``, and log values.
+    def __call__(self, losses: torch.Tensor, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor | float]]:
+        """Return the bonus to add to the reward, shape ``(B, 1)``, and log values (tensors on
+        the losses' device: nothing here waits for the device).
 
-        A non-finite loss would turn every reward of the batch into NaN through the batch
-        statistics, and the critic with it: the run stops instead, naming the step and signal.
+        A non-finite loss turns every reward of the batch into NaN through the batch statistics,
+        and the critic with it.  It also makes ``r_int_raw`` (the losses' mean) non-finite,
+        which the training loop checks with the other metrics and stops the run on, naming
+        the agent step and the signal.
         """
-        losses = losses.detach().flatten()
-        if not bool(torch.isfinite(losses).all()):
-            bad = int((~torch.isfinite(losses)).sum())
-            raise NonFiniteError(f"non-finite intrinsic reward at agent step {step}: {bad} of "
-                                 f"{losses.numel()} values of the {signal} are nan or inf")
-        c = self.cfg
-        r_int = normalize(losses, c.normalization, c.norm_eps, c.unbiased_std, c.norm_rtol)
-        beta = self.schedule(step)
-        # r_int is normalised (zscore: mean 0, std 1 by construction), so the raw
-        # loss's spread and the bonus actually added are logged too.
-        stats = {"r_int_mean": r_int.mean(), "r_int_std": r_int.std(unbiased=False),
-                 "r_int_raw": losses.mean(), "r_int_raw_std": losses.std(unbiased=False),
-                 "bonus_std": beta * r_int.std(unbiased=False), "beta": beta}
-        return (beta * r_int).unsqueeze(-1), stats
+        with full_precision(losses):
+            # Float32 under any autocast: the normalisation divides small differences of
+            # per-sample losses by their spread.
+            losses = losses.detach().flatten().float()
+            c = self.cfg
+            r_int = normalize(losses, c.normalization, c.norm_eps, c.unbiased_std, c.norm_rtol)
+            beta = self.schedule(step)
+            # r_int is normalised (zscore: mean 0, std 1 by construction), so the raw
+            # loss's spread and the bonus actually added are logged too.
+            stats = {"r_int_mean": r_int.mean(), "r_int_std": r_int.std(unbiased=False),
+                     "r_int_raw": losses.mean(), "r_int_raw_std": losses.std(unbiased=False),
+                     "bonus_std": beta * r_int.std(unbiased=False), "beta": beta}
+            return (beta * r_int).unsqueeze(-1), stats

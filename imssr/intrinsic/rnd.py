@@ -16,6 +16,7 @@ from torch import nn
 from imssr.batch import Batch, NextObsContext
 from imssr.config import IntrinsicConfig
 from imssr.intrinsic.base import IntrinsicSignal
+from imssr.precision import full_precision, optimizer_step
 
 
 def rnd_convs(channels: int) -> nn.Sequential:
@@ -52,7 +53,9 @@ class RND(IntrinsicSignal):
         x = obs.float() / 255.0
         with torch.no_grad():
             target = self.target(x)
-        return (self.predictor(x) - target).pow(2).mean(dim=1)
+        prediction = self.predictor(x)
+        with full_precision(prediction):  # RND's r_int before normalisation, in float32
+            return (prediction.float() - target.float()).pow(2).mean(dim=1)
 
     @torch.no_grad()
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
@@ -60,8 +63,6 @@ class RND(IntrinsicSignal):
 
     def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
         loss = self.error(batch.next_obs).mean()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        optimizer_step(loss, self.optimizer)
         return {"rnd_loss": loss.detach()}
 

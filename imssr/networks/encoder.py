@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from imssr.precision import FP32LayerNorm
+
 
 def conv_output_size(size: int, num_layers: int) -> int:
     # First layer: 3x3, stride 2; the others 3x3, stride 1; no padding.
@@ -110,7 +112,7 @@ class Projection(nn.Module):
     def __init__(self, in_dim: int, out_dim: int, tanh: bool = False):
         super().__init__()
         self.fc = nn.Linear(in_dim, out_dim)
-        self.ln = nn.LayerNorm(out_dim)
+        self.ln = FP32LayerNorm(out_dim)
         self.tanh = tanh
         self.out_dim = out_dim
 

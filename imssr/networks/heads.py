@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from imssr.networks.encoder import Encoder, Projection
+from imssr.precision import full_precision
 
 
 def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
@@ -45,7 +46,15 @@ class Actor(nn.Module):
 
     def forward(self, trunk_features: torch.Tensor, generator: Optional[torch.Generator] = None,
                 sample: bool = True) -> PolicyOutput:
-        mu, log_std = self.net(self.projection(trunk_features)).chunk(2, dim=-1)
+        out = self.net(self.projection(trunk_features))
+        with full_precision(out):
+            # The tanh-Gaussian in float32: log pi subtracts nearly equal terms and
+            # log(1 - tanh^2) needs the squashed action's small distance to +-1; the noise is drawn
+            # in float32 too, so both precisions draw the same noise.
+            return self._gaussian(*out.float().chunk(2, dim=-1), generator, sample)
+
+    def _gaussian(self, mu: torch.Tensor, log_std: torch.Tensor, generator: Optional[torch.Generator],
+                  sample: bool) -> PolicyOutput:
         log_std = torch.tanh(log_std)
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1)
         if not sample:

@@ -24,3 +24,13 @@ class ModuleWithOptimizer(nn.Module):
         self.load_state_dict(state["module"])
         if self.optimizer is not None:
             self.optimizer.load_state_dict(state["optimizer"])
+
+
+def ema(online, target, tau: float) -> None:
+    """``target <- lerp(target, online, tau)`` for each pair of parameters (a soft target update),
+    as one foreach call: one kernel launch per group on CUDA, and on CPU the same per-tensor
+    ``lerp_`` as a Python loop would run, so the same numbers."""
+    online, target = list(online), list(target)
+    if len(online) != len(target):
+        raise ValueError(f"EMA over {len(online)} online and {len(target)} target parameters")
+    torch._foreach_lerp_([t.data for t in target], [p.data for p in online], tau)

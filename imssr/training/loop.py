@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from imssr._gl import gl_renderer, software_rendering_warning
 from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
@@ -39,14 +40,16 @@ from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_
 
 # Settings that may change between a run and its resume.
 RESUMABLE_CHANGES = {"train.steps", "train.device", "train.progress", "train.tensorboard",
+                     "agent.precision", "agent.tf32", "agent.compile",
                      "train.torch_threads", "train.eval_episodes", "train.eval_every_steps",
                      "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer"}
 
 PROGRESS_EVERY_S = 60.0
 """Seconds of wall time between progress lines when stdout is not a terminal (a SLURM or nohup
 log): agent step, frames per second, ETA and the last episode's return."""
-# Training metrics in the order a divergence names them (the critic's loss first).
-DIVERGENCE_ORDER = ("critic_loss", "actor_loss", "alpha_loss", "aux_loss", "rnd_loss", "q_mean",
+# Training metrics in the order a divergence names them: the raw intrinsic signal (its mean), which
+# enters the critic's target within the same update, then the critic's loss.
+DIVERGENCE_ORDER = ("r_int_raw", "critic_loss", "actor_loss", "alpha_loss", "aux_loss", "rnd_loss", "q_mean",
                     "alpha", "entropy")
 
 
@@ -214,6 +217,11 @@ class Trainer:
         self.eval_modes = cfg.train.eval_mode_list(e.mode)
         self.eval_envs = {m: env_from_config(e, seed=cfg.train.seed + 10_000, mode=m, footage_split="test")
                           for m in self.eval_modes}
+        if torch.cuda.is_available():
+            warning = software_rendering_warning(os.environ.get("MUJOCO_GL", "egl"),
+                                                 gl_renderer(self.env.physics), gpu=True)
+            if warning:
+                print(warning, flush=True)
         self.action_dim = self.env.action_space.shape[0]
         self.agent = build_agent(cfg, self.env.observation_space.shape, self.action_dim, self.device)
         if self.agent.aux is not None:
@@ -477,7 +485,7 @@ class Trainer:
                            "wall_time": time.time()}
                     # One host sync per episode, not one per metric per update.
                     row.update({k: float(sums[k]) / counts[k] for k in sums})
-                    bad = _first_non_finite(row, sums)
+                    bad = _first_non_finite(row, sums, self._metric_names())
                     if bad:
                         raise DivergedError(bad)
                     self.logger.log_train(row)
@@ -510,11 +518,16 @@ class Trainer:
         except NonFiniteError as exc:
             # Named by the first non-finite training metric of the episode so far (one host
             # sync, only now), else by what was found (the action, the intrinsic signal).
-            what = _first_non_finite({k: float(v) for k, v in sums.items()}, sums) or str(exc)
+            what = _first_non_finite({k: float(v) for k, v in sums.items()}, sums, self._metric_names()) or str(exc)
             raise DivergedError(f"{DIVERGED_PREFIX} {self.step}: {what}") from None
         finally:
             bar.close()
             self.logger.close()
+
+    def _metric_names(self) -> dict[str, str]:
+        """How a divergence names the metrics that are not named by their key."""
+        signal = self.agent.signal
+        return {"r_int_raw": f"intrinsic reward ({signal.label})"} if signal is not None else {}
 
     def close(self) -> None:
         """Close the envs and release the run directory (also after a failed ``__init__``)."""
@@ -547,14 +560,15 @@ def thread_warning(saved: Optional[int], now: int, device) -> Optional[str]:
             f"(--set train.torch_threads={saved} keeps it exact)")
 
 
-def _first_non_finite(values: dict, keys) -> Optional[str]:
+def _first_non_finite(values: dict, keys, names: Optional[dict[str, str]] = None) -> Optional[str]:
     """``"critic loss nan"`` for the first of ``keys`` (in :data:`DIVERGENCE_ORDER`, then the
-    rest) whose value in ``values`` is NaN or infinite; None when all are finite."""
+    rest) whose value in ``values`` is NaN or infinite, named as in ``names`` or by its key;
+    None when all are finite."""
     ordered = [k for k in DIVERGENCE_ORDER if k in keys] + sorted(k for k in keys if k not in DIVERGENCE_ORDER)
     for k in ordered:
         v = values.get(k)
         if isinstance(v, float) and not math.isfinite(v):
-            return f"{k.replace('_', ' ')} {v}"
+            return f"{(names or {}).get(k, k.replace('_', ' '))} {v}"
     return None
 
 

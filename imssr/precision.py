@@ -1,0 +1,111 @@
+"""Mixed precision (``agent.precision``) and the device switches of an agent.
+
+``bf16`` runs the forward passes under :func:`torch.autocast` with bfloat16 on the agent's
+device type (CPU or CUDA alike); weights, gradients and Adam's state stay float32.  Pieces whose
+rounding matters run in float32 inside :func:`full_precision` regions; with ``fp32`` no autocast
+context is ever entered, so :func:`full_precision` is a no-op and the float32 path is unchanged.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import sys
+from typing import ContextManager, Optional
+
+import torch
+from torch import nn
+
+
+def autocast(device: torch.device, precision: str) -> ContextManager:
+    """The context of an agent's forward passes: bfloat16 autocast for ``bf16``, else nothing."""
+    if precision == "bf16":
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def full_precision(x: torch.Tensor) -> ContextManager:
+    """A float32 region inside an autocast one (on ``x``'s device type), for the pieces that stay
+    float32; a no-op context when no autocast is active.  Cast inputs with ``.float()`` inside
+    it: the ops themselves no longer cast, and ``.float()`` of a float32 tensor is the tensor."""
+    if torch.is_autocast_enabled(x.device.type):
+        return torch.autocast(device_type=x.device.type, enabled=False)
+    return contextlib.nullcontext()
+
+
+class FP32LayerNorm(nn.LayerNorm):
+    """LayerNorm computed in float32 under autocast: its mean and variance over a bfloat16 row
+    lose the small differences it exists to rescale (same parameters and state dict as
+    :class:`torch.nn.LayerNorm`)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        with full_precision(x):
+            return super().forward(x.float())
+
+
+class FP32BatchNorm1d(nn.BatchNorm1d):
+    """BatchNorm1d computed in float32 under autocast, for the same reason as
+    :class:`FP32LayerNorm` (batch statistics)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        with full_precision(x):
+            return super().forward(x.float())
+
+
+def optimizer_step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> None:
+    """Backpropagate ``loss`` and step each optimiser on its parameters' fresh gradients.
+
+    Outside autocast: the backward pass runs each op in the dtype its forward used, and the
+    optimiser updates the float32 weights and state in float32 (torch's advice: autocast wraps
+    forward passes and losses only)."""
+    for opt in optimizers:
+        opt.zero_grad(set_to_none=True)
+    with full_precision(loss):
+        loss.backward()
+        for opt in optimizers:
+            opt.step()
+
+
+def native_bf16(cpuinfo: str) -> bool:
+    """Whether the CPU that ``cpuinfo`` (the text of /proc/cpuinfo) describes computes bfloat16
+    natively: x86 ``avx512_bf16`` or AMX (``amx_bf16``), Arm ``bf16``."""
+    flags = {word for line in cpuinfo.splitlines() if line.lower().startswith(("flags", "features"))
+             for word in line.split(":", 1)[-1].split()}
+    return bool(flags & {"avx512_bf16", "amx_bf16", "bf16"})
+
+
+@functools.cache
+def cpu_has_native_bf16() -> Optional[bool]:
+    """:func:`native_bf16` of this machine; None when it cannot tell (no /proc/cpuinfo)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return native_bf16(f.read())
+    except OSError:
+        return None
+
+
+_warned_slow_bf16 = False
+
+
+def warn_if_bf16_is_slow(device: torch.device, precision: str) -> Optional[str]:
+    """Print, once per process, that bf16 will be slow on a CPU without native bfloat16 (it is
+    emulated there: slower than float32); return the line, or None when there is nothing to say."""
+    global _warned_slow_bf16
+    if precision != "bf16" or device.type != "cpu" or cpu_has_native_bf16() is not False:
+        return None
+    line = (f"imssr: warning: agent.precision=bf16 on a CPU without native bfloat16 (no avx512_bf16/AMX; "
+            f"torch sees {torch.backends.cpu.get_cpu_capability()}): expect it slower than fp32 here")
+    if not _warned_slow_bf16:
+        _warned_slow_bf16 = True
+        print(line, file=sys.stderr)
+    return line
+
+
+def configure_cuda(device: torch.device, tf32: bool) -> None:
+    """On CUDA: cuDNN picks its fastest convolution algorithms for the (fixed) input shapes, and
+    TensorFloat-32 in matmuls and convolutions only when ``tf32`` (``agent.tf32``: it changes
+    numbers; torch's own default would allow it in cuDNN convolutions).  No-op on CPU."""
+    if device.type != "cuda":
+        return
+    torch.backends.cudnn.benchmark = True
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    torch.backends.cudnn.allow_tf32 = tf32

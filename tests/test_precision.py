@@ -1,0 +1,98 @@
+"""agent.precision: fp32 enters no autocast at all; bf16 runs the passes in bfloat16 and keeps
+weights, optimiser state and the numerically sensitive pieces in float32."""
+import numpy as np
+import pytest
+import torch
+
+from conftest import filled_buffer
+from imssr.config import apply_overrides
+from imssr.errors import ImssrError
+from imssr.intrinsic import IntrinsicReward
+from imssr.precision import FP32LayerNorm, full_precision, native_bf16, warn_if_bf16_is_slow
+from imssr.presets import make_config
+from test_no_sync import small_agent
+
+
+@pytest.mark.parametrize("algo,schedule", [("im-curl", "sequential"), ("im-soda", "sequential"),
+                                           ("im-pad", "fused"), ("svea+rnd", "sequential")])
+def test_fp32_enters_no_autocast(monkeypatch, algo, schedule):
+    agent = small_agent(algo, schedule)
+    replay = filled_buffer(60, action_dim=2, size=60)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("torch.autocast entered at agent.precision=fp32")
+
+    monkeypatch.setattr(torch, "autocast", refused)
+    agent.update(replay, 0)
+    agent.act(replay.sample(1)["obs"][0], deterministic=False)
+
+
+@pytest.mark.parametrize("algo,schedule", [("im-curl", "sequential"), ("im-curl", "fused"),
+                                           ("im-soda", "sequential"), ("im-pad", "fused"),
+                                           ("im-svea", "sequential"), ("curl+rnd", "sequential"),
+                                           ("pad+re3", "sequential")])
+def test_bf16_runs_the_convolutions_in_bfloat16_and_keeps_float32_state(algo, schedule):
+    agent = small_agent(algo, schedule, precision="bf16")
+    replay = filled_buffer(60, action_dim=2, size=60)
+    conv_dtypes = set()
+    hook = agent.nets.critic.encoder.trunk.convs[0].register_forward_hook(
+        lambda module, args, out: conv_dtypes.add(out.dtype))
+    for step in range(3):
+        metrics = agent.update(replay, step)
+    hook.remove()
+    assert conv_dtypes == {torch.bfloat16}
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+    # The pieces that stay float32 report float32 (the target, the TD and r_int statistics).
+    assert {v.dtype for v in metrics.values() if torch.is_tensor(v)} == {torch.float32}
+    states = [agent.critic_opt, agent.actor_opt, agent.alpha_opt]
+    assert all(p.dtype == torch.float32 for p in agent.nets.parameters())
+    assert all(t.dtype == torch.float32 for opt in states for s in opt.state.values() for t in s.values()
+               if t.is_floating_point())
+    action = agent.act(replay.sample(1)["obs"][0], deterministic=True)
+    assert action.dtype == np.float32 and np.all(np.abs(action) <= 1)
+
+
+def test_bf16_agrees_with_fp32_to_bfloat16_rounding():
+    """Same seed, same batch: the first critic loss and the trunk features of both precisions."""
+    replay = filled_buffer(60, action_dim=2, size=60)
+    obs = torch.as_tensor(replay.sample(8)["obs"])[:, :, :52, :52]
+    losses, features = [], []
+    for precision in ("fp32", "bf16"):
+        agent = small_agent("curl", "sequential", precision)
+        with torch.no_grad(), agent.autocast():
+            features.append(agent.nets.critic.encoder.trunk(obs).float())
+        replay.rng = np.random.default_rng(0)  # the same batch for both
+        losses.append(float(agent.update(replay, 0)["critic_loss"]))
+    assert features[1].dtype == torch.float32
+    rel = (features[0] - features[1]).abs().max() / features[0].abs().max()
+    assert 0 < rel < 0.05
+    assert losses[1] == pytest.approx(losses[0], rel=0.1)
+
+
+def test_float32_islands_under_autocast():
+    x = torch.randn(4, 16)
+    ln, w = FP32LayerNorm(16), torch.randn(16, 16)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = x @ w
+        assert low.dtype == torch.bfloat16
+        assert ln(low).dtype == torch.float32
+        with full_precision(low):
+            assert (low.float() @ w).dtype == torch.float32
+        bonus, stats = IntrinsicReward(make_config("im-curl", "cartpole_swingup").intrinsic)(low[:, 0], 0)
+        assert bonus.dtype == torch.float32 and stats["r_int_raw"].dtype == torch.float32
+
+
+def test_precision_is_validated_and_bf16_is_one_override():
+    cfg = apply_overrides(make_config("im-curl", "cartpole_swingup"), ["agent.precision=bf16"])
+    assert cfg.validate().agent.precision == "bf16"
+    assert make_config("im-curl", "cartpole_swingup").agent.precision == "fp32"  # the paper's
+    with pytest.raises(ImssrError, match="agent.precision must be one of fp32, bf16"):
+        apply_overrides(make_config("curl", "cartpole_swingup"), ["agent.precision=fp16"]).validate()
+
+
+def test_a_cpu_without_native_bfloat16_is_told_once():
+    assert native_bf16("processor\t: 0\nflags\t\t: fpu sse avx512f avx512_bf16 avx512_vnni\n")
+    assert native_bf16("Features\t: fp asimd bf16 i8mm\n")
+    assert not native_bf16("flags\t\t: fpu sse avx2 avx512f avx512bw\n")
+    assert warn_if_bf16_is_slow(torch.device("cpu"), "fp32") is None
+    assert warn_if_bf16_is_slow(torch.device("cuda"), "bf16") is None
