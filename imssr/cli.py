@@ -149,6 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
                 t.add_argument(f.flag, action="store_true", help=f.help(demo))
             else:
                 t.add_argument(f.flag, type=f.type, metavar=f.metavar, help=f.help(demo))
+        t.add_argument("--logger", metavar="csv,tensorboard,wandb",
+                       help="where training logs go: CSV always, TensorBoard (train.tensorboard) and "
+                            "Weights & Biases (train.wandb, the wandb extra; WANDB_MODE=offline keeps it "
+                            "local) as listed (default: csv,tensorboard; with --resume or --config the file's)")
         t.add_argument("--config", metavar="FILE",
                        help="JSON config, complete (a run's config.json) or partial: what it leaves out comes "
                             "from the preset of its algo and task (default: none, the preset)")
@@ -333,10 +337,27 @@ def _run_config(args, demo: bool):
             values[f.field] = False
         elif not f.switch and given is not None:
             values[f.field] = given
+    if args.logger is not None:
+        values.update(_loggers(args.logger, args.no_tensorboard))
     return build_run_config(args.algo, args.task, network=args.network, config_file=args.config,
                             resume_dir=args.out if args.resume and not args.config else None, demo=demo,
                             values=values, frames=args.frames, batch_size=args.batch_size, beta0=args.beta0,
                             overrides=args.set)
+
+
+LOGGERS = ("csv", "tensorboard", "wandb")
+"""The names ``--logger`` takes; CSV logs are written whatever it says."""
+
+
+def _loggers(text: str, no_tensorboard: bool) -> dict[str, bool]:
+    """``--logger csv,tensorboard,wandb`` as the config fields it sets."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in LOGGERS]
+    if unknown:
+        raise ImssrError(f"unknown logger {unknown[0]!r} in --logger; choose from {', '.join(LOGGERS)}")
+    if no_tensorboard and "tensorboard" in names:
+        raise ImssrError("--no-tensorboard and --logger ...tensorboard contradict each other; give one")
+    return {"train.tensorboard": "tensorboard" in names, "train.wandb": "wandb" in names}
 
 
 def cmd_train(args, demo: bool = False) -> int:

@@ -230,6 +230,19 @@ class TrainConfig:
     """Torch device: cpu, cuda, cuda:N, or auto."""
     tensorboard: bool = True
     """Write TensorBoard event files besides the CSV logs."""
+    wandb: bool = False
+    """Log to Weights & Biases too (the ``wandb`` extra): the config, the scalars TensorBoard gets,
+    evaluation videos and the learning curve; ``WANDB_MODE=offline`` keeps it local."""
+    wandb_project: str = "imssr"
+    """W&B project of the run."""
+    wandb_group: str = ""
+    """W&B group of the run (``imssr sweep`` sets it to its root's name); empty: none."""
+    eval_video_every: int = 0
+    """Record one episode per evaluated scene at every k-th evaluation, into
+    ``RUN/videos/step_<step>_<mode>.<format>``, TensorBoard and W&B (0: never).  Recording reads
+    the frames the evaluation renders anyway: returns and random streams stay the same."""
+    eval_video_format: str = "gif"
+    """File format of the evaluation videos: gif or mp4."""
     progress: bool = True
     """Show a progress bar with frames per second."""
     torch_threads: int = 0
@@ -349,6 +362,10 @@ class RunConfig:
             (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
             (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
+            (t.eval_video_every >= 0, "train.eval_video_every must be >= 0"),
+            (t.eval_video_format in VIDEO_FORMATS,
+             f"train.eval_video_format must be one of {', '.join(VIDEO_FORMATS)}"),
+            (bool(t.wandb_project.strip()), "train.wandb_project must not be empty"),
             (0 <= t.seed <= MAX_SEED, f"train.seed must be {SEED_RULE}, got {t.seed}"),
         ]
         for ok, message in checks:
@@ -375,6 +392,7 @@ NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 SOURCES = ("ssl", "rnd", "re3")
 UPDATE_SCHEDULES = ("sequential", "fused")
 FORMS = ("authors", "training")
+VIDEO_FORMATS = ("gif", "mp4")
 
 
 def steps_for_frames(frames: int, action_repeat: int) -> int:
