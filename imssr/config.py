@@ -395,6 +395,22 @@ FORMS = ("authors", "training")
 VIDEO_FORMATS = ("gif", "mp4")
 
 
+LOGGERS = ("csv", "tensorboard", "wandb")
+"""The names ``--logger`` takes; CSV logs are written whatever it says."""
+
+
+def logger_fields(text: str, no_tensorboard: bool = False) -> dict[str, bool]:
+    """``--logger csv,tensorboard,wandb`` as the config fields it sets (``train.tensorboard``,
+    ``train.wandb``); ``no_tensorboard``: ``--no-tensorboard`` was given too."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in LOGGERS]
+    if unknown:
+        raise ImssrError(f"unknown logger {unknown[0]!r} in --logger; choose from {', '.join(LOGGERS)}")
+    if no_tensorboard and "tensorboard" in names:
+        raise ImssrError("--no-tensorboard and --logger ...tensorboard contradict each other; give one")
+    return {"train.tensorboard": "tensorboard" in names, "train.wandb": "wandb" in names}
+
+
 def steps_for_frames(frames: int, action_repeat: int) -> int:
     """Agent steps that cover ``frames`` environment frames (rounded up, as the loop runs them)."""
     return -(-frames // action_repeat)

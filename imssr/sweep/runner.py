@@ -127,57 +127,87 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
     ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
+class RunAttempt:
+    """One attempt of a run: ``imssr train`` (resuming when the run has a checkpoint) started in
+    a subprocess that writes to the run's ``sweep.log``; :meth:`finish` says what happened.
+
+    Killing the attempt (:meth:`stop`, or the death of the process that started it) leaves only
+    the run's last atomic checkpoint, from which the next attempt resumes.
+    """
+
+    def __init__(self, run_dir: str, train_args: list[str], steps: int, attempt: int, threads: int = 1):
+        os.makedirs(run_dir, exist_ok=True)
+        self.run_dir, self.steps, self.attempt = run_dir, steps, attempt
+        self.resumed = has_checkpoint(run_dir)
+        # A resume passes the same settings so that `imssr train` rejects a run directory whose
+        # config differs from the sweep's (apart from the budget and logging settings).
+        cmd = [sys.executable, "-m", "imssr", "train", *train_args, "--out", run_dir, "--no-progress"]
+        if self.resumed:
+            cmd.append("--resume")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # One thread pool per reserved CPU: torch's default (every core) makes parallel runs spin
+        # against each other, which on a shared 2-core machine is 10x slower than one thread each.
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[var] = str(max(1, threads))
+        self.log_path = os.path.join(run_dir, LOG_FILE)
+        self.start = time.time()
+        with open(self.log_path, "a") as log:
+            log.write(f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
+                      f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
+            log.flush()
+            self.offset = log.tell()
+            preexec = _die_with_parent if sys.platform.startswith("linux") else None
+            self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                         preexec_fn=preexec, start_new_session=True)
+
+    def poll(self) -> Optional[int]:
+        """The exit status, or None while the training runs."""
+        return self.proc.poll()
+
+    def stop(self) -> None:
+        """SIGTERM the training (its process group), SIGKILL after 30 s."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+    def finish(self) -> dict:
+        """What the finished attempt did (see :func:`execute_run`); writes ``done.json`` when the
+        run reached its budget."""
+        returncode = self.proc.wait()
+        eval_csv = os.path.join(self.run_dir, "eval.csv")
+        final_step, final_frame = last_step(eval_csv), last_frame(eval_csv)
+        result = {"ok": False, "returncode": returncode, "resumed": self.resumed, "error": "",
+                  "final_step": final_step, "final_frame": final_frame,
+                  "seconds": round(time.time() - self.start, 1)}
+        if returncode != 0:
+            result["error"] = _last_line(self.log_path, self.offset) or f"exit status {returncode}"
+        elif final_step < self.steps:
+            result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
+                               f"before its budget of {self.steps} steps")
+        else:
+            result["ok"] = True
+            write_done(self.run_dir, self.steps, final_step, self.attempt, self.resumed, result["seconds"])
+        return result
+
+
 def execute_run(run_dir: str, train_args: list[str], steps: int, attempt: int,
                 threads: int = 1) -> dict:
-    """Train (or resume) one run to ``steps`` agent steps; return what happened.
+    """Train (or resume) one run to ``steps`` agent steps and wait for it; return what happened
+    (the body of a Ray task or a SLURM job).
 
     Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
     line when it failed), ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.
     """
-    os.makedirs(run_dir, exist_ok=True)
-    resumed = has_checkpoint(run_dir)
-    # A resume passes the same settings so that `imssr train` rejects a run directory whose
-    # config differs from the sweep's (apart from the budget and logging settings).
-    cmd = [sys.executable, "-m", "imssr", "train", *train_args, "--out", run_dir, "--no-progress"]
-    if resumed:
-        cmd.append("--resume")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    # One thread pool per reserved CPU: torch's default (every core) makes parallel runs spin
-    # against each other, which on a shared 2-core machine is 10x slower than one thread each.
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env[var] = str(max(1, threads))
-    log_path = os.path.join(run_dir, LOG_FILE)
-    start = time.time()
-    with open(log_path, "a") as log:
-        log.write(f"==> attempt {attempt} ({'resume' if resumed else 'fresh'}) at "
-                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
-        log.flush()
-        offset = log.tell()
-        preexec = _die_with_parent if sys.platform.startswith("linux") else None
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                preexec_fn=preexec, start_new_session=True)
-        try:
-            returncode = proc.wait()
-        finally:
-            if proc.poll() is None:  # interrupted while waiting (task cancelled)
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-    eval_csv = os.path.join(run_dir, "eval.csv")
-    final_step, final_frame = last_step(eval_csv), last_frame(eval_csv)
-    result = {"ok": False, "returncode": returncode, "resumed": resumed, "error": "",
-              "final_step": final_step, "final_frame": final_frame, "seconds": round(time.time() - start, 1)}
-    if returncode != 0:
-        result["error"] = _last_line(log_path, offset) or f"exit status {returncode}"
-    elif final_step < steps:
-        result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
-                           f"before its budget of {steps} steps")
-    else:
-        result["ok"] = True
-        write_done(run_dir, steps, final_step, attempt, resumed, result["seconds"])
-    return result
+    attempt_ = RunAttempt(run_dir, train_args, steps, attempt, threads)
+    try:
+        attempt_.proc.wait()
+    finally:
+        attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
+    return attempt_.finish()
 
 
 def write_done(run_dir: str, steps: int, final_step: int, attempt: int, resumed: bool,
