@@ -16,7 +16,7 @@ from typing import Iterable, Optional
 import numpy as np
 
 from imssr.plots.media import save_video
-from imssr.utils import atomic_write_text, disk_full_as_error
+from imssr.utils import atomic_write_text, disk_full_as_error, read_csv
 
 VIDEO_FPS = 25.0
 """Frames per second of evaluation videos (one frame per agent step), as ``imssr evaluate --video``."""
@@ -76,13 +76,6 @@ def _is_number(v) -> bool:
 
 def _quote(v: str) -> str:
     return f'"{v}"' if ("," in v or '"' in v) else v
-
-
-def read_csv(path: str) -> list[dict]:
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 def write_eval(summary: CSVLog, episodes: CSVLog, row: dict, returns: Iterable[float]) -> None:
