@@ -12,13 +12,13 @@ from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 from imssr.analysis import AnalysisOptions, analyze_run
-from imssr.config import MAX_SEED, SEED_RULE, field_docs
+from imssr.config import MAX_SEED, SEED_RULE, field_docs, logger_fields
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, build_run_config, explain, make_config
-from imssr.sweep.grid import SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
+from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
 from imssr.training.loop import StopRequest, TrainingInterrupted
@@ -156,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
                 t.add_argument(f.flag, action="store_true", help=f.help(demo))
             else:
                 t.add_argument(f.flag, type=f.type, metavar=f.metavar, help=f.help(demo))
+        t.add_argument("--logger", metavar="csv,tensorboard,wandb",
+                       help="where training logs go: CSV always, TensorBoard (train.tensorboard) and "
+                            "Weights & Biases (train.wandb, the wandb extra; WANDB_MODE=offline keeps it "
+                            "local) as listed (default: csv,tensorboard; with --resume or --config the file's)")
         t.add_argument("--config", metavar="FILE",
                        help="JSON config, complete (a run's config.json) or partial: what it leaves out comes "
                             "from the preset of its algo and task (default: none, the preset)")
@@ -236,14 +240,16 @@ def build_parser() -> argparse.ArgumentParser:
 def add_sweep_parsers(sub) -> None:
     """``imssr sweep`` (a grid of runs on Ray) and ``imssr report`` (paper-style tables)."""
     _positive_float = _number(float, 1e-9, "a number > 0")
-    sw = sub.add_parser("sweep", help="train a grid of runs (algos x tasks x seeds [x beta0]) on Ray",
+    sw = sub.add_parser("sweep", help="train a grid of runs (algos x tasks x seeds [x beta0]) on Ray, "
+                        "SLURM or local subprocesses",
                         description="Runs land in ROOT/<task>/<algo>/seed_<n> (ROOT/<task>/<algo>/"
                         "beta0_<value>/seed_<n> in a beta0 sweep). Finished runs are skipped, "
                         "interrupted ones resume, failed ones are retried; see docs/experiments.md.")
     sw.add_argument("--root", help="sweep directory (default runs/sweep)")
     sw.add_argument("--file", metavar="SWEEP.json",
                     help="JSON object with the same keys (algos, tasks, seeds, steps or frames, set, beta0, "
-                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, address); flags override it "
+                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, address, launcher, slurm_partition, "
+                         "slurm_time, slurm_gpus_per_task, slurm_array_parallelism, logger); flags override it "
                          "(default: none)")
     sw.add_argument("--algos", metavar="A,B",
                     help="algorithms, see imssr algos (default: none: a sweep needs them, here or in --file)")
@@ -264,6 +270,19 @@ def add_sweep_parsers(sub) -> None:
     sw.add_argument("--gpus-per-run", type=_nonneg_float, help="GPUs per run, fractions allowed (default 0)")
     sw.add_argument("--max-parallel", type=_nonneg_int, help="runs at once (default: what the cluster holds)")
     sw.add_argument("--address", help="existing Ray cluster, e.g. 10.0.0.1:6379 (default: a local Ray)")
+    sw.add_argument("--launcher", choices=list(LAUNCHERS),
+                    help="ray: Ray tasks (a local Ray, or --address); slurm: one SLURM job per run through "
+                         "submitit (the slurm extra); local: subprocesses of the sweep, no Ray (default ray)")
+    sw.add_argument("--slurm-partition", metavar="NAME", help="SLURM partition (default: the cluster's)")
+    sw.add_argument("--slurm-time", type=_nonneg_int, metavar="MINUTES",
+                    help="time limit per SLURM job; a run cut by it is retried from its checkpoint (default 1440)")
+    sw.add_argument("--slurm-gpus-per-task", type=_nonneg_int, metavar="N",
+                    help="GPUs per SLURM job; runs then train on cuda (default 0)")
+    sw.add_argument("--slurm-array-parallelism", type=_nonneg_int, metavar="N",
+                    help="SLURM jobs of the sweep running at once (default: 256)")
+    sw.add_argument("--logger", metavar="csv,tensorboard,wandb",
+                    help="every run's imssr train --logger; with wandb the runs are grouped under the root's "
+                         "name and tagged with algo, task, seed, beta0 (default: train's)")
     sw.add_argument("--dry-run", action="store_true", help="print the expanded grid and exit")
     sw.add_argument("--no-progress", action="store_true", help="no live progress bar")
 
@@ -284,7 +303,10 @@ def _sweep_config(args):
         cfg.steps = cfg.frames = None
     given = {"root": args.root, "steps": args.steps, "frames": args.frames, "retries": args.retries,
              "cpus_per_run": args.cpus_per_run, "gpus_per_run": args.gpus_per_run,
-             "max_parallel": args.max_parallel, "address": args.address}
+             "max_parallel": args.max_parallel, "address": args.address, "launcher": args.launcher,
+             "slurm_partition": args.slurm_partition, "slurm_time": args.slurm_time,
+             "slurm_gpus_per_task": args.slurm_gpus_per_task,
+             "slurm_array_parallelism": args.slurm_array_parallelism, "logger": args.logger}
     for key, value in given.items():
         if value is not None:
             setattr(cfg, key, value)
@@ -341,6 +363,8 @@ def _run_config(args, demo: bool):
             values[f.field] = False
         elif not f.switch and given is not None:
             values[f.field] = given
+    if args.logger is not None:
+        values.update(logger_fields(args.logger, args.no_tensorboard))
     return build_run_config(args.algo, args.task, network=args.network, config_file=args.config,
                             resume_dir=args.out if args.resume and not args.config else None, demo=demo,
                             values=values, frames=args.frames, batch_size=args.batch_size, beta0=args.beta0,

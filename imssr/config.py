@@ -253,6 +253,19 @@ class TrainConfig:
     """Torch device: cpu, cuda, cuda:N, or auto."""
     tensorboard: bool = True
     """Write TensorBoard event files besides the CSV logs."""
+    wandb: bool = False
+    """Log to Weights & Biases too (the ``wandb`` extra): the config, the scalars TensorBoard gets,
+    evaluation videos and the learning curve; ``WANDB_MODE=offline`` keeps it local."""
+    wandb_project: str = "imssr"
+    """W&B project of the run."""
+    wandb_group: str = ""
+    """W&B group of the run (``imssr sweep`` sets it to its root's name); empty: none."""
+    eval_video_every: int = 0
+    """Record one episode per evaluated scene at every k-th evaluation, into
+    ``RUN/videos/step_<step>_<mode>.<format>``, TensorBoard and W&B (0: never).  Recording reads
+    the frames the evaluation renders anyway: returns and random streams stay the same."""
+    eval_video_format: str = "gif"
+    """File format of the evaluation videos: gif or mp4."""
     progress: bool = True
     """Show a progress bar with frames per second."""
     torch_threads: int = 0
@@ -374,6 +387,10 @@ class RunConfig:
             (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
             (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
+            (t.eval_video_every >= 0, "train.eval_video_every must be >= 0"),
+            (t.eval_video_format in VIDEO_FORMATS,
+             f"train.eval_video_format must be one of {', '.join(VIDEO_FORMATS)}"),
+            (bool(t.wandb_project.strip()), "train.wandb_project must not be empty"),
             (0 <= t.seed <= MAX_SEED, f"train.seed must be {SEED_RULE}, got {t.seed}"),
         ]
         for ok, message in checks:
@@ -420,6 +437,23 @@ UPDATE_SCHEDULES = ("sequential", "fused")
 PRECISIONS = ("fp32", "bf16")
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 FORMS = ("authors", "training")
+VIDEO_FORMATS = ("gif", "mp4")
+
+
+LOGGERS = ("csv", "tensorboard", "wandb")
+"""The names ``--logger`` takes; CSV logs are written whatever it says."""
+
+
+def logger_fields(text: str, no_tensorboard: bool = False) -> dict[str, bool]:
+    """``--logger csv,tensorboard,wandb`` as the config fields it sets (``train.tensorboard``,
+    ``train.wandb``); ``no_tensorboard``: ``--no-tensorboard`` was given too."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in LOGGERS]
+    if unknown:
+        raise ImssrError(f"unknown logger {unknown[0]!r} in --logger; choose from {', '.join(LOGGERS)}")
+    if no_tensorboard and "tensorboard" in names:
+        raise ImssrError("--no-tensorboard and --logger ...tensorboard contradict each other; give one")
+    return {"train.tensorboard": "tensorboard" in names, "train.wandb": "wandb" in names}
 
 
 def steps_for_frames(frames: int, action_repeat: int) -> int:

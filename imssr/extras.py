@@ -1,7 +1,8 @@
 """Optional dependencies: training and evaluating one run need none of them.
 
-``imssr sweep`` needs Ray (the ``sweep`` extra), ``imssr report`` needs rliable and the pandas
-it reads with (the ``report`` extra).  Each is imported where it is used, through
+``imssr sweep`` needs Ray (the ``sweep`` extra; ``--launcher slurm``: submitit, the ``slurm``
+extra), ``imssr report`` needs rliable and the pandas it reads with (the ``report`` extra),
+``--logger wandb`` needs wandb (the ``wandb`` extra).  Each is imported where it is used, through
 :func:`require`, so that a missing one is one line naming the extra that installs it.
 """
 from __future__ import annotations
@@ -11,7 +12,7 @@ from types import ModuleType
 
 from imssr.errors import ImssrError
 
-EXTRAS = {"sweep": ("ray",), "report": ("rliable", "pandas")}
+EXTRAS = {"sweep": ("ray",), "report": ("rliable", "pandas"), "wandb": ("wandb",), "slurm": ("submitit",)}
 """Extra -> the top-level modules it installs (pyproject.toml's optional dependencies)."""
 
 

@@ -108,6 +108,14 @@ def atomic_write_text(path: str, text: str) -> None:
             fh.write(text)
 
 
+def read_csv(path: str) -> list[dict]:
+    """The rows of a CSV file with a header, as dicts (none if the file does not exist)."""
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
 def atomic_write_csv(path: str, header: list[str], rows: Iterable[list]) -> str:
     """Write ``header`` and ``rows`` as CSV atomically; returns ``path``."""
     with atomic_path(path) as tmp:

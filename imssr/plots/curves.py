@@ -5,8 +5,7 @@ import os
 
 from imssr.config import load_config
 from imssr.errors import ImssrError
-from imssr.training.logger import read_csv
-from imssr.utils import atomic_path
+from imssr.utils import atomic_path, read_csv
 
 
 def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:

@@ -5,11 +5,10 @@ import os
 
 import numpy as np
 
+from imssr.config import VIDEO_FORMATS
 from imssr.envs import MODES, get_task, make_env
 from imssr.errors import ImssrError
 from imssr.utils import atomic_path
-
-VIDEO_FORMATS = ("gif", "mp4")
 
 
 def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> str:

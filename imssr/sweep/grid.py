@@ -12,13 +12,16 @@ import os
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Optional
 
-from imssr.config import MAX_SEED, SEED_RULE, RunConfig
+from imssr.config import MAX_SEED, SEED_RULE, RunConfig, logger_fields
 from imssr.envs import get_task
 from imssr.errors import ImssrError
 from imssr.jsonio import dumps
 from imssr.presets import ALGOS, get_algo
 from imssr.presets import build_run_config as build_config
 from imssr.utils import atomic_write_text
+
+LAUNCHERS = ("ray", "slurm", "local")
+"""What ``imssr sweep --launcher`` takes (:mod:`imssr.sweep.launchers`)."""
 
 SWEEP_PLAN = "sweep.json"
 """File under ROOT with the expanded grid (the report reads it for T and the expected seeds).
@@ -62,6 +65,32 @@ class SweepConfig:
     address: str = ""
     """Address of an existing Ray cluster (``ray start --head`` prints it); empty: a local Ray
     started for this sweep and shut down after it."""
+    launcher: str = "ray"
+    """How runs are dispatched: ``ray`` (a local Ray or the cluster at ``address``), ``slurm``
+    (one SLURM job per run through submitit, the ``slurm`` extra) or ``local`` (subprocesses of
+    the sweep itself, no Ray)."""
+    slurm_partition: str = ""
+    """SLURM partition of the jobs (``--launcher slurm``); empty: the cluster's default."""
+    slurm_time: int = 0
+    """Time limit of each SLURM job in minutes; 0: 24 hours.  A run cut by the limit is retried
+    from its last checkpoint."""
+    slurm_gpus_per_task: int = 0
+    """GPUs of each SLURM job; > 0 trains on ``cuda`` unless ``train.device`` is overridden."""
+    slurm_array_parallelism: int = 0
+    """SLURM jobs of the sweep's job array running at once; 0: as many as SLURM allows (256)."""
+    logger: str = ""
+    """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's
+    default.  With ``wandb``, runs are grouped under the root's name in W&B."""
+
+    @property
+    def gpus(self) -> float:
+        """GPUs each run gets from its launcher."""
+        return self.slurm_gpus_per_task if self.launcher == "slurm" else self.gpus_per_run
+
+    @property
+    def wandb_group(self) -> str:
+        """The W&B group of the sweep's runs: the root directory's name."""
+        return os.path.basename(os.path.abspath(self.root))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SweepConfig":
@@ -105,10 +134,20 @@ class SweepConfig:
             (all(0 <= s <= MAX_SEED for s in self.seeds),
              f"seeds must be {SEED_RULE}, got {next((s for s in self.seeds if not 0 <= s <= MAX_SEED), None)}"),
             (all(0 <= b < math.inf for b in self.beta0), "--beta0 values must be >= 0 and finite"),
+            (self.launcher in LAUNCHERS, f"--launcher must be one of {', '.join(LAUNCHERS)}, got {self.launcher!r}"),
+            (self.slurm_time >= 0, "--slurm-time must be >= 0 (minutes)"),
+            (self.slurm_gpus_per_task >= 0, "--slurm-gpus-per-task must be >= 0"),
+            (self.slurm_array_parallelism >= 0, "--slurm-array-parallelism must be >= 0"),
+            (self.launcher == "slurm" or not (self.slurm_partition or self.slurm_time or self.slurm_gpus_per_task
+                                              or self.slurm_array_parallelism),
+             "the --slurm-* settings go with --launcher slurm"),
+            (self.launcher == "ray" or not self.address, "--address (a Ray cluster) goes with --launcher ray"),
         ]
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
+        if self.logger:
+            logger_fields(self.logger)
         if self.beta0:
             if not any(ALGOS[a].intrinsic_enabled for a in self.algos):
                 raise ImssrError("--beta0 needs an algo with an intrinsic reward (im-X, X+rnd, X+re3)")
@@ -139,7 +178,7 @@ class Run:
     def on_gpu(self, cfg: SweepConfig) -> bool:
         """Whether the run trains on ``cuda`` because the sweep gives it a GPU (an override of
         ``train.device`` wins)."""
-        return cfg.gpus_per_run > 0 and not any(o.startswith("train.device=") for o in cfg.overrides)
+        return cfg.gpus > 0 and not any(o.startswith("train.device=") for o in cfg.overrides)
 
     def train_args(self, cfg: SweepConfig) -> list[str]:
         """``imssr train`` arguments of this run (without --out / --resume)."""
@@ -152,6 +191,10 @@ class Run:
             args += ["--beta0", repr(float(self.beta0))]
         if self.on_gpu(cfg):
             args += ["--device", "cuda"]
+        if cfg.logger:
+            args += ["--logger", cfg.logger]
+            if logger_fields(cfg.logger)["train.wandb"]:
+                args += ["--set", f"train.wandb_group={cfg.wandb_group}"]
         for item in cfg.overrides:
             args += ["--set", item]
         return args
@@ -185,6 +228,10 @@ def build_run_config(run: Run, cfg: SweepConfig) -> RunConfig:
         values["train.steps"] = cfg.steps
     if run.on_gpu(cfg):
         values["train.device"] = "cuda"
+    if cfg.logger:
+        values.update(logger_fields(cfg.logger))
+        if values["train.wandb"]:
+            values["train.wandb_group"] = cfg.wandb_group
     return build_config(run.algo, run.task, values=values,
                         frames=cfg.frames if cfg.steps is None else None, beta0=run.beta0,
                         overrides=cfg.overrides)
@@ -276,12 +323,13 @@ def _coerce(key: str, value: Any) -> Any:
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise ImssrError('sweep file: "set" must be a list of "section.field=value" strings')
         return list(value)
-    if key in ("root", "address"):
+    if key in ("root", "address", "launcher", "slurm_partition", "logger"):
         if not isinstance(value, str):
             raise ImssrError(f"sweep file: {key!r} must be a string")
         return value
     kind = {"steps": int, "frames": int, "retries": int, "max_parallel": int,
-            "cpus_per_run": float, "gpus_per_run": float}[key]
+            "cpus_per_run": float, "gpus_per_run": float, "slurm_time": int, "slurm_gpus_per_task": int,
+            "slurm_array_parallelism": int}[key]
     if value is None and key in ("steps", "frames"):
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or \

@@ -19,8 +19,7 @@ from imssr.config import load_config, steps_for_frames
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.jsonio import dumps
 from imssr.training.checkpoint import latest_path, numbered_checkpoints
-from imssr.training.logger import read_csv
-from imssr.utils import atomic_write_text, disk_full_as_error
+from imssr.utils import atomic_write_text, disk_full_as_error, read_csv
 
 DONE_FILE = "done.json"
 """Written atomically in the run directory once ``imssr train`` exits 0 having reached its budget.
@@ -135,65 +134,102 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
     ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
+class RunAttempt:
+    """One attempt of a run: ``imssr train`` (resuming when the run has a checkpoint) started in
+    a subprocess that writes to the run's ``sweep.log``; :meth:`finish` says what happened.
+
+    Killing the attempt (:meth:`stop`, or the death of the process that started it) leaves only
+    the run's last atomic checkpoint, from which the next attempt resumes.
+    """
+
+    def __init__(self, run_dir: str, train_args: list[str], steps: int, attempt: int, threads: int = 1):
+        os.makedirs(run_dir, exist_ok=True)
+        self.run_dir, self.steps, self.attempt = run_dir, steps, attempt
+        self.resumed = has_checkpoint(run_dir)
+        # A resume passes the same settings so that `imssr train` rejects a run directory whose
+        # config differs from the sweep's (apart from the budget and logging settings).
+        cmd = [sys.executable, "-m", "imssr", "train", *train_args, "--out", run_dir, "--no-progress"]
+        if self.resumed:
+            cmd.append("--resume")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # One thread pool per reserved CPU: torch's default (every core) makes parallel runs spin
+        # against each other, which on a shared 2-core machine is 10x slower than one thread each.
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[var] = str(max(1, threads))
+        self.log_path = os.path.join(run_dir, LOG_FILE)
+        self.start = time.time()
+        self.proc: Optional[subprocess.Popen] = None
+        self.error = ""
+        header = (f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
+                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
+        try:
+            log = _open_log(self.log_path, header)
+        except ImssrError as exc:  # a full disk: the attempt fails in one line, nothing started
+            self.error = str(exc)
+            return
+        with log:
+            self.offset = log.tell()
+            preexec = _die_with_parent if sys.platform.startswith("linux") else None
+            self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                         preexec_fn=preexec, start_new_session=True)
+
+    def poll(self) -> Optional[int]:
+        """The exit status, or None while the training runs."""
+        return None if self.proc is None else self.proc.poll()
+
+    def stop(self) -> None:
+        """SIGTERM the training (its process group), SIGKILL after 30 s."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+    def finish(self) -> dict:
+        """What the finished attempt did (see :func:`execute_run`); writes ``done.json`` when the
+        run reached its budget."""
+        if self.proc is None:
+            return {"ok": False, "returncode": None, "resumed": self.resumed, "error": self.error,
+                    "interrupted": False, "diverged": False, "final_step": 0, "final_frame": 0,
+                    "seconds": 0.0}
+        returncode = self.proc.wait()
+        eval_csv = os.path.join(self.run_dir, "eval.csv")
+        final_step, final_frame = last_step(eval_csv), last_frame(eval_csv)
+        result = {"ok": False, "returncode": returncode, "resumed": self.resumed, "error": "",
+                  "interrupted": returncode in INTERRUPTED_STATUSES, "diverged": False,
+                  "final_step": final_step, "final_frame": final_frame,
+                  "seconds": round(time.time() - self.start, 1)}
+        if returncode != 0:
+            result["error"] = _last_line(self.log_path, self.offset) or f"exit status {returncode}"
+            result["diverged"] = DIVERGED_PREFIX in result["error"]
+        elif final_step < self.steps:
+            result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
+                               f"before its budget of {self.steps} steps")
+        else:
+            result["ok"] = True
+            write_done(self.run_dir, self.steps, final_step, self.attempt, self.resumed, result["seconds"])
+        return result
+
+
 def execute_run(run_dir: str, train_args: list[str], steps: int, attempt: int,
                 threads: int = 1) -> dict:
-    """Train (or resume) one run to ``steps`` agent steps; return what happened.
+    """Train (or resume) one run to ``steps`` agent steps and wait for it; return what happened
+    (the body of a Ray task or a SLURM job).
 
     Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
     line when it failed), ``interrupted`` (stopped by a signal: resume it, it did not fail),
     ``diverged`` (a resume would diverge again from the same checkpoint: do not retry),
     ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.
     """
-    os.makedirs(run_dir, exist_ok=True)
-    resumed = has_checkpoint(run_dir)
-    # A resume passes the same settings so that `imssr train` rejects a run directory whose
-    # config differs from the sweep's (apart from the budget and logging settings).
-    cmd = [sys.executable, "-m", "imssr", "train", *train_args, "--out", run_dir, "--no-progress"]
-    if resumed:
-        cmd.append("--resume")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    # One thread pool per reserved CPU: torch's default (every core) makes parallel runs spin
-    # against each other, which on a shared 2-core machine is 10x slower than one thread each.
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env[var] = str(max(1, threads))
-    log_path = os.path.join(run_dir, LOG_FILE)
-    start = time.time()
-    header = (f"==> attempt {attempt} ({'resume' if resumed else 'fresh'}) at "
-              f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
+    attempt_ = RunAttempt(run_dir, train_args, steps, attempt, threads)
     try:
-        log = _open_log(log_path, header)
-    except ImssrError as exc:  # a full disk: the attempt fails in one line, nothing started
-        return {"ok": False, "returncode": None, "resumed": resumed, "error": str(exc), "interrupted": False,
-                "diverged": False, "final_step": 0, "final_frame": 0, "seconds": 0.0}
-    with log:
-        offset = log.tell()
-        preexec = _die_with_parent if sys.platform.startswith("linux") else None
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                preexec_fn=preexec, start_new_session=True)
-        try:
-            returncode = proc.wait()
-        finally:
-            if proc.poll() is None:  # interrupted while waiting (task cancelled)
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-    eval_csv = os.path.join(run_dir, "eval.csv")
-    final_step, final_frame = last_step(eval_csv), last_frame(eval_csv)
-    result = {"ok": False, "returncode": returncode, "resumed": resumed, "error": "",
-              "interrupted": returncode in INTERRUPTED_STATUSES, "diverged": False,
-              "final_step": final_step, "final_frame": final_frame, "seconds": round(time.time() - start, 1)}
-    if returncode != 0:
-        result["error"] = _last_line(log_path, offset) or f"exit status {returncode}"
-        result["diverged"] = DIVERGED_PREFIX in result["error"]
-    elif final_step < steps:
-        result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
-                           f"before its budget of {steps} steps")
-    else:
-        result["ok"] = True
-        write_done(run_dir, steps, final_step, attempt, resumed, result["seconds"])
-    return result
+        if attempt_.proc is not None:
+            attempt_.proc.wait()
+    finally:
+        attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
+    return attempt_.finish()
 
 
 def _open_log(path: str, header: str):

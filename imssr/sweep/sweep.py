@@ -1,7 +1,9 @@
-"""Dispatch a sweep's runs through Ray, idempotently, with bounded retries and a status file.
+"""Dispatch a sweep's runs, idempotently, with bounded retries and a status file.
 
-Each run is one Ray task that runs ``imssr train`` in a subprocess
-(:func:`imssr.sweep.runner.execute_run`).  Before anything starts, every run is
+Each attempt of a run is ``imssr train`` in a subprocess (:class:`imssr.sweep.runner.RunAttempt`),
+started by the launcher ``--launcher`` names (:mod:`imssr.sweep.launchers`: a Ray task, a SLURM
+job through submitit, or the sweep itself); planning, retries and the status file are here,
+the same for every launcher.  Before anything starts, every run is
 classified from its directory: ``done.json`` with a budget (in agent steps) at least the
 sweep's means done (skipped), a checkpoint means resume, nothing means a fresh start.  A failed attempt is
 retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
@@ -12,10 +14,8 @@ diverged is not retried (it diverges again from the same checkpoint); one stoppe
 from __future__ import annotations
 
 import json
-import logging
 import os
 import signal
-import socket
 import threading
 import time
 from collections import deque
@@ -24,12 +24,11 @@ from typing import Optional
 
 from tqdm import tqdm
 
-from imssr.errors import INTERRUPTED_EXIT, ImssrError
-from imssr.extras import require
+from imssr.errors import INTERRUPTED_EXIT
 from imssr.jsonio import dumps
 from imssr.sweep.grid import Run, SweepConfig, build_run_config, expand, save_plan
-from imssr.sweep.runner import (LOG_FILE, execute_run, has_checkpoint, is_done, last_frame, last_step,
-                                read_done)
+from imssr.sweep.launchers import Attempt, Launcher, make_launcher
+from imssr.sweep.runner import LOG_FILE, has_checkpoint, is_done, last_frame, last_step, read_done
 from imssr.training.lock import DirectoryLock
 from imssr.utils import atomic_write_text
 
@@ -38,9 +37,6 @@ STATES = ("queued", "running", "done", "failed", "interrupted")
 MAX_INTERRUPTIONS = 10
 """Signal-stopped attempts of one run that a sweep resumes at once; past them the run is left
 ``interrupted`` (a later sweep resumes it) instead of looping against whatever stops it."""
-# The local Ray started for a sweep only passes small results around: a small object
-# store keeps its start-up memory low on small machines.
-LOCAL_OBJECT_STORE_BYTES = 150 * 1024 ** 2
 
 
 @dataclass
@@ -131,65 +127,6 @@ def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
     return "\n".join(lines)
 
 
-def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """Fail in one line, at once, if nothing listens at ``HOST:PORT``.
-
-    ``ray.init`` keeps retrying an address where no Ray head runs for minutes before it
-    gives up; a plain TCP connect answers in at most ``timeout_s``.  Addresses that are not
-    ``[ray://]HOST:PORT`` (``auto``) are left to Ray.
-    """
-    host, sep, port = address.removeprefix("ray://").rpartition(":")
-    if not sep or not host or not port.isdigit():
-        return
-    try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
-    except OSError as exc:
-        raise ImssrError(f"could not connect to the Ray cluster at {address}: nothing answers there "
-                         f"({exc.strerror or exc}); start it with `ray start --head --port {port}`") from None
-
-
-def _init_ray(cfg: SweepConfig):
-    # No usage-stats prompt or upload from a batch job (and none on machines without network).
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    ray = require("ray", "sweep")
-    # Workers' output goes to each run's sweep.log, not to the driver's terminal.
-    common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
-                  configure_logging=True)
-    try:
-        if cfg.address:
-            _check_reachable(cfg.address)
-            ray.init(address=cfg.address, **common)
-        else:
-            # "local": always a fresh instance of our own, never a cluster that happens to run
-            # on this machine (ray.init() with no address would attach to it).
-            ray.init(address="local", object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
-    except (ConnectionError, RuntimeError, ValueError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else repr(exc)
-        if not cfg.address:
-            raise ImssrError(f"could not start a local Ray: {first}") from None
-        # A head started by `ray start` (Ray >= 2.59) requires its token, but a driver that
-        # connects by address only sends one with RAY_AUTH_MODE=token: say so in the error.
-        hint = "" if os.environ.get("RAY_AUTH_MODE") == "token" else \
-            " (is it running? a head started by `ray start` needs RAY_AUTH_MODE=token here too)"
-        raise ImssrError(f"could not connect to the Ray cluster at {cfg.address}: {first}{hint}") from None
-    return ray
-
-
-def _capacity(ray, cfg: SweepConfig) -> int:
-    """Runs that fit at once in the cluster's CPUs (and GPUs when runs need them)."""
-    resources = ray.cluster_resources()
-    fits = int(resources.get("CPU", 1) // cfg.cpus_per_run)
-    if cfg.gpus_per_run > 0:
-        gpus = resources.get("GPU", 0)
-        if gpus < cfg.gpus_per_run:
-            raise ImssrError(f"--gpus-per-run {cfg.gpus_per_run} but the Ray cluster has {gpus:g} GPUs")
-        fits = min(fits, int(gpus // cfg.gpus_per_run))
-    if fits < 1:
-        raise ImssrError(f"--cpus-per-run {cfg.cpus_per_run} exceeds the Ray cluster's "
-                         f"{resources.get('CPU', 0):g} CPUs")
-    return min(fits, cfg.max_parallel) if cfg.max_parallel else fits
-
-
 class _Progress:
     """Live summary across runs: a tqdm bar over finished runs plus the state counts."""
 
@@ -221,19 +158,23 @@ class _Progress:
         self.bar.close()
 
 
-def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0) -> list[RunStatus]:
-    """Run every run of the sweep that is not done; return the final status of each.
+def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0,
+              submitit_cluster: str = "slurm") -> list[RunStatus]:
+    """Run every run of the sweep that is not done, through ``cfg.launcher``; return the final
+    status of each.  ``submitit_cluster``: submitit's executor for ``--launcher slurm``
+    (``local`` runs the jobs on this machine).
 
     The sweep holds a lock on its root (:mod:`imssr.training.lock`), so a second sweep over the
     same root fails at once ("ROOT is in use by PID n"); each run's training locks its own
     directory as ``imssr train`` does.
     """
-    require("ray", "sweep")  # before anything is written
+    launcher = make_launcher(cfg, submitit_cluster)
+    launcher.check()  # before anything is written
     with DirectoryLock(cfg.root):
-        return _run_sweep(cfg, progress, poll_s)
+        return _run_sweep(cfg, launcher, progress, poll_s)
 
 
-def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatus]:
+def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: float) -> list[RunStatus]:
     statuses = plan_runs(cfg)
     root = os.path.abspath(cfg.root)
     os.makedirs(root, exist_ok=True)
@@ -246,29 +187,31 @@ def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatu
         write_status(cfg, statuses, started, finished=True)
         return statuses
     print(f"imssr: {len(statuses)} runs, {len(statuses) - len(todo)} done, "
-          f"{sum(s.action == 'resume' for s in todo)} to resume, {sum(s.action == 'fresh' for s in todo)} new; "
-          f"status in {status_path}", flush=True)
-    ray = _init_ray(cfg)
+          f"{sum(s.action == 'resume' for s in todo)} to resume, {sum(s.action == 'fresh' for s in todo)} new "
+          f"({cfg.launcher}); status in {status_path}", flush=True)
     ui = None
+    inflight: dict = {}
     previous = _sigterm_as_interrupt()
     try:
-        parallel = _capacity(ray, cfg)
-        task = ray.remote(_remote_run).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
-                                               max_retries=0)
+        launcher.start()
+        parallel = launcher.capacity()
         ui = _Progress(statuses, progress)
-        inflight: dict = {}
         threads = max(1, int(cfg.cpus_per_run))
         while todo or inflight:
-            while todo and len(inflight) < parallel:
+            batch = []
+            while todo and len(inflight) + len(batch) < parallel:
                 st = todo.popleft()
                 st.state, st.attempts = "running", st.attempts + 1
-                ref = task.remote(st.run.dir, st.run.train_args(cfg), st.steps, st.attempts, threads)
-                inflight[ref] = st
+                batch.append(st)
+            if batch:
+                handles = launcher.submit([Attempt(st.run.dir, st.run.train_args(cfg), st.steps, st.attempts,
+                                                   threads) for st in batch])
+                inflight.update(zip(handles, batch))
                 write_status(cfg, statuses, started)
-            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=poll_s)
-            for ref in ready:
-                st = inflight.pop(ref)
-                result = _result(ray, ref)
+            ready = launcher.wait(list(inflight), poll_s)
+            for handle in ready:
+                st = inflight.pop(handle)
+                result = launcher.result(handle)
                 ui.say(settle(st, result, cfg.retries))
                 if st.state == "queued":
                     todo.append(st)
@@ -276,8 +219,9 @@ def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatu
                 write_status(cfg, statuses, started)
             ui.refresh()
     except KeyboardInterrupt:
-        # Running trainings get SIGTERM with their workers and checkpoint where they are, so
-        # re-running the sweep resumes them.
+        # Running trainings get SIGTERM and checkpoint where they are, so re-running the sweep
+        # resumes them.
+        launcher.stop(list(inflight))
         for st in statuses:
             if st.state == "running":
                 st.state = "interrupted"
@@ -286,7 +230,7 @@ def _run_sweep(cfg: SweepConfig, progress: bool, poll_s: float) -> list[RunStatu
     finally:
         if ui is not None:
             ui.close()
-        ray.shutdown()
+        launcher.shutdown()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     write_status(cfg, statuses, started, finished=True)
@@ -331,20 +275,6 @@ def _sigterm_as_interrupt():
         raise KeyboardInterrupt
 
     return signal.signal(signal.SIGTERM, stop)
-
-
-def _remote_run(run_dir: str, train_args: list[str], steps: int, attempt: int, threads: int) -> dict:
-    """The Ray task body (module level, so workers import it rather than unpickle code)."""
-    return execute_run(run_dir, train_args, steps, attempt, threads)
-
-
-def _result(ray, ref) -> dict:
-    """A task's result; a worker that died (OOM, node lost) is a failed attempt like any other."""
-    try:
-        return ray.get(ref)
-    except ray.exceptions.RayError as exc:
-        text = str(exc).strip().splitlines()
-        return {"ok": False, "error": f"Ray task failed: {text[0] if text else type(exc).__name__}"}
 
 
 def summarize(statuses: list[RunStatus]) -> tuple[str, int]:

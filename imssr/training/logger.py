@@ -1,4 +1,5 @@
-"""CSV logs (always) and TensorBoard (optional), both resumable.
+"""CSV logs (always), TensorBoard and Weights & Biases (optional), all resumable; evaluation
+videos and the learning curve as media.
 
 Every row carries ``frame`` (environment frames) and ``step`` (agent steps).
 On resume, rows newer than the checkpoint are dropped so that a killed run
@@ -14,7 +15,13 @@ import shutil
 import threading
 from typing import Iterable, Optional
 
-from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full
+import numpy as np
+
+from imssr.plots.media import save_video
+from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full, read_csv
+
+VIDEO_FPS = 25.0
+"""Frames per second of evaluation videos (one frame per agent step), as ``imssr evaluate --video``."""
 
 TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
                  "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
@@ -73,13 +80,6 @@ def _quote(v: str) -> str:
     return f'"{v}"' if ("," in v or '"' in v) else v
 
 
-def read_csv(path: str) -> list[dict]:
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
 def episode_rows(row: dict, returns: Iterable[float]) -> list[dict]:
     """The per-episode rows of the evaluation summarised by ``row``."""
     return [{"frame": row["frame"], "step": row["step"], "mode": row["mode"], "episode": i, "return": ret}
@@ -107,9 +107,15 @@ def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
 
 
 class Logger:
-    """``train.csv``, ``eval.csv``, ``eval_episodes.csv`` and TensorBoard under ``out_dir``."""
+    """``train.csv``, ``eval.csv``, ``eval_episodes.csv``, TensorBoard and W&B under ``out_dir``.
 
-    def __init__(self, out_dir: str, tensorboard: bool = True, resume_frame: Optional[int] = None):
+    ``wandb`` is the run's :class:`imssr.training.wandb_run.WandbRun` (None: no W&B); the logger
+    finishes it on :meth:`close`.
+    """
+
+    def __init__(self, out_dir: str, tensorboard: bool = True, resume_frame: Optional[int] = None,
+                 wandb=None):
+        self.out_dir, self.wandb = out_dir, wandb
         if resume_frame is None:
             # A fresh run: logs left by a run killed before its first checkpoint are stale.
             for name in ("train.csv", "eval.csv", "eval_episodes.csv"):
@@ -123,6 +129,7 @@ class Logger:
             for log in (self.train, self.eval, self.eval_episodes):
                 log.truncate_after(resume_frame)
         self.tb = None
+        self._tb_video: Optional[bool] = None  # whether TensorBoard can take videos (moviepy)
         if tensorboard:
             try:
                 from torch.utils.tensorboard import SummaryWriter
@@ -143,31 +150,73 @@ class Logger:
 
     def log_train(self, row: dict) -> None:
         self.train.write(row)
-        self._tb("train", row, skip=("frame", "step", "episode"))
+        self._scalars("train", row, skip=("frame", "step", "episode"))
 
     def log_eval(self, row: dict, returns: Iterable[float]) -> None:
         write_eval(self.eval, self.eval_episodes, row, returns)
-        self._tb(f"eval/{row['mode']}", row, skip=("frame", "step", "mode", "episodes"))
+        self._scalars(f"eval/{row['mode']}", row, skip=("frame", "step", "mode", "episodes"))
 
-    def _tb(self, prefix: str, row: dict, skip: tuple) -> None:
-        if self.tb is None:
-            return
-        # TensorBoard writes in a thread of its own; a full disk there comes back here (the
-        # next add or flush re-raises it) and becomes the one-line error.
-        with disk_full_as_error(self.tb_dir):
-            for k, v in row.items():
-                if k in skip or v is None or isinstance(v, str):
-                    continue
-                self.tb.add_scalar(f"{prefix}/{k}", float(v), global_step=int(row["frame"]))
+    def log_video(self, mode: str, frames: list[np.ndarray], frame: int, step: int, fmt: str) -> str:
+        """One evaluation episode in scene ``mode`` (``(H, W, 3)`` uint8 frames) as
+        ``videos/step_<step>_<mode>.<fmt>``, to TensorBoard and to W&B; returns the file's path."""
+        path = save_video(frames, os.path.join(self.out_dir, "videos", f"step_{step:09d}_{mode}.{fmt}"),
+                          fps=VIDEO_FPS)
+        if self.tb is not None and self._tensorboard_takes_video():
+            # (N, T, C, H, W) uint8, one video.
+            clip = np.moveaxis(np.stack(frames), -1, 1)[None]
+            self.tb.add_video(f"eval/{mode}/video", clip, global_step=frame, fps=VIDEO_FPS)
+        if self.wandb is not None:
+            self.wandb.log_video(f"media/{mode}_video", path, frame, step)
+        return path
+
+    def log_image(self, key: str, path: str, frame: int, step: int) -> None:
+        """A PNG (the learning curve) to W&B (TensorBoard plots its own curves)."""
+        if self.wandb is not None:
+            self.wandb.log_image(f"media/{key}", path, frame, step)
+
+    @property
+    def wants_media(self) -> bool:
+        """Whether a logger that takes pictures (W&B) is on."""
+        return self.wandb is not None and self.wandb.active
+
+    def _tensorboard_takes_video(self) -> bool:
+        # TensorBoard's add_video encodes through moviepy (its `editor` module), which imssr does
+        # not depend on: without it the file is still written, and one note says why TB has none.
+        if self._tb_video is None:
+            try:
+                import moviepy.editor  # noqa: F401
+                self._tb_video = True
+            except ImportError:
+                self._tb_video = False
+                print("imssr: note: evaluation videos go to RUN/videos only, not to TensorBoard "
+                      "(its add_video needs moviepy < 2: pip install 'moviepy<2')", flush=True)
+        return self._tb_video
+
+    def _scalars(self, prefix: str, row: dict, skip: tuple) -> None:
+        values = {f"{prefix}/{k}": float(v) for k, v in row.items()
+                  if k not in skip and v is not None and not isinstance(v, str)}
+        frame = int(row["frame"])
+        if self.tb is not None:
+            # TensorBoard writes in a thread of its own; a full disk there comes back here (the
+            # next add or flush re-raises it) and becomes the one-line error.
+            with disk_full_as_error(self.tb_dir):
+                for key, value in values.items():
+                    self.tb.add_scalar(key, value, global_step=frame)
+        if self.wandb is not None:
+            self.wandb.log(values, frame, int(row["step"]))
 
     def close(self) -> None:
-        if self.tb is not None:
-            tb, self.tb = self.tb, None
-            with disk_full_as_error(self.tb_dir):
-                try:
-                    tb.flush()
-                finally:
-                    tb.close()
+        try:
+            if self.tb is not None:
+                tb, self.tb = self.tb, None
+                with disk_full_as_error(self.tb_dir):
+                    try:
+                        tb.flush()
+                    finally:
+                        tb.close()
+        finally:
+            if self.wandb is not None:
+                self.wandb.finish()
 
 
 def _quiet_tensorboard_disk_full() -> None:

@@ -28,6 +28,7 @@ from imssr.config import RunConfig, steps_for_frames
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
+from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError, frames_path
@@ -42,7 +43,9 @@ from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_
 RESUMABLE_CHANGES = {"train.steps", "train.device", "train.progress", "train.tensorboard",
                      "agent.precision", "agent.tf32", "agent.compile",
                      "train.torch_threads", "train.eval_episodes", "train.eval_every_steps",
-                     "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer"}
+                     "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer",
+                     "train.wandb", "train.wandb_project", "train.wandb_group", "train.eval_video_every",
+                     "train.eval_video_format"}
 
 PROGRESS_EVERY_S = 60.0
 """Seconds of wall time between progress lines when stdout is not a terminal (a SLURM or nohup
@@ -247,7 +250,14 @@ class Trainer:
         if ckpt is not None:
             self._restore(ckpt)
         atomic_write_text(os.path.join(out_dir, "config.json"), cfg.to_json() + "\n")
-        self.logger = Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if ckpt else None)
+        wandb = None
+        if cfg.train.wandb:
+            # Imported here: W&B is an extra, and a run without it must not load it.
+            from imssr.training.wandb_run import WandbRun
+
+            wandb = WandbRun(cfg, out_dir, resume=ckpt is not None, warn=lambda text: print(text, flush=True))
+        self.logger = Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if ckpt else None,
+                             wandb=wandb)
         if ckpt is not None and "next_eval_step" not in ckpt:
             print(f"imssr: resuming a run made before budgets counted agent steps: its budget is "
                   f"{cfg.budget_text()}", flush=True)
@@ -396,12 +406,21 @@ class Trainer:
         return self.eval_envs[self.eval_modes[0]]
 
     def run_eval(self) -> list[dict]:
-        """Evaluate in every scene of ``train.eval_modes``; one ``eval.csv`` row each."""
+        """Evaluate in every scene of ``train.eval_modes``; one ``eval.csv`` row each.  At every
+        ``train.eval_video_every``-th evaluation, the first episode of each scene is recorded
+        (the frames the evaluation renders anyway, so the returns do not change)."""
+        t = self.cfg.train
+        # This evaluation's number, counted from the history so that a resume keeps the rhythm.
+        number = len({item["row"]["step"] for item in self.eval_history}) + 1
+        record = t.eval_video_every > 0 and number % t.eval_video_every == 0
         rows = []
         for mode, env in self.eval_envs.items():
-            returns = evaluate(self.agent, env, self.cfg.train.eval_episodes)
+            frames: Optional[list] = [] if record else None
+            returns = evaluate(self.agent, env, t.eval_episodes, record=frames)
             row = dict(eval_row(self.frame, self.step, mode, returns), wall_time=time.time())
             self.logger.log_eval(row, returns)
+            if frames:
+                self.logger.log_video(mode, frames, self.frame, self.step, t.eval_video_format)
             self.eval_history.append({"row": row, "returns": returns})
             rows.append(row)
         self.last_eval_step = self.step
@@ -515,6 +534,8 @@ class Trainer:
                 if self.last_eval_step != self.step:
                     self.run_eval()
                 self.save()
+            if self.logger.wants_media:
+                self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
         except NonFiniteError as exc:
             # Named by the first non-finite training metric of the episode so far (one host
             # sync, only now), else by what was found (the action, the intrinsic signal).

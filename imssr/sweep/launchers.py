@@ -1,0 +1,279 @@
+"""Launchers: how a sweep's run attempts are started and waited on (``imssr sweep --launcher``).
+
+The sweep (:mod:`imssr.sweep.sweep`) plans, retries and writes the status file; a launcher only
+starts attempts, says which finished, hands back their results and stops what is in flight.
+Every attempt is the same ``imssr train`` subprocess (:class:`imssr.sweep.runner.RunAttempt`),
+started by a Ray task, a SLURM job (through submitit) or the sweep itself.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import socket
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from imssr.errors import ImssrError
+from imssr.extras import require
+from imssr.sweep.grid import SweepConfig
+from imssr.sweep.runner import RunAttempt, execute_run
+
+# The local Ray started for a sweep only passes small results around: a small object
+# store keeps its start-up memory low on small machines.
+LOCAL_OBJECT_STORE_BYTES = 150 * 1024 ** 2
+SLURM_DEFAULT_MINUTES = 24 * 60
+"""A SLURM job's time limit when ``--slurm-time`` is not given."""
+SUBMITIT_FOLDER = ".submitit"
+"""Under the sweep root: submitit's job scripts, pickled calls and SLURM's output (``%j`` per job)."""
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """What an attempt runs: ``imssr train`` of one run directory to ``steps`` agent steps."""
+
+    run_dir: str
+    train_args: list[str]
+    steps: int
+    attempt: int
+    threads: int
+
+
+class Launcher:
+    """Starts attempts and waits on them; one per sweep invocation."""
+
+    def check(self) -> None:
+        """Fail in one line if the launcher cannot work here (a missing extra), before the
+        sweep writes anything."""
+
+    def start(self) -> None:
+        """Connect to what runs the attempts."""
+
+    def capacity(self) -> int:
+        """Attempts in flight at once."""
+        raise NotImplementedError
+
+    def submit(self, attempts: list[Attempt]) -> list[Any]:
+        """Start ``attempts``; one handle each."""
+        raise NotImplementedError
+
+    def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
+        """The handles among ``handles`` whose attempt finished, waiting up to ``timeout_s``
+        for at least one."""
+        raise NotImplementedError
+
+    def result(self, handle: Any) -> dict:
+        """A finished attempt's result (:func:`imssr.sweep.runner.execute_run`'s keys); a lost
+        worker or job is a failed attempt."""
+        raise NotImplementedError
+
+    def stop(self, handles: list[Any]) -> None:
+        """Stop the attempts in flight (an interrupted sweep); each keeps its last checkpoint."""
+
+    def shutdown(self) -> None:
+        """Release what :meth:`start` took."""
+
+
+def make_launcher(cfg: SweepConfig, submitit_cluster: str = "slurm") -> Launcher:
+    """The launcher ``cfg.launcher`` names.  ``submitit_cluster`` picks submitit's executor for
+    ``slurm`` (``local``: submitit's local executor, which runs the jobs on this machine)."""
+    if cfg.launcher == "slurm":
+        return SlurmLauncher(cfg, submitit_cluster)
+    if cfg.launcher == "local":
+        return LocalLauncher(cfg)
+    return RayLauncher(cfg)
+
+
+def _wait_polling(handles: list[Any], done, timeout_s: float, interval_s: float = 0.2) -> list[Any]:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        ready = [h for h in handles if done(h)]
+        if ready or time.monotonic() >= deadline:
+            return ready
+        time.sleep(interval_s)
+
+
+class LocalLauncher(Launcher):
+    """Attempts as subprocesses of the sweep: no Ray, no scheduler.  Killing the sweep (even
+    with SIGKILL) kills its trainings (``PR_SET_PDEATHSIG``)."""
+
+    def __init__(self, cfg: SweepConfig):
+        self.cfg = cfg
+
+    def capacity(self) -> int:
+        fits = max(1, int((os.cpu_count() or 1) // self.cfg.cpus_per_run))
+        return min(fits, self.cfg.max_parallel) if self.cfg.max_parallel else fits
+
+    def submit(self, attempts: list[Attempt]) -> list[RunAttempt]:
+        return [RunAttempt(a.run_dir, a.train_args, a.steps, a.attempt, a.threads) for a in attempts]
+
+    def wait(self, handles: list[RunAttempt], timeout_s: float) -> list[RunAttempt]:
+        return _wait_polling(handles, lambda h: h.poll() is not None, timeout_s)
+
+    def result(self, handle: RunAttempt) -> dict:
+        return handle.finish()
+
+    def stop(self, handles: list[RunAttempt]) -> None:
+        for handle in handles:
+            handle.stop()
+
+
+class RayLauncher(Launcher):
+    """One Ray task per attempt, on a private local Ray or the cluster at ``cfg.address``."""
+
+    def __init__(self, cfg: SweepConfig):
+        self.cfg, self.ray, self.task = cfg, None, None
+
+    def check(self) -> None:
+        require("ray", "sweep")
+
+    def start(self) -> None:
+        self.ray = _init_ray(self.cfg)
+        self.task = self.ray.remote(_remote_run).options(num_cpus=self.cfg.cpus_per_run,
+                                                         num_gpus=self.cfg.gpus_per_run, max_retries=0)
+
+    def capacity(self) -> int:
+        return _capacity(self.ray, self.cfg)
+
+    def submit(self, attempts: list[Attempt]) -> list[Any]:
+        return [self.task.remote(a.run_dir, a.train_args, a.steps, a.attempt, a.threads) for a in attempts]
+
+    def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
+        ready, _ = self.ray.wait(list(handles), num_returns=1, timeout=timeout_s)
+        return ready
+
+    def result(self, handle: Any) -> dict:
+        try:
+            return self.ray.get(handle)
+        except self.ray.exceptions.RayError as exc:
+            text = str(exc).strip().splitlines()
+            return {"ok": False, "error": f"Ray task failed: {text[0] if text else type(exc).__name__}"}
+
+    def shutdown(self) -> None:
+        # Running trainings die with their workers.
+        if self.ray is not None:
+            self.ray.shutdown()
+
+
+class SlurmLauncher(Launcher):
+    """One SLURM job per attempt through submitit, all of a round in one job array (so
+    ``--slurm-array-parallelism`` bounds how many run at once); SLURM queues the rest."""
+
+    def __init__(self, cfg: SweepConfig, cluster: str = "slurm"):
+        self.cfg, self.cluster, self.executor = cfg, cluster, None
+
+    def check(self) -> None:
+        require("submitit", "slurm")
+        if self.cluster == "slurm" and shutil.which("sbatch") is None:
+            raise ImssrError("--launcher slurm needs SLURM's sbatch, which is not on PATH here; run the "
+                             "sweep on a login node of the cluster (or use --launcher local or ray)")
+
+    def start(self) -> None:
+        submitit = require("submitit", "slurm")
+        c = self.cfg
+        folder = os.path.join(os.path.abspath(c.root), SUBMITIT_FOLDER, "%j")
+        self.executor = submitit.AutoExecutor(folder=folder, cluster=self.cluster)
+        params: dict[str, Any] = dict(name="imssr", timeout_min=c.slurm_time or SLURM_DEFAULT_MINUTES,
+                                      cpus_per_task=max(1, math.ceil(c.cpus_per_run)), tasks_per_node=1, nodes=1)
+        if self.cluster == "slurm":
+            params.update(slurm_array_parallelism=c.slurm_array_parallelism or 256)
+            if c.slurm_partition:
+                params["slurm_partition"] = c.slurm_partition
+            if c.slurm_gpus_per_task:
+                params["slurm_gpus_per_task"] = c.slurm_gpus_per_task
+        self.executor.update_parameters(**params)
+
+    def capacity(self) -> int:
+        # Everything is submitted at once: SLURM (and the array's parallelism) schedules it.
+        return 2 ** 31
+
+    def submit(self, attempts: list[Attempt]) -> list[Any]:
+        with self.executor.batch():
+            jobs = [self.executor.submit(execute_run, a.run_dir, a.train_args, a.steps, a.attempt, a.threads)
+                    for a in attempts]
+        return jobs
+
+    def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
+        # done() asks SLURM (sacct) at most every few seconds per job: submitit caches the answer.
+        return _wait_polling(handles, lambda job: job.done(), timeout_s, interval_s=1.0)
+
+    def result(self, handle: Any) -> dict:
+        try:
+            return handle.result()
+        except Exception as exc:  # noqa: BLE001 - a job SLURM lost, cancelled or timed out
+            text = str(exc).strip().splitlines()
+            return {"ok": False, "error": f"SLURM job {handle.job_id} failed: "
+                                          f"{text[0] if text else type(exc).__name__}"}
+
+    def stop(self, handles: list[Any]) -> None:
+        for job in handles:
+            try:
+                job.cancel(check=False)
+            except Exception:  # noqa: BLE001 - a job that already ended
+                pass
+
+
+def _remote_run(run_dir: str, train_args: list[str], steps: int, attempt: int, threads: int) -> dict:
+    """The Ray task body (module level, so workers import it rather than unpickle code)."""
+    return execute_run(run_dir, train_args, steps, attempt, threads)
+
+
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail in one line, at once, if nothing listens at ``HOST:PORT``.
+
+    ``ray.init`` keeps retrying an address where no Ray head runs for minutes before it
+    gives up; a plain TCP connect answers in at most ``timeout_s``.  Addresses that are not
+    ``[ray://]HOST:PORT`` (``auto``) are left to Ray.
+    """
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ImssrError(f"could not connect to the Ray cluster at {address}: nothing answers there "
+                         f"({exc.strerror or exc}); start it with `ray start --head --port {port}`") from None
+
+
+def _init_ray(cfg: SweepConfig):
+    # No usage-stats prompt or upload from a batch job (and none on machines without network).
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    ray = require("ray", "sweep")
+    # Workers' output goes to each run's sweep.log, not to the driver's terminal.
+    common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                  configure_logging=True)
+    try:
+        if cfg.address:
+            _check_reachable(cfg.address)
+            ray.init(address=cfg.address, **common)
+        else:
+            # "local": always a fresh instance of our own, never a cluster that happens to run
+            # on this machine (ray.init() with no address would attach to it).
+            ray.init(address="local", object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else repr(exc)
+        if not cfg.address:
+            raise ImssrError(f"could not start a local Ray: {first}") from None
+        # A head started by `ray start` (Ray >= 2.59) requires its token, but a driver that
+        # connects by address only sends one with RAY_AUTH_MODE=token: say so in the error.
+        hint = "" if os.environ.get("RAY_AUTH_MODE") == "token" else \
+            " (is it running? a head started by `ray start` needs RAY_AUTH_MODE=token here too)"
+        raise ImssrError(f"could not connect to the Ray cluster at {cfg.address}: {first}{hint}") from None
+    return ray
+
+
+def _capacity(ray, cfg: SweepConfig) -> int:
+    """Runs that fit at once in the cluster's CPUs (and GPUs when runs need them)."""
+    resources = ray.cluster_resources()
+    fits = int(resources.get("CPU", 1) // cfg.cpus_per_run)
+    if cfg.gpus_per_run > 0:
+        gpus = resources.get("GPU", 0)
+        if gpus < cfg.gpus_per_run:
+            raise ImssrError(f"--gpus-per-run {cfg.gpus_per_run} but the Ray cluster has {gpus:g} GPUs")
+        fits = min(fits, int(gpus // cfg.gpus_per_run))
+    if fits < 1:
+        raise ImssrError(f"--cpus-per-run {cfg.cpus_per_run} exceeds the Ray cluster's "
+                         f"{resources.get('CPU', 0):g} CPUs")
+    return min(fits, cfg.max_parallel) if cfg.max_parallel else fits

@@ -1,0 +1,142 @@
+"""A run's Weights & Biases run (the ``wandb`` extra, imported only when ``train.wandb`` is on).
+
+The W&B run id is kept in ``RUN/wandb_run.json``, written before the W&B run starts, so a
+``--resume`` (after a kill -9 too) continues the same W&B run (``resume="allow"``).  W&B is a
+side channel: once the extra is there, nothing it does may stop a training.  An unwritable W&B
+directory, a failed start or a failed log call prints one warning line and turns W&B off for
+the rest of the process; the CSV logs (and TensorBoard) go on.
+"""
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import tempfile
+from typing import Optional
+
+from imssr.config import RunConfig
+from imssr.extras import require
+from imssr.utils import atomic_write_text
+
+RUN_ID_FILE = "wandb_run.json"
+"""In the run directory: ``{"id": ...}``, the W&B run that ``--resume`` continues."""
+
+
+def run_tags(cfg: RunConfig) -> list[str]:
+    """The run's W&B tags: algo, task, seed and (algos with an intrinsic reward) beta_0."""
+    tags = [cfg.algo, cfg.env.task, f"seed_{cfg.train.seed}"]
+    if cfg.intrinsic.enabled:
+        tags.append(f"beta0_{cfg.intrinsic.beta0!r}")
+    return tags
+
+
+def read_run_id(out_dir: str) -> Optional[str]:
+    """The W&B run id kept in ``out_dir`` (None when there is none or it is unreadable)."""
+    try:
+        with open(os.path.join(out_dir, RUN_ID_FILE)) as fh:
+            run_id = json.load(fh).get("id")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return run_id if isinstance(run_id, str) and run_id else None
+
+
+class WandbRun:
+    """Logs to one W&B run; every method is a no-op once W&B is off.
+
+    Args:
+        cfg: the run's config (the W&B run's config, project, group and tags).
+        out_dir: the run directory (the run id file; W&B's files go to ``RUN/wandb`` unless
+            ``WANDB_DIR`` says otherwise).
+        resume: continue the W&B run whose id ``out_dir`` keeps (a new one if it keeps none).
+        warn: where the one warning line goes.
+    """
+
+    def __init__(self, cfg: RunConfig, out_dir: str, resume: bool, warn=print):
+        # A missing extra is the user's error (they asked for W&B): one line, before training.
+        self._wandb = require("wandb", "wandb")
+        self._warn, self.run = warn, None
+        run_id = read_run_id(out_dir) if resume else None
+        if run_id is None:
+            # From the OS's entropy: the seeded random streams of the run are left alone.
+            run_id = secrets.token_hex(6)
+            atomic_write_text(os.path.join(out_dir, RUN_ID_FILE), json.dumps({"id": run_id}) + "\n")
+        self.run_id = run_id
+        directory = os.environ.get("WANDB_DIR") or out_dir
+        problem = _unwritable(directory)
+        if problem:
+            self._off(f"its directory {directory} is not writable ({problem})")
+            return
+        t = cfg.train
+        try:
+            self.run = self._wandb.init(
+                project=t.wandb_project, group=t.wandb_group or None, tags=run_tags(cfg),
+                name=f"{cfg.algo} {cfg.env.task} seed {t.seed}", config=cfg.to_dict(), id=run_id,
+                resume="allow", dir=directory, reinit="create_new",
+                # imssr prints its own progress; W&B's console capture would duplicate it.
+                settings=self._wandb.Settings(console="off", quiet=True, save_code=False))
+            # Scalars are plotted against environment frames, as TensorBoard's global step.
+            self.run.define_metric("frame")
+            for prefix in ("train/*", "eval/*", "media/*"):
+                self.run.define_metric(prefix, step_metric="frame")
+        except Exception as exc:  # noqa: BLE001 - any W&B failure must leave training alone
+            self._off(f"it failed to start: {_first_line(exc)}")
+
+    @property
+    def active(self) -> bool:
+        return self.run is not None
+
+    def log(self, values: dict, frame: int, step: int) -> None:
+        """Scalars (``prefix/name``) at environment frame ``frame`` (agent step ``step``)."""
+        self._call(lambda: self.run.log({**values, "frame": frame, "step": step}))
+
+    def log_video(self, key: str, path: str, frame: int, step: int) -> None:
+        """A gif or mp4 file as a W&B video."""
+        fmt = os.path.splitext(path)[1].lstrip(".")
+        self._call(lambda: self.run.log({key: self._wandb.Video(path, format=fmt),
+                                         "frame": frame, "step": step}))
+
+    def log_image(self, key: str, path: str, frame: int, step: int) -> None:
+        """A PNG file as a W&B image."""
+        self._call(lambda: self.run.log({key: self._wandb.Image(path), "frame": frame, "step": step}))
+
+    def finish(self) -> None:
+        if self.run is not None:
+            run, self.run = self.run, None
+            try:
+                run.finish()
+            except Exception as exc:  # noqa: BLE001
+                self._warn(f"imssr: warning: W&B did not finish cleanly: {_first_line(exc)}")
+
+    def _call(self, fn) -> None:
+        if self.run is None:
+            return
+        try:
+            fn()
+        except Exception as exc:  # noqa: BLE001 - W&B failing mid-run must not stop training
+            self._off(f"a log call failed: {_first_line(exc)}")
+            try:
+                self.run.finish()
+            except Exception:  # noqa: BLE001
+                pass
+            self.run = None
+
+    def _off(self, why: str) -> None:
+        self.run = None
+        self._warn(f"imssr: warning: Weights & Biases is off for this run: {why}; "
+                   "the CSV logs (and TensorBoard) go on")
+
+
+def _unwritable(directory: str) -> str:
+    """Why W&B could not write in ``directory`` (empty when it can)."""
+    try:
+        os.makedirs(directory, exist_ok=True)
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return ""
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__

@@ -1,0 +1,119 @@
+"""imssr sweep --launcher local|slurm: the same plan, retries, status file and resume as the Ray
+path, with real `imssr train` processes on tiny budgets (SLURM through submitit's local executor)."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from imssr.cli import main
+from imssr.sweep.grid import SweepConfig, expand
+from imssr.sweep.runner import DONE_FILE, LOG_FILE
+from imssr.sweep.sweep import run_sweep
+
+TASK = "cartpole_swingup_sparse"  # 125 agent steps per episode at action repeat 8
+TINY = ["train.seed_steps=60", "train.burst_updates=0", "agent.batch_size=8", "aux.batch_size=8",
+        "agent.hidden_dim=32", "agent.feature_dim=16", "agent.encoder_filters=8", "train.replay_capacity=3000",
+        "train.eval_every_steps=125", "train.eval_episodes=1", "train.checkpoint_every_steps=125",
+        "train.tensorboard=false"]
+
+
+def status(root):
+    with open(os.path.join(root, "sweep_status.json")) as fh:
+        return json.load(fh)
+
+
+def attempts_in_log(run_dir):
+    with open(os.path.join(run_dir, LOG_FILE)) as fh:
+        return [line for line in fh if line.startswith("==> attempt")]
+
+
+def test_killed_local_driver_rerun_skips_finished_runs(tmp_path):
+    """`--launcher local`, one run at a time: the driver is killed (-9) once the first run is
+    done; the same command then skips it and finishes the second."""
+    root = str(tmp_path / "sweep")
+    cmd = [sys.executable, "-m", "imssr", "sweep", "--no-progress", "--launcher", "local", "--max-parallel", "1",
+           "--root", root, "--algos", "curl", "--tasks", TASK, "--seeds", "1,2", "--steps", "125",
+           *[a for o in TINY for a in ("--set", o)]]
+    first, second = expand(SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1, 2]))
+    driver = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 240
+        while not os.path.exists(os.path.join(first.dir, DONE_FILE)):
+            assert driver.poll() is None and time.time() < deadline, "the first run did not finish"
+            time.sleep(0.5)
+        driver.send_signal(signal.SIGKILL)
+        driver.wait()
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    # The training the driver had started dies with it (its run directory's lock is free).
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "2 runs, 1 done" in proc.stdout and "(local)" in proc.stdout
+    runs = {r["seed"]: r for r in status(root)["runs"]}
+    assert (runs[1]["action"], runs[1]["attempts"], runs[1]["state"]) == ("done", 0, "done")
+    assert (runs[2]["attempts"], runs[2]["state"], runs[2]["final_step"]) == (1, "done", 125)
+    assert len(attempts_in_log(first.dir)) == 1  # never started again
+    assert os.path.exists(os.path.join(second.dir, DONE_FILE))
+
+
+def test_slurm_launcher_through_submitit_local_executor(tmp_path):
+    """`--launcher slurm`'s code path with submitit's local executor: one job per run attempt,
+    a failing run retried, the status file written; a second sweep starts nothing."""
+    root = str(tmp_path / "sweep")
+    cfg = SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1], steps=125, overrides=TINY,
+                      launcher="slurm", slurm_time=10, retries=1).validate()
+    statuses = run_sweep(cfg, progress=False, poll_s=0.5, submitit_cluster="local")
+    assert [(s.state, s.attempts, s.final_step) for s in statuses] == [("done", 1, 125)]
+    (run,) = expand(cfg)
+    assert os.path.exists(os.path.join(run.dir, DONE_FILE))
+    assert status(root)["counts"] == {"queued": 0, "running": 0, "done": 1, "failed": 0}
+    assert os.listdir(os.path.join(root, ".submitit"))  # submitit's job folders
+    again = run_sweep(cfg, progress=False, poll_s=0.5, submitit_cluster="local")
+    assert [(s.state, s.action, s.attempts) for s in again] == [("done", "done", 0)]
+    # A run that fails (no such device) is retried as a new job, then reported.
+    bad = SweepConfig(root=str(tmp_path / "bad"), algos=["curl"], tasks=[TASK], seeds=[2], steps=125,
+                      overrides=TINY + ["train.device=cuda:99"], launcher="slurm", retries=1).validate()
+    (st,) = run_sweep(bad, progress=False, poll_s=0.5, submitit_cluster="local")
+    assert (st.state, st.attempts, len(st.errors)) == ("failed", 2, 2)
+    assert all("cuda:99" in e for e in st.errors), st.errors
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--launcher", "ray", "--slurm-time", "60"], "the --slurm-* settings go with --launcher slurm"),
+    (["--launcher", "local", "--address", "10.0.0.1:6379"], "--address (a Ray cluster) goes with --launcher ray"),
+    (["--logger", "csv,mlflow"], "unknown logger 'mlflow' in --logger"),
+])
+def test_bad_launcher_settings_are_one_line(args, message, tmp_path, capsys):
+    assert main(["sweep", "--root", str(tmp_path / "r"), "--algos", "curl", "--tasks", TASK, *args,
+                 "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("imssr: error: ") and message in err[0], err
+
+
+def test_slurm_without_sbatch_is_one_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("PATH", str(tmp_path))  # no sbatch on it
+    assert main(["sweep", "--root", str(tmp_path / "r"), "--algos", "curl", "--tasks", TASK,
+                 "--launcher", "slurm", "--slurm-partition", "gpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--launcher slurm needs SLURM's sbatch" in err[0], err
+    assert not (tmp_path / "r").exists()  # nothing written
+
+
+def test_sweep_logger_groups_and_tags_wandb_runs(tmp_path):
+    from imssr.cli import _run_config, build_parser
+    from imssr.sweep.grid import build_run_config
+    from imssr.training.wandb_run import run_tags
+
+    cfg = SweepConfig(root=str(tmp_path / "table1"), algos=["im-curl"], tasks=[TASK], seeds=[3], beta0=[0.05],
+                      logger="csv,wandb").validate()
+    (run,) = expand(cfg)
+    built = build_run_config(run, cfg)
+    args = build_parser().parse_args(["train", *run.train_args(cfg), "--out", run.dir])
+    assert built == _run_config(args, demo=False)
+    assert (built.train.wandb, built.train.tensorboard, built.train.wandb_group) == (True, False, "table1")
+    assert run_tags(built) == ["im-curl", TASK, "seed_3", "beta0_0.05"]
