@@ -8,6 +8,10 @@ GL_BACKEND = _configure_gl()
 
 from imssr.errors import ImssrError  # noqa: E402
 from imssr.envs import make_env, list_tasks  # noqa: E402
+from imssr.envs.gym_ids import register_envs as _register_envs  # noqa: E402
+
+# gymnasium.make("imssr/<task>-v0", mode=..., seed=...): string entry points, no mujoco loaded here.
+_register_envs()
 
 __version__ = "0.1.0"
 __all__ = ["make_env", "list_tasks", "ImssrError", "GL_BACKEND", "__version__"]

@@ -256,3 +256,34 @@ def test_analyze_refuses_a_run_without_intrinsic_reward(tmp_path, capsys):
     (run / "config.json").write_text(tiny_config("curl").to_json())
     assert main(["analyze", "--run", str(run)]) == 2
     assert "no intrinsic reward" in capsys.readouterr().err
+
+
+def test_knn_distance_equals_a_brute_force_reference():
+    # cKDTree against every pairwise distance sorted: equal up to float rounding, NaN pool rows
+    # and the excluded row (the state itself) left out, NaN with fewer than k others.
+    rng = np.random.default_rng(5)
+    pool = rng.normal(size=(120, 4))
+    pool[9] = pool[4]
+    pool[::13] = np.nan
+    q = np.array([i for i in range(0, 120, 7) if np.isfinite(pool[i]).all()])
+    for k in (1, 2, 5):
+        got = measures.knn_distance(pool[q], pool, k, exclude=q)
+        for i, row in enumerate(q):
+            others = [j for j in range(len(pool)) if j != row and np.isfinite(pool[j]).all()]
+            ref = np.sort(np.sqrt(((pool[others] - pool[row]) ** 2).sum(axis=1)))[k - 1]
+            assert got[i] == pytest.approx(ref, rel=1e-12, abs=1e-15)
+    small = pool[1:4]
+    assert np.isnan(measures.knn_distance(small, small, 3, exclude=np.arange(3))).all()
+
+
+def test_spearman_ci_is_the_percentile_bootstrap_of_seeded_pair_resamples():
+    from scipy.stats import spearmanr
+
+    rng = np.random.default_rng(6)
+    x = rng.normal(size=25)
+    y = x + rng.normal(size=25)
+    got = spearman_ci(x, y, 200, seed=3)
+    idx = np.random.default_rng(3).integers(0, 25, size=(200, 25))
+    rho = [spearmanr(x[i], y[i]).statistic for i in idx if np.ptp(x[i]) > 0 and np.ptp(y[i]) > 0]
+    low, high = np.percentile(rho, [2.5, 97.5])
+    assert got["ci_low"] == pytest.approx(low, abs=1e-12) and got["ci_high"] == pytest.approx(high, abs=1e-12)

@@ -72,27 +72,32 @@ def standardise(coords: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return (coords[:, varies] - mean[varies]) / std[varies]
 
 
-def knn_distance(query: np.ndarray, pool: np.ndarray, k: int, exclude: Optional[np.ndarray] = None,
-                 chunk: int = 4096) -> np.ndarray:
+def knn_distance(query: np.ndarray, pool: np.ndarray, k: int, exclude: Optional[np.ndarray] = None) -> np.ndarray:
     """Distance from each ``query`` row to its ``k``-th nearest row of ``pool`` (NaN rows of
     ``pool`` are left out, and row ``exclude[i]`` for query ``i``: the state itself).  A state
-    recorded ``k`` more times has novelty 0.  NaN where the pool holds fewer than ``k`` others."""
+    recorded ``k`` more times has novelty 0.  NaN where the pool holds fewer than ``k`` others
+    or the query row is not finite."""
+    from scipy.spatial import cKDTree
+
     if k < 1:
         raise ImssrError(f"k must be >= 1, got {k}")
-    finite = np.isfinite(pool).all(axis=1)
+    query = np.asarray(query, dtype=np.float64)
     out = np.full(len(query), np.nan)
-    for i, q in enumerate(query):
-        mask = finite.copy()
-        if exclude is not None and exclude[i] >= 0:
-            mask[exclude[i]] = False
-        rows = np.flatnonzero(mask)
-        if len(rows) < k:
-            continue
-        best = np.full(k, np.inf)
-        for start in range(0, len(rows), chunk):
-            d = np.sqrt(((pool[rows[start:start + chunk]] - q) ** 2).sum(axis=1))
-            best = np.partition(np.concatenate([best, d]), k - 1)[:k]
-        out[i] = np.sort(best)[k - 1]
+    rows = np.flatnonzero(np.isfinite(pool).all(axis=1))
+    ok = np.isfinite(query).all(axis=1)
+    if len(rows) == 0 or not ok.any():
+        return out
+    # One neighbour more than k: the excluded row may be among the nearest.
+    dist, j = cKDTree(pool[rows]).query(query[ok], k=list(range(1, min(k + 1, len(rows)) + 1)))
+    found = j < len(rows)  # missing neighbours come back as index len(rows), distance inf
+    idx = np.where(found, rows[np.minimum(j, len(rows) - 1)], -1)
+    ex = np.full(len(query), -1) if exclude is None else np.asarray(exclude)
+    keep = found & (idx != ex[ok][:, None])
+    hit = keep & (np.cumsum(keep, axis=1) == k)
+    has = hit.any(axis=1)
+    res = np.full(int(ok.sum()), np.nan)
+    res[has] = dist[has, hit[has].argmax(axis=1)]
+    out[ok] = res
     return out
 
 

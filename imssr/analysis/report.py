@@ -15,7 +15,9 @@ def spearman_ci(x: np.ndarray, y: np.ndarray, reps: int = 1000, seed: int = 0,
     (:func:`scipy.stats.spearmanr`) and a percentile bootstrap CI: ``reps`` resamples of the
     pairs with replacement from a generator seeded with ``seed``; resamples in which either
     variable is constant have no correlation and are skipped."""
-    from scipy.stats import rankdata, spearmanr
+    import warnings
+
+    from scipy.stats import DegenerateDataWarning, bootstrap, rankdata, spearmanr
 
     keep = np.isfinite(x) & np.isfinite(y)
     x, y = np.asarray(x, float)[keep], np.asarray(y, float)[keep]
@@ -24,15 +26,23 @@ def spearman_ci(x: np.ndarray, y: np.ndarray, reps: int = 1000, seed: int = 0,
         return out
     res = spearmanr(x, y)
     out["rho"], out["p"] = float(res.statistic), float(res.pvalue)
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(x), size=(reps, len(x)))
-    # Spearman = Pearson of the ranks (ties averaged), one resample per row.
-    rx, ry = rankdata(x[idx], axis=1), rankdata(y[idx], axis=1)
-    rx -= rx.mean(axis=1, keepdims=True)
-    ry -= ry.mean(axis=1, keepdims=True)
-    den = np.sqrt((rx ** 2).sum(axis=1) * (ry ** 2).sum(axis=1))
-    ok = den > 0
-    rho = (rx * ry).sum(axis=1)[ok] / den[ok]
+
+    def rank_correlation(xs: np.ndarray, ys: np.ndarray, axis: int = -1) -> np.ndarray:
+        # Spearman = Pearson of the ranks (ties averaged), one resample per row; NaN for a
+        # resample in which either variable is constant.
+        rx, ry = rankdata(xs, axis=axis), rankdata(ys, axis=axis)
+        rx -= rx.mean(axis=axis, keepdims=True)
+        ry -= ry.mean(axis=axis, keepdims=True)
+        den = np.sqrt((rx ** 2).sum(axis=axis) * (ry ** 2).sum(axis=axis))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(den > 0, (rx * ry).sum(axis=axis) / den, np.nan)
+
+    with warnings.catch_warnings():
+        # A degenerate resample makes scipy's own interval NaN; the interval below skips it.
+        warnings.simplefilter("ignore", DegenerateDataWarning)
+        boot = bootstrap((x, y), rank_correlation, n_resamples=reps, paired=True, vectorized=True,
+                         method="percentile", confidence_level=level, rng=np.random.default_rng(seed))
+    rho = boot.bootstrap_distribution[np.isfinite(boot.bootstrap_distribution)]
     if len(rho):
         tail = 100 * (1 - level) / 2
         out["ci_low"], out["ci_high"] = (float(v) for v in np.percentile(rho, [tail, 100 - tail]))

@@ -119,6 +119,8 @@ class DMCEnv(gym.Env):
 
     # -- gymnasium API -------------------------------------------------------
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        # gymnasium's own generator (env.np_random); the task and scenes keep theirs (seed_task).
+        super().reset(seed=seed)
         if seed is not None:
             self.seed_task(seed)
         self._env.reset()

@@ -53,6 +53,69 @@ class TaskSpec:
 _CUSTOM = {"walker_walk_sparse": ("walker", "walk", _walker_sparse)}
 
 
+# dm_control 1.0.50's ``suite.ALL_TASKS`` (pinned in pyproject.toml), written out so that the
+# gymnasium ids can be registered on ``import imssr`` without loading mujoco;
+# tests/test_gym_ids.py checks it against the installed suite.
+SUITE_TASKS: tuple[tuple[str, str], ...] = (
+    ('acrobot', 'swingup'),
+    ('acrobot', 'swingup_sparse'),
+    ('ball_in_cup', 'catch'),
+    ('cartpole', 'balance'),
+    ('cartpole', 'balance_sparse'),
+    ('cartpole', 'swingup'),
+    ('cartpole', 'swingup_sparse'),
+    ('cartpole', 'two_poles'),
+    ('cartpole', 'three_poles'),
+    ('cheetah', 'run'),
+    ('dog', 'stand'),
+    ('dog', 'walk'),
+    ('dog', 'trot'),
+    ('dog', 'run'),
+    ('dog', 'fetch'),
+    ('finger', 'spin'),
+    ('finger', 'turn_easy'),
+    ('finger', 'turn_hard'),
+    ('fish', 'upright'),
+    ('fish', 'swim'),
+    ('hopper', 'stand'),
+    ('hopper', 'hop'),
+    ('humanoid', 'stand'),
+    ('humanoid', 'walk'),
+    ('humanoid', 'run'),
+    ('humanoid', 'run_pure_state'),
+    ('humanoid_CMU', 'stand'),
+    ('humanoid_CMU', 'walk'),
+    ('humanoid_CMU', 'run'),
+    ('lqr', 'lqr_2_1'),
+    ('lqr', 'lqr_6_2'),
+    ('manipulator', 'bring_ball'),
+    ('manipulator', 'bring_peg'),
+    ('manipulator', 'insert_ball'),
+    ('manipulator', 'insert_peg'),
+    ('pendulum', 'swingup'),
+    ('point_mass', 'easy'),
+    ('point_mass', 'hard'),
+    ('quadruped', 'walk'),
+    ('quadruped', 'run'),
+    ('quadruped', 'escape'),
+    ('quadruped', 'fetch'),
+    ('reacher', 'easy'),
+    ('reacher', 'hard'),
+    ('stacker', 'stack_2'),
+    ('stacker', 'stack_4'),
+    ('swimmer', 'swimmer6'),
+    ('swimmer', 'swimmer15'),
+    ('walker', 'stand'),
+    ('walker', 'walk'),
+    ('walker', 'run'),
+)
+
+
+def static_task_names() -> list[str]:
+    """Every task name of :func:`list_tasks`, without importing dm_control."""
+    return sorted({f"{d}_{t}" for d, t in SUITE_TASKS} | set(_CUSTOM))
+
+
 def _suite_tasks() -> list[tuple[str, str]]:
     from dm_control import suite
 

@@ -1,0 +1,32 @@
+"""gymnasium ids: ``gymnasium.make("imssr/<task>-v0", mode=..., seed=...)`` for every task.
+
+Registration runs on ``import imssr`` and must stay cheap, so the ids come from
+:data:`imssr.envs.tasks.SUITE_TASKS` (a fixed list checked against the pinned dm_control
+by tests/test_gym_ids.py) and the entry point is a string: dm_control and mujoco load
+only when an env is made.  The scene is the ``mode`` keyword, not part of the id, so
+one id per task covers every scene of ``imssr modes``.
+"""
+from __future__ import annotations
+
+NAMESPACE = "imssr"
+VERSION = 0
+
+
+def gym_id(task: str) -> str:
+    """The gymnasium id of an imssr task name."""
+    return f"{NAMESPACE}/{task}-v{VERSION}"
+
+
+def register_envs() -> None:
+    """Register one gymnasium id per task (idempotent: registered ids are skipped)."""
+    import gymnasium
+
+    from imssr.envs.tasks import static_task_names
+
+    for task in static_task_names():
+        env_id = gym_id(task)
+        if env_id in gymnasium.registry:
+            continue
+        # DMCEnv ends episodes itself (truncated at the task's time limit).
+        gymnasium.register(id=env_id, entry_point="imssr.envs.dmc:DMCEnv", kwargs={"task": task},
+                           disable_env_checker=False)

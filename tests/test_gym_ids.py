@@ -1,0 +1,47 @@
+"""gymnasium ids: registered on import without loading mujoco, one per task, checked by check_env."""
+import subprocess
+import sys
+
+import gymnasium
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import imssr
+from imssr.envs.gym_ids import gym_id
+from imssr.envs.tasks import SUITE_TASKS, static_task_names
+
+
+def test_static_task_list_matches_installed_suite():
+    from dm_control import suite
+
+    assert tuple(suite.ALL_TASKS) == SUITE_TASKS
+    assert static_task_names() == imssr.list_tasks()
+
+
+def test_every_task_has_an_id():
+    for task in imssr.list_tasks():
+        assert gym_id(task) in gymnasium.registry
+
+
+def test_registration_does_not_import_mujoco():
+    code = "import sys, imssr; assert 'mujoco' not in sys.modules and 'dm_control' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("task,mode", [("cartpole_swingup_sparse", "video_hard"), ("walker_walk_sparse", "training"),
+                                       ("finger_spin", "color_hard")])
+def test_make_and_check_env(task, mode):
+    env = gymnasium.make(gym_id(task), mode=mode, seed=3, image_size=32, frame_stack=2)
+    try:
+        check_env(env.unwrapped, skip_render_check=True)
+        obs, _ = env.reset(seed=5)
+        assert obs.shape == (6, 32, 32) and obs.dtype.name == "uint8"
+        obs2, *_ = env.step(env.action_space.sample())
+        assert env.observation_space.contains(obs2)
+    finally:
+        env.close()
+
+
+def test_unknown_mode_is_a_one_line_error():
+    with pytest.raises(imssr.ImssrError):
+        gymnasium.make(gym_id("cartpole_swingup_sparse"), mode="nope")
