@@ -14,4 +14,16 @@ from imssr.envs.gym_ids import register_envs as _register_envs  # noqa: E402
 _register_envs()
 
 __version__ = "0.1.0"
-__all__ = ["make_env", "list_tasks", "ImssrError", "GL_BACKEND", "__version__"]
+__all__ = ["make_env", "list_tasks", "ImssrError", "GL_BACKEND", "__version__", "train", "load_run", "Run"]
+
+_API = ("train", "load_run", "Run")
+
+
+def __getattr__(name: str):
+    # Resolved on first use: imssr.api imports the training loop, which imports modules of this
+    # package, so importing it while `imssr` itself initialises would run them half-built.
+    if name in _API:
+        from imssr import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'imssr' has no attribute {name!r}")

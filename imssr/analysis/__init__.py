@@ -23,7 +23,7 @@ from imssr.config import load_config
 from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
-from imssr.training import build_agent, resolve_device
+from imssr.training.build import build_agent, resolve_device, restore_agent
 from imssr.training.checkpoint import (latest_path, load_checkpoint, numbered_checkpoints, select_checkpoint,
                                        usable_checkpoint)
 
@@ -121,11 +121,7 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
         agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
 
         def load(state: dict):
-            try:
-                agent.load_state_dict(state["agent"], restore_rng=False)
-            except (RuntimeError, KeyError, ValueError) as exc:
-                raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
-            return agent
+            return restore_agent(agent, state)
 
         assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)

@@ -28,3 +28,14 @@ def build_agent(cfg: RunConfig, obs_shape, action_dim: int, device) -> SACAgent:
     algo = get_algo(cfg.algo)
     return SACAgent(obs_shape, action_dim, cfg.agent, aux_cfg=cfg.aux if algo.aux else None,
                     intrinsic_cfg=cfg.intrinsic, device=device, seed=cfg.train.seed)
+
+
+def restore_agent(agent: SACAgent, state: dict) -> SACAgent:
+    """``agent`` with the networks of the checkpoint ``state`` (a trained run's, to act and be
+    evaluated: its random streams stay the agent's own); a checkpoint of another config is one
+    line."""
+    try:
+        agent.load_state_dict(state["agent"], restore_rng=False)
+    except (RuntimeError, KeyError, ValueError) as exc:
+        raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
+    return agent

@@ -221,6 +221,19 @@ def usable_checkpoint(run_dir: str, verb: str = "resuming from") -> tuple[dict[s
     raise ImssrError(f"{error}, and no retained step-*.pt checkpoint in {checkpoint_dir(run_dir)} is valid")
 
 
+def run_checkpoint(run_dir: str, spec: Optional[str] = None,
+                   verb: str = "evaluating") -> tuple[dict[str, Any], Optional[str]]:
+    """The checkpoint of a trained run that ``--checkpoint`` chooses: ``(state, note)``.
+
+    ``spec`` is read by :func:`select_checkpoint` (a file, or the agent step of a retained
+    ``step-*.pt``); None takes the latest that verifies, with a ``note`` when that is not
+    ``latest.pt`` (:func:`usable_checkpoint`)."""
+    if spec:
+        return load_checkpoint(select_checkpoint(run_dir, spec)), None
+    state, _, note = usable_checkpoint(run_dir, verb=verb)
+    return state, note
+
+
 def select_checkpoint(run_dir: str, spec: str) -> str:
     """The checkpoint file named by ``spec``: a path (absolute, relative, or inside the run's
     ``checkpoints/``), or an agent step of a retained ``step-*.pt``."""

@@ -12,8 +12,8 @@ from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import DivergedError, ImssrError
 from imssr.plots.media import save_montage, save_video
-from imssr.training.build import build_agent, resolve_device
-from imssr.training.checkpoint import load_checkpoint, select_checkpoint, usable_checkpoint
+from imssr.training.build import build_agent, resolve_device, restore_agent
+from imssr.training.checkpoint import run_checkpoint
 from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, append_locked, episode_rows
 
 
@@ -55,6 +55,12 @@ def _hwc(frame: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(frame, 0, -1))
 
 
+def evaluation_seed(cfg) -> int:
+    """Seed of the envs that evaluate a saved run by default: the run seed + 20,000, which no env
+    of its training (seed) or of its evaluations during training (seed + 10,000) used."""
+    return cfg.train.seed + 20_000
+
+
 def eval_row(frame: int, step: int, mode: str, returns: list[float]) -> dict:
     """The ``eval.csv`` summary of one evaluation."""
     return {"frame": frame, "step": step, "mode": mode,
@@ -92,14 +98,11 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
               else cfg.train.eval_mode_list(cfg.env.mode))
     for mode in scenes:
         get_mode(mode)
-    if checkpoint:
-        ckpt = load_checkpoint(select_checkpoint(run_dir, checkpoint))
-    else:
-        ckpt, _, note = usable_checkpoint(run_dir, verb="evaluating")
-        if note:
-            log(f"imssr: {note}")
+    ckpt, note = run_checkpoint(run_dir, checkpoint)
+    if note:
+        log(f"imssr: {note}")
     torch_device = resolve_device(device)
-    seed = cfg.train.seed + 20_000 if seed is None else seed
+    seed = evaluation_seed(cfg) if seed is None else seed
     agent = None
     pictures = {}
     summary_path = os.path.join(run_dir, "evaluate.csv")
@@ -109,11 +112,8 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
         # Unseen footage: evaluation draws from the test pool.
         env = env_from_config(cfg.env, seed=seed, mode=mode, footage_split="test", footage_path=footage)
         if agent is None:
-            agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], torch_device)
-            try:
-                agent.load_state_dict(ckpt["agent"], restore_rng=False)
-            except (RuntimeError, KeyError, ValueError) as exc:
-                raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
+            agent = restore_agent(build_agent(cfg, env.observation_space.shape, env.action_space.shape[0],
+                                              torch_device), ckpt)
         frames: Optional[list] = [] if (video or montage) else None
         try:
             returns = evaluate(agent, env, episodes, record=frames)

@@ -1,0 +1,188 @@
+"""The notebook API: train a run and load a trained one in a few lines of Python.
+
+    import imssr
+    run = imssr.train("im-curl", "cartpole_swingup", out="runs/nb", steps=...)
+    run = imssr.load_run("runs/nb")                   # or checkpoint="5000" / a file
+    run.act(obs); run.evaluate(mode="color_hard", episodes=5); run.curves()
+
+:func:`train` is ``imssr train`` (the same config, run directory, checkpoints and resume);
+:class:`Run` only reads its run directory: ``imssr evaluate`` is the command that appends
+evaluations to the run's files.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+from imssr.config import RunConfig, load_config
+from imssr.envs import env_from_config
+from imssr.envs.scenes import get_mode
+from imssr.errors import ImssrError
+from imssr.presets import build_run_config
+from imssr.training.build import build_agent, resolve_device, restore_agent
+from imssr.training.checkpoint import run_checkpoint
+from imssr.training.evaluate import eval_row, evaluate, evaluation_seed
+from imssr.training.loop import StopRequest, Trainer, TrainingInterrupted
+from imssr.utils import read_csv
+
+CURVES = ("eval", "train", "eval_episodes", "evaluate", "evaluate_episodes")
+"""The run's CSV logs that :meth:`Run.curves` reads (``RUN/<name>.csv``)."""
+
+
+class Run:
+    """A trained run, loaded from its directory: the config, one checkpoint's agent, its logs.
+
+    Args:
+        run_dir: the run directory (``config.json``, ``checkpoints/``, the CSV logs).
+        checkpoint: as ``imssr evaluate --checkpoint``: a checkpoint file, or the agent step of a
+            retained ``step-*.pt``; None: the latest that verifies.
+        device: torch device of the agent (``auto`` allowed).
+    """
+
+    def __init__(self, run_dir: str, checkpoint: Optional[str] = None, device: str = "cpu"):
+        if not os.path.isdir(run_dir):
+            raise ImssrError(f"run directory not found: {run_dir}")
+        self.dir = run_dir
+        self.config: RunConfig = load_config(os.path.join(run_dir, "config.json"))
+        state, note = run_checkpoint(run_dir, None if checkpoint is None else str(checkpoint), verb="loading")
+        if note:
+            warnings.warn(note, stacklevel=2)
+        self.step: int = int(state["step"])
+        """Agent step of the loaded checkpoint."""
+        self.frame: int = int(state["frame"])
+        """Environment frame of the loaded checkpoint."""
+        env = self.make_env()
+        try:
+            self.observation_shape: tuple = tuple(env.observation_space.shape)
+            action_dim = env.action_space.shape[0]
+        finally:
+            env.close()
+        self.agent = restore_agent(build_agent(self.config, self.observation_shape, action_dim,
+                                               resolve_device(device)), state)
+
+    def __repr__(self) -> str:
+        return (f"Run({self.dir!r}: {self.config.algo} on {self.config.env.task}, seed {self.config.train.seed}, "
+                f"checkpoint at agent step {self.step:,})")
+
+    def make_env(self, mode: Optional[str] = None, seed: Optional[int] = None):
+        """A gymnasium env of the run's task in scene ``mode`` (None: the scene it trained in),
+        built as the run's evaluation envs are (unseen footage); ``seed`` None: as
+        :meth:`evaluate`'s."""
+        mode = self.config.env.mode if mode is None else mode
+        get_mode(mode)
+        seed = evaluation_seed(self.config) if seed is None else seed
+        return env_from_config(self.config.env, seed=seed, mode=mode, footage_split="test")
+
+    def act(self, obs, deterministic: bool = True) -> np.ndarray:
+        """The agent's action in [-1, 1] for one observation of the run's envs (uint8, stacked
+        frames, shape :attr:`observation_shape`); deterministic: the mean action, as evaluated."""
+        obs = np.asarray(obs)
+        if obs.shape != self.observation_shape or obs.dtype != np.uint8:
+            raise ImssrError(f"act() takes one observation of the run's envs: uint8 of shape "
+                             f"{self.observation_shape}, got {obs.dtype} of shape {obs.shape}")
+        return self.agent.act(obs, deterministic=deterministic)
+
+    def evaluate(self, mode: Optional[str] = None, episodes: int = 10, seed: Optional[int] = None) -> dict:
+        """Returns of ``episodes`` deterministic episodes in scene ``mode`` (None: the training
+        scene), as ``imssr evaluate`` measures them but written nowhere: the ``eval.csv`` summary
+        (``return_mean``, ``return_std``, ...) with ``returns``, one per episode."""
+        if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+            raise ImssrError(f"episodes must be a positive integer, got {episodes!r}")
+        env = self.make_env(mode, seed)
+        try:
+            returns = evaluate(self.agent, env, episodes)
+        finally:
+            env.close()
+        mode = self.config.env.mode if mode is None else mode
+        return {**eval_row(self.frame, self.step, mode, returns), "returns": returns}
+
+    def curves(self, name: str = "eval"):
+        """The run's log ``RUN/<name>.csv`` (``eval``: one row per evaluation and scene; ``train``:
+        one per episode; see :data:`CURVES`) as a pandas DataFrame when pandas is installed (the
+        ``report`` extra), else a list of dicts with numbers as numbers; empty when the run has
+        not written it."""
+        if name not in CURVES:
+            raise ImssrError(f"unknown log {name!r}; choose from {', '.join(CURVES)}")
+        path = os.path.join(self.dir, f"{name}.csv")
+        try:
+            import pandas as pd
+        except ImportError:
+            return _typed(read_csv(path))
+        return pd.read_csv(path) if os.path.exists(path) else pd.DataFrame()
+
+
+def load_run(run_dir: str, checkpoint: Optional[str] = None, device: str = "cpu") -> Run:
+    """The trained run in ``run_dir`` (see :class:`Run`)."""
+    return Run(run_dir, checkpoint=checkpoint, device=device)
+
+
+def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[str] = None, *,
+          steps: Optional[int] = None, frames: Optional[int] = None, seed: Optional[int] = None,
+          device: Optional[str] = None, demo: bool = False, overrides: Sequence[str] = (),
+          resume: bool = False, progress: bool = True) -> Run:
+    """Train a run as ``imssr train`` does and load it (:class:`Run`, latest checkpoint).
+
+    Args:
+        algo, task: as ``--algo`` / ``--task`` (``imssr algos``, ``imssr tasks``); the run starts
+            from their paper preset (``demo``: the demo's settings).
+        out: the run directory; None: ``runs/<task>/<algo>/seed_<seed>``.
+        steps: budget in agent steps (``frames``: in environment frames instead); None: the
+            preset's (the paper's T = 500,000 agent steps).
+        seed: the run's seed; None: the preset's.
+        device: torch device (``cpu``, ``cuda``, ``auto``); None: the preset's (cpu).
+        overrides: ``section.field=value`` strings, as ``--set``.
+        resume: continue the run in ``out`` from its checkpoint (the saved config, a larger budget
+            allowed).
+        progress: show the progress bar.
+
+    An interrupt (SIGINT: the notebook's stop button, Ctrl-C) stops after the current agent step
+    with a checkpoint and raises ``KeyboardInterrupt``; ``resume=True`` continues from there.
+    """
+    values: dict[str, Any] = {"train.progress": progress}
+    for field, value in (("train.steps", steps), ("train.seed", seed), ("train.device", device)):
+        if value is not None:
+            values[field] = value
+    if isinstance(overrides, str):
+        raise ImssrError("overrides is a list of 'section.field=value' strings, e.g. ['train.eval_episodes=5']")
+    if resume and out is None:
+        raise ImssrError("resume=True needs out, the run directory to continue")
+    cfg = build_run_config(None if resume else algo, None if resume else task, demo=demo,
+                           resume_dir=out if resume else None, values=values, frames=frames,
+                           overrides=list(overrides))
+    out = out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
+    stop = StopRequest().install()
+    try:
+        trainer = Trainer(cfg, out, resume=resume, stop=stop)
+        try:
+            trainer.train()
+        finally:
+            trainer.close()
+    except TrainingInterrupted:
+        raise KeyboardInterrupt(f"stopped at agent step {trainer.step} with a checkpoint; continue with "
+                                f"imssr.train(out={out!r}, resume=True)") from None
+    finally:
+        stop.uninstall()
+    return load_run(out, device=cfg.train.device)
+
+
+def _typed(rows: list[dict]) -> list[dict]:
+    """CSV rows with each column's cells as pandas reads them: int where every cell of the
+    column is an integer, else float where every cell is a number (empty: None), else text."""
+    if not rows:
+        return []
+    kinds = {}
+    for column in rows[0]:
+        cells = [r[column] for r in rows if r[column] not in (None, "")]
+        kinds[column] = next((kind for kind in (int, float) if all(_parses(kind, c) for c in cells)), str)
+    return [{k: None if v in (None, "") else kinds[k](v) for k, v in row.items()} for row in rows]
+
+
+def _parses(kind, text: str) -> bool:
+    try:
+        kind(text)
+        return True
+    except ValueError:
+        return False
