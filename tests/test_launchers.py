@@ -71,7 +71,7 @@ def test_slurm_launcher_through_submitit_local_executor(tmp_path):
     assert [(s.state, s.attempts, s.final_step) for s in statuses] == [("done", 1, 125)]
     (run,) = expand(cfg)
     assert os.path.exists(os.path.join(run.dir, DONE_FILE))
-    assert status(root)["counts"] == {"queued": 0, "running": 0, "done": 1, "failed": 0}
+    assert status(root)["counts"] == {"queued": 0, "running": 0, "done": 1, "failed": 0, "interrupted": 0}
     assert os.listdir(os.path.join(root, ".submitit"))  # submitit's job folders
     again = run_sweep(cfg, progress=False, poll_s=0.5, submitit_cluster="local")
     assert [(s.state, s.action, s.attempts) for s in again] == [("done", "done", 0)]

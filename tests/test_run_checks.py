@@ -90,15 +90,19 @@ def test_divergence_in_evaluation_is_caught_before_the_simulator(tmp_path):
         t.close()
 
 
-def test_a_real_diverging_run_is_one_line_that_the_sweep_records(tmp_path):
-    """critic_lr=1e6 (the issue's example) diverges in its first updates: before, dm_control
-    ended it in a 26-line PhysicsError traceback."""
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_a_real_diverging_run_is_one_line_that_the_sweep_records(precision, tmp_path):
+    """critic_lr=1e6 diverges in its first updates (dm_control would end it in a 26-line
+    PhysicsError traceback); a bf16 run (mixed precision) blows up in its first updates too and
+    stops with the same line (measured: fp32 "actor loss nan", bf16 "aux loss nan" at agent
+    step 11), which the sweep does not retry."""
     from imssr.sweep.runner import LOG_FILE, execute_run
 
     run = tmp_path / "run"
-    args = ["--algo", "curl", "--task", TASK, "--seed", "1", *FAST, "--set", "agent.critic_lr=1e6"]
+    args = ["--algo", "curl", "--task", TASK, "--seed", "1", *FAST, "--set", "agent.critic_lr=1e6",
+            "--set", f"agent.precision={precision}"]
     result = execute_run(str(run), args, 60, attempt=1)
-    assert not result["ok"] and result["returncode"] == 2
+    assert not result["ok"] and result["returncode"] == 2 and result["diverged"]
     assert re.fullmatch(r"imssr: error: diverged at agent step \d+: [a-z ]+ (nan|inf|-inf)", result["error"]), result
     log = (run / LOG_FILE).read_text()
     assert "Traceback" not in log and "PhysicsError" not in log
