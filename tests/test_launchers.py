@@ -117,3 +117,43 @@ def test_sweep_logger_groups_and_tags_wandb_runs(tmp_path):
     assert built == _run_config(args, demo=False)
     assert (built.train.wandb, built.train.tensorboard, built.train.wandb_group) == (True, False, "table1")
     assert run_tags(built) == ["im-curl", TASK, "seed_3", "beta0_0.05"]
+
+
+def test_killed_slurm_driver_rerun_skips_finished_runs(tmp_path):
+    """The SLURM launcher (submitit's local executor): the driver is killed (-9) once the first run
+    is done; jobs it submitted may outlive it, as SLURM jobs do.  Once nothing trains in the run
+    directories any more, the same sweep starts nothing for finished runs and completes the rest."""
+    from imssr.training.lock import DirectoryLock
+
+    root = str(tmp_path / "sweep")
+    script = (f"from imssr.sweep.grid import SweepConfig\nfrom imssr.sweep.sweep import run_sweep\n"
+              f"cfg = SweepConfig(root={root!r}, algos=['curl'], tasks=[{TASK!r}], seeds=[1, 2], steps=125, "
+              f"overrides={TINY!r}, launcher='slurm', retries=1).validate()\n"
+              f"print([s.state for s in run_sweep(cfg, progress=False, poll_s=0.5, submitit_cluster='local')])\n")
+    first, second = expand(SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1, 2]))
+    driver = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 300
+        while not os.path.exists(os.path.join(first.dir, DONE_FILE)):
+            assert driver.poll() is None and time.time() < deadline, "the first run did not finish"
+            time.sleep(0.5)
+        driver.send_signal(signal.SIGKILL)
+        driver.wait()
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    deadline = time.time() + 300
+    while True:  # an orphaned job may still be training the second run
+        try:
+            DirectoryLock(second.dir).acquire().release()
+            break
+        except Exception:  # noqa: BLE001 - in use
+            assert time.time() < deadline, "the second run's training never ended"
+            time.sleep(1.0)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "['done', 'done']"
+    runs = {r["seed"]: r for r in status(root)["runs"]}
+    assert (runs[1]["action"], runs[1]["attempts"], runs[1]["state"]) == ("done", 0, "done")
+    assert runs[2]["state"] == "done" and runs[2]["final_step"] == 125
+    assert len(attempts_in_log(first.dir)) == 1  # never started again
