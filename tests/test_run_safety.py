@@ -162,7 +162,7 @@ def test_two_sweeps_over_one_root_and_the_sweep_lock(tmp_path, monkeypatch):
         with pytest.raises(ImssrError, match=rf"{re.escape(str(root))} is in use by PID {child.pid}"):
             sweep.run_sweep(cfg, progress=False)
 
-    def body(cfg, progress, poll_s):  # the sweep holds its root while it runs
+    def body(cfg, launcher, progress, poll_s):  # the sweep holds its root while it runs
         with pytest.raises(ImssrError, match=f"is in use by PID {os.getpid()}"):
             DirectoryLock(str(root)).acquire()
         return []
