@@ -74,7 +74,8 @@ def parse_variant(text: str) -> tuple[str, str]:
 
 def first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
-    line = f"{type(exc).__name__}: {text[0] if text else ''}"
+    # A "|" would split the Markdown row.
+    line = f"{type(exc).__name__}: {text[0] if text else ''}".replace("|", "/")
     return line if len(line) <= 160 else line[:157] + "..."
 
 
