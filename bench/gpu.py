@@ -10,7 +10,8 @@ A CPU smoke run (checks that everything runs; its figures mean nothing for a GPU
 
     python bench/gpu.py --device cpu --algos curl --variants fp32/off bf16/off \\
         --batch 8 --steps 2 --warmup 1 --seed-steps 20 --threads 1 \\
-        --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8
+        --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8 \\
+        --set aux.batch_size=8
 
 Each variant is ``PRECISION/COMPILE``: ``agent.precision`` (fp32, bf16) and ``agent.compile``
 (off, default, reduce-overhead, max-autotune) on top of the paper's preset of each algorithm,
@@ -246,7 +247,10 @@ def main() -> int:
           f"evaluation, the seed phase (cheaper random steps, then its burst of updates), "
           f"checkpoints and logging.")
     print(f"warm-up s: wall time of the {a.warmup} warm-up steps, which hold torch.compile's "
-          f"compilation and CUDA-graph capture; excluded from steps/s.")
+          f"compilation and CUDA-graph capture; excluded from steps/s."
+          + (" A compiled variant reuses what an earlier one in this process (or inductor's cache on "
+             "disk) compiled for the same code and shapes: the first compiled row of each encoder depth "
+             "and precision is the nearest to a fresh training process's cost." if compiled else ""))
     if cuda:
         print("peak GiB: the variant's own resident device memory plus the largest transient peak of "
               f"one of its steps (torch.cuda.max_memory_allocated); the whole process holds "
