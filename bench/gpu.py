@@ -85,8 +85,8 @@ class Variant(Runner):
     than raised, so that one broken variant does not cost the others' measurements.
 
     Device memory is tracked per variant although all variants share one CUDA allocator: its
-    resident bytes (what building it and its steps left allocated: weights, Adam state, CUDA
-    graph pools) plus the largest transient peak of one of its steps."""
+    resident bytes (what building it and its steps left allocated: weights, Adam state, ...)
+    plus the largest transient peak of one of its steps."""
 
     def __init__(self, algo: str, precision: str, mode: str, overrides: list[str], a, device):
         self.algo, self.precision, self.mode = algo, precision, mode
@@ -212,8 +212,8 @@ def main() -> int:
     if compiled > 1:
         # torch.compile's recompile limit counts per function, and every agent of this process
         # runs the same forward functions: without this, the later compiled variants would
-        # exhaust it and silently run eager.  One lone agent compiles each function up to 3 times
-        # (act's batch of 1, grad and no-grad), well inside the default that a training run has.
+        # exhaust it and silently run eager.  A lone CURL or SODA agent compiled each function at
+        # most 3 times on CPU (act's batch of 1, grad and no-grad): inside a training run's 8.
         import torch._dynamo.config as dynamo
         dynamo.recompile_limit *= compiled
         dynamo.accumulated_recompile_limit *= compiled
