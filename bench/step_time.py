@@ -92,6 +92,7 @@ class Runner:
         self.agent = api["build_agent"](cfg, obs.shape, self.env.action_space.shape[0], device)
         self.step = seed_steps
         self.times: list[float] = []
+        self.warmup_times: list[float] = []
 
     def _env_step(self, action) -> None:
         self.obs, reward, terminated, truncated, info = self.env.step(action)
@@ -108,8 +109,15 @@ class Runner:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         self.step += 1
-        if record:
-            self.times.append(time.perf_counter() - t0)
+        (self.times if record else self.warmup_times).append(time.perf_counter() - t0)
+
+
+def run_interleaved(runners, warmup: int, steps: int) -> None:
+    """``warmup`` then ``steps`` recorded training steps of every runner, one step each in turn,
+    so that machine noise (and the GPU's clocks) hit every variant alike."""
+    for i in range(warmup + steps):
+        for r in runners:
+            r.train_step(record=i >= warmup)
 
 
 def main() -> None:
@@ -132,9 +140,7 @@ def main() -> None:
     pairs = [(f"{algo}:agent.precision=fp32", f"{algo}:agent.precision=bf16") for algo in a.bf16]
     specs = [*(a.variants if not pairs or "--variants" in sys.argv else []), *(s for pair in pairs for s in pair)]
     runners = [Runner(v, a.task, a.seed_steps, device, a.batch, rev) for v in specs]
-    for i in range(a.warmup + a.steps):
-        for r in runners:
-            r.train_step(record=i >= a.warmup)
+    run_interleaved(runners, a.warmup, a.steps)
     base = statistics.median(runners[0].times)
     print(f"task {a.task}, {a.steps} steps after {a.warmup} warm-up, {a.threads} threads, device {device}")
     for r in runners:
