@@ -251,6 +251,11 @@ class TrainConfig:
     """Seed of the agent, the replay sampler and the training env (eval env uses seed + 10_000)."""
     device: str = "cpu"
     """Torch device: cpu, cuda, cuda:N, or auto."""
+    replay_device: str = "auto"
+    """Where the replay frames live: ``cpu`` (host memory; on a CUDA agent each batch is gathered
+    into pinned memory and copied once), ``cuda`` (a uint8 tensor on the agent's GPU: index, stack
+    and crop there), or ``auto`` (the GPU when its free memory holds the frames plus a margin for
+    the model, else the host; docs/performance.md "Replay memory").  The same batches either way."""
     tensorboard: bool = True
     """Write TensorBoard event files besides the CSV logs."""
     wandb: bool = False
@@ -384,6 +389,8 @@ class RunConfig:
             (t.torch_threads >= 0, "train.torch_threads must be >= 0"),
             (t.keep_checkpoints >= 0, "train.keep_checkpoints must be >= 0"),
             (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
+            (t.replay_device in REPLAY_DEVICES,
+             f"train.replay_device must be one of {', '.join(REPLAY_DEVICES)}, got {t.replay_device!r}"),
             (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
             (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
@@ -438,6 +445,7 @@ PRECISIONS = ("fp32", "bf16")
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 FORMS = ("authors", "training")
 VIDEO_FORMATS = ("gif", "mp4")
+REPLAY_DEVICES = ("cpu", "cuda", "auto")
 
 
 LOGGERS = ("csv", "tensorboard", "wandb")

@@ -145,7 +145,9 @@ class SACAgent:
         return policy.action[0].cpu().numpy().astype(np.float32)
 
     # -- learning ----------------------------------------------------------------
-    def to_batch(self, sample: dict[str, np.ndarray]) -> Batch:
+    def to_batch(self, sample: dict[str, np.ndarray | torch.Tensor]) -> Batch:
+        """The update's :class:`Batch` from a replay sample: arrays, or tensors already on the
+        agent's device (:meth:`FrameReplayBuffer.sample_batch`, taken as they are)."""
         d = self.device
         raw_obs = torch.as_tensor(sample["obs"], device=d)
         raw_next = torch.as_tensor(sample["next_obs"], device=d)
@@ -161,7 +163,7 @@ class SACAgent:
     def update(self, replay: FrameReplayBuffer, step: int) -> Metrics:
         """All updates of one agent step; ``step`` counts agent steps.  Metrics stay on the
         device (the training loop reads them once per episode): no host sync in an update."""
-        batch = self.to_batch(replay.sample(self.cfg.batch_size))
+        batch = self.to_batch(replay.sample_batch(self.cfg.batch_size, self.device))
         with self.autocast():
             if self.cfg.update_schedule == "fused":
                 metrics = self.update_fused(replay, batch, step)
@@ -313,7 +315,8 @@ class SACAgent:
     def update_aux(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
         """The task's own step, on the RL batch or on a batch of its own (``aux.own_batch``)."""
         own = self.aux.cfg.own_batch
-        return self.aux.update(self.to_batch(replay.sample(self.aux.cfg.batch_size)) if own else batch, step)
+        return self.aux.update(self.to_batch(replay.sample_batch(self.aux.cfg.batch_size, self.device)) if own
+                               else batch, step)
 
     @torch.no_grad()
     def soft_update_targets(self) -> None:

@@ -18,15 +18,22 @@ which it was stored (``agent_step[i]``), so that ``imssr analyze`` can render th
 states again under other nuisances and place them in the true state space: 8 bytes per state
 coordinate + 4 per slot (cartpole +20 B, walker +76 B on a 30 KB frame).  Slots whose state
 was not recorded (loaded from a replay file written before this) hold NaN and step -1.
+
+An update takes its batch from :meth:`FrameReplayBuffer.sample_batch`: tensors on the agent's
+device, gathered on the host into one staging buffer (pinned for a GPU) and copied once.
+:class:`imssr.replay.device.TensorFrameReplayBuffer` keeps the frames on the device instead and
+gathers them there; both draw the same indices and write the same files.
 """
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import warnings
 from typing import Optional
 
 import numpy as np
+import torch
 
 from imssr.errors import ImssrError
 from imssr.integrity import HashingWriter, check_zip, seal_zip
@@ -81,19 +88,13 @@ class FrameReplayBuffer:
         self.frame_stack = int(frame_stack)
         self.physics_dim = int(physics_dim)
         if warn_memory:
-            need, avail = self.nbytes_expected(), available_memory_bytes()
+            need, avail = self.host_nbytes_expected(), available_memory_bytes()
             if avail is not None and need > avail:
                 warnings.warn(
                     f"replay buffer of {capacity} slots needs {need / 2**30:.1f} GiB but only "
                     f"{avail / 2**30:.1f} GiB is available; lower the replay capacity",
                     ReplayMemoryWarning, stacklevel=2)
-        # np.empty/zeros map pages lazily: memory is committed as frames arrive.
-        try:
-            self.frames = np.zeros((self.capacity, *self.frame_shape), dtype=np.uint8)
-        except (MemoryError, ValueError):  # ValueError: more than a process can address
-            raise ImssrError(
-                f"cannot allocate a replay buffer of {self.nbytes_expected() / 2**30:.1f} GiB "
-                f"({capacity} transitions); lower the replay capacity (--replay-capacity)") from None
+        self.frames = self._allocate_frames()
         self.actions = np.zeros((self.capacity, self.action_dim), dtype=np.float32)
         self.rewards = np.zeros((self.capacity,), dtype=np.float32)
         self.discounts = np.ones((self.capacity,), dtype=np.float32)
@@ -113,6 +114,23 @@ class FrameReplayBuffer:
 
     def nbytes_expected(self) -> int:
         return self.capacity * self.bytes_per_slot()
+
+    def frame_nbytes(self) -> int:
+        """Bytes of one stored frame."""
+        return int(np.prod(self.frame_shape))
+
+    def host_nbytes_expected(self) -> int:
+        """What the buffer takes in host memory when full (all of it: the frames live here)."""
+        return self.nbytes_expected()
+
+    def _allocate_frames(self):
+        # np.empty/zeros map pages lazily: memory is committed as frames arrive.
+        try:
+            return np.zeros((self.capacity, *self.frame_shape), dtype=np.uint8)
+        except (MemoryError, ValueError):  # ValueError: more than a process can address
+            raise ImssrError(
+                f"cannot allocate a replay buffer of {self.nbytes_expected() / 2**30:.1f} GiB "
+                f"({self.capacity} transitions); lower the replay capacity (--replay-capacity)") from None
 
     # -- writing ---------------------------------------------------------------
     def add_first(self, frame: np.ndarray, physics: Optional[np.ndarray] = None, agent_step: int = -1) -> None:
@@ -138,7 +156,7 @@ class FrameReplayBuffer:
         self._write(next_frame, step=int(self.step_in_episode[last]) + 1, physics=physics, agent_step=agent_step)
 
     def _write(self, frame: np.ndarray, step: int, physics: Optional[np.ndarray], agent_step: int) -> None:
-        self.frames[self.head] = frame
+        self._write_frame(self.head, frame)
         self.step_in_episode[self.head] = step
         if self.physics_dim:
             if physics is None:
@@ -148,6 +166,9 @@ class FrameReplayBuffer:
             self.agent_step[self.head] = agent_step
         self.head = (self.head + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+
+    def _write_frame(self, slot: int, frame: np.ndarray) -> None:
+        self.frames[slot] = frame
 
     # -- sampling --------------------------------------------------------------
     def _valid(self, idx: np.ndarray) -> np.ndarray:
@@ -200,6 +221,52 @@ class FrameReplayBuffer:
         idx = self.sample_indices(batch_size)
         return self.gather(idx)
 
+    def sample_batch(self, batch_size: int, device: str | torch.device) -> dict[str, torch.Tensor]:
+        """:meth:`sample` as tensors on ``device`` (what an update consumes): the same draws of
+        the sampling generator and the same values, for every store."""
+        return self.gather_batch(self.sample_indices(batch_size), torch.device(device))
+
+    def gather_batch(self, idx: np.ndarray, device: torch.device) -> dict[str, torch.Tensor]:
+        """The host path: the frame windows and the transition fields are gathered straight into
+        one staging buffer, pinned when ``device`` is CUDA, and cross to the device in a single
+        ``non_blocking`` copy (the host goes on meanwhile; the caching host allocator keeps the
+        pinned block until the copy has run).  On the CPU the staging buffer is the batch."""
+        idx = np.asarray(idx, dtype=np.int64)
+        b = len(idx)
+        packing = self._packing(b, torch.uint8, (b * (self.frame_stack + 1), *self.frame_shape))
+        host = packing.host_buffer(pin=device.type == "cuda")
+        frames, *fields = packing.views(host)
+        slots = torch.from_numpy(self.stack_indices(idx).reshape(-1))
+        torch.index_select(torch.from_numpy(self.frames), 0, slots, out=frames)
+        self._gather_fields(idx, *fields)
+        return self._batch(*packing.views(host.to(device, non_blocking=True)))
+
+    def _packing(self, b: int, first_dtype: torch.dtype, first_shape: tuple[int, ...]) -> "Packing":
+        """The staging layout of a batch of ``b``: a first field (the frames, or the slots a
+        store on the device gathers them from), then action, reward and discount."""
+        return Packing([(first_dtype, first_shape), (torch.float32, (b, self.action_dim)),
+                        (torch.float32, (b,)), (torch.float32, (b,))])
+
+    def _gather_fields(self, idx: np.ndarray, action: torch.Tensor, reward: torch.Tensor,
+                       discount: torch.Tensor) -> None:
+        rows = torch.from_numpy(idx)
+        for source, out in ((self.actions, action), (self.rewards, reward), (self.discounts, discount)):
+            torch.index_select(torch.from_numpy(source), 0, rows, out=out)
+
+    def _batch(self, frames: torch.Tensor, action: torch.Tensor, reward: torch.Tensor,
+               discount: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``obs`` and ``next_obs`` as views of one window of ``frame_stack + 1`` frames per
+        sample (the strides :meth:`gather`'s arrays have)."""
+        b, (c, h, w) = len(action), self.frame_shape
+        window = frames.view(b, self.frame_stack + 1, c, h, w)
+        return {
+            "obs": window[:, :-1].reshape(b, self.frame_stack * c, h, w),
+            "action": action,
+            "reward": reward,
+            "discount": discount,
+            "next_obs": window[:, 1:].reshape(b, self.frame_stack * c, h, w),
+        }
+
     def gather(self, idx: np.ndarray) -> dict[str, np.ndarray]:
         window = self.frames[self.stack_indices(idx)]  # (B, k+1, C, H, W), one copy
         b, _, c, h, w = window.shape
@@ -226,13 +293,10 @@ class FrameReplayBuffer:
         ``.npz`` is sealed with its own (:mod:`imssr.integrity`); :meth:`load` verifies both.
         """
         n = self._extent()
-        frames = self.frames[:n]  # a view: no copy of the frames in memory
-        with atomic_path(frames_path(path), needed=frames.nbytes + 128) as tmp:
+        with atomic_path(frames_path(path), needed=n * self.frame_nbytes() + 128) as tmp:
             with open(tmp, "wb") as fh:
-                # Through a writer that is not a file: numpy then writes chunks with write()
-                # (hashed on the way) instead of tofile(), whose full-disk error has no errno.
                 writer = HashingWriter(fh)
-                np.save(writer, frames)
+                self._save_frames(writer, n)
         small = {"actions": self.actions[:n], "rewards": self.rewards[:n], "discounts": self.discounts[:n],
                  "step_in_episode": self.step_in_episode[:n]}
         if self.physics_dim:
@@ -243,6 +307,12 @@ class FrameReplayBuffer:
                          meta=np.array([self.capacity, self.head, self.size, int(self._open_episode)]),
                          frame_shape=np.array(self.frame_shape), frames_sha256=np.array(writer.digest))
             seal_zip(tmp)
+
+    def _save_frames(self, writer: HashingWriter, n: int) -> None:
+        """The first ``n`` frames as one ``.npy`` array."""
+        # Through a writer that is not a file: numpy then writes chunks with write() (hashed on
+        # the way) instead of tofile(), whose full-disk error has no errno.  A view: no copy.
+        np.save(writer, self.frames[:n])
 
     def _extent(self) -> int:
         # Slots ever written: a prefix until the ring wraps, then all of it.
@@ -311,21 +381,64 @@ class FrameReplayBuffer:
             if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
                 raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
                                       f"expected {(n, *self.frame_shape)} (uint8)")
-            flat = memoryview(self.frames).cast("B")
-            total, pos = n * int(np.prod(self.frame_shape)), 0
-            while pos < total:
-                got = fh.readinto(flat[pos:min(pos + (1 << 24), total)])
-                if not got:
-                    raise ReplayFileError(f"replay frames {fpath} are truncated")
-                h.update(flat[pos:pos + got])
-                pos += got
+            self._read_frame_data(fh, h, n * self.frame_nbytes(), fpath)
             if fh.read(1):
                 raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
         if expected is not None and h.hexdigest() != expected:
             raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
 
+    def _read_frame_data(self, fh, h, total: int, fpath: str) -> None:
+        """``total`` bytes of frames from ``fh`` into the ring's first slots, hashed into ``h``."""
+        read_hashed(fh, h, memoryview(self.frames).cast("B")[:total], fpath)
+
     def __len__(self) -> int:
         return self.size
+
+
+READ_CHUNK = 1 << 24
+"""Bytes per read when loading frames (peak memory beyond the ring: one chunk at most)."""
+
+
+def read_hashed(fh, h, out: memoryview, fpath: str) -> None:
+    """Fill ``out`` from ``fh`` in :data:`READ_CHUNK` reads, hashing what arrives into ``h``."""
+    pos, total = 0, len(out)
+    while pos < total:
+        got = fh.readinto(out[pos:min(pos + READ_CHUNK, total)])
+        if not got:
+            raise ReplayFileError(f"replay frames {fpath} are truncated")
+        h.update(out[pos:pos + got])
+        pos += got
+
+
+ALIGN = 8
+"""Byte alignment of every field in a :class:`Packing`: int64 slots and float32 fields are then
+viewed in place from the raw bytes."""
+
+
+class Packing:
+    """Typed fields laid out one after another in one uint8 buffer: filled on the host, moved in
+    one copy, and viewed as the same typed tensors wherever the bytes went."""
+
+    def __init__(self, fields: list[tuple[torch.dtype, tuple[int, ...]]]):
+        self.fields = fields
+        self.offsets, pos = [], 0
+        for dtype, shape in fields:
+            self.offsets.append(pos)
+            pos += -(-math.prod(shape) * dtype.itemsize // ALIGN) * ALIGN
+        self.nbytes = pos
+
+    def host_buffer(self, pin: bool) -> torch.Tensor:
+        """A host buffer for the fields; ``pin``: in page-locked memory (for a ``non_blocking``
+        copy to a GPU)."""
+        return torch.empty(self.nbytes, dtype=torch.uint8, pin_memory=pin)
+
+    def views(self, buf: torch.Tensor) -> list[torch.Tensor]:
+        """The fields as typed views of ``buf`` (a buffer of :attr:`nbytes`, on any device)."""
+        out = []
+        for (dtype, shape), offset in zip(self.fields, self.offsets, strict=True):
+            nbytes = math.prod(shape) * dtype.itemsize
+            out.append(buf[offset:offset + nbytes].view(dtype).view(shape))
+        return out
 
 
 class _HashingReader:

@@ -30,7 +30,7 @@ from imssr.envs import env_from_config
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
-from imssr.replay import FrameReplayBuffer
+from imssr.replay import make_replay_buffer, replay_placement
 from imssr.replay.buffer import ReplayFileError, frames_path
 from imssr.training.build import build_agent, resolve_device
 from imssr.training.checkpoint import checkpoint_dir, latest_path, save_checkpoint, usable_checkpoint
@@ -40,8 +40,8 @@ from imssr.training.logger import Logger
 from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
-RESUMABLE_CHANGES = {"train.steps", "train.device", "train.progress", "train.tensorboard",
-                     "agent.precision", "agent.tf32", "agent.compile",
+RESUMABLE_CHANGES = {"train.steps", "train.device", "train.replay_device", "train.progress",
+                     "train.tensorboard", "agent.precision", "agent.tf32", "agent.compile",
                      "train.torch_threads", "train.eval_episodes", "train.eval_every_steps",
                      "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer",
                      "train.wandb", "train.wandb_project", "train.wandb_group", "train.eval_video_every",
@@ -193,6 +193,8 @@ class Trainer:
         get_algo(cfg.algo)
         self.cfg, self.out_dir = cfg, out_dir
         self.device = resolve_device(cfg.train.device)
+        self.replay_placement = replay_placement(cfg.train.replay_device, self.device,
+                                                 cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2)
         ckpt = None
         if resume:
             ckpt = self._check_resume()
@@ -234,9 +236,11 @@ class Trainer:
         replay_seq, action_seq = np.random.SeedSequence(cfg.train.seed).spawn(2)
         # Each frame's physics state goes in too (float64 qpos and qvel: 32 bytes for cartpole,
         # 144 for walker): `imssr analyze` renders it again.
-        self.replay = FrameReplayBuffer(cfg.train.replay_capacity, (3, e.image_size, e.image_size),
-                                        self.action_dim, e.frame_stack, seed=replay_seq,
-                                        physics_dim=self.env.physics_state_dim)
+        if self.replay_placement.reason:
+            print(self.replay_placement.reason, flush=True)
+        self.replay = make_replay_buffer(self.replay_placement.device, cfg.train.replay_capacity,
+                                         (3, e.image_size, e.image_size), self.action_dim, e.frame_stack,
+                                         seed=replay_seq, physics_dim=self.env.physics_state_dim)
         self.action_rng = np.random.default_rng(action_seq)
         self.frame = self.step = self.episode = 0
         self.eval_schedule = StepSchedule("eval", cfg.train.eval_every_steps)

@@ -1,0 +1,151 @@
+"""``train.replay_device``: where ``auto`` puts the frames (a pure choice, checked with made-up
+memory figures), the one-line errors, and training with the tensor store: the same run as with
+the host store, and an exact resume across stores (the tensor store on the CPU)."""
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import assert_same_nets, tiny_config, train_run, without_timing
+from imssr.cli import main
+from imssr.config import apply_overrides
+from imssr.errors import ImssrError
+from imssr.presets import make_config
+from imssr.replay import FrameReplayBuffer, TensorFrameReplayBuffer, choose_replay_device, replay_placement
+from imssr.replay.device import REPLAY_DEVICE_MARGIN_BYTES
+from imssr.training import Trainer
+from imssr.training import loop
+from imssr.training.logger import read_csv
+
+CPU, GPU = torch.device("cpu"), torch.device("cuda", 0)
+GB = 10**9
+FRAMES_500K = 500_000 * 3 * 100 * 100
+"""The paper's 500k transitions at 100 px: 15 GB of frames."""
+
+
+# -- the choice ---------------------------------------------------------------------------------
+
+def test_the_paper_buffer_is_15_gb_of_frames():
+    assert FRAMES_500K == 15 * GB
+
+
+def test_auto_puts_the_frames_on_a_gpu_with_room_for_them_and_the_model():
+    placed = choose_replay_device("auto", GPU, FRAMES_500K, free_nbytes=79 * GB)
+    assert placed.device == GPU
+    assert placed.reason == ("imssr: replay frames on cuda:0 (train.replay_device=auto: 15.0 GB of frames + "
+                             "4.0 GB for the model, 79.0 GB free on cuda:0)")
+    exactly = choose_replay_device("auto", GPU, FRAMES_500K, FRAMES_500K + REPLAY_DEVICE_MARGIN_BYTES)
+    assert exactly.device == GPU
+
+
+def test_auto_keeps_the_frames_on_the_host_when_the_gpu_lacks_room():
+    for free in (15 * GB, FRAMES_500K + REPLAY_DEVICE_MARGIN_BYTES - 1, 0):
+        placed = choose_replay_device("auto", GPU, FRAMES_500K, free_nbytes=free)
+        assert placed.device == CPU, free
+        assert placed.reason.startswith("imssr: replay frames in host memory, the GPU lacks room "
+                                        "(train.replay_device=auto: 15.0 GB of frames + 4.0 GB")
+        assert "\n" not in placed.reason
+    # A small buffer fits a small GPU.
+    assert choose_replay_device("auto", GPU, 3 * GB, free_nbytes=8 * GB).device == GPU
+
+
+def test_a_cpu_agent_keeps_its_frames_on_the_host_without_a_word():
+    assert choose_replay_device("auto", CPU, FRAMES_500K, free_nbytes=None) == choose_replay_device(
+        "cpu", CPU, FRAMES_500K, None)
+    assert choose_replay_device("auto", CPU, FRAMES_500K, None).reason is None
+    assert choose_replay_device("cpu", GPU, FRAMES_500K, 79 * GB).device == CPU  # asked for: the host
+
+
+def test_cuda_is_the_agents_gpu_and_needs_one():
+    assert choose_replay_device("cuda", GPU, FRAMES_500K, None).device == GPU
+    with pytest.raises(ImssrError, match=r"^train.replay_device=cuda needs the agent on a GPU, but "
+                                         r"train.device is cpu; use --device cuda or"):
+        choose_replay_device("cuda", CPU, FRAMES_500K, None)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks a machine without CUDA")
+def test_cuda_on_a_machine_without_it_is_one_line():
+    with pytest.raises(ImssrError, match=r"^train.replay_device=cuda requested but CUDA is not available; "
+                                         r"use --set train.replay_device=cpu$"):
+        replay_placement("cuda", CPU, FRAMES_500K)
+    assert replay_placement("auto", CPU, FRAMES_500K).device == CPU
+
+
+def test_a_bad_replay_device_is_one_line(capsys):
+    cfg = make_config("curl", "walker_walk")
+    assert cfg.train.replay_device == "auto"
+    with pytest.raises(ImssrError, match=r"^train.replay_device must be one of cpu, cuda, auto, got 'tpu'$"):
+        apply_overrides(cfg, ["train.replay_device=tpu"]).validate()
+    assert main(["train", "--algo", "curl", "--task", "cartpole_swingup_sparse",
+                 "--set", "train.replay_device=tpu"]) == 2
+    err = capsys.readouterr().err
+    assert err == "imssr: error: train.replay_device must be one of cpu, cuda, auto, got 'tpu'\n"
+
+
+# -- training with the tensor store ------------------------------------------------------------
+
+def _cfg():
+    # 3 episodes of cartpole on 60 px frames, killed after the second.  Every agent step from 200
+    # samples a batch (the buffer's part); the networks learn from every 5th (cheaper), on both
+    # sides of the kill.
+    cfg = tiny_config("curl", steps=375, seed_steps=200, eval_every_steps=0, checkpoint_every_steps=125)
+    cfg.env.image_size, cfg.agent.crop_size, cfg.agent.encoder_filters = 60, 52, 8
+    a = cfg.agent
+    a.critic_update_every = a.actor_update_every = a.target_update_every = cfg.aux.update_every = 5
+    return cfg
+
+
+REAL_MAKE_REPLAY_BUFFER = loop.make_replay_buffer
+
+
+def _use(monkeypatch, store: str) -> None:
+    """Have the trainer build ``store``: ``host`` (what it builds on a CPU) or ``tensor`` (the
+    tensor store, here on the CPU)."""
+    def tensor(device, *args, **kwargs):
+        return TensorFrameReplayBuffer(*args, **kwargs, device="cpu")
+
+    monkeypatch.setattr(loop, "make_replay_buffer", REAL_MAKE_REPLAY_BUFFER if store == "host" else tensor)
+
+
+def _train(out, stop_at_step=None, resume=False, replay_device="auto"):
+    cfg = _cfg()
+    cfg.train.replay_device = replay_device
+    return train_run(cfg, out, stop_at_step, resume)
+
+
+def _assert_same_run(a, a_dir, b, b_dir):
+    assert a.step == b.step == 375
+    assert_same_nets(a.agent, b.agent)
+    assert a.replay.state_dict() == b.replay.state_dict()
+    assert np.array_equal(np.asarray(a.replay.frames[:a.replay.size]), np.asarray(b.replay.frames[:b.replay.size]))
+    for name in ("train.csv", "eval.csv"):
+        assert without_timing(read_csv(os.path.join(a_dir, name))) == \
+            without_timing(read_csv(os.path.join(b_dir, name))), name
+
+
+@pytest.fixture(scope="module")
+def host_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("host")
+    return str(out), _train(out)
+
+
+def test_the_default_on_a_cpu_is_the_host_store(tmp_path, capsys):
+    t = Trainer(_cfg(), str(tmp_path))
+    try:
+        assert type(t.replay) is FrameReplayBuffer and t.replay_placement.reason is None
+    finally:
+        t.close()
+    assert "replay frames" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("first, then", [("tensor", "tensor"), ("host", "tensor"), ("tensor", "host")])
+def test_a_killed_run_resumes_exactly_with_either_store(host_run, monkeypatch, tmp_path, first, then):
+    _use(monkeypatch, first)
+    part = _train(tmp_path, stop_at_step=250)
+    assert part.step == 250 and isinstance(part.replay, TensorFrameReplayBuffer) == (first == "tensor")
+    _use(monkeypatch, then)
+    # train.replay_device may change on resume (it changes where the frames live, not the run).
+    resumed = _train(tmp_path, resume=True, replay_device="cpu" if then == "host" else "auto")
+    assert isinstance(resumed.replay, TensorFrameReplayBuffer) == (then == "tensor")
+    _assert_same_run(resumed, str(tmp_path), host_run[1], host_run[0])
