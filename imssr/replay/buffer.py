@@ -110,7 +110,7 @@ class FrameReplayBuffer:
     # -- memory ----------------------------------------------------------------
     def bytes_per_slot(self) -> int:
         physics = 8 * self.physics_dim + 4 if self.physics_dim else 0  # state + agent step
-        return int(np.prod(self.frame_shape)) + 4 * self.action_dim + 4 + 4 + 4 + physics
+        return self.frame_nbytes() + 4 * self.action_dim + 4 + 4 + 4 + physics
 
     def nbytes_expected(self) -> int:
         return self.capacity * self.bytes_per_slot()
