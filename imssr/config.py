@@ -6,9 +6,8 @@ schedule here counts agent steps, as the authors' code does: the paper's
 T = 500,000 agent steps (Table III, "Number of training steps"), which is
 4,000,000 frames at action repeat 8.  Replay capacity counts transitions.
 
-``CONFIG_VERSION`` 2 is the first with budgets in agent steps; a config written
-before (no ``version`` key: budgets in frames, imssr 0.1's networks and signals)
-is read through :func:`migrate` so that its run resumes and reports as it ran.
+``CONFIG_VERSION`` 2 is the format with budgets in agent steps; imssr 0.1's configs
+(version 1: budgets in frames) are refused in one line (:func:`check_version`).
 """
 from __future__ import annotations
 
@@ -33,8 +32,11 @@ from imssr.jsonio import dumps
 from imssr.networks.encoder import conv_output_size
 
 CONFIG_VERSION = 2
-"""2: budgets in agent steps, ``agent.final_relu``, ``aux.own_batch``, ``intrinsic.form`` and
-the normalisation fields.  1 (no ``version`` key): imssr 0.1."""
+"""The config format this imssr reads and writes: budgets in agent steps.  Version 1, imssr 0.1's
+(budgets in frames, no ``version`` key), is refused: CHANGELOG.md, 0.2.0, says what its runs need."""
+OLD_KEYS = (("train", "frames"), ("train", "eval_every_frames"), ("train", "checkpoint_every_frames"),
+            ("intrinsic", "view"))
+"""Keys only imssr 0.1's configs hold: a file with one of them and no ``version`` is one of those."""
 
 MAX_SEED = 2**31 - 1
 """Largest run seed: numpy's and dm_control's seeds are 32-bit, and evaluation envs use the run
@@ -198,7 +200,7 @@ class IntrinsicConfig:
     """In-batch normalisation of the per-sample losses: zscore, minmax, mean or none."""
     unbiased_std: bool = True
     """``zscore`` divides by the unbiased (n - 1) standard deviation, as the authors' code
-    (torch's default ``std``); false: the biased one (imssr 0.1)."""
+    (torch's default ``std``); false: the biased one."""
     norm_eps: float = 0.0
     """Added to the normaliser's denominator (zscore: the std; minmax: the range; mean: the mean).
     IM-CURL 0 (the authors add none), IM-SODA 1e-5 (the authors' ``std + 1e-5``)."""
@@ -287,7 +289,7 @@ class RunConfig:
     algo: str = "im-curl"
     """Algorithm name (``imssr algos``)."""
     version: int = CONFIG_VERSION
-    """Config format (see :data:`CONFIG_VERSION`); older files are migrated when read."""
+    """Config format (see :data:`CONFIG_VERSION`)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     aux: AuxConfig = field(default_factory=AuxConfig)
@@ -317,11 +319,12 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
-        """A config from its JSON object (any version: see :func:`migrate`); fields it lacks are
-        the dataclass defaults.  Unknown fields and values of the wrong type are one-line errors."""
+        """A config from its JSON object (of this version: see :func:`check_version`); fields it
+        lacks are the dataclass defaults.  Unknown fields and values of the wrong type are one-line
+        errors."""
         if not isinstance(data, dict):
             raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
-        data = migrate(data)
+        check_version(data)
         for key, value in data.items():
             if key in SECTIONS and not isinstance(value, dict):
                 raise ImssrError(f"config section {key!r} must be an object, got {type(value).__name__}")
@@ -381,8 +384,7 @@ class RunConfig:
             (i.norm_rtol >= 0.0, "intrinsic.norm_rtol must be >= 0"),
             (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
             (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
-            (self.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION} (older configs are "
-             "migrated when read from a file)"),
+            (self.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION}"),
             (t.steps >= 1, "train.steps must be >= 1"),
             (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
             (t.burst_updates >= 0, "train.burst_updates must be >= 0"),
@@ -469,57 +471,19 @@ def steps_for_frames(frames: int, action_repeat: int) -> int:
     return -(-frames // action_repeat)
 
 
-def migrate(data: dict[str, Any]) -> dict[str, Any]:
-    """A config dict of any earlier version, as the current version.
-
-    Version 1 (imssr 0.1, no ``version`` key) counted budgets in frames and had
-    other defaults for settings added since; they are filled in with what that
-    version ran, so an old run resumes, evaluates and reports as it was trained:
-    frames -> agent steps (rounded up, as the old loop ran ``ceil(frames / action_repeat)``
-    steps; an interval that the action repeat does not divide is rounded up too), ReLU after the last
-    convolution, SODA on its own batch and the others on the RL batch, the signal's form from
-    ``intrinsic.view``, and the biased std + 1e-8 without the spread tolerance.
-    """
+def check_version(data: dict[str, Any], source: str = "this config") -> None:
+    """Refuse, in one line, a config dict of another format than :data:`CONFIG_VERSION`: imssr
+    0.1's (``version`` 1, or none and a key of :data:`OLD_KEYS`), or an unknown version.  A dict
+    without ``version`` and without those keys is a partial config written by hand for this one."""
     version = data.get("version")
-    if version is None:
-        # A file without a version is either imssr 0.1's (it always holds train.frames) or a
-        # partial config written by hand for this version.
-        v1_keys = {("train", "frames"), ("train", "eval_every_frames"),
-                   ("train", "checkpoint_every_frames"), ("intrinsic", "view")}
-        version = 1 if any(isinstance(data.get(sec), dict) and key in data[sec] for sec, key in v1_keys) \
-            else CONFIG_VERSION
-    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= CONFIG_VERSION:
-        raise ImssrError(f"config version {version!r} is not one this imssr reads (1..{CONFIG_VERSION})")
-    if version == CONFIG_VERSION:
-        return data
-    data = json.loads(json.dumps(data))  # a deep copy
-    sections = {k: data.get(k) if isinstance(data.get(k), dict) else {} for k in
-                ("env", "agent", "aux", "intrinsic", "train")}
-    env, agent, aux, intr, train = (sections[k] for k in ("env", "agent", "aux", "intrinsic", "train"))
-    repeat = env.get("action_repeat", 8)
-    if not isinstance(repeat, int) or repeat < 1:
-        raise ImssrError(f"env.action_repeat must be a positive integer, got {repeat!r}")
-    for old, new, default in (("frames", "steps", 500_000), ("eval_every_frames", "eval_every_steps", 10_000),
-                              ("checkpoint_every_frames", "checkpoint_every_steps", 50_000)):
-        value = train.pop(old, default)
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise ImssrError(f"train.{old} must be an integer, got {value!r}")
-        train.setdefault(new, steps_for_frames(value, repeat))
-    train.setdefault("burst_updates", 0)
-    train.setdefault("replay_capacity", 100_000)
-    train.setdefault("eval_episodes", 10)
-    agent.setdefault("final_relu", True)
-    agent.setdefault("feature_dim", 50)
-    agent.setdefault("projection_tanh", False)
-    aux.setdefault("own_batch", aux.get("name", "curl") == "soda")
-    view = intr.pop("view", "independent")
-    intr.setdefault("form", "authors" if view == "shared" and aux.get("name", "curl") == "curl" else "training")
-    intr.setdefault("unbiased_std", False)
-    intr.setdefault("norm_eps", 1e-8)
-    intr.setdefault("norm_rtol", 0.0)
-    data.update(sections)
-    data["version"] = CONFIG_VERSION
-    return data
+    if version is None and any(isinstance(data.get(section), dict) and key in data[section]
+                               for section, key in OLD_KEYS):
+        version = 1
+    if version == 1 and not isinstance(version, bool):
+        raise ImssrError(f"{source} is an imssr 0.1 config (budgets in frames), which this imssr does not "
+                         "read: re-run the run, or evaluate it with imssr 0.1 (CHANGELOG.md, 0.2.0)")
+    if version is not None and (version != CONFIG_VERSION or isinstance(version, bool)):
+        raise ImssrError(f"{source} has config version {version!r}; this imssr reads version {CONFIG_VERSION}")
 
 
 # -- types and overrides, through OmegaConf structured configs ---------------------------------
@@ -675,4 +639,7 @@ def read_config_file(path: str) -> Any:
 def load_config(path: str) -> RunConfig:
     """A complete config file, such as a run's ``config.json`` (fields it lacks read as the
     dataclass defaults; see :func:`load_partial_config` for a file written by hand)."""
-    return RunConfig.from_dict(read_config_file(path))
+    data = read_config_file(path)
+    if isinstance(data, dict):
+        check_version(data, f"config {path}")
+    return RunConfig.from_dict(data)

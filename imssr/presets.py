@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 from imssr.algos import ALGOS, BASES, SIGNALS, AlgoSpec, get_algo  # noqa: F401 (re-exported)
-from imssr.config import (RunConfig, apply_overrides, load_config, migrate, read_config_file,
+from imssr.config import (RunConfig, apply_overrides, check_version, load_config, read_config_file,
                           steps_for_frames)
 from imssr.envs.tasks import PAPER_TASKS, get_task
 from imssr.errors import ImssrError
@@ -328,7 +328,7 @@ def load_partial_config(path: str, algo: str | None = None, task: str | None = N
     data = read_config_file(path)
     if not isinstance(data, dict):
         raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
-    data = migrate(data)
+    check_version(data, f"config {path}")
     file_algo = data.get("algo")
     file_task = data["env"].get("task") if isinstance(data.get("env"), dict) else None
     # A value of the wrong type is left for the type checks to name.

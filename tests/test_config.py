@@ -233,3 +233,66 @@ def test_a_huge_replay_capacity_on_the_command_line_is_one_line(capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("imssr: error: train.replay_capacity=1000000000000000 needs")
 
+
+
+# config.json as imssr 0.1 wrote it: no version, budgets and intervals in frames.
+OLD_CONFIG = {
+    "algo": "im-curl",
+    "env": {"task": "pendulum_swingup", "action_repeat": 8, "image_size": 100, "frame_stack": 3,
+            "mode": "training", "footage_dir": "", "shadow_size": 512},
+    "agent": {"encoder_layers": 4, "feature_dim": 50, "projection_tanh": False},
+    "aux": {"name": "curl", "batch_size": 128},
+    "intrinsic": {"enabled": True, "source": "ssl", "beta0": 0.05, "view": "independent",
+                  "normalization": "zscore"},
+    "train": {"frames": 500_000, "eval_every_frames": 10_000, "checkpoint_every_frames": 50_000,
+              "burst_updates": 0, "replay_capacity": 100_000},
+}
+OLD_LINE = ("is an imssr 0.1 config (budgets in frames), which this imssr does not read: re-run the run, "
+            "or evaluate it with imssr 0.1 (CHANGELOG.md, 0.2.0)")
+
+
+def test_an_imssr_0_1_config_is_refused_in_one_line(tmp_path):
+    import json
+
+    from imssr.config import CONFIG_VERSION, OLD_KEYS, load_config
+    from imssr.presets import load_partial_config
+
+    with pytest.raises(ImssrError) as err:
+        RunConfig.from_dict(OLD_CONFIG)
+    assert str(err.value) == f"this config {OLD_LINE}"
+    # Any one key only imssr 0.1 wrote marks a file without a version, and so does version 1.
+    for section, key in OLD_KEYS:
+        with pytest.raises(ImssrError, match=r"is an imssr 0\.1 config"):
+            RunConfig.from_dict({"algo": "curl", section: {key: 1}})
+    with pytest.raises(ImssrError, match=r"is an imssr 0\.1 config"):
+        RunConfig.from_dict({**make_config("curl", "walker_walk").to_dict(), "version": 1})
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(OLD_CONFIG))
+    for load in (load_config, load_partial_config):
+        with pytest.raises(ImssrError) as err:
+            load(str(path))
+        assert str(err.value) == f"config {path} {OLD_LINE}"
+    # Another version, or a version of the wrong type, is refused too.
+    for version in (3, "2", True):
+        with pytest.raises(ImssrError, match=f"has config version {version!r}; this imssr reads version 2"):
+            RunConfig.from_dict({"version": version})
+    # A partial config written by hand for this version (no version key) is not mistaken for an old one.
+    partial = RunConfig.from_dict({"algo": "curl", "train": {"steps": 100}})
+    assert partial.version == CONFIG_VERSION and partial.train.steps == 100 and partial.agent.final_relu is False
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_an_imssr_0_1_run_directory_is_one_line(command, tmp_path, capsys):
+    """Resuming or evaluating a run imssr 0.1 made stops before anything runs, saying what to do."""
+    import json
+
+    from imssr.cli import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(OLD_CONFIG))
+    argv = ["train", "--resume", "--out", str(run)] if command == "train" else ["evaluate", "--run", str(run)]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip().splitlines() == \
+        [f"imssr: error: config {run / 'config.json'} {OLD_LINE}"]
+    assert sorted(os.listdir(run)) == ["config.json"]

@@ -45,7 +45,7 @@ class CURL(AuxiliaryTask):
         return list(self.shared.encoder.parameters())
 
     def trained_parameters(self) -> list[nn.Parameter]:
-        # W first: the order of CURL's saved optimiser state since imssr 0.1.
+        # W first: the order in which checkpoints hold CURL's optimiser state.
         return [*self.own_parameters(), *self.shared_parameters()]
 
     def logits(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
