@@ -11,10 +11,8 @@ T = 500,000 agent steps (Table III, "Number of training steps"), which is
 """
 from __future__ import annotations
 
-import ast
 import dataclasses
 import functools
-import inspect
 import json
 import math
 import os
@@ -22,6 +20,7 @@ import sys
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from docstring_parser import parse_from_object
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
@@ -331,7 +330,13 @@ class RunConfig:
         return _merged(cls(), data, raw={})
 
     def validate(self) -> "RunConfig":
-        """Reject bad values with one-line errors."""
+        """Reject bad values with one-line errors: the general rules here, each plug-in's beside
+        the plug-in (``config_rules`` of every auxiliary task and intrinsic signal)."""
+        # The plug-ins are torch modules that import this one for their annotations only: loaded
+        # here, the schema imports without them.
+        from imssr.auxiliary import AUX_TASKS
+        from imssr.intrinsic import INTRINSIC_SIGNALS, IntrinsicReward
+
         _check_types(self)
         e, a, x, i, t = self.env, self.agent, self.aux, self.intrinsic, self.train
         checks = [
@@ -363,27 +368,11 @@ class RunConfig:
             (a.precision in PRECISIONS, f"agent.precision must be one of {', '.join(PRECISIONS)}"),
             (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
             (x.update_every >= 1, "aux.update_every must be >= 1"),
-            (0.0 < x.tau <= 1.0, "aux.tau must be in (0, 1]"),
-            (0.0 <= x.overlay_alpha <= 1.0, "aux.overlay_alpha must be in [0, 1]"),
-            (x.image_pool_size >= 1, "aux.image_pool_size must be >= 1"),
-            (x.svea_alpha >= 0.0 and x.svea_beta >= 0.0 and x.svea_alpha + x.svea_beta > 0,
-             "aux.svea_alpha and aux.svea_beta must be >= 0 and not both 0"),
-            (i.source in SOURCES, f"intrinsic.source must be one of {', '.join(SOURCES)}"),
-            (i.rnd_lr > 0 and i.rnd_dim >= 1, "intrinsic.rnd_lr must be > 0 and rnd_dim >= 1"),
-            (i.re3_k >= 1 and i.re3_dim >= 1, "intrinsic.re3_k and re3_dim must be >= 1"),
-            (not (i.enabled and i.source == "re3") or a.batch_size > i.re3_k,
-             "agent.batch_size must exceed intrinsic.re3_k"),
-            (not (i.enabled and i.source == "rnd") or a.crop_size >= 36,
-             "intrinsic.source=rnd needs agent.crop_size >= 36 (RND's 8/4, 4/2, 3/1 convolutions)"),
-            (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
-            (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
-            (i.normalization in NORMALIZATIONS,
-             f"intrinsic.normalization must be one of {', '.join(NORMALIZATIONS)}"),
-            (i.form in FORMS, f"intrinsic.form must be one of {', '.join(FORMS)}"),
-            (i.norm_eps >= 0.0, "intrinsic.norm_eps must be >= 0"),
-            (i.norm_rtol >= 0.0, "intrinsic.norm_rtol must be >= 0"),
-            (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
-            (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
+            (i.source in INTRINSIC_SIGNALS, f"intrinsic.source must be one of {', '.join(INTRINSIC_SIGNALS)}"),
+            # Each auxiliary task and signal checks its own settings, the intrinsic reward its
+            # normalisation and schedule.
+            *(rule for plugin in (*AUX_TASKS.values(), *INTRINSIC_SIGNALS.values(), IntrinsicReward)
+              for rule in plugin.config_rules(self)),
             (self.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION}"),
             (t.steps >= 1, "train.steps must be >= 1"),
             (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
@@ -410,8 +399,6 @@ class RunConfig:
             get_mode(mode)
         if e.footage_dir and not os.path.exists(os.path.expanduser(e.footage_dir)):
             raise ImssrError(f"footage not found: {e.footage_dir} (env.footage_dir / --footage)")
-        if x.image_dir and not os.path.isdir(os.path.expanduser(x.image_dir)):
-            raise ImssrError(f"image folder not found: {x.image_dir} (aux.image_dir / --image-dir)")
         algo = get_algo(self.algo)
         if algo.aux != x.name or algo.intrinsic_enabled != i.enabled or \
                 (algo.intrinsic_enabled and algo.intrinsic != i.source):
@@ -439,13 +426,9 @@ class RunConfig:
                 raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(self, key)}")
 
 
-SCHEDULES = ("constant", "step")
-NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
-SOURCES = ("ssl", "rnd", "re3")
 UPDATE_SCHEDULES = ("sequential", "fused")
 PRECISIONS = ("fp32", "bf16")
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
-FORMS = ("authors", "training")
 VIDEO_FORMATS = ("gif", "mp4")
 REPLAY_DEVICES = ("cpu", "cuda", "auto")
 
@@ -603,22 +586,11 @@ def _override_value(key: str, text: str) -> Any:
 
 @functools.cache
 def field_docs() -> dict[str, str]:
-    """``section.field`` -> the field's docstring (whitespace collapsed), read once from this
-    module's source: the CLI's help texts and ``imssr config --explain`` use them."""
-    try:
-        tree = ast.parse(inspect.getsource(inspect.getmodule(RunConfig)))
-    except (OSError, TypeError):  # installed without sources (a zipped or compiled-only build)
-        return {}
-    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
-    docs = {}
-    for section, cls in SECTIONS.items():
-        body = classes[cls.__name__].body
-        for node, after in zip(body, body[1:]):
-            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and \
-                    isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) and \
-                    isinstance(after.value.value, str):
-                docs[f"{section}.{node.target.id}"] = " ".join(after.value.value.split())
-    return docs
+    """``section.field`` -> the field's docstring (whitespace collapsed), read once from the
+    dataclasses' source: the CLI's help texts use them.  Empty when installed without sources."""
+    return {f"{section}.{doc.arg_name}": " ".join(doc.description.split())
+            for section, cls in SECTIONS.items() for doc in parse_from_object(cls).params
+            if doc.args[0] == "attribute" and doc.description}
 
 
 def read_config_file(path: str) -> Any:

@@ -296,3 +296,43 @@ def test_an_imssr_0_1_run_directory_is_one_line(command, tmp_path, capsys):
     assert capsys.readouterr().err.strip().splitlines() == \
         [f"imssr: error: config {run / 'config.json'} {OLD_LINE}"]
     assert sorted(os.listdir(run)) == ["config.json"]
+
+
+@pytest.mark.parametrize("override, message", [
+    ("aux.tau=0", r"^aux.tau must be in \(0, 1\]$"),
+    ("aux.overlay_alpha=1.5", r"^aux.overlay_alpha must be in \[0, 1\]$"),
+    ("aux.image_pool_size=0", "^aux.image_pool_size must be >= 1$"),
+    ("aux.image_dir=/no/such/images", r"^image folder not found: /no/such/images \(aux.image_dir / --image-dir\)$"),
+    ("aux.svea_alpha=-1", "^aux.svea_alpha and aux.svea_beta must be >= 0 and not both 0$"),
+    ("intrinsic.rnd_dim=0", "^intrinsic.rnd_lr must be > 0 and rnd_dim >= 1$"),
+    ("intrinsic.re3_k=0", "^intrinsic.re3_k and re3_dim must be >= 1$"),
+    ("intrinsic.form=mine", "^intrinsic.form must be one of authors, training$"),
+    ("intrinsic.schedule=cosine", "^intrinsic.schedule must be one of constant, step$"),
+    ("intrinsic.decay=0", r"^intrinsic.decay must be in \(0, 1\]$"),
+])
+def test_each_plug_in_checks_its_own_settings_whichever_is_chosen(override, message):
+    """A config carries every task's and signal's settings: each is checked, chosen or not."""
+    for algo in ("curl", "im-soda", "svea+rnd"):
+        with pytest.raises(ImssrError, match=message):
+            apply_overrides(make_config(algo, "walker_walk"), [override]).validate()
+
+
+def test_a_plug_in_s_needs_of_other_sections_hold_when_it_is_chosen():
+    small_crop = ["env.image_size=40", "agent.crop_size=32", "agent.encoder_layers=2"]
+    apply_overrides(make_config("curl+re3", "walker_walk"), small_crop).validate()
+    with pytest.raises(ImssrError, match=r"^intrinsic.source=rnd needs agent.crop_size >= 36 \(RND's"):
+        apply_overrides(make_config("curl+rnd", "walker_walk"), small_crop).validate()
+    big_k = ["intrinsic.re3_k=200"]
+    apply_overrides(make_config("curl+rnd", "walker_walk"), big_k).validate()
+    with pytest.raises(ImssrError, match="^agent.batch_size must exceed intrinsic.re3_k$"):
+        apply_overrides(make_config("curl+re3", "walker_walk"), big_k).validate()
+
+
+def test_the_plug_in_registries_name_what_the_config_does():
+    from imssr.algos import BASES, SIGNALS
+    from imssr.auxiliary import AUX_TASKS
+    from imssr.intrinsic import INTRINSIC_SIGNALS
+
+    assert list(AUX_TASKS) == list(BASES) and list(INTRINSIC_SIGNALS) == list(SIGNALS)
+    with pytest.raises(ImssrError, match="^intrinsic.source must be one of ssl, rnd, re3$"):
+        apply_overrides(make_config("curl", "walker_walk"), ["intrinsic.source=icm"]).validate()

@@ -18,7 +18,7 @@ IM-CURL's signal of o' (``intrinsic.form``):
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import torch
 import torch.nn.functional as F
@@ -27,8 +27,10 @@ from torch import nn
 from imssr.augmentations import random_crop
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
-from imssr.config import AgentConfig, AuxConfig
 from imssr.precision import full_precision
+
+if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
+    from imssr.config import AgentConfig, AuxConfig
 
 
 class CURL(AuxiliaryTask):
