@@ -216,7 +216,8 @@ INTRINSIC = (
     Setting("intrinsic.normalization", "zscore", AUTHORS_SIGNAL),
     Setting("intrinsic.unbiased_std", True, AUTHORS_SIGNAL, "torch's default std"),
 )
-"""Settings every intrinsic reward shares, after its signal, beta_0 and schedule."""
+"""Settings every intrinsic reward shares, after its signal, beta_0 and schedule (then its
+base's :data:`NORM_EPS`, then :data:`INTRINSIC_LAST`)."""
 
 # Normalisation of the signal per base, as the authors' code computes it (IM-CURL, IM-SODA);
 # IM-PAD and IM-SVEA have no code of the authors and follow IM-CURL's.
@@ -227,13 +228,13 @@ NORM_EPS = {
     "svea": Setting("intrinsic.norm_eps", 0.0, IMSSR, "no code of the authors: as IM-CURL"),
 }
 
-SIGNAL_FORM = (
+INTRINSIC_LAST = (
     Setting("intrinsic.norm_rtol", 1e-5, IMSSR, "a batch of equal losses gets a zero bonus, not "
             "its rounding error divided by a tiny std"),
     Setting("intrinsic.form", "authors", AUTHORS_SIGNAL, "IM-CURL, IM-SODA: as the authors "
             "computed the signal (docs/algorithms.md); 'training' keeps the training loss's form"),
 )
-"""Settings every intrinsic reward shares, after its normalisation's eps."""
+"""Settings every intrinsic reward shares, after its base's :data:`NORM_EPS`."""
 
 SIGNAL_SETTINGS = {
     "ssl": (),
@@ -297,7 +298,7 @@ def preset_settings(algo: str, task: str, network: str = "dmcgb") -> list[Settin
     if spec.intrinsic_enabled:
         schedule = (CONSTANT_BETA_SCHEDULE if tspec.name in CONSTANT_BETA_TASKS else SCHEDULE)[spec.base]
         rows += [Setting("intrinsic.enabled", True, "algo"), Setting("intrinsic.source", spec.intrinsic, "algo"),
-                 _beta0(spec, tspec.name), schedule, *INTRINSIC, NORM_EPS[spec.base], *SIGNAL_FORM,
+                 _beta0(spec, tspec.name), schedule, *INTRINSIC, NORM_EPS[spec.base], *INTRINSIC_LAST,
                  *SIGNAL_SETTINGS[spec.intrinsic]]
     rows += NETWORKS[network]
     merged: dict[str, Setting] = {}

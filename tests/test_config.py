@@ -254,14 +254,14 @@ OLD_LINE = ("is an imssr 0.1 config (budgets in frames), which this imssr does n
 def test_an_imssr_0_1_config_is_refused_in_one_line(tmp_path):
     import json
 
-    from imssr.config import CONFIG_VERSION, OLD_KEYS, load_config
+    from imssr.config import CONFIG_VERSION, V1_KEYS, load_config
     from imssr.presets import load_partial_config
 
     with pytest.raises(ImssrError) as err:
         RunConfig.from_dict(OLD_CONFIG)
     assert str(err.value) == f"this config {OLD_LINE}"
     # Any one key only imssr 0.1 wrote marks a file without a version, and so does version 1.
-    for section, key in OLD_KEYS:
+    for section, key in V1_KEYS:
         with pytest.raises(ImssrError, match=r"is an imssr 0\.1 config"):
             RunConfig.from_dict({"algo": "curl", section: {key: 1}})
     with pytest.raises(ImssrError, match=r"is an imssr 0\.1 config"):

@@ -10,7 +10,7 @@ from imssr.auxiliary.soda import SODA
 from imssr.auxiliary.svea import SVEA
 from imssr.errors import ImssrError
 
-if TYPE_CHECKING:  # the config asks these tasks for their rules (RunConfig.validate)
+if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
     from imssr.config import AgentConfig, AuxConfig
 
 AUX_TASKS: dict[str, type[AuxiliaryTask]] = {t.name: t for t in (CURL, SODA, PAD, SVEA)}

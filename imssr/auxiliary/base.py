@@ -22,7 +22,7 @@ from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.networks.module import ModuleWithOptimizer
 from imssr.precision import optimizer_step
 
-if TYPE_CHECKING:  # the config asks the tasks for their rules (RunConfig.validate)
+if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
     from imssr.config import AgentConfig, AuxConfig, RunConfig
 
 
