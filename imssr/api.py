@@ -21,7 +21,7 @@ from imssr.config import RunConfig, load_config
 from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
-from imssr.presets import build_run_config
+from imssr.presets import run_config
 from imssr.training.build import build_agent, resolve_device, restore_agent
 from imssr.training.checkpoint import run_checkpoint
 from imssr.training.evaluate import eval_row, evaluate, evaluation_seed
@@ -149,9 +149,9 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
         raise ImssrError("overrides is a list of 'section.field=value' strings, e.g. ['train.eval_episodes=5']")
     if resume and out is None:
         raise ImssrError("resume=True needs out, the run directory to continue")
-    cfg = build_run_config(None if resume else algo, None if resume else task, demo=demo,
-                           resume_dir=out if resume else None, values=values, frames=frames,
-                           overrides=list(overrides))
+    cfg = run_config(None if resume else algo, None if resume else task, demo=demo,
+                     resume_dir=out if resume else None, values=values, frames=frames,
+                     overrides=list(overrides))
     out = out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
     stop = StopRequest().install()
     try:

@@ -17,7 +17,7 @@ from imssr.envs import get_task
 from imssr.errors import ImssrError
 from imssr.jsonio import dumps
 from imssr.presets import ALGOS, get_algo
-from imssr.presets import build_run_config as build_config
+from imssr.presets import run_config
 from imssr.utils import atomic_write_text
 
 LAUNCHERS = ("ray", "slurm", "local")
@@ -222,7 +222,7 @@ def expand(cfg: SweepConfig) -> list[Run]:
 
 def build_run_config(run: Run, cfg: SweepConfig) -> RunConfig:
     """The run's RunConfig as ``imssr train`` builds it from :meth:`Run.train_args` (the same
-    :func:`imssr.presets.build_run_config`; a test checks that the two agree)."""
+    :func:`imssr.presets.run_config`; a test checks that the two agree)."""
     values: dict[str, Any] = {"train.seed": run.seed}
     if cfg.steps is not None:
         values["train.steps"] = cfg.steps
@@ -232,9 +232,9 @@ def build_run_config(run: Run, cfg: SweepConfig) -> RunConfig:
         values.update(logger_fields(cfg.logger))
         if values["train.wandb"]:
             values["train.wandb_group"] = cfg.wandb_group
-    return build_config(run.algo, run.task, values=values,
-                        frames=cfg.frames if cfg.steps is None else None, beta0=run.beta0,
-                        overrides=cfg.overrides)
+    return run_config(run.algo, run.task, values=values,
+                      frames=cfg.frames if cfg.steps is None else None, beta0=run.beta0,
+                      overrides=cfg.overrides)
 
 
 def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, tuple[int, int]]) -> str:

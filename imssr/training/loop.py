@@ -24,7 +24,7 @@ import torch
 from tqdm import tqdm
 
 from imssr._gl import gl_renderer, software_rendering_warning
-from imssr.config import RunConfig, steps_for_frames
+from imssr.config import RunConfig
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
@@ -262,9 +262,6 @@ class Trainer:
             wandb = WandbRun(cfg, out_dir, resume=ckpt is not None, warn=lambda text: print(text, flush=True))
         self.logger = Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if ckpt else None,
                              wandb=wandb)
-        if ckpt is not None and "next_eval_step" not in ckpt:
-            print(f"imssr: resuming a run made before budgets counted agent steps: its budget is "
-                  f"{cfg.budget_text()}", flush=True)
         if ckpt is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
             self.logger.rewrite_eval(self.eval_history)
@@ -298,7 +295,7 @@ class Trainer:
         self.frame, self.step, self.episode = ckpt["frame"], ckpt["step"], ckpt["episode"]
         self.learning_starts = ckpt.get("learning_starts", self.cfg.train.seed_steps)
         self.eval_history = list(ckpt.get("eval_history", []))
-        counters = _step_counters(ckpt, self.cfg.env.action_repeat)
+        counters = _step_counters(ckpt)
         self.last_eval_step = counters["last_eval_step"]
         saved_train = RunConfig.from_dict(ckpt["config"]).train
         # Intervals may change on resume: keep the saved schedule only when they did not.
@@ -624,18 +621,9 @@ def _next_multiple(step: int, every: int) -> Optional[int]:
     return None if not every else (step // every + 1) * every
 
 
-def _step_counters(ckpt: dict, action_repeat: int) -> dict:
-    """The loop's schedule counters in agent steps, from a checkpoint of any version.
-
-    Checkpoints written before budgets counted agent steps hold frame counters; the next
-    evaluation / checkpoint falls on the first agent step at or past the saved frame, as it did.
-    """
-    if "next_eval_step" in ckpt:
-        return {k: ckpt[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
-    ceil = lambda frame: None if frame is None else steps_for_frames(frame, action_repeat)  # noqa: E731
-    last = ckpt["last_eval_frame"]
-    return {"next_eval_step": ceil(ckpt["next_eval_frame"]), "next_ckpt_step": ceil(ckpt["next_ckpt_frame"]),
-            "last_eval_step": -1 if last < 0 else last // action_repeat}
+def _step_counters(ckpt: dict) -> dict:
+    """The loop's schedule counters, in agent steps, from a checkpoint."""
+    return {k: ckpt[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
 
 
 def _summary(rows: list[dict]) -> str:
