@@ -15,7 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import assert_same_nets, filled_buffer, tiny_config
+from conftest import assert_same_nets, filled_buffer, tiny_config, train_stopped_at
 from imssr.agents import SACAgent
 from imssr.augmentations import random_crop
 from imssr.config import CONFIG_VERSION, RunConfig, load_config
@@ -285,7 +285,7 @@ def test_an_old_run_directory_resumes_with_its_frame_budget(tmp_path):
     cfg = tiny_config("im-curl", steps=250, eval_every_steps=125, checkpoint_every_steps=125)
     t = Trainer(cfg, str(tmp_path))
     try:
-        t.train(stop_at_step=125)
+        train_stopped_at(t, 125)
     finally:
         t.close()
     # Rewrite the run as imssr 0.1 left it: frames in config.json and in the checkpoint.
