@@ -100,7 +100,7 @@ def test_an_episode_round_trips_through_its_checkpoint_state():
     assert state["return"] == 1.5 and state["frames"] == 24 and state["counts"] == {"critic_loss": 3}
     assert isinstance(state["sums"]["critic_loss"], float)
     back = Episode.from_state_dict(state)
-    assert back.env_rng == ep.env_rng and back.reward == ep.reward and back.frames == ep.frames
+    assert back.env_rng == ep.env_rng and back.total_reward == ep.total_reward and back.frames == ep.frames
     assert [a.tolist() for a in back.actions] == [a.tolist() for a in ep.actions]
     assert back.sums["critic_loss"] == float(ep.sums["critic_loss"]) and back.counts == ep.counts
     back.add_metrics({"critic_loss": torch.tensor(1.0), "alpha": torch.tensor(0.5)})  # goes on summing

@@ -497,8 +497,8 @@ class Trainer:
         if bad:
             raise DivergedError(bad)
         self.logger.log_train(row)
-        s.last_return = episode.reward
-        progress.episode_end(episode.reward, row["fps"], s.frame)
+        s.last_return = episode.total_reward
+        progress.episode_end(episode.total_reward, row["fps"], s.frame)
         s.episode += 1
 
     def _final_evaluation_if_last(self, progress: Progress) -> None:

@@ -119,8 +119,8 @@ class Episode:
     """The training env's RNG state just before the episode's reset."""
     actions: list[np.ndarray] = field(default_factory=list)
     """The actions taken since the reset."""
-    reward: float = 0.0
-    """The return so far (``episode_return``)."""
+    total_reward: float = 0.0
+    """The sum of the rewards so far: the return (``episode_return``)."""
     frames: int = 0
     """Environment frames so far (``episode_frames``)."""
     sums: dict[str, Any] = field(default_factory=lambda: defaultdict(float))
@@ -139,14 +139,14 @@ class Episode:
     def add_step(self, action: np.ndarray, reward: float, frames: int) -> None:
         """Count one agent step: its action, reward and environment frames."""
         self.actions.append(action)
-        self.reward += reward
+        self.total_reward += reward
         self.frames += frames
 
     def train_row(self, frame: int, step: int, episode: int) -> dict:
         """The episode's ``train.csv`` row, ended at ``frame`` / ``step``: its return, length,
         speed and the mean of each metric over its updates."""
         seconds = max(time.time() - self.started, 1e-9)
-        row = {"frame": frame, "step": step, "episode": episode, "episode_return": self.reward,
+        row = {"frame": frame, "step": step, "episode": episode, "episode_return": self.total_reward,
                "episode_frames": self.frames, "fps": self.frames / seconds,
                "updates": self.counts.get("critic_loss", 0), "wall_time": time.time()}
         # One host sync per episode, not one per metric per update.
@@ -159,7 +159,7 @@ class Episode:
         (physics, scene and frame stack bit for bit, without storing simulator internals)."""
         actions = np.stack(self.actions) if self.actions else np.zeros((0, action_dim), np.float32)
         return {"env_rng": self.env_rng, "actions": torch.from_numpy(actions.astype(np.float32)),
-                "return": float(self.reward), "frames": int(self.frames),
+                "return": float(self.total_reward), "frames": int(self.frames),
                 # Floats: the same values as the float32 sums (exact in float64), on any device.
                 "sums": {k: float(v) for k, v in self.sums.items()}, "counts": dict(self.counts)}
 
@@ -167,7 +167,7 @@ class Episode:
     def from_state_dict(cls, state: dict) -> "Episode":
         """The episode a checkpoint's ``episode_state`` saved (its actions as float32 arrays)."""
         episode = cls(env_rng=state["env_rng"], actions=list(state["actions"].numpy()),
-                      reward=state["return"], frames=state["frames"])
+                      total_reward=state["return"], frames=state["frames"])
         episode.sums.update(state["sums"])
         episode.counts.update(state["counts"])
         return episode
