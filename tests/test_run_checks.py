@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config
+from conftest import tiny_config, train_stopped_at
 from imssr.errors import DivergedError, ImssrError
 from imssr.training import Trainer
 from imssr.training.checkpoint import latest_path, load_checkpoint
@@ -113,7 +113,7 @@ def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_sma
     try:
         t = Trainer(fast(steps=40, torch_threads=1), out)
         try:
-            t.train(stop_at_step=20)
+            train_stopped_at(t, 20)
         finally:
             t.close()
         assert load_checkpoint(latest_path(out))["torch_threads"] == 1

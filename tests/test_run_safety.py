@@ -41,8 +41,8 @@ def _cfg():
     return cfg
 
 
-def _train(out, stop_at_step=None, resume=False, **kw):
-    return train_run(_cfg(), out, stop_at_step, resume, **kw)
+def _train(out, stop_at=None, resume=False, **kw):
+    return train_run(_cfg(), out, stop_at, resume, **kw)
 
 
 _strip = without_timing
@@ -66,9 +66,10 @@ def full(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def stopped(tmp_path_factory):
-    """A run "killed" after its checkpoint at agent step 250 (step-125 and step-250 retained)."""
+    """A run stopped at the episode end with its checkpoint at agent step 250 (step-125 and
+    step-250 retained)."""
     out = tmp_path_factory.mktemp("stopped")
-    _train(out, stop_at_step=250)
+    _train(out, stop_at=250)
     return str(out)
 
 
@@ -235,7 +236,7 @@ def test_a_lost_replay_buffer_needs_refill_buffer(run, fault, capsys):
         Trainer(_cfg(), run, resume=True)
     t = Trainer(_cfg(), run, resume=True, refill_buffer=True)  # the failed attempt released the run
     try:
-        assert t.step == 250 and t.learning_starts == 250 + 360 and t.replay.size == 0
+        assert t.step == 250 and t.state.learning_starts == 250 + 360 and t.replay.size == 0
     finally:
         t.close()
     assert "refilling it with random actions until agent step 610" in capsys.readouterr().out

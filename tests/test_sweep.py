@@ -8,6 +8,7 @@ import sys
 import pytest
 import torch
 
+from conftest import train_stopped_at
 from imssr.cli import main
 from imssr.sweep.grid import SweepConfig, build_run_config, expand, load_sweep_file, parse_seeds
 from imssr.sweep.runner import DONE_FILE, LOG_FILE, execute_run, has_checkpoint
@@ -205,14 +206,14 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
             *set_args(TINY)]
     cfg = SweepConfig(root=root, algos=["curl", "im-curl"], tasks=[TASK], seeds=[1], steps=250, overrides=TINY)
     interrupted = expand(cfg)[1]
-    # The im-curl run was killed after its first checkpoint (agent step 125 of 250).  One torch
+    # The im-curl run was stopped at its first checkpoint (agent step 125 of 250, an episode end).  One torch
     # thread, as the sweep gives each run: two spin-waiting threads on a busy 2-core machine
     # are ~15x slower.
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     trainer = Trainer(build_run_config(interrupted, cfg), interrupted.dir)
     try:
-        trainer.train(stop_at_step=125)
+        train_stopped_at(trainer, 125)
     finally:
         trainer.close()
         torch.set_num_threads(threads)
