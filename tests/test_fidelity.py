@@ -301,9 +301,9 @@ def test_an_old_run_directory_resumes_with_its_frame_budget(tmp_path):
     del old["version"]
     for key in ("next_eval_step", "next_ckpt_step", "last_eval_step"):
         ckpt[key.replace("step", "frame")] = ckpt.pop(key) * 8
-    from imssr.training.checkpoint import save_checkpoint
+    from imssr.rundir import RunDir
 
-    save_checkpoint(str(tmp_path), ckpt, keep=0)
+    RunDir(str(tmp_path)).save_checkpoint(ckpt, keep=0)
     (tmp_path / "config.json").write_text(json.dumps(old))
     resumed = Trainer(load_config(str(tmp_path / "config.json")), str(tmp_path), resume=True)
     try:
