@@ -151,7 +151,8 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
     try:
         trainer = Trainer(cfg, out, resume=resume, stop=stop)
         try:
-            trainer.train()
+            with trainer.run_dir.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
+                trainer.train()
         finally:
             trainer.close()
     except TrainingInterrupted:

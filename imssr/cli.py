@@ -14,11 +14,10 @@ from typing import Any, Callable, Optional
 from imssr.analysis import AnalysisOptions, analyze_run
 from imssr.config import MAX_SEED, SEED_RULE, field_docs, logger_fields
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
-from imssr.errors import INTERRUPTED_EXIT, DivergedError, ImssrError
+from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, build_run_config, explain, make_config
-from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
@@ -393,12 +392,8 @@ def _train(cfg, out: str, args, refill: bool, demo: bool, stop: StopRequest) -> 
           flush=True)
     started = time.time()
     try:
-        try:
+        with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
             trainer.train()
-        except BaseException as exc:
-            _record_ending(run, _ending(exc), trainer.step, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
-            raise
-        _record_ending(run, FINISHED, trainer.step)
         png = plot_learning_curve(out)
         if demo:
             gif = record_episode(trainer, run.episode_gif_path)
@@ -408,23 +403,6 @@ def _train(cfg, out: str, args, refill: bool, demo: bool, stop: StopRequest) -> 
     finally:
         trainer.close()
     return 0
-
-
-def _record_ending(run, state: str, step: int, error: str = "") -> None:
-    """Record how the training ended (:meth:`RunDir.write_status`), while the run is still locked.
-    A record that cannot be written (a full disk) is left out: the error that stopped the
-    training is the one to show, and the status then follows from the run's files."""
-    try:
-        run.write_status(state, step, error)
-    except (ImssrError, OSError):
-        pass
-
-
-def _ending(exc: BaseException) -> str:
-    """The run status a training that raised ``exc`` ends in."""
-    if isinstance(exc, (TrainingInterrupted, KeyboardInterrupt)):
-        return INTERRUPTED
-    return DIVERGED if isinstance(exc, DivergedError) else FAILED
 
 
 def cmd_evaluate(args) -> int:

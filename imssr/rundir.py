@@ -35,6 +35,7 @@ every file they read is replaced atomically.
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import glob
@@ -42,10 +43,10 @@ import json
 import os
 import time
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, Callable, Iterator, Optional
 
 from imssr.config import RunConfig, load_config
-from imssr.errors import ImssrError
+from imssr.errors import DivergedError, ImssrError
 from imssr.jsonio import dumps
 from imssr.replay.buffer import frames_path
 from imssr.training.checkpoint import CheckpointDamaged, copy_checkpoint, load_checkpoint, write_checkpoint
@@ -483,6 +484,29 @@ class RunDir:
         record = {"state": state, "step": step, "error": error, "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
         atomic_write_text(self.status_path, dumps(record, indent=2) + "\n")
         return self.status_path
+
+    @contextlib.contextmanager
+    def recording(self, step: Callable[[], int], interrupted: tuple[type, ...] = ()) -> Iterator[None]:
+        """Record how the training run inside the block ends (:meth:`write_status`): ``finished``,
+        ``interrupted`` (``interrupted`` exceptions and KeyboardInterrupt), ``diverged``
+        (:class:`~imssr.errors.DivergedError`) or ``failed``, at agent step ``step()``.  Use it
+        while the run is locked.  A record that cannot be written (a full disk) is left out: the
+        error that stopped the training is the one to show, and the status then follows from
+        the run's files."""
+        try:
+            yield
+        except BaseException as exc:
+            state = (INTERRUPTED if isinstance(exc, (KeyboardInterrupt, *interrupted)) else
+                     DIVERGED if isinstance(exc, DivergedError) else FAILED)
+            self._record(state, step(), str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+            raise
+        self._record(FINISHED, step())
+
+    def _record(self, state: str, step: int, error: str = "") -> None:
+        try:
+            self.write_status(state, step, error)
+        except (ImssrError, OSError):
+            pass
 
     def read_done(self) -> Optional[dict]:
         """The run's done marker, or None (absent, unreadable or without a budget: not done)."""

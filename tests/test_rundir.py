@@ -2,6 +2,7 @@
 and the agent of a run at a checkpoint."""
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -162,3 +163,24 @@ def test_load_agent_builds_the_run_at_its_checkpoint_and_refuses_a_mismatch(tmp_
         run.load_agent(device="cpu")
     with pytest.raises(ImssrError, match="^run directory not found"):
         RunDir(tmp_path / "none").load_agent()
+
+
+def test_recording_says_how_a_training_ended(tmp_path):
+    from imssr.errors import DivergedError
+
+    class Stopped(Exception):
+        pass
+
+    run = RunDir(tmp_path)
+    cases = [(None, "finished"), (Stopped("stopped at agent step 7 by SIGTERM"), "interrupted"),
+             (KeyboardInterrupt(), "interrupted"), (DivergedError("diverged at agent step 7: critic loss nan"),
+                                                    "diverged"), (ImssrError("no space left\nmore"), "failed")]
+    for exc, state in cases:
+        with pytest.raises(type(exc)) if exc else contextlib.nullcontext():
+            with run.recording(lambda: 7, interrupted=(Stopped,)):
+                if exc:
+                    raise exc
+        record = run.read_status()
+        assert (record["state"], record["step"], run.status()) == (state, 7, state)
+        assert record["error"] == ("" if exc is None else (str(exc).splitlines() or ["KeyboardInterrupt"])[0])
+
