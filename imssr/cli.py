@@ -387,17 +387,19 @@ def cmd_train(args, demo: bool = False) -> int:
 
 def _train(cfg, out: str, args, refill: bool, demo: bool, stop: StopRequest) -> int:
     trainer = Trainer(cfg, out, resume=args.resume, refill_buffer=refill, stop=stop)
+    run = trainer.run_dir
     print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {out}",
           flush=True)
     started = time.time()
     try:
-        trainer.train()
+        with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
+            trainer.train()
         png = plot_learning_curve(out)
         if demo:
-            gif = record_episode(trainer, os.path.join(out, "episode.gif"))
+            gif = record_episode(trainer, run.episode_gif_path)
             print(summary(cfg, out, (time.time() - started) / 60, gif, png), flush=True)
         else:
-            print(f"imssr: done; {os.path.join(out, 'eval.csv')}, {png}")
+            print(f"imssr: done; {run.eval_log}, {png}")
     finally:
         trainer.close()
     return 0

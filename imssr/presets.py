@@ -19,6 +19,7 @@ from imssr.config import (RunConfig, apply_overrides, check_version, load_config
                           steps_for_frames)
 from imssr.envs.tasks import PAPER_TASKS, get_task
 from imssr.errors import ImssrError
+from imssr.rundir import RunDir
 
 
 # Table V: beta_0 per task (../shared/spec/paper_beta0.csv; tests check the copy).
@@ -401,7 +402,7 @@ def base_config(algo: str | None = None, task: str | None = None, *, network: st
     if config_file:
         cfg = load_partial_config(config_file, algo, task)
     elif resume_dir:
-        saved = os.path.join(resume_dir, "config.json")
+        saved = RunDir(resume_dir).config_path
         if not os.path.exists(saved):
             raise ImssrError(f"nothing to resume: {saved} does not exist")
         cfg = load_config(saved)

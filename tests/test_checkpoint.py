@@ -8,7 +8,8 @@ import torch
 from conftest import tiny_config, train_run, train_stopped_at, without_timing
 from imssr.errors import ImssrError
 from imssr.training import Trainer
-from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.training.state import StepSchedule
 
@@ -49,7 +50,7 @@ def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
 
 def test_checkpoint_contents_and_round_trip(full_run):
     full_dir, full = full_run
-    state = load_checkpoint(latest_path(str(full_dir)))
+    state = load_checkpoint(RunDir(str(full_dir)).latest)
     assert state["frame"] == 3000 and state["step"] == 375 and state["episode"] == 3
     assert os.path.exists(full_dir / "checkpoints" / state["replay_file"])
     cfg = _cfg()
@@ -162,7 +163,7 @@ def test_checkpoint_from_before_new_settings_still_resumes(full_run, tmp_path):
 
     full_dir, _ = full_run
     shutil.copytree(full_dir, tmp_path / "old")
-    path = latest_path(str(tmp_path / "old"))
+    path = RunDir(str(tmp_path / "old")).latest
     state = load_checkpoint(path)
     del state["config"]["env"]["footage_dir"], state["config"]["intrinsic"]["source"]
     torch.save(state, path)

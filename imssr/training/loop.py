@@ -28,15 +28,15 @@ from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteEr
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
 from imssr.replay import make_replay_buffer, replay_placement
-from imssr.replay.buffer import ReplayFileError, frames_path
+from imssr.replay.buffer import ReplayFileError
+from imssr.rundir import RunDir
+from imssr.seeds import TRAINING_EVAL_SEED_OFFSET
 from imssr.training.build import build_agent, resolve_device
-from imssr.training.checkpoint import checkpoint_dir, latest_path, save_checkpoint, usable_checkpoint
-from imssr.training.lock import DirectoryLock
 from imssr.training.evaluate import eval_row, evaluate, non_finite_text
 from imssr.training.logger import Logger
 from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
 from imssr.training.state import Episode, RunState
-from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_everything, set_rng_states
+from imssr.utils import contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
 RESUMABLE_CHANGES = {"train.steps", "train.device", "train.replay_device", "train.progress",
@@ -125,7 +125,8 @@ class Trainer:
             raise ImssrError(f"--out {out_dir} is a file, not a directory")
         # A second process on the same directory fails here, before the Logger of a fresh
         # run deletes the first one's logs and tb/.
-        self._lock = DirectoryLock(out_dir).acquire()
+        self.run_dir = RunDir(out_dir)
+        self._lock = self.run_dir.open()
         self.refill_buffer = refill_buffer
         self.stop = stop or StopRequest()  # uninstalled: never set
         self._resume_episode: Optional[dict] = None  # the episode a stop left open, to rebuild
@@ -161,7 +162,7 @@ class Trainer:
                 raise ImssrError(f"the run in {out_dir} is already at agent step {ckpt['step']:,}, past the "
                                  f"budget of {cfg.train.steps:,} steps asked for; resume with --steps "
                                  f"{ckpt['step']} or more")
-        elif os.path.exists(latest_path(out_dir)):
+        elif self.run_dir.has_run():
             raise ImssrError(f"{out_dir} already holds a run; pass --resume to continue it "
                              "or choose another --out")
         self._set_threads(ckpt)
@@ -170,18 +171,16 @@ class Trainer:
         # Training footage and evaluation footage come from disjoint pools.
         self.env = env_from_config(e, seed=cfg.train.seed, footage_split="train")
         self.eval_modes = cfg.train.eval_mode_list(e.mode)
-        self.eval_envs = {m: env_from_config(e, seed=cfg.train.seed + 10_000, mode=m, footage_split="test")
+        self.eval_envs = {m: env_from_config(e, seed=cfg.train.seed + TRAINING_EVAL_SEED_OFFSET, mode=m,
+                                             footage_split="test")
                           for m in self.eval_modes}
         self._warn_on_software_rendering()
         self._build_agent_and_replay()
         os.makedirs(out_dir, exist_ok=True)
         if ckpt is not None:
             self._restore(ckpt)
-        atomic_write_text(os.path.join(out_dir, "config.json"), cfg.to_json() + "\n")
+        self.run_dir.write_config(cfg)
         self.logger = self._open_logger(resumed=ckpt is not None)
-        if ckpt is not None and "next_eval_step" not in ckpt:
-            print(f"imssr: resuming a run made before budgets counted agent steps: its budget is "
-                  f"{cfg.budget_text()}", flush=True)
         if ckpt is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
             self.logger.rewrite_eval(self.state.eval_history)
@@ -254,10 +253,10 @@ class Trainer:
 
     # -- resume ------------------------------------------------------------------
     def _check_resume(self) -> dict:
-        ckpt, path, note = usable_checkpoint(self.out_dir)
+        ckpt, path, note = self.run_dir.usable_checkpoint()
         if note:
             print(f"imssr: {note}", flush=True)
-        self.resumed_from, self._fallback = path, path != latest_path(self.out_dir)
+        self.resumed_from, self._fallback = path, path != self.run_dir.latest
         # Through the config class, so settings added since the run started read as defaults.
         try:
             saved = _flatten(RunConfig.from_dict(ckpt["config"]).to_dict())
@@ -302,12 +301,12 @@ class Trainer:
         instead (None when it loaded)."""
         refill = None if ckpt.get("replay_file") else "checkpoint holds no replay buffer"
         if ckpt.get("replay_file"):
-            path = os.path.join(checkpoint_dir(self.out_dir), ckpt["replay_file"])
+            path, frames = self.run_dir.replay_files(ckpt["replay_file"])
             try:
                 self.replay.load(path, ckpt["replay_state"]["rng"])
             except ReplayFileError as exc:
                 # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
-                if self._fallback and not (os.path.exists(path) and os.path.exists(frames_path(path))):
+                if self._fallback and not (os.path.exists(path) and os.path.exists(frames)):
                     refill = f"no replay buffer was kept for {os.path.basename(self.resumed_from)}"
                 elif self.refill_buffer:
                     refill = str(exc)
@@ -324,20 +323,19 @@ class Trainer:
         """Checkpoint now (``episode``: the open episode, when stopping in its middle).  A save
         that fails (a full disk) leaves the previous checkpoint as it was and removes the replay
         files it wrote, which no checkpoint names."""
-        latest = latest_path(self.out_dir)
+        latest = self.run_dir.latest
         before = _identity(latest)
         try:
             self._save(episode)
         except ImssrError:
-            replay_file = f"replay-{self.step:09d}.npz"
+            replay_file = self.run_dir.replay_name(self.step)
             if (self.cfg.train.save_buffer and replay_file != self._replay_file
                     and _identity(latest) == before):
-                path = os.path.join(checkpoint_dir(self.out_dir), replay_file)
-                for p in (path, frames_path(path)):
+                for p in self.run_dir.replay_files(replay_file):
                     if os.path.exists(p):
                         os.unlink(p)
             raise
-        self._replay_file = f"replay-{self.step:09d}.npz" if self.cfg.train.save_buffer else None
+        self._replay_file = self.run_dir.replay_name(self.step) if self.cfg.train.save_buffer else None
         self._saved_step = self.step
 
     def _rebuild_episode(self, state: dict) -> tuple[Episode, np.ndarray]:
@@ -357,8 +355,8 @@ class Trainer:
     def _save(self, episode: Optional[Episode] = None) -> None:
         replay_file = None
         if self.cfg.train.save_buffer:
-            replay_file = f"replay-{self.step:09d}.npz"
-            self.replay.save(os.path.join(checkpoint_dir(self.out_dir), replay_file))
+            replay_file = self.run_dir.replay_name(self.step)
+            self.replay.save(self.run_dir.replay_path(replay_file))
         state = {
             "config": self.cfg.to_dict(), **self.state.state_dict(), "agent": self.agent.state_dict(),
             "env_rng": self.env.get_rng_state(), "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
@@ -368,7 +366,7 @@ class Trainer:
             "torch_threads": torch.get_num_threads(),
             "episode_state": None if episode is None else episode.state_dict(self.action_dim),
         }
-        save_checkpoint(self.out_dir, state, keep=self.cfg.train.keep_checkpoints)
+        self.run_dir.save_checkpoint(state, keep=self.cfg.train.keep_checkpoints)
 
     # -- the loop ----------------------------------------------------------------
     @property
