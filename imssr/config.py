@@ -22,7 +22,7 @@ from typing import Any
 
 from docstring_parser import parse_from_object
 from omegaconf import OmegaConf
-from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
+from omegaconf.errors import ConfigKeyError, ValidationError
 
 from imssr.algos import get_algo
 from imssr.envs.scenes import get_mode

@@ -17,7 +17,7 @@ from typing import Any, Mapping, Sequence
 from imssr.algos import ALGOS, BASES, SIGNALS, AlgoSpec, get_algo  # noqa: F401 (re-exported)
 from imssr.config import (RunConfig, apply_overrides, check_version, load_config, read_config_file,
                           steps_for_frames)
-from imssr.envs.tasks import PAPER_TASKS, get_task
+from imssr.envs.tasks import get_task
 from imssr.errors import ImssrError
 from imssr.rundir import RunDir
 
