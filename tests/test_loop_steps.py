@@ -13,7 +13,8 @@ import torch
 from conftest import StopAtStep, tiny_config
 from imssr.errors import DivergedError, NonFiniteError
 from imssr.training import Trainer
-from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import load_checkpoint
 from imssr.training.loop import TrainingInterrupted, first_non_finite
 from imssr.training.progress import Progress, eval_summary, progress_line
 from imssr.training.state import Episode, RunState
@@ -233,7 +234,7 @@ def test_stop_if_requested_checkpoints_the_open_episode_and_stops(trainer):
     with pytest.raises(TrainingInterrupted, match=r"^stopped at agent step 40 by SIGTERM; continue with: "
                                                   r"imssr train --out \S+ --resume$"):
         trainer._stop_if_requested(episode)
-    saved = load_checkpoint(latest_path(trainer.out_dir))
+    saved = load_checkpoint(RunDir(trainer.out_dir).latest)
     assert saved["step"] == 40 and saved["episode_state"]["return"] == 1.0
     assert saved["episode_state"]["actions"].tolist() == [[0.25]]
 
