@@ -17,18 +17,19 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from imssr.config import RunConfig, load_config
+from imssr.config import RunConfig
 from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
-from imssr.presets import build_run_config
-from imssr.training.build import build_agent, resolve_device, restore_agent
-from imssr.training.checkpoint import run_checkpoint
-from imssr.training.evaluate import eval_row, evaluate, evaluation_seed
+from imssr.presets import run_config
+from imssr.rundir import EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir
+from imssr.seeds import evaluation_seed
+from imssr.training.evaluate import eval_row, evaluate
 from imssr.training.loop import StopRequest, Trainer, TrainingInterrupted
 from imssr.utils import read_csv
 
-CURVES = ("eval", "train", "eval_episodes", "evaluate", "evaluate_episodes")
+CURVES = tuple(name.removesuffix(".csv") for name in (EVAL_LOG, TRAIN_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG,
+                                                      EVALUATE_EPISODES_LOG))
 """The run's CSV logs that :meth:`Run.curves` reads (``RUN/<name>.csv``)."""
 
 
@@ -43,25 +44,18 @@ class Run:
     """
 
     def __init__(self, run_dir: str, checkpoint: Optional[str] = None, device: str = "cpu"):
-        if not os.path.isdir(run_dir):
-            raise ImssrError(f"run directory not found: {run_dir}")
         self.dir = run_dir
-        self.config: RunConfig = load_config(os.path.join(run_dir, "config.json"))
-        state, note = run_checkpoint(run_dir, None if checkpoint is None else str(checkpoint), verb="loading")
-        if note:
-            warnings.warn(note, stacklevel=2)
-        self.step: int = int(state["step"])
+        self.run_dir = RunDir(run_dir)
+        loaded = self.run_dir.load_agent(checkpoint, device=device, verb="loading")
+        if loaded.note:
+            warnings.warn(loaded.note, stacklevel=2)
+        self.config: RunConfig = loaded.config
+        self.step: int = loaded.step
         """Agent step of the loaded checkpoint."""
-        self.frame: int = int(state["frame"])
+        self.frame: int = loaded.frame
         """Environment frame of the loaded checkpoint."""
-        env = self.make_env()
-        try:
-            self.observation_shape: tuple = tuple(env.observation_space.shape)
-            action_dim = env.action_space.shape[0]
-        finally:
-            env.close()
-        self.agent = restore_agent(build_agent(self.config, self.observation_shape, action_dim,
-                                               resolve_device(device)), state)
+        self.observation_shape: tuple = loaded.obs_shape
+        self.agent = loaded.agent
 
     def __repr__(self) -> str:
         return (f"Run({self.dir!r}: {self.config.algo} on {self.config.env.task}, seed {self.config.train.seed}, "
@@ -73,7 +67,7 @@ class Run:
         :meth:`evaluate`'s."""
         mode = self.config.env.mode if mode is None else mode
         get_mode(mode)
-        seed = evaluation_seed(self.config) if seed is None else seed
+        seed = evaluation_seed(self.config.train.seed) if seed is None else seed
         return env_from_config(self.config.env, seed=seed, mode=mode, footage_split="test")
 
     def act(self, obs, deterministic: bool = True) -> np.ndarray:
@@ -106,7 +100,7 @@ class Run:
         not written it."""
         if name not in CURVES:
             raise ImssrError(f"unknown log {name!r}; choose from {', '.join(CURVES)}")
-        path = os.path.join(self.dir, f"{name}.csv")
+        path = self.run_dir.log(name)
         try:
             import pandas as pd
         except ImportError:
@@ -149,15 +143,16 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
         raise ImssrError("overrides is a list of 'section.field=value' strings, e.g. ['train.eval_episodes=5']")
     if resume and out is None:
         raise ImssrError("resume=True needs out, the run directory to continue")
-    cfg = build_run_config(None if resume else algo, None if resume else task, demo=demo,
-                           resume_dir=out if resume else None, values=values, frames=frames,
-                           overrides=list(overrides))
+    cfg = run_config(None if resume else algo, None if resume else task, demo=demo,
+                     resume_dir=out if resume else None, values=values, frames=frames,
+                     overrides=list(overrides))
     out = out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
     stop = StopRequest().install()
     try:
         trainer = Trainer(cfg, out, resume=resume, stop=stop)
         try:
-            trainer.train()
+            with trainer.run_dir.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
+                trainer.train()
         finally:
             trainer.close()
     except TrainingInterrupted:

@@ -17,7 +17,7 @@ from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
-from imssr.presets import ALGOS, build_run_config, explain, make_config
+from imssr.presets import ALGOS, explain, make_config, run_config
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
@@ -352,7 +352,7 @@ def cmd_report(args) -> int:
 
 
 def _run_config(args, demo: bool):
-    """The run's config from ``train`` / ``demo`` arguments (:func:`imssr.presets.build_run_config`)."""
+    """The run's config from ``train`` / ``demo`` arguments (:func:`imssr.presets.run_config`)."""
     _check_out(args.out)
     if args.resume and not args.config and not args.out:
         raise ImssrError("--resume needs --out RUN_DIR")
@@ -365,10 +365,10 @@ def _run_config(args, demo: bool):
             values[f.field] = given
     if args.logger is not None:
         values.update(logger_fields(args.logger, args.no_tensorboard))
-    return build_run_config(args.algo, args.task, network=args.network, config_file=args.config,
-                            resume_dir=args.out if args.resume and not args.config else None, demo=demo,
-                            values=values, frames=args.frames, batch_size=args.batch_size, beta0=args.beta0,
-                            overrides=args.set)
+    return run_config(args.algo, args.task, network=args.network, config_file=args.config,
+                      resume_dir=args.out if args.resume and not args.config else None, demo=demo,
+                      values=values, frames=args.frames, batch_size=args.batch_size, beta0=args.beta0,
+                      overrides=args.set)
 
 
 def cmd_train(args, demo: bool = False) -> int:
@@ -387,17 +387,19 @@ def cmd_train(args, demo: bool = False) -> int:
 
 def _train(cfg, out: str, args, refill: bool, demo: bool, stop: StopRequest) -> int:
     trainer = Trainer(cfg, out, resume=args.resume, refill_buffer=refill, stop=stop)
+    run = trainer.run_dir
     print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {out}",
           flush=True)
     started = time.time()
     try:
-        trainer.train()
+        with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
+            trainer.train()
         png = plot_learning_curve(out)
         if demo:
-            gif = record_episode(trainer, os.path.join(out, "episode.gif"))
+            gif = record_episode(trainer, run.episode_gif_path)
             print(summary(cfg, out, (time.time() - started) / 60, gif, png), flush=True)
         else:
-            print(f"imssr: done; {os.path.join(out, 'eval.csv')}, {png}")
+            print(f"imssr: done; {run.eval_log}, {png}")
     finally:
         trainer.close()
     return 0

@@ -6,16 +6,13 @@ schedule here counts agent steps, as the authors' code does: the paper's
 T = 500,000 agent steps (Table III, "Number of training steps"), which is
 4,000,000 frames at action repeat 8.  Replay capacity counts transitions.
 
-``CONFIG_VERSION`` 2 is the first with budgets in agent steps; a config written
-before (no ``version`` key: budgets in frames, imssr 0.1's networks and signals)
-is read through :func:`migrate` so that its run resumes and reports as it ran.
+``CONFIG_VERSION`` 2 is the format with budgets in agent steps; imssr 0.1's configs
+(version 1: budgets in frames) are refused in one line (:func:`check_version`).
 """
 from __future__ import annotations
 
-import ast
 import dataclasses
 import functools
-import inspect
 import json
 import math
 import os
@@ -23,8 +20,9 @@ import sys
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from docstring_parser import parse_from_object
 from omegaconf import OmegaConf
-from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
+from omegaconf.errors import ConfigKeyError, ValidationError
 
 from imssr.algos import get_algo
 from imssr.envs.scenes import get_mode
@@ -33,8 +31,11 @@ from imssr.jsonio import dumps
 from imssr.networks.encoder import conv_output_size
 
 CONFIG_VERSION = 2
-"""2: budgets in agent steps, ``agent.final_relu``, ``aux.own_batch``, ``intrinsic.form`` and
-the normalisation fields.  1 (no ``version`` key): imssr 0.1."""
+"""The config format this imssr reads and writes: budgets in agent steps.  Version 1, imssr 0.1's
+(budgets in frames, no ``version`` key), is refused: CHANGELOG.md, 0.2.0, says what its runs need."""
+V1_KEYS = (("train", "frames"), ("train", "eval_every_frames"), ("train", "checkpoint_every_frames"),
+            ("intrinsic", "view"))
+"""Keys only imssr 0.1's configs hold: a file with one of them and no ``version`` is one of those."""
 
 MAX_SEED = 2**31 - 1
 """Largest run seed: numpy's and dm_control's seeds are 32-bit, and evaluation envs use the run
@@ -198,7 +199,7 @@ class IntrinsicConfig:
     """In-batch normalisation of the per-sample losses: zscore, minmax, mean or none."""
     unbiased_std: bool = True
     """``zscore`` divides by the unbiased (n - 1) standard deviation, as the authors' code
-    (torch's default ``std``); false: the biased one (imssr 0.1)."""
+    (torch's default ``std``); false: the biased one."""
     norm_eps: float = 0.0
     """Added to the normaliser's denominator (zscore: the std; minmax: the range; mean: the mean).
     IM-CURL 0 (the authors add none), IM-SODA 1e-5 (the authors' ``std + 1e-5``)."""
@@ -287,7 +288,7 @@ class RunConfig:
     algo: str = "im-curl"
     """Algorithm name (``imssr algos``)."""
     version: int = CONFIG_VERSION
-    """Config format (see :data:`CONFIG_VERSION`); older files are migrated when read."""
+    """Config format (see :data:`CONFIG_VERSION`)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     aux: AuxConfig = field(default_factory=AuxConfig)
@@ -317,18 +318,25 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
-        """A config from its JSON object (any version: see :func:`migrate`); fields it lacks are
-        the dataclass defaults.  Unknown fields and values of the wrong type are one-line errors."""
+        """A config from its JSON object (of this version: see :func:`check_version`); fields it
+        lacks are the dataclass defaults.  Unknown fields and values of the wrong type are one-line
+        errors."""
         if not isinstance(data, dict):
             raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
-        data = migrate(data)
+        check_version(data)
         for key, value in data.items():
             if key in SECTIONS and not isinstance(value, dict):
                 raise ImssrError(f"config section {key!r} must be an object, got {type(value).__name__}")
         return _merged(cls(), data, raw={})
 
     def validate(self) -> "RunConfig":
-        """Reject bad values with one-line errors."""
+        """Reject bad values with one-line errors: the general rules here, each plug-in's beside
+        the plug-in (``config_rules`` of every auxiliary task and intrinsic signal)."""
+        # The plug-ins are torch modules that import this one for their annotations only: loaded
+        # here, the schema imports without them.
+        from imssr.auxiliary import AUX_TASKS
+        from imssr.intrinsic import INTRINSIC_SIGNALS, IntrinsicReward
+
         _check_types(self)
         e, a, x, i, t = self.env, self.agent, self.aux, self.intrinsic, self.train
         checks = [
@@ -360,29 +368,12 @@ class RunConfig:
             (a.precision in PRECISIONS, f"agent.precision must be one of {', '.join(PRECISIONS)}"),
             (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
             (x.update_every >= 1, "aux.update_every must be >= 1"),
-            (0.0 < x.tau <= 1.0, "aux.tau must be in (0, 1]"),
-            (0.0 <= x.overlay_alpha <= 1.0, "aux.overlay_alpha must be in [0, 1]"),
-            (x.image_pool_size >= 1, "aux.image_pool_size must be >= 1"),
-            (x.svea_alpha >= 0.0 and x.svea_beta >= 0.0 and x.svea_alpha + x.svea_beta > 0,
-             "aux.svea_alpha and aux.svea_beta must be >= 0 and not both 0"),
-            (i.source in SOURCES, f"intrinsic.source must be one of {', '.join(SOURCES)}"),
-            (i.rnd_lr > 0 and i.rnd_dim >= 1, "intrinsic.rnd_lr must be > 0 and rnd_dim >= 1"),
-            (i.re3_k >= 1 and i.re3_dim >= 1, "intrinsic.re3_k and re3_dim must be >= 1"),
-            (not (i.enabled and i.source == "re3") or a.batch_size > i.re3_k,
-             "agent.batch_size must exceed intrinsic.re3_k"),
-            (not (i.enabled and i.source == "rnd") or a.crop_size >= 36,
-             "intrinsic.source=rnd needs agent.crop_size >= 36 (RND's 8/4, 4/2, 3/1 convolutions)"),
-            (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
-            (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
-            (i.normalization in NORMALIZATIONS,
-             f"intrinsic.normalization must be one of {', '.join(NORMALIZATIONS)}"),
-            (i.form in FORMS, f"intrinsic.form must be one of {', '.join(FORMS)}"),
-            (i.norm_eps >= 0.0, "intrinsic.norm_eps must be >= 0"),
-            (i.norm_rtol >= 0.0, "intrinsic.norm_rtol must be >= 0"),
-            (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
-            (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
-            (self.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION} (older configs are "
-             "migrated when read from a file)"),
+            (i.source in INTRINSIC_SIGNALS, f"intrinsic.source must be one of {', '.join(INTRINSIC_SIGNALS)}"),
+            # Each auxiliary task and signal checks its own settings, the intrinsic reward its
+            # normalisation and schedule.
+            *(rule for plugin in (*AUX_TASKS.values(), *INTRINSIC_SIGNALS.values(), IntrinsicReward)
+              for rule in plugin.config_rules(self)),
+            (self.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION}"),
             (t.steps >= 1, "train.steps must be >= 1"),
             (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
             (t.burst_updates >= 0, "train.burst_updates must be >= 0"),
@@ -408,8 +399,6 @@ class RunConfig:
             get_mode(mode)
         if e.footage_dir and not os.path.exists(os.path.expanduser(e.footage_dir)):
             raise ImssrError(f"footage not found: {e.footage_dir} (env.footage_dir / --footage)")
-        if x.image_dir and not os.path.isdir(os.path.expanduser(x.image_dir)):
-            raise ImssrError(f"image folder not found: {x.image_dir} (aux.image_dir / --image-dir)")
         algo = get_algo(self.algo)
         if algo.aux != x.name or algo.intrinsic_enabled != i.enabled or \
                 (algo.intrinsic_enabled and algo.intrinsic != i.source):
@@ -437,13 +426,9 @@ class RunConfig:
                 raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(self, key)}")
 
 
-SCHEDULES = ("constant", "step")
-NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
-SOURCES = ("ssl", "rnd", "re3")
 UPDATE_SCHEDULES = ("sequential", "fused")
 PRECISIONS = ("fp32", "bf16")
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
-FORMS = ("authors", "training")
 VIDEO_FORMATS = ("gif", "mp4")
 REPLAY_DEVICES = ("cpu", "cuda", "auto")
 
@@ -469,57 +454,19 @@ def steps_for_frames(frames: int, action_repeat: int) -> int:
     return -(-frames // action_repeat)
 
 
-def migrate(data: dict[str, Any]) -> dict[str, Any]:
-    """A config dict of any earlier version, as the current version.
-
-    Version 1 (imssr 0.1, no ``version`` key) counted budgets in frames and had
-    other defaults for settings added since; they are filled in with what that
-    version ran, so an old run resumes, evaluates and reports as it was trained:
-    frames -> agent steps (rounded up, as the old loop ran ``ceil(frames / action_repeat)``
-    steps; an interval that the action repeat does not divide is rounded up too), ReLU after the last
-    convolution, SODA on its own batch and the others on the RL batch, the signal's form from
-    ``intrinsic.view``, and the biased std + 1e-8 without the spread tolerance.
-    """
+def check_version(data: dict[str, Any], source: str = "this config") -> None:
+    """Refuse, in one line, a config dict of another format than :data:`CONFIG_VERSION`: imssr
+    0.1's (``version`` 1, or none and a key of :data:`V1_KEYS`), or an unknown version.  A dict
+    without ``version`` and without those keys is a partial config written by hand for this one."""
     version = data.get("version")
-    if version is None:
-        # A file without a version is either imssr 0.1's (it always holds train.frames) or a
-        # partial config written by hand for this version.
-        v1_keys = {("train", "frames"), ("train", "eval_every_frames"),
-                   ("train", "checkpoint_every_frames"), ("intrinsic", "view")}
-        version = 1 if any(isinstance(data.get(sec), dict) and key in data[sec] for sec, key in v1_keys) \
-            else CONFIG_VERSION
-    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= CONFIG_VERSION:
-        raise ImssrError(f"config version {version!r} is not one this imssr reads (1..{CONFIG_VERSION})")
-    if version == CONFIG_VERSION:
-        return data
-    data = json.loads(json.dumps(data))  # a deep copy
-    sections = {k: data.get(k) if isinstance(data.get(k), dict) else {} for k in
-                ("env", "agent", "aux", "intrinsic", "train")}
-    env, agent, aux, intr, train = (sections[k] for k in ("env", "agent", "aux", "intrinsic", "train"))
-    repeat = env.get("action_repeat", 8)
-    if not isinstance(repeat, int) or repeat < 1:
-        raise ImssrError(f"env.action_repeat must be a positive integer, got {repeat!r}")
-    for old, new, default in (("frames", "steps", 500_000), ("eval_every_frames", "eval_every_steps", 10_000),
-                              ("checkpoint_every_frames", "checkpoint_every_steps", 50_000)):
-        value = train.pop(old, default)
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise ImssrError(f"train.{old} must be an integer, got {value!r}")
-        train.setdefault(new, steps_for_frames(value, repeat))
-    train.setdefault("burst_updates", 0)
-    train.setdefault("replay_capacity", 100_000)
-    train.setdefault("eval_episodes", 10)
-    agent.setdefault("final_relu", True)
-    agent.setdefault("feature_dim", 50)
-    agent.setdefault("projection_tanh", False)
-    aux.setdefault("own_batch", aux.get("name", "curl") == "soda")
-    view = intr.pop("view", "independent")
-    intr.setdefault("form", "authors" if view == "shared" and aux.get("name", "curl") == "curl" else "training")
-    intr.setdefault("unbiased_std", False)
-    intr.setdefault("norm_eps", 1e-8)
-    intr.setdefault("norm_rtol", 0.0)
-    data.update(sections)
-    data["version"] = CONFIG_VERSION
-    return data
+    if version is None and any(isinstance(data.get(section), dict) and key in data[section]
+                               for section, key in V1_KEYS):
+        version = 1
+    if version == 1 and not isinstance(version, bool):
+        raise ImssrError(f"{source} is an imssr 0.1 config (budgets in frames), which this imssr does not "
+                         "read: re-run the run, or evaluate it with imssr 0.1 (CHANGELOG.md, 0.2.0)")
+    if version is not None and (version != CONFIG_VERSION or isinstance(version, bool)):
+        raise ImssrError(f"{source} has config version {version!r}; this imssr reads version {CONFIG_VERSION}")
 
 
 # -- types and overrides, through OmegaConf structured configs ---------------------------------
@@ -639,22 +586,11 @@ def _override_value(key: str, text: str) -> Any:
 
 @functools.cache
 def field_docs() -> dict[str, str]:
-    """``section.field`` -> the field's docstring (whitespace collapsed), read once from this
-    module's source: the CLI's help texts and ``imssr config --explain`` use them."""
-    try:
-        tree = ast.parse(inspect.getsource(inspect.getmodule(RunConfig)))
-    except (OSError, TypeError):  # installed without sources (a zipped or compiled-only build)
-        return {}
-    classes = {node.name: node for node in tree.body if isinstance(node, ast.ClassDef)}
-    docs = {}
-    for section, cls in SECTIONS.items():
-        body = classes[cls.__name__].body
-        for node, after in zip(body, body[1:]):
-            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and \
-                    isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) and \
-                    isinstance(after.value.value, str):
-                docs[f"{section}.{node.target.id}"] = " ".join(after.value.value.split())
-    return docs
+    """``section.field`` -> the field's docstring (whitespace collapsed), read once from the
+    dataclasses' source: the CLI's help texts use them.  Empty when installed without sources."""
+    return {f"{section}.{doc.arg_name}": " ".join(doc.description.split())
+            for section, cls in SECTIONS.items() for doc in parse_from_object(cls).params
+            if doc.args[0] == "attribute" and doc.description}
 
 
 def read_config_file(path: str) -> Any:
@@ -675,4 +611,7 @@ def read_config_file(path: str) -> Any:
 def load_config(path: str) -> RunConfig:
     """A complete config file, such as a run's ``config.json`` (fields it lacks read as the
     dataclass defaults; see :func:`load_partial_config` for a file written by hand)."""
-    return RunConfig.from_dict(read_config_file(path))
+    data = read_config_file(path)
+    if isinstance(data, dict):
+        check_version(data, f"config {path}")
+    return RunConfig.from_dict(data)

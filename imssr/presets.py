@@ -15,10 +15,11 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 from imssr.algos import ALGOS, BASES, SIGNALS, AlgoSpec, get_algo  # noqa: F401 (re-exported)
-from imssr.config import (RunConfig, apply_overrides, load_config, migrate, read_config_file,
+from imssr.config import (RunConfig, apply_overrides, check_version, load_config, read_config_file,
                           steps_for_frames)
-from imssr.envs.tasks import PAPER_TASKS, get_task
+from imssr.envs.tasks import get_task
 from imssr.errors import ImssrError
+from imssr.rundir import RunDir
 
 
 # Table V: beta_0 per task (../shared/spec/paper_beta0.csv; tests check the copy).
@@ -33,7 +34,7 @@ BASE_BETA0 = {"pad": 0.05, "svea": 0.05}
 # beta_0 for tasks outside Table V: the paper's most common small value.
 DEFAULT_BETA0 = 0.01
 # The paper's text keeps beta fixed on this task and decays it (x0.8 / 100k steps) elsewhere;
-# the authors' IM-CURL script decays it there too (see _intrinsic).
+# the authors' IM-CURL script decays it there too (see SCHEDULE).
 CONSTANT_BETA_TASKS = ("cartpole_swingup_sparse",)
 
 
@@ -80,66 +81,6 @@ class Setting:
         return bool(self.note) and self.note.startswith("deviation")
 
 
-def _common(task) -> list[Setting]:
-    """Settings every algorithm shares (the SAC core, the loop, the budget)."""
-    return [
-        Setting("env.task", task.name, "user"),
-        Setting("env.action_repeat", task.action_repeat, TABLE3),
-        Setting("env.image_size", 100, TABLE3, "rendered 100x100, cropped to 84"),
-        Setting("env.frame_stack", 3, TABLE3),
-        Setting("env.mode", "training", AUTHORS, "the scene the agent trains in"),
-        Setting("env.shadow_size", 512, IMSSR, "deviation: dm_control renders 2048-px shadow maps; 512 "
-                "steps the env ~2x faster and moves pixels by 0.003-0.025 grey levels on average "
-                "(docs/performance.md); --set env.shadow_size=2048 restores it"),
-        Setting("agent.crop_size", 84, TABLE3),
-        Setting("agent.encoder_filters", 32, TABLE3),
-        Setting("agent.final_relu", False, DMCGB, "DMC-GB's encoder has no ReLU after its last "
-                "convolution (official CURL has one: --network official-curl)"),
-        Setting("agent.feature_dim", 100, AUTHORS, "projection_dim; official CURL: 50"),
-        Setting("agent.projection_tanh", True, DMCGB, "RLProjection: Linear -> LayerNorm -> Tanh"),
-        Setting("agent.hidden_dim", 1024, AUTHORS),
-        Setting("agent.discount", 0.99, TABLE3),
-        Setting("agent.batch_size", 128, TABLE3),
-        Setting("agent.critic_lr", 1e-3, TABLE3),
-        Setting("agent.critic_beta1", 0.9, TABLE3),
-        Setting("agent.actor_lr", 1e-3, TABLE3),
-        Setting("agent.actor_beta1", 0.9, TABLE3),
-        Setting("agent.alpha_lr", 1e-4, TABLE3),
-        Setting("agent.alpha_beta1", 0.5, TABLE3),
-        Setting("agent.init_temperature", 0.1, AUTHORS),
-        Setting("agent.critic_tau", 0.01, AUTHORS),
-        Setting("agent.encoder_tau", 0.05, AUTHORS),
-        Setting("agent.actor_update_every", 2, TABLE3),
-        Setting("agent.critic_update_every", 1, TABLE3),
-        Setting("agent.target_update_every", 2, AUTHORS),
-        Setting("agent.log_std_min", -10.0, AUTHORS),
-        Setting("agent.log_std_max", 2.0, AUTHORS),
-        Setting("agent.update_schedule", "sequential", AUTHORS_LOOP,
-                "critic, actor + temperature, targets, auxiliary task, in that order"),
-        Setting("agent.channels_last", True, IMSSR, "memory layout only: the same maths"),
-        Setting("agent.precision", "fp32", AUTHORS_LOOP, "every pass in float32"),
-        Setting("agent.tf32", False, AUTHORS_LOOP, "full float32 matmuls and convolutions on CUDA"),
-        Setting("agent.compile", "off", AUTHORS_LOOP, "eager PyTorch"),
-        Setting("train.steps", 500_000, TABLE3, "T = 500,000 agent steps ('Number of training "
-                "steps'; the authors' train_steps); the paper's text says 'frames'"),
-        Setting("train.seed_steps", 1000, AUTHORS, "init_steps: uniform random actions"),
-        Setting("train.burst_updates", 1000, AUTHORS_LOOP, "init_steps updates at the step the "
-                "seed phase ends"),
-        Setting("train.eval_every_steps", 10_000, AUTHORS, "eval_freq"),
-        Setting("train.eval_episodes", 30, AUTHORS, "eval_episodes"),
-        Setting("train.eval_modes", "", IMSSR, "deviation: the authors also evaluate four test scenes "
-                "at each point (color_easy, color_hard, video_easy, video_hard; DMC-GB itself one); "
-                "add them with --eval-modes training,color_easy,color_hard,video_easy,video_hard"),
-        Setting("train.checkpoint_every_steps", 50_000, IMSSR, "resumable checkpoints (the authors "
-                "save weights every 100k steps)"),
-        Setting("train.seed", 0, "user"),
-        Setting("intrinsic.enabled", False, "algo", "true for im-X, X+rnd, X+re3"),
-        # Run settings: they do not change what is learned.
-        *[Setting(f, getattr(getattr(RunConfig(), f.split(".")[0]), f.split(".")[1]), RUN)
-          for f in RUN_FIELDS],
-    ]
-
-
 RUN = "run setting"
 RUN_FIELDS = ("env.footage_dir", "aux.image_dir", "aux.image_pool_size", "train.save_buffer",
               "train.keep_checkpoints", "train.device", "train.replay_device", "train.tensorboard", "train.progress",
@@ -147,68 +88,163 @@ RUN_FIELDS = ("env.footage_dir", "aux.image_dir", "aux.image_pool_size", "train.
               "train.eval_video_every", "train.eval_video_format")
 """Fields that say where data comes from or how a run is kept and shown, not what it learns."""
 
+COMMON = (
+    Setting("env.image_size", 100, TABLE3, "rendered 100x100, cropped to 84"),
+    Setting("env.frame_stack", 3, TABLE3),
+    Setting("env.mode", "training", AUTHORS, "the scene the agent trains in"),
+    Setting("env.shadow_size", 512, IMSSR, "deviation: dm_control renders 2048-px shadow maps; 512 "
+            "steps the env ~2x faster and moves pixels by 0.003-0.025 grey levels on average "
+            "(docs/performance.md); --set env.shadow_size=2048 restores it"),
+    Setting("agent.crop_size", 84, TABLE3),
+    Setting("agent.encoder_filters", 32, TABLE3),
+    Setting("agent.final_relu", False, DMCGB, "DMC-GB's encoder has no ReLU after its last "
+            "convolution (official CURL has one: --network official-curl)"),
+    Setting("agent.feature_dim", 100, AUTHORS, "projection_dim; official CURL: 50"),
+    Setting("agent.projection_tanh", True, DMCGB, "RLProjection: Linear -> LayerNorm -> Tanh"),
+    Setting("agent.hidden_dim", 1024, AUTHORS),
+    Setting("agent.discount", 0.99, TABLE3),
+    Setting("agent.batch_size", 128, TABLE3),
+    Setting("agent.critic_lr", 1e-3, TABLE3),
+    Setting("agent.critic_beta1", 0.9, TABLE3),
+    Setting("agent.actor_lr", 1e-3, TABLE3),
+    Setting("agent.actor_beta1", 0.9, TABLE3),
+    Setting("agent.alpha_lr", 1e-4, TABLE3),
+    Setting("agent.alpha_beta1", 0.5, TABLE3),
+    Setting("agent.init_temperature", 0.1, AUTHORS),
+    Setting("agent.critic_tau", 0.01, AUTHORS),
+    Setting("agent.encoder_tau", 0.05, AUTHORS),
+    Setting("agent.actor_update_every", 2, TABLE3),
+    Setting("agent.critic_update_every", 1, TABLE3),
+    Setting("agent.target_update_every", 2, AUTHORS),
+    Setting("agent.log_std_min", -10.0, AUTHORS),
+    Setting("agent.log_std_max", 2.0, AUTHORS),
+    Setting("agent.update_schedule", "sequential", AUTHORS_LOOP,
+            "critic, actor + temperature, targets, auxiliary task, in that order"),
+    Setting("agent.channels_last", True, IMSSR, "memory layout only: the same maths"),
+    Setting("agent.precision", "fp32", AUTHORS_LOOP, "every pass in float32"),
+    Setting("agent.tf32", False, AUTHORS_LOOP, "full float32 matmuls and convolutions on CUDA"),
+    Setting("agent.compile", "off", AUTHORS_LOOP, "eager PyTorch"),
+    Setting("train.steps", 500_000, TABLE3, "T = 500,000 agent steps ('Number of training "
+            "steps'; the authors' train_steps); the paper's text says 'frames'"),
+    Setting("train.seed_steps", 1000, AUTHORS, "init_steps: uniform random actions"),
+    Setting("train.burst_updates", 1000, AUTHORS_LOOP, "init_steps updates at the step the "
+            "seed phase ends"),
+    Setting("train.eval_every_steps", 10_000, AUTHORS, "eval_freq"),
+    Setting("train.eval_episodes", 30, AUTHORS, "eval_episodes"),
+    Setting("train.eval_modes", "", IMSSR, "deviation: the authors also evaluate four test scenes "
+            "at each point (color_easy, color_hard, video_easy, video_hard; DMC-GB itself one); "
+            "add them with --eval-modes training,color_easy,color_hard,video_easy,video_hard"),
+    Setting("train.checkpoint_every_steps", 50_000, IMSSR, "resumable checkpoints (the authors "
+            "save weights every 100k steps)"),
+    Setting("train.seed", 0, "user"),
+    Setting("intrinsic.enabled", False, "algo", "true for im-X, X+rnd, X+re3"),
+    # Run settings: they do not change what is learned; their values are the schema's defaults.
+    *(Setting(f, getattr(getattr(RunConfig(), f.split(".")[0]), f.split(".")[1]), RUN) for f in RUN_FIELDS),
+)
+"""Settings every algorithm shares (the SAC core, the loop, the budget), after the algo, the task
+and its action repeat."""
 
-def _base(base: str) -> list[Setting]:
-    """Settings of one base algorithm (the auxiliary task and its networks)."""
-    if base == "curl":
-        return [
-            Setting("agent.encoder_layers", 4, TABLE3, "num_shared_layers 4 in the authors' scripts"),
-            Setting("agent.encoder_head_layers", 0, AUTHORS_CURL),
-            Setting("aux.name", "curl", "algo"),
-            Setting("aux.lr", 1e-3, AUTHORS, "aux_lr"),
-            Setting("aux.update_every", 1, TABLE3, "aux_update_freq 1 in the authors' scripts"),
-            Setting("aux.own_batch", False, AUTHORS_CURL, "CURL trains on the RL batch (Table III: SSL "
-                    "batch 128 = RL batch)"),
-            Setting("aux.batch_size", 128, TABLE3, "unused: CURL trains on the RL batch"),
-            Setting("train.replay_capacity", 100_000, TABLE3, "deviation from the authors' scripts "
-                    "(--capacity 200k): Table III wins"),
-        ]
-    if base == "soda":
-        return [
-            Setting("agent.encoder_layers", 11, TABLE3),
-            Setting("agent.encoder_head_layers", 0, DMCGB),
-            Setting("aux.name", "soda", "algo"),
-            Setting("aux.lr", 3e-4, TABLE3),
-            Setting("aux.update_every", 2, TABLE3, "also the parser default of the authors' SODA "
-                    "with the intrinsic reward (1 in some of their other commits)"),
-            Setting("aux.own_batch", True, DMCGB, "sampled apart from the RL batch"),
-            Setting("aux.batch_size", 256, TABLE3),
-            Setting("aux.tau", 0.005, TABLE3),
-            Setting("aux.overlay_alpha", 0.5, DMCGB),
-            Setting("train.replay_capacity", 500_000, TABLE3),
-        ]
-    if base == "pad":
-        return [
-            Setting("agent.encoder_layers", 11, TABLE3),
-            Setting("agent.encoder_head_layers", 3, DMCGB, "8 shared + 3 head layers"),
-            Setting("aux.name", "pad", "algo"),
-            Setting("aux.lr", 1e-3, DMCGB, "aux_lr"),
-            Setting("aux.update_every", 1, TABLE3, "deviation from DMC-GB and the authors' code (every "
-                    "2nd agent step, their parser default; their pad.sh sets nothing): Table III wins"),
-            Setting("aux.own_batch", True, TABLE3, "deviation from DMC-GB (PAD on the RL batch of "
-                    "128): Table III gives PAD an SSL batch of 256"),
-            Setting("aux.batch_size", 256, TABLE3),
-            Setting("train.replay_capacity", 500_000, TABLE3),
-        ]
-    if base == "svea":
-        return [
-            Setting("agent.encoder_layers", 11, TABLE3),
-            Setting("agent.encoder_head_layers", 0, DMCGB),
-            Setting("aux.name", "svea", "algo"),
-            Setting("aux.svea_alpha", 0.5, DMCGB),
-            Setting("aux.svea_beta", 0.5, DMCGB),
-            Setting("train.replay_capacity", 500_000, TABLE3),
-        ]
-    raise ImssrError(f"no preset for auxiliary task {base!r}")  # pragma: no cover
+BASE_SETTINGS = {
+    "curl": (
+        Setting("agent.encoder_layers", 4, TABLE3, "num_shared_layers 4 in the authors' scripts"),
+        Setting("agent.encoder_head_layers", 0, AUTHORS_CURL),
+        Setting("aux.name", "curl", "algo"),
+        Setting("aux.lr", 1e-3, AUTHORS, "aux_lr"),
+        Setting("aux.update_every", 1, TABLE3, "aux_update_freq 1 in the authors' scripts"),
+        Setting("aux.own_batch", False, AUTHORS_CURL, "CURL trains on the RL batch (Table III: SSL "
+                "batch 128 = RL batch)"),
+        Setting("aux.batch_size", 128, TABLE3, "unused: CURL trains on the RL batch"),
+        Setting("train.replay_capacity", 100_000, TABLE3, "deviation from the authors' scripts "
+                "(--capacity 200k): Table III wins"),
+    ),
+    "soda": (
+        Setting("agent.encoder_layers", 11, TABLE3),
+        Setting("agent.encoder_head_layers", 0, DMCGB),
+        Setting("aux.name", "soda", "algo"),
+        Setting("aux.lr", 3e-4, TABLE3),
+        Setting("aux.update_every", 2, TABLE3, "also the parser default of the authors' SODA "
+                "with the intrinsic reward (1 in some of their other commits)"),
+        Setting("aux.own_batch", True, DMCGB, "sampled apart from the RL batch"),
+        Setting("aux.batch_size", 256, TABLE3),
+        Setting("aux.tau", 0.005, TABLE3),
+        Setting("aux.overlay_alpha", 0.5, DMCGB),
+        Setting("train.replay_capacity", 500_000, TABLE3),
+    ),
+    "pad": (
+        Setting("agent.encoder_layers", 11, TABLE3),
+        Setting("agent.encoder_head_layers", 3, DMCGB, "8 shared + 3 head layers"),
+        Setting("aux.name", "pad", "algo"),
+        Setting("aux.lr", 1e-3, DMCGB, "aux_lr"),
+        Setting("aux.update_every", 1, TABLE3, "deviation from DMC-GB and the authors' code (every "
+                "2nd agent step, their parser default; their pad.sh sets nothing): Table III wins"),
+        Setting("aux.own_batch", True, TABLE3, "deviation from DMC-GB (PAD on the RL batch of "
+                "128): Table III gives PAD an SSL batch of 256"),
+        Setting("aux.batch_size", 256, TABLE3),
+        Setting("train.replay_capacity", 500_000, TABLE3),
+    ),
+    "svea": (
+        Setting("agent.encoder_layers", 11, TABLE3),
+        Setting("agent.encoder_head_layers", 0, DMCGB),
+        Setting("aux.name", "svea", "algo"),
+        Setting("aux.svea_alpha", 0.5, DMCGB),
+        Setting("aux.svea_beta", 0.5, DMCGB),
+        Setting("train.replay_capacity", 500_000, TABLE3),
+    ),
+}
+"""Settings of each base algorithm (its auxiliary task and networks)."""
 
+# The authors' CURL scripts pass --in_decay 0.8 on every task, cartpole included; where text and
+# code differ and no table speaks, their code wins.  No script of the authors' reproduces an
+# IM-SODA (or IM-PAD, IM-SVEA) run of the paper's tables, so the paper's text gives theirs.
+DECAY = "x0.8 every 100k agent steps"
+SCHEDULE = {
+    "curl": Setting("intrinsic.schedule", "step", AUTHORS_CURL, DECAY),
+    **{base: Setting("intrinsic.schedule", "step", PAPER, DECAY) for base in ("soda", "pad", "svea")},
+}
+"""The beta schedule of each base's intrinsic reward, on a task outside :data:`CONSTANT_BETA_TASKS`."""
+CONSTANT_BETA_SCHEDULE = {
+    "curl": Setting("intrinsic.schedule", "step", AUTHORS_CURL, "deviation from the paper's text (beta "
+                    "fixed on cartpole_swingup_sparse): the authors' script decays it; --set "
+                    "intrinsic.schedule=constant gives the text's"),
+    **{base: Setting("intrinsic.schedule", "constant", PAPER, "beta fixed on cartpole_swingup_sparse")
+       for base in ("soda", "pad", "svea")},
+}
+"""The beta schedule of each base's intrinsic reward on the tasks of :data:`CONSTANT_BETA_TASKS`."""
+
+INTRINSIC = (
+    Setting("intrinsic.decay", 0.8, PAPER, "the authors' in_decay"),
+    Setting("intrinsic.decay_every_steps", 100_000, PAPER, "agent steps (the authors' update step)"),
+    Setting("intrinsic.normalization", "zscore", AUTHORS_SIGNAL),
+    Setting("intrinsic.unbiased_std", True, AUTHORS_SIGNAL, "torch's default std"),
+)
+"""Settings every intrinsic reward shares, after its signal, beta_0 and schedule (then its
+base's :data:`NORM_EPS`, then :data:`INTRINSIC_LAST`)."""
 
 # Normalisation of the signal per base, as the authors' code computes it (IM-CURL, IM-SODA);
 # IM-PAD and IM-SVEA have no code of the authors and follow IM-CURL's.
-NORM_EPS = {"curl": (0.0, AUTHORS_SIGNAL, "z-score with the unbiased std, nothing added"),
-            "soda": (1e-5, AUTHORS_SIGNAL, "z-score with std + 1e-5"),
-            "pad": (0.0, IMSSR, "no code of the authors: as IM-CURL"),
-            "svea": (0.0, IMSSR, "no code of the authors: as IM-CURL")}
+NORM_EPS = {
+    "curl": Setting("intrinsic.norm_eps", 0.0, AUTHORS_SIGNAL, "z-score with the unbiased std, nothing added"),
+    "soda": Setting("intrinsic.norm_eps", 1e-5, AUTHORS_SIGNAL, "z-score with std + 1e-5"),
+    "pad": Setting("intrinsic.norm_eps", 0.0, IMSSR, "no code of the authors: as IM-CURL"),
+    "svea": Setting("intrinsic.norm_eps", 0.0, IMSSR, "no code of the authors: as IM-CURL"),
+}
 
+INTRINSIC_LAST = (
+    Setting("intrinsic.norm_rtol", 1e-5, IMSSR, "a batch of equal losses gets a zero bonus, not "
+            "its rounding error divided by a tiny std"),
+    Setting("intrinsic.form", "authors", AUTHORS_SIGNAL, "IM-CURL, IM-SODA: as the authors "
+            "computed the signal (docs/algorithms.md); 'training' keeps the training loss's form"),
+)
+"""Settings every intrinsic reward shares, after its base's :data:`NORM_EPS`."""
+
+SIGNAL_SETTINGS = {
+    "ssl": (),
+    "rnd": (Setting("intrinsic.rnd_lr", 1e-4, "RND (Burda et al. 2018)"),
+            Setting("intrinsic.rnd_dim", 128, IMSSR, "RND's output size")),
+    "re3": (Setting("intrinsic.re3_k", 3, "RE3 (Seo et al. 2021)"),
+            Setting("intrinsic.re3_dim", 50, "RE3 (Seo et al. 2021)")),
+}
+"""Settings of each intrinsic signal's own networks."""
 
 # Where the authors' scripts pass another in_gamma than Table V (Table V wins).
 SCRIPT_BETA0 = {("curl", "pendulum_swingup"): "deviation from the authors' script (--in_gamma 0.01): "
@@ -222,55 +258,27 @@ SCRIPT_BETA0 = {("curl", "pendulum_swingup"): "deviation from the authors' scrip
                 "Table V wins"}
 
 
-def _intrinsic(spec: AlgoSpec, task: str) -> list[Setting]:
-    base = spec.base
-    beta_source = TABLE5 if base in PAPER_BETA0 and task in PAPER_BETA0[base] else \
-        ("paper (beta_0 = 0.05 for IM-PAD / IM-SVEA)" if base in BASE_BETA0 else IMSSR)
-    beta_note = "" if beta_source != IMSSR else f"no value in the paper for {task}: {DEFAULT_BETA0}"
-    eps, eps_source, eps_note = NORM_EPS[base]
-    if base == "curl":
-        # The authors' CURL scripts pass --in_decay 0.8 on every task, cartpole included; where
-        # text and code differ and no table speaks, their code wins.
-        schedule = Setting("intrinsic.schedule", "step", AUTHORS_CURL,
-                           "deviation from the paper's text (beta fixed on cartpole_swingup_sparse): "
-                           "the authors' script decays it; --set intrinsic.schedule=constant gives the "
-                           "text's" if task in CONSTANT_BETA_TASKS else "x0.8 every 100k agent steps")
+def _beta0(spec: AlgoSpec, task: str) -> Setting:
+    """beta_0 of ``spec`` on ``task`` (:func:`paper_beta0`) with its source."""
+    base, value = spec.base, paper_beta0(spec.name, task)
+    if base in PAPER_BETA0 and task in PAPER_BETA0[base]:
+        source = TABLE5
+    elif base in BASE_BETA0:
+        source = "paper (beta_0 = 0.05 for IM-PAD / IM-SVEA)"
     else:
-        # No script of the authors' reproduces an IM-SODA (or IM-PAD, IM-SVEA) run of the paper's
-        # tables, so the paper's text gives the schedule.
-        constant = task in CONSTANT_BETA_TASKS
-        schedule = Setting("intrinsic.schedule", "constant" if constant else "step", PAPER,
-                           "beta fixed on cartpole_swingup_sparse" if constant else "x0.8 every 100k agent steps")
-    return [
-        Setting("intrinsic.enabled", True, "algo"),
-        Setting("intrinsic.source", spec.intrinsic, "algo"),
-        Setting("intrinsic.beta0", paper_beta0(spec.name, task), beta_source,
-                beta_note or ("the IM- variant's value, so that only the signal changes"
-                              if spec.intrinsic != "ssl" else SCRIPT_BETA0.get((base, task), ""))),
-        schedule,
-        Setting("intrinsic.decay", 0.8, PAPER, "the authors' in_decay"),
-        Setting("intrinsic.decay_every_steps", 100_000, PAPER, "agent steps (the authors' update step)"),
-        Setting("intrinsic.normalization", "zscore", AUTHORS_SIGNAL),
-        Setting("intrinsic.unbiased_std", True, AUTHORS_SIGNAL, "torch's default std"),
-        Setting("intrinsic.norm_eps", eps, eps_source, eps_note),
-        Setting("intrinsic.norm_rtol", 1e-5, IMSSR, "a batch of equal losses gets a zero bonus, not "
-                "its rounding error divided by a tiny std"),
-        Setting("intrinsic.form", "authors", AUTHORS_SIGNAL, "IM-CURL, IM-SODA: as the authors "
-                "computed the signal (docs/algorithms.md); 'training' keeps the training loss's form"),
-        *([Setting("intrinsic.rnd_lr", 1e-4, "RND (Burda et al. 2018)"),
-           Setting("intrinsic.rnd_dim", 128, IMSSR, "RND's output size")] if spec.intrinsic == "rnd" else []),
-        *([Setting("intrinsic.re3_k", 3, "RE3 (Seo et al. 2021)"),
-           Setting("intrinsic.re3_dim", 50, "RE3 (Seo et al. 2021)")] if spec.intrinsic == "re3" else []),
-    ]
+        return Setting("intrinsic.beta0", value, IMSSR, f"no value in the paper for {task}: {DEFAULT_BETA0}")
+    note = "the IM- variant's value, so that only the signal changes" if spec.intrinsic != "ssl" else \
+        SCRIPT_BETA0.get((base, task), "")
+    return Setting("intrinsic.beta0", value, source, note)
 
 
 NETWORKS = {
-    "dmcgb": [],
-    "official-curl": [
+    "dmcgb": (),
+    "official-curl": (
         Setting("agent.feature_dim", 50, OFFICIAL_CURL, "encoder_feature_dim"),
         Setting("agent.projection_tanh", False, OFFICIAL_CURL, "LayerNorm output, no tanh"),
         Setting("agent.final_relu", True, OFFICIAL_CURL, "ReLU after every convolution"),
-    ],
+    ),
 }
 """Encoder layouts: ``dmcgb`` (what the authors ran, every preset's default) and
 ``official-curl`` (the CURL paper's code), for people comparing with the CURL paper."""
@@ -279,15 +287,20 @@ NETWORKS = {
 def preset_settings(algo: str, task: str, network: str = "dmcgb") -> list[Setting]:
     """Every value the preset of ``algo`` on ``task`` sets, with its source, in order.
 
-    A later setting of the same field wins (the base's over the common ones).
+    A later setting of the same field wins (the intrinsic reward's and the network's over the
+    common ones).
     """
     spec = get_algo(algo)
     tspec = get_task(task)
     if network not in NETWORKS:
         raise ImssrError(f"unknown network {network!r}; valid: {', '.join(NETWORKS)}")
-    rows = [Setting("algo", spec.name, "user"), *_common(tspec), *_base(spec.base)]
+    rows = [Setting("algo", spec.name, "user"), Setting("env.task", tspec.name, "user"),
+            Setting("env.action_repeat", tspec.action_repeat, TABLE3), *COMMON, *BASE_SETTINGS[spec.base]]
     if spec.intrinsic_enabled:
-        rows += _intrinsic(spec, tspec.name)
+        schedule = (CONSTANT_BETA_SCHEDULE if tspec.name in CONSTANT_BETA_TASKS else SCHEDULE)[spec.base]
+        rows += [Setting("intrinsic.enabled", True, "algo"), Setting("intrinsic.source", spec.intrinsic, "algo"),
+                 _beta0(spec, tspec.name), schedule, *INTRINSIC, NORM_EPS[spec.base], *INTRINSIC_LAST,
+                 *SIGNAL_SETTINGS[spec.intrinsic]]
     rows += NETWORKS[network]
     merged: dict[str, Setting] = {}
     for row in rows:
@@ -328,7 +341,7 @@ def load_partial_config(path: str, algo: str | None = None, task: str | None = N
     data = read_config_file(path)
     if not isinstance(data, dict):
         raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
-    data = migrate(data)
+    check_version(data, f"config {path}")
     file_algo = data.get("algo")
     file_task = data["env"].get("task") if isinstance(data.get("env"), dict) else None
     # A value of the wrong type is left for the type checks to name.
@@ -348,46 +361,21 @@ def load_partial_config(path: str, algo: str | None = None, task: str | None = N
     return RunConfig.from_dict(merged)
 
 
-def build_run_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
-                     config_file: str | None = None, resume_dir: str | None = None, demo: bool = False,
-                     values: Mapping[str, Any] | None = None, frames: int | None = None,
-                     batch_size: int | None = None, beta0: float | None = None,
-                     overrides: Sequence[str] = ()) -> RunConfig:
+def run_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
+               config_file: str | None = None, resume_dir: str | None = None, demo: bool = False,
+               values: Mapping[str, Any] | None = None, frames: int | None = None,
+               batch_size: int | None = None, beta0: float | None = None,
+               overrides: Sequence[str] = ()) -> RunConfig:
     """The validated config of one run, as ``imssr train`` and every sweep run build it.
 
-    Its base is, in this order: the file ``config_file`` (a partial one merged onto the preset
-    of its algo and task, :func:`load_partial_config`), the saved ``config.json`` of
-    ``resume_dir``, or the preset of ``algo`` on ``task`` (the demo's with ``demo``).  Then, in
-    order: ``values`` (``section.field`` -> value, the CLI's flags that set one field each),
-    ``frames`` (the budget in frames: ``train.steps`` rounded up), ``batch_size`` (the RL batch,
-    and the auxiliary batch of a task that trains on it), ``beta0`` (algos with an intrinsic
-    reward only) and the ``section.field=value`` ``overrides`` (``--set``).
+    Its base is :func:`base_config`'s.  Then, in order: ``values`` (``section.field`` -> value,
+    the CLI's flags that set one field each), ``frames`` (the budget in frames: ``train.steps``
+    rounded up), ``batch_size`` (the RL batch, and the auxiliary batch of a task that trains on
+    it), ``beta0`` (algos with an intrinsic reward only) and the ``section.field=value``
+    ``overrides`` (``--set``).
     """
+    cfg = base_config(algo, task, network=network, config_file=config_file, resume_dir=resume_dir, demo=demo)
     values = dict(values or {})
-    if config_file:
-        cfg = load_partial_config(config_file, algo, task)
-    elif resume_dir:
-        saved = os.path.join(resume_dir, "config.json")
-        if not os.path.exists(saved):
-            raise ImssrError(f"nothing to resume: {saved} does not exist")
-        cfg = load_config(saved)
-    else:
-        algo = algo or ("im-curl" if demo else None)
-        task = task or ("cartpole_swingup" if demo else None)
-        if algo is None or task is None:
-            raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
-        get_algo(algo)
-        get_task(task)
-        cfg = (demo_config if demo else make_config)(algo, task, network or "dmcgb")
-    if config_file or resume_dir:
-        # An explicit algo / task must agree with the loaded config.
-        if algo and algo != cfg.algo:
-            raise ImssrError(f"--algo {algo} differs from the run's algo {cfg.algo}")
-        if task and task != cfg.env.task:
-            raise ImssrError(f"--task {task} differs from the run's task {cfg.env.task}")
-        if network:
-            raise ImssrError("--network chooses the preset of a new run; with --resume or --config "
-                             "set agent.final_relu / feature_dim / projection_tanh instead")
     if frames is not None:
         if values.get("train.steps") is not None:
             raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
@@ -405,100 +393,70 @@ def build_run_config(algo: str | None = None, task: str | None = None, *, networ
     return apply_overrides(cfg, list(overrides)).validate()
 
 
+def base_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
+                config_file: str | None = None, resume_dir: str | None = None, demo: bool = False) -> RunConfig:
+    """What a run's settings start from, in this order: the file ``config_file`` (a partial one
+    merged onto the preset of its algo and task, :func:`load_partial_config`), the saved
+    ``config.json`` of ``resume_dir``, or the preset of ``algo`` on ``task`` (the demo's with
+    ``demo``).  A given ``algo`` or ``task`` must agree with a loaded file."""
+    if config_file:
+        cfg = load_partial_config(config_file, algo, task)
+    elif resume_dir:
+        saved = RunDir(resume_dir).config_path
+        if not os.path.exists(saved):
+            raise ImssrError(f"nothing to resume: {saved} does not exist")
+        cfg = load_config(saved)
+    else:
+        algo = algo or ("im-curl" if demo else None)
+        task = task or ("cartpole_swingup" if demo else None)
+        if algo is None or task is None:
+            raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
+        get_algo(algo)
+        get_task(task)
+        return (demo_config if demo else make_config)(algo, task, network or "dmcgb")
+    if algo and algo != cfg.algo:
+        raise ImssrError(f"--algo {algo} differs from the run's algo {cfg.algo}")
+    if task and task != cfg.env.task:
+        raise ImssrError(f"--task {task} differs from the run's task {cfg.env.task}")
+    if network:
+        raise ImssrError("--network chooses the preset of a new run; with --resume or --config "
+                         "set agent.final_relu / feature_dim / projection_tanh instead")
+    return cfg
+
+
 def explain(algo: str, task: str, network: str = "dmcgb") -> str:
     """The preset as a Markdown table: field, value, source, note."""
-    lines = [f"# {algo} on {task}: {make_config(algo, task, network).budget_text()}", "",
-             "| field | value | source | note |", "| --- | --- | --- | --- |"]
-    for row in preset_settings(algo, task, network):
-        lines.append(f"| `{row.field}` | `{_show(row.value)}` | {row.source} | {row.note} |")
-    return "\n".join(lines)
+    return "\n".join([f"# {algo} on {task}: {make_config(algo, task, network).budget_text()}", "",
+                      *markdown_table(preset_settings(algo, task, network))])
 
 
-# Deviations from the authors' code that are not a preset value (docs/provenance.md).
-OTHER_DEVIATIONS = [
-    ("evaluation env seed", "training seed + 10,000 (a seed no training env uses), every scene",
-     "the training scene on the training env itself (its seed, its episode stream); the four test "
-     "scenes on envs built with seed + 42"),
-    ("evaluation at step 0", "none: the first evaluation is after `eval_every_steps`", "one at step 0"),
-    ("when an evaluation runs", "at the first agent step at or past each multiple of `eval_every_steps`, "
-     "mid-episode if need be", "at the episode end where `step % eval_freq == 0` (the same steps for the "
-     "paper's action repeats, whose episodes divide 10,000)"),
-    ("SODA's overlay images", "Places365 or any folder given by `--image-dir`; offline, a pool cut from "
-     "photographs that installed packages ship", "Places365 with random resized crops and flips"),
-    ("SVEA's crop", "random crop 100 -> 84 px of o and o' (Table III's image sizes, as every base)",
-     "no SVEA in the authors' code; DMC-GB renders 84 px and shifts (replicate-pad 4, random crop "
-     "back to 84)"),
-    ("SODA / IM-SODA action repeat on cartpole_swingup_sparse", "8 (Table III)",
-     "`scripts/soda_sparse.sh` passes no `--action_repeat`, so the parser default 4 applies (their "
-     "CURL script for the task passes 8)"),
-    ("replay storage", "each frame stored once, stacks gathered at sampling (same transitions)",
-     "obs and next_obs stored as separate stacked arrays"),
-    ("IM-SODA / IM-PAD / IM-SVEA schedule", "the paper's text: x0.8 every 100k agent steps, fixed on "
-     "cartpole_swingup_sparse", "no script of the authors reproduces these runs (their SODA parser "
-     "default in_decay is 1.0, no decay)"),
-    ("non-finite intrinsic loss", "the run stops with one line naming the agent step and the signal",
-     "NaN rewards for the whole batch"),
-    ("a batch of equal losses", "zero bonus (`intrinsic.norm_rtol`)", "IM-CURL: division by zero; "
-     "IM-SODA: rounding error / 1e-5"),
-]
+def markdown_table(rows: Sequence[Setting]) -> list[str]:
+    """``rows`` as the lines of a Markdown table: field, value, source, note."""
+    return ["| field | value | source | note |", "| --- | --- | --- | --- |",
+            *(f"| `{r.field}` | `{show_value(r.value)}` | {r.source} | {r.note} |" for r in rows)]
 
 
-def provenance_markdown() -> str:
-    """docs/provenance.md: every preset value of every base and IM- variant, with its source."""
-    task = "walker_walk"
-    out = ["# Provenance of the presets", "",
-           "Generated by `imssr.presets.provenance_markdown()` (a test keeps this file in sync); "
-           "`imssr config --algo A --task T --explain` prints one preset's table.", "",
-           "Rule: where the paper's text and the authors' code (`duchenzhuang/dmc-disentangle`, a fork "
-           "of DMC-GB) differ, the paper's tables (III, V) win where they speak, otherwise the "
-           "authors' code. T = 500,000 **agent steps** (Table III's \"Number of training steps\", "
-           "the authors' `train_steps`), so 0.2T / 0.5T / 1.0T are 100k / 250k / 500k agent steps "
-           "(x action repeat in frames).", "",
-           "## Per task", "",
-           "| task | action repeat (Table III) | T in frames | IM-CURL beta_0 | IM-CURL schedule | "
-           "IM-SODA beta_0 | IM-SODA schedule | IM-PAD / IM-SVEA beta_0 |",
-           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for t in PAPER_TASKS:
-        c, so, p = make_config("im-curl", t), make_config("im-soda", t), make_config("im-pad", t)
-        out.append(f"| {t} | {c.env.action_repeat} | {c.total_frames:,} | {c.intrinsic.beta0} | "
-                   f"{c.intrinsic.schedule} | {so.intrinsic.beta0} | {so.intrinsic.schedule} | "
-                   f"{p.intrinsic.beta0} |")
-    out += ["", "beta_0 comes from Table V (IM-CURL, IM-SODA) and the paper's 0.05 (IM-PAD, IM-SVEA); "
-            "`X+rnd` and `X+re3` use the IM- variant's value of the same base. Tasks outside the "
-            f"paper get beta_0 = {DEFAULT_BETA0}.", ""]
-    for base in BASES:
-        rows = preset_settings(f"im-{base}", task)
-        out += [f"## {BASES[base][0]} and IM-{BASES[base][0]} (shown on {task})", "",
-                "| field | value | source | note |", "| --- | --- | --- | --- |"]
-        out += [f"| `{r.field}` | `{_show(r.value)}` | {r.source} | {r.note} |" for r in rows
-                if r.field not in ("algo", "env.task")]
-        out.append("")
-    out += ["## The official CURL network (`--network official-curl`)", "",
-            "| field | value | source | note |", "| --- | --- | --- | --- |"]
-    out += [f"| `{r.field}` | `{_show(r.value)}` | {r.source} | {r.note} |" for r in NETWORKS["official-curl"]]
-    out += ["", "## Deviations", "", "Preset values that differ from the authors' code:", ""]
-    seen = set()
-    for algo in ("im-curl", "im-soda", "im-pad", "im-svea"):
-        for t in PAPER_TASKS:
-            for r in preset_settings(algo, t):
-                if r.deviation and (r.field, r.note) not in seen:
-                    seen.add((r.field, r.note))
-                    where = "" if r.field.startswith(("env.", "train.eval")) else f" ({algo}" + \
-                        (f", {t})" if r.field in ("intrinsic.beta0", "intrinsic.schedule") else ")")
-                    note = r.note.removeprefix("deviation").lstrip(": ")
-                    out.append(f"- `{r.field}` = `{_show(r.value)}`{where}: {note}")
-    out += ["", "Behaviour that differs without being a preset value:", "",
-            "| what | imssr | the authors' code |", "| --- | --- | --- |"]
-    out += [f"| {what} | {ours} | {theirs} |" for what, ours, theirs in OTHER_DEVIATIONS]
-    return "\n".join(out) + "\n"
-
-
-def _show(value) -> str:
+def show_value(value) -> str:
+    """A setting's value as the tables show it: JSON's words, thousands separated, ``""``."""
     if isinstance(value, bool):
         return str(value).lower()
     if isinstance(value, str):
         return value or '""'
     return f"{value:,}" if isinstance(value, int) else repr(value)
+
+
+DEMO = (
+    Setting("agent.batch_size", 64, "demo", "also the auxiliary batch of a task that trains on the RL batch"),
+    Setting("agent.update_schedule", "fused", "demo", "one encoder pass and one backward for critic + "
+            "CURL: 0.8x the sequential step"),
+    Setting("train.steps", 1750, "demo", "14 episodes, 1,750 updates"),
+    Setting("train.seed_steps", 250, "demo"),
+    Setting("train.burst_updates", 250, "demo", "as many as seed steps, as in the authors' loop"),
+    Setting("train.eval_every_steps", 250, "demo"),
+    Setting("train.eval_episodes", 5, "demo"),
+    Setting("train.checkpoint_every_steps", 500, "demo"),
+)
+"""The demo's settings over its algorithm's preset (:func:`demo_config`)."""
 
 
 def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup", network: str = "dmcgb") -> RunConfig:
@@ -514,14 +472,8 @@ def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup", network: 
     task needs far more.  A demonstration, not a result.
     """
     cfg = make_config(algo, task, network)
-    cfg.agent.batch_size = 64
+    for row in DEMO:
+        set_field(cfg, row.field, row.value)
     if not cfg.aux.own_batch:
-        cfg.aux.batch_size = 64
-    cfg.agent.update_schedule = "fused"
-    cfg.train.steps = 1750
-    cfg.train.seed_steps = 250
-    cfg.train.burst_updates = 250
-    cfg.train.eval_every_steps = 250
-    cfg.train.eval_episodes = 5
-    cfg.train.checkpoint_every_steps = 500
+        cfg.aux.batch_size = cfg.agent.batch_size  # the task trains on the RL batch
     return cfg

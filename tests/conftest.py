@@ -36,14 +36,41 @@ def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **
     return cfg
 
 
-def train_run(cfg, out, stop_at_step=None, resume=False, **trainer_kw):
-    """Train ``cfg`` into ``out`` (stopping after the first checkpoint at or past ``stop_at_step``,
-    as a killed process would) and release the run directory; returns the closed Trainer."""
+class StopAtStep:
+    """A stop request as the training loop reads it (``signal_name``, what a
+    :class:`~imssr.training.loop.StopRequest` sets on SIGTERM) that arrives at agent step ``step``
+    of ``trainer``: as if SIGTERM came during that step."""
+
+    def __init__(self, trainer, step: int):
+        self.trainer, self.step = trainer, step
+
+    @property
+    def signal_name(self):
+        return "SIGTERM" if self.trainer.step >= self.step else None
+
+
+def train_stopped_at(trainer, step: int) -> None:
+    """Train ``trainer`` until a stop requested at agent step ``step``: it checkpoints that step
+    (the open episode with it, unless an episode ends there with a checkpoint) and stops, as a
+    SIGTERM'd process does."""
+    from imssr.training.loop import TrainingInterrupted
+
+    trainer.stop = StopAtStep(trainer, step)
+    with pytest.raises(TrainingInterrupted, match=f"^stopped at agent step {step} by SIGTERM;"):
+        trainer.train()
+
+
+def train_run(cfg, out, stop_at=None, resume=False, **trainer_kw):
+    """Train ``cfg`` into ``out`` (stopped at agent step ``stop_at`` when given, see
+    :func:`train_stopped_at`) and release the run directory; returns the closed Trainer."""
     from imssr.training import Trainer
 
     t = Trainer(cfg, str(out), resume=resume, **trainer_kw)
     try:
-        t.train(stop_at_step=stop_at_step)
+        if stop_at is None:
+            t.train()
+        else:
+            train_stopped_at(t, stop_at)
         return t
     finally:
         t.close()

@@ -215,11 +215,12 @@ def test_analyze_rolls_out_the_policy_when_the_replay_has_no_physics(tiny_run, t
     assert len(rows) == 8 and all(r["first_visit_step"] == "-1" for r in rows)
 
     # A replay written before physics were recorded: auto falls back to rollouts and says why.
-    from imssr.training.checkpoint import latest_path, load_checkpoint
+    from imssr.rundir import RunDir
+    from imssr.training.checkpoint import load_checkpoint
 
     copy = tmp_path / "old-run"
     shutil.copytree(run, copy)
-    path = os.path.join(copy, "checkpoints", load_checkpoint(latest_path(str(copy)))["replay_file"])
+    path = os.path.join(copy, "checkpoints", load_checkpoint(RunDir(str(copy)).latest)["replay_file"])
     full = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, physics_dim=4, warn_memory=False)
     full.load(path)
     old = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, warn_memory=False)

@@ -5,12 +5,13 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config, train_run, without_timing
+from conftest import tiny_config, train_run, train_stopped_at, without_timing
 from imssr.errors import ImssrError
 from imssr.training import Trainer
-from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
-from imssr.training.loop import StepSchedule
+from imssr.training.state import StepSchedule
 
 
 def _cfg():
@@ -19,8 +20,8 @@ def _cfg():
                        checkpoint_every_steps=125)
 
 
-def _train(out, stop_at_step=None, resume=False, **kw):
-    return train_run(_cfg(), out, stop_at_step, resume, **kw)
+def _train(out, stop_at=None, resume=False, **kw):
+    return train_run(_cfg(), out, stop_at, resume, **kw)
 
 
 _strip = without_timing
@@ -34,8 +35,8 @@ def full_run(tmp_path_factory):
 
 def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
     full_dir, full = full_run
-    # "Kill" after the checkpoint at frame 1000, then resume in a new Trainer.
-    part = _train(tmp_path, stop_at_step=125)
+    # Stop at the episode end with the checkpoint at frame 1000, then resume in a new Trainer.
+    part = _train(tmp_path, stop_at=125)
     assert part.frame == 1000
     resumed = _train(tmp_path, resume=True)
     assert resumed.frame == full.frame == 3000 and resumed.step == full.step
@@ -49,7 +50,7 @@ def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
 
 def test_checkpoint_contents_and_round_trip(full_run):
     full_dir, full = full_run
-    state = load_checkpoint(latest_path(str(full_dir)))
+    state = load_checkpoint(RunDir(str(full_dir)).latest)
     assert state["frame"] == 3000 and state["step"] == 375 and state["episode"] == 3
     assert os.path.exists(full_dir / "checkpoints" / state["replay_file"])
     cfg = _cfg()
@@ -113,7 +114,7 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
     cfg.train.save_buffer = False
     t = Trainer(cfg, str(tmp_path))
     try:
-        t.train(stop_at_step=125)
+        train_stopped_at(t, 125)
     finally:
         t.close()
     cfg = _cfg()
@@ -122,8 +123,8 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
     cfg.train.checkpoint_every_steps = 0
     t = Trainer(cfg, str(tmp_path), resume=True)
     try:
-        assert t.eval_schedule.next_step is None and t.ckpt_schedule.next_step is None
-        assert t.learning_starts == 125 + 60  # refill the empty buffer with random actions first
+        assert t.state.eval_schedule.next_step is None and t.state.ckpt_schedule.next_step is None
+        assert t.state.learning_starts == 125 + 60  # refill the empty buffer with random actions first
         t.train()
     finally:
         t.close()
@@ -162,7 +163,7 @@ def test_checkpoint_from_before_new_settings_still_resumes(full_run, tmp_path):
 
     full_dir, _ = full_run
     shutil.copytree(full_dir, tmp_path / "old")
-    path = latest_path(str(tmp_path / "old"))
+    path = RunDir(str(tmp_path / "old")).latest
     state = load_checkpoint(path)
     del state["config"]["env"]["footage_dir"], state["config"]["intrinsic"]["source"]
     torch.save(state, path)

@@ -233,3 +233,106 @@ def test_a_huge_replay_capacity_on_the_command_line_is_one_line(capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("imssr: error: train.replay_capacity=1000000000000000 needs")
 
+
+
+# config.json as imssr 0.1 wrote it: no version, budgets and intervals in frames.
+OLD_CONFIG = {
+    "algo": "im-curl",
+    "env": {"task": "pendulum_swingup", "action_repeat": 8, "image_size": 100, "frame_stack": 3,
+            "mode": "training", "footage_dir": "", "shadow_size": 512},
+    "agent": {"encoder_layers": 4, "feature_dim": 50, "projection_tanh": False},
+    "aux": {"name": "curl", "batch_size": 128},
+    "intrinsic": {"enabled": True, "source": "ssl", "beta0": 0.05, "view": "independent",
+                  "normalization": "zscore"},
+    "train": {"frames": 500_000, "eval_every_frames": 10_000, "checkpoint_every_frames": 50_000,
+              "burst_updates": 0, "replay_capacity": 100_000},
+}
+OLD_LINE = ("is an imssr 0.1 config (budgets in frames), which this imssr does not read: re-run the run, "
+            "or evaluate it with imssr 0.1 (CHANGELOG.md, 0.2.0)")
+
+
+def test_an_imssr_0_1_config_is_refused_in_one_line(tmp_path):
+    import json
+
+    from imssr.config import CONFIG_VERSION, V1_KEYS, load_config
+    from imssr.presets import load_partial_config
+
+    with pytest.raises(ImssrError) as err:
+        RunConfig.from_dict(OLD_CONFIG)
+    assert str(err.value) == f"this config {OLD_LINE}"
+    # Any one key only imssr 0.1 wrote marks a file without a version, and so does version 1.
+    for section, key in V1_KEYS:
+        with pytest.raises(ImssrError, match=r"is an imssr 0\.1 config"):
+            RunConfig.from_dict({"algo": "curl", section: {key: 1}})
+    with pytest.raises(ImssrError, match=r"is an imssr 0\.1 config"):
+        RunConfig.from_dict({**make_config("curl", "walker_walk").to_dict(), "version": 1})
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(OLD_CONFIG))
+    for load in (load_config, load_partial_config):
+        with pytest.raises(ImssrError) as err:
+            load(str(path))
+        assert str(err.value) == f"config {path} {OLD_LINE}"
+    # Another version, or a version of the wrong type, is refused too.
+    for version in (3, "2", True):
+        with pytest.raises(ImssrError, match=f"has config version {version!r}; this imssr reads version 2"):
+            RunConfig.from_dict({"version": version})
+    # A partial config written by hand for this version (no version key) is not mistaken for an old one.
+    partial = RunConfig.from_dict({"algo": "curl", "train": {"steps": 100}})
+    assert partial.version == CONFIG_VERSION and partial.train.steps == 100 and partial.agent.final_relu is False
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_an_imssr_0_1_run_directory_is_one_line(command, tmp_path, capsys):
+    """Resuming or evaluating a run imssr 0.1 made stops before anything runs, saying what to do."""
+    import json
+
+    from imssr.cli import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(OLD_CONFIG))
+    argv = ["train", "--resume", "--out", str(run)] if command == "train" else ["evaluate", "--run", str(run)]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip().splitlines() == \
+        [f"imssr: error: config {run / 'config.json'} {OLD_LINE}"]
+    assert sorted(os.listdir(run)) == ["config.json"]
+
+
+@pytest.mark.parametrize("override, message", [
+    ("aux.tau=0", r"^aux.tau must be in \(0, 1\]$"),
+    ("aux.overlay_alpha=1.5", r"^aux.overlay_alpha must be in \[0, 1\]$"),
+    ("aux.image_pool_size=0", "^aux.image_pool_size must be >= 1$"),
+    ("aux.image_dir=/no/such/images", r"^image folder not found: /no/such/images \(aux.image_dir / --image-dir\)$"),
+    ("aux.svea_alpha=-1", "^aux.svea_alpha and aux.svea_beta must be >= 0 and not both 0$"),
+    ("intrinsic.rnd_dim=0", "^intrinsic.rnd_lr must be > 0 and rnd_dim >= 1$"),
+    ("intrinsic.re3_k=0", "^intrinsic.re3_k and re3_dim must be >= 1$"),
+    ("intrinsic.form=mine", "^intrinsic.form must be one of authors, training$"),
+    ("intrinsic.schedule=cosine", "^intrinsic.schedule must be one of constant, step$"),
+    ("intrinsic.decay=0", r"^intrinsic.decay must be in \(0, 1\]$"),
+])
+def test_each_plug_in_checks_its_own_settings_whichever_is_chosen(override, message):
+    """A config carries every task's and signal's settings: each is checked, chosen or not."""
+    for algo in ("curl", "im-soda", "svea+rnd"):
+        with pytest.raises(ImssrError, match=message):
+            apply_overrides(make_config(algo, "walker_walk"), [override]).validate()
+
+
+def test_a_plug_in_s_needs_of_other_sections_hold_when_it_is_chosen():
+    small_crop = ["env.image_size=40", "agent.crop_size=32", "agent.encoder_layers=2"]
+    apply_overrides(make_config("curl+re3", "walker_walk"), small_crop).validate()
+    with pytest.raises(ImssrError, match=r"^intrinsic.source=rnd needs agent.crop_size >= 36 \(RND's"):
+        apply_overrides(make_config("curl+rnd", "walker_walk"), small_crop).validate()
+    big_k = ["intrinsic.re3_k=200"]
+    apply_overrides(make_config("curl+rnd", "walker_walk"), big_k).validate()
+    with pytest.raises(ImssrError, match="^agent.batch_size must exceed intrinsic.re3_k$"):
+        apply_overrides(make_config("curl+re3", "walker_walk"), big_k).validate()
+
+
+def test_the_plug_in_registries_name_what_the_config_does():
+    from imssr.algos import BASES, SIGNALS
+    from imssr.auxiliary import AUX_TASKS
+    from imssr.intrinsic import INTRINSIC_SIGNALS
+
+    assert list(AUX_TASKS) == list(BASES) and list(INTRINSIC_SIGNALS) == list(SIGNALS)
+    with pytest.raises(ImssrError, match="^intrinsic.source must be one of ssl, rnd, re3$"):
+        apply_overrides(make_config("curl", "walker_walk"), ["intrinsic.source=icm"]).validate()

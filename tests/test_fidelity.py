@@ -7,7 +7,6 @@ update adds to the reward.
 """
 import copy
 import csv
-import json
 import math
 import os
 
@@ -15,16 +14,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import assert_same_nets, filled_buffer, tiny_config
+from conftest import filled_buffer, tiny_config
 from imssr.agents import SACAgent
 from imssr.augmentations import random_crop
-from imssr.config import CONFIG_VERSION, RunConfig, load_config
+from imssr.config import load_config
 from imssr.envs import PAPER_TASKS
 from imssr.errors import ImssrError
 from imssr.intrinsic import BetaSchedule, IntrinsicReward, normalize
 from imssr.presets import ALGOS, BASES, make_config, preset_settings
 from imssr.training import Trainer
-from imssr.training.logger import read_csv
 
 TABLE = os.path.join(os.path.dirname(__file__), "data", "authors_settings.csv")
 ACTION_REPEAT = {"finger_spin": 2, "cartpole_swingup_sparse": 8, "pendulum_swingup": 8}  # Table III; else 4
@@ -254,74 +252,6 @@ def test_cli_budget_in_steps_or_frames(tmp_path):
         cfg("--steps", "10", "--frames", "80")
 
 
-V1_CONFIG = {  # written by imssr 0.1 (budgets in frames, no version key)
-    "algo": "im-curl",
-    "env": {"task": "pendulum_swingup", "action_repeat": 8, "image_size": 100, "frame_stack": 3,
-            "mode": "training", "footage_dir": "", "shadow_size": 512},
-    "agent": {"encoder_layers": 4, "feature_dim": 50, "projection_tanh": False},
-    "aux": {"name": "curl", "batch_size": 128},
-    "intrinsic": {"enabled": True, "source": "ssl", "beta0": 0.05, "view": "independent",
-                  "normalization": "zscore"},
-    "train": {"frames": 500_000, "eval_every_frames": 10_000, "checkpoint_every_frames": 50_000,
-              "burst_updates": 0, "replay_capacity": 100_000},
-}
-
-
-def test_a_version_1_config_reads_as_what_it_ran():
-    cfg = RunConfig.from_dict(V1_CONFIG).validate()
-    assert cfg.version == CONFIG_VERSION
-    assert (cfg.train.steps, cfg.train.eval_every_steps, cfg.train.checkpoint_every_steps) == (62_500, 1250, 6250)
-    assert cfg.agent.final_relu and cfg.agent.feature_dim == 50 and not cfg.agent.projection_tanh
-    assert cfg.intrinsic.form == "training" and not cfg.intrinsic.unbiased_std
-    assert cfg.intrinsic.norm_eps == 1e-8 and cfg.intrinsic.norm_rtol == 0.0
-    assert not cfg.aux.own_batch and cfg.train.burst_updates == 0
-    # A partial config written by hand for this version is not mistaken for an old one.
-    partial = RunConfig.from_dict({"algo": "curl", "train": {"steps": 100}})
-    assert partial.train.steps == 100 and partial.agent.final_relu is False
-
-
-def test_an_old_run_directory_resumes_with_its_frame_budget(tmp_path):
-    """A run whose config and checkpoint count frames (imssr 0.1) resumes to its budget."""
-    cfg = tiny_config("im-curl", steps=250, eval_every_steps=125, checkpoint_every_steps=125)
-    t = Trainer(cfg, str(tmp_path))
-    try:
-        t.train(stop_at_step=125)
-    finally:
-        t.close()
-    # Rewrite the run as imssr 0.1 left it: frames in config.json and in the checkpoint.
-    ckpt_path = tmp_path / "checkpoints" / "latest.pt"
-    ckpt = torch.load(ckpt_path, weights_only=False)
-    old = ckpt["config"]
-    train = old["train"]
-    for key in ("steps", "eval_every_steps", "checkpoint_every_steps"):
-        frames_key = {"steps": "frames"}.get(key, key.replace("steps", "frames"))
-        train[frames_key] = train.pop(key) * 8
-    old["intrinsic"]["view"] = "shared"
-    del old["intrinsic"]["form"]
-    del old["version"]
-    for key in ("next_eval_step", "next_ckpt_step", "last_eval_step"):
-        ckpt[key.replace("step", "frame")] = ckpt.pop(key) * 8
-    from imssr.training.checkpoint import save_checkpoint
-
-    save_checkpoint(str(tmp_path), ckpt, keep=0)
-    (tmp_path / "config.json").write_text(json.dumps(old))
-    resumed = Trainer(load_config(str(tmp_path / "config.json")), str(tmp_path), resume=True)
-    try:
-        resumed.train()
-    finally:
-        resumed.close()
-    assert resumed.step == 250 and resumed.frame == 2000
-    assert [int(r["step"]) for r in read_csv(tmp_path / "eval.csv")] == [125, 250]
-    # The uninterrupted run under the same settings ends with the same weights.
-    full = Trainer(tiny_config("im-curl", steps=250, eval_every_steps=125, checkpoint_every_steps=125),
-                   str(tmp_path / "full"))
-    try:
-        full.train()
-    finally:
-        full.close()
-    assert_same_nets(resumed.agent, full.agent)
-
-
 def test_every_base_has_a_preset_on_every_paper_task():
     for base in BASES:
         for task in PAPER_TASKS:
@@ -331,9 +261,12 @@ def test_every_base_has_a_preset_on_every_paper_task():
 
 
 def test_docs_provenance_table_is_in_sync():
-    from imssr.presets import provenance_markdown
+    import importlib.util
 
-    path = os.path.join(os.path.dirname(__file__), "..", "docs", "provenance.md")
-    with open(path) as fh:
-        assert fh.read() == provenance_markdown(), \
-            "docs/provenance.md is stale: regenerate it with imssr.presets.provenance_markdown()"
+    root = os.path.join(os.path.dirname(__file__), "..")
+    spec = importlib.util.spec_from_file_location("provenance", os.path.join(root, "scripts", "provenance.py"))
+    provenance = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(provenance)
+    with open(os.path.join(root, "docs", "provenance.md")) as fh:
+        assert fh.read() == provenance.provenance_markdown(), \
+            "docs/provenance.md is stale: regenerate it with python scripts/provenance.py > docs/provenance.md"

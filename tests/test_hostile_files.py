@@ -12,7 +12,8 @@ from conftest import tiny_config
 from imssr.cli import main
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError
-from imssr.training.checkpoint import latest_path, load_checkpoint, save_checkpoint
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import load_checkpoint
 from imssr.utils import atomic_write_text
 
 
@@ -49,8 +50,8 @@ def test_an_evil_checkpoint_is_refused_and_runs_nothing(run, tmp_path, capsys):
     assert line == f"imssr: error: {evil} is not an imssr checkpoint: it contains objects of type os.system"
     assert not marker.exists()
     # The same file as the run's latest.pt: --resume refuses it too.
-    os.makedirs(os.path.dirname(latest_path(run)))
-    os.replace(evil, latest_path(run))
+    os.makedirs(os.path.dirname(RunDir(run).latest))
+    os.replace(evil, RunDir(run).latest)
     assert main(["train", "--out", run, "--resume", "--no-progress"]) == 2
     line = _one_error_line(capsys.readouterr().err)
     assert line.endswith("latest.pt is not an imssr checkpoint: it contains objects of type os.system")
@@ -70,9 +71,9 @@ def test_imssr_checkpoints_hold_only_tensors_and_plain_values(tmp_path):
     from imssr.utils import rng_states
 
     run = str(tmp_path / "run")
-    save_checkpoint(run, {"step": 1, "replay_file": None, "global_rng": rng_states()})
-    assert torch.serialization.get_unsafe_globals_in_checkpoint(latest_path(run)) == []
-    assert load_checkpoint(latest_path(run))["global_rng"]["numpy"]["bit_generator"] == "MT19937"
+    RunDir(run).save_checkpoint({"step": 1, "replay_file": None, "global_rng": rng_states()})
+    assert torch.serialization.get_unsafe_globals_in_checkpoint(RunDir(run).latest) == []
+    assert load_checkpoint(RunDir(run).latest)["global_rng"]["numpy"]["bit_generator"] == "MT19937"
 
 
 def test_a_replay_file_with_pickled_objects_is_refused(tmp_path):

@@ -14,11 +14,12 @@ import torch
 
 from conftest import without_timing
 from imssr.cli import main
-from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.errors import INTERRUPTED_EXIT
 from imssr.sweep.grid import SweepConfig
-from imssr.sweep.runner import execute_run, is_done
+from imssr.sweep.runner import execute_run
 from imssr.sweep.sweep import plan_runs, settle
 from imssr.training.lock import LOCK_FILE
 
@@ -70,22 +71,22 @@ def test_a_signal_checkpoints_the_current_step_and_the_resume_is_exact(reference
     step = int(match[1])
     assert match[2] == signal.Signals(signum).name and match[3] == str(out)
     assert 125 <= step < 375, err  # after the first episode, before the budget
-    state = load_checkpoint(latest_path(str(out)))
+    state = load_checkpoint(RunDir(str(out)).latest)
     assert state["step"] == step and state["replay_file"]
     assert main([*TRAIN, "--out", str(out), "--resume"]) == 0
     assert f"resuming from agent step {step:,}" in capsys.readouterr().out
     for name in ("train.csv", "eval.csv"):
         assert without_timing(read_csv(os.path.join(str(out), name))) == \
             without_timing(read_csv(os.path.join(reference, name))), name
-    a = load_checkpoint(latest_path(str(out)))["agent"]["nets"]
-    b = load_checkpoint(latest_path(reference))["agent"]["nets"]
+    a = load_checkpoint(RunDir(str(out)).latest)["agent"]["nets"]
+    b = load_checkpoint(RunDir(reference).latest)["agent"]["nets"]
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
 def test_a_second_signal_stops_at_once_and_keeps_the_last_checkpoint(tmp_path):
     out = tmp_path / "run"
     proc = _start(out, "--set", "train.checkpoint_every_steps=125")
-    while not os.path.exists(latest_path(str(out))):  # the checkpoint of the first episode
+    while not os.path.exists(RunDir(str(out)).latest):  # the checkpoint of the first episode
         assert proc.poll() is None, proc.communicate()
         os.sched_yield()
     proc.send_signal(signal.SIGTERM)
@@ -94,7 +95,7 @@ def test_a_second_signal_stops_at_once_and_keeps_the_last_checkpoint(tmp_path):
     proc.communicate(timeout=300)
     # Killed by the second signal, or (if its stop was quicker still) stopped by the first.
     assert proc.returncode in (-signal.SIGTERM, INTERRUPTED_EXIT)
-    assert load_checkpoint(latest_path(str(out)))["step"] >= 125
+    assert load_checkpoint(RunDir(str(out)).latest)["step"] >= 125
 
 
 def _sweep_run(tmp_path, *overrides):
@@ -107,9 +108,10 @@ def _sweep_run(tmp_path, *overrides):
 
 def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_path, reference):
     cfg, st = _sweep_run(tmp_path)
-    run_dir, args = st.run.dir, st.run.train_args(cfg)
+    run_dir = st.run.dir
+    RunDir(run_dir).write_config(st.config)  # as the sweep does before the first attempt
     results = []
-    worker = threading.Thread(target=lambda: results.append(execute_run(run_dir, args, st.steps, 1)))
+    worker = threading.Thread(target=lambda: results.append(execute_run(run_dir, st.steps, 1)))
     worker.start()
     while len(read_csv(os.path.join(run_dir, "train.csv"))) < 1:  # the training subprocess learns
         assert worker.is_alive()
@@ -120,11 +122,13 @@ def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_p
     result = results[0]
     assert result["interrupted"] and not result["ok"] and result["returncode"] == INTERRUPTED_EXIT
     assert STOPPED.fullmatch(result["error"]), result["error"]
+    assert RunDir(run_dir).status() == "interrupted"
     line = settle(st, result, cfg.retries)  # retries=0: a failure would end the run here
     assert st.state == "queued" and st.action == "resume" and st.errors == [] and st.interruptions == 1, line
     assert line.startswith(f"resume  {st.run.name}: interrupted (imssr: stopped at agent step")
     assert plan_runs(cfg)[0].action == "resume"
-    again = execute_run(run_dir, args, st.steps, 2)
-    assert again["ok"] and again["resumed"] and is_done(run_dir, st.steps)
+    again = execute_run(run_dir, st.steps, 2)
+    assert again["ok"] and again["resumed"] and RunDir(run_dir).is_done(st.steps)
+    assert RunDir(run_dir).status() == "finished"
     assert without_timing(read_csv(os.path.join(run_dir, "eval.csv"))) == \
         without_timing(read_csv(os.path.join(reference, "eval.csv")))

@@ -11,7 +11,7 @@ import pytest
 
 from imssr.cli import main
 from imssr.sweep.grid import SweepConfig, expand
-from imssr.sweep.runner import DONE_FILE, LOG_FILE
+from imssr.rundir import DONE_FILE, SWEEP_LOG
 from imssr.sweep.sweep import run_sweep
 
 TASK = "cartpole_swingup_sparse"  # 125 agent steps per episode at action repeat 8
@@ -27,7 +27,7 @@ def status(root):
 
 
 def attempts_in_log(run_dir):
-    with open(os.path.join(run_dir, LOG_FILE)) as fh:
+    with open(os.path.join(run_dir, SWEEP_LOG)) as fh:
         return [line for line in fh if line.startswith("==> attempt")]
 
 
@@ -106,14 +106,14 @@ def test_slurm_without_sbatch_is_one_line(tmp_path, capsys, monkeypatch):
 
 def test_sweep_logger_groups_and_tags_wandb_runs(tmp_path):
     from imssr.cli import _run_config, build_parser
-    from imssr.sweep.grid import build_run_config
+    from imssr.rundir import RunDir
     from imssr.training.wandb_run import run_tags
 
     cfg = SweepConfig(root=str(tmp_path / "table1"), algos=["im-curl"], tasks=[TASK], seeds=[3], beta0=[0.05],
                       logger="csv,wandb").validate()
     (run,) = expand(cfg)
-    built = build_run_config(run, cfg)
-    args = build_parser().parse_args(["train", *run.train_args(cfg), "--out", run.dir])
+    built = run.resolved_config(cfg)
+    args = build_parser().parse_args(["train", "--config", RunDir(run.dir).write_config(built), "--out", run.dir])
     assert built == _run_config(args, demo=False)
     assert (built.train.wandb, built.train.tensorboard, built.train.wandb_group) == (True, False, "table1")
     assert run_tags(built) == ["im-curl", TASK, "seed_3", "beta0_0.05"]

@@ -108,10 +108,10 @@ def _use(monkeypatch, store: str) -> None:
     monkeypatch.setattr(loop, "make_replay_buffer", REAL_MAKE_REPLAY_BUFFER if store == "host" else tensor)
 
 
-def _train(out, stop_at_step=None, resume=False, replay_device="auto"):
+def _train(out, stop_at=None, resume=False, replay_device="auto"):
     cfg = _cfg()
     cfg.train.replay_device = replay_device
-    return train_run(cfg, out, stop_at_step, resume)
+    return train_run(cfg, out, stop_at, resume)
 
 
 def _assert_same_run(a, a_dir, b, b_dir):
@@ -142,7 +142,7 @@ def test_the_default_on_a_cpu_is_the_host_store(tmp_path, capsys):
 @pytest.mark.parametrize("first, then", [("tensor", "tensor"), ("host", "tensor"), ("tensor", "host")])
 def test_a_killed_run_resumes_exactly_with_either_store(host_run, monkeypatch, tmp_path, first, then):
     _use(monkeypatch, first)
-    part = _train(tmp_path, stop_at_step=250)
+    part = _train(tmp_path, stop_at=250)
     assert part.step == 250 and isinstance(part.replay, TensorFrameReplayBuffer) == (first == "tensor")
     _use(monkeypatch, then)
     # train.replay_device may change on resume (it changes where the frames live, not the run).

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config
+from conftest import tiny_config, train_stopped_at
 from imssr.errors import DivergedError, ImssrError
 from imssr.training import Trainer
-from imssr.training.checkpoint import latest_path, load_checkpoint
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"
@@ -47,7 +48,7 @@ def test_divergence_stops_in_one_line_and_keeps_the_last_good_checkpoint(tmp_pat
             t.train()
     finally:
         t.close()
-    ckpt = load_checkpoint(latest_path(out))
+    ckpt = load_checkpoint(RunDir(out).latest)
     assert ckpt["step"] == 20  # nothing saved after the divergence
     assert [int(r["step"]) for r in read_csv(f"{out}/train.csv")] == [20]
     resumed = Trainer(fast(), out, resume=True)  # the last good checkpoint loads and resumes
@@ -96,15 +97,19 @@ def test_a_real_diverging_run_is_one_line_that_the_sweep_records(precision, tmp_
     PhysicsError traceback); a bf16 run (mixed precision) blows up in its first updates too and
     stops with the same line (measured: fp32 "actor loss nan", bf16 "aux loss nan" at agent
     step 11), which the sweep does not retry."""
-    from imssr.sweep.runner import LOG_FILE, execute_run
+    from imssr.cli import _run_config, build_parser
+    from imssr.rundir import SWEEP_LOG
+    from imssr.sweep.runner import execute_run
 
     run = tmp_path / "run"
     args = ["--algo", "curl", "--task", TASK, "--seed", "1", *FAST, "--set", "agent.critic_lr=1e6",
             "--set", f"agent.precision={precision}"]
-    result = execute_run(str(run), args, 60, attempt=1)
+    RunDir(run).write_config(_run_config(build_parser().parse_args(["train", *args, "--out", str(run)]), demo=False))
+    result = execute_run(str(run), 60, attempt=1)
     assert not result["ok"] and result["returncode"] == 2 and result["diverged"]
     assert re.fullmatch(r"imssr: error: diverged at agent step \d+: [a-z ]+ (nan|inf|-inf)", result["error"]), result
-    log = (run / LOG_FILE).read_text()
+    assert RunDir(run).status() == "diverged"
+    log = (run / SWEEP_LOG).read_text()
     assert "Traceback" not in log and "PhysicsError" not in log
 
 
@@ -113,10 +118,10 @@ def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_sma
     try:
         t = Trainer(fast(steps=40, torch_threads=1), out)
         try:
-            t.train(stop_at_step=20)
+            train_stopped_at(t, 20)
         finally:
             t.close()
-        assert load_checkpoint(latest_path(out))["torch_threads"] == 1
+        assert load_checkpoint(RunDir(out).latest)["torch_threads"] == 1
         capsys.readouterr()
         config = (tmp_path / "run" / "config.json").read_text()
         with pytest.raises(ImssrError, match=r"already at agent step 20, past the budget of 15 steps asked for; "

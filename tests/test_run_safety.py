@@ -24,10 +24,11 @@ from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
 from imssr.training import Trainer
 from imssr.training.evaluate import evaluate_run
-from imssr.training.checkpoint import CheckpointDamaged, latest_path, load_checkpoint, save_checkpoint
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import CheckpointDamaged, load_checkpoint
 from imssr.training.lock import LOCK_FILE, DirectoryLock
 from imssr.training.logger import CSVLog, Logger, read_csv
-from imssr.utils import atomic_write_csv, atomic_write_text, random_state_from_plain
+from imssr.utils import atomic_write_csv, atomic_write_text
 
 TASK = "cartpole_swingup_sparse"
 NO_SPACE = r"no space left on (?P<device>/\S*) while writing (?P<path>\S+) \(\d+\.\d+ MB needed\)"
@@ -41,8 +42,8 @@ def _cfg():
     return cfg
 
 
-def _train(out, stop_at_step=None, resume=False, **kw):
-    return train_run(_cfg(), out, stop_at_step, resume, **kw)
+def _train(out, stop_at=None, resume=False, **kw):
+    return train_run(_cfg(), out, stop_at, resume, **kw)
 
 
 _strip = without_timing
@@ -66,9 +67,10 @@ def full(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def stopped(tmp_path_factory):
-    """A run "killed" after its checkpoint at agent step 250 (step-125 and step-250 retained)."""
+    """A run stopped at the episode end with its checkpoint at agent step 250 (step-125 and
+    step-250 retained)."""
     out = tmp_path_factory.mktemp("stopped")
-    _train(out, stop_at_step=250)
+    _train(out, stop_at=250)
     return str(out)
 
 
@@ -183,7 +185,7 @@ def test_a_refused_run_releases_its_directory(tmp_path):
 # -- damaged files -------------------------------------------------------------------------
 
 def test_numbered_checkpoints_are_real_copies(stopped):
-    latest, numbered = latest_path(stopped), _ckpt(stopped, "step-000000250.pt")
+    latest, numbered = RunDir(stopped).latest, _ckpt(stopped, "step-000000250.pt")
     assert os.stat(latest).st_nlink == 1 and os.stat(numbered).st_nlink == 1
     assert not os.path.samefile(latest, numbered)
     assert open(latest, "rb").read() == open(numbered, "rb").read()
@@ -193,9 +195,9 @@ def test_numbered_checkpoints_are_real_copies(stopped):
 
 
 def test_flipped_bytes_in_latest_are_caught_and_resume_falls_back_exactly(run, full, capsys):
-    _flip(latest_path(run))
+    _flip(RunDir(run).latest)
     with pytest.raises(CheckpointDamaged, match=r"latest\.pt is damaged \(checksum mismatch\)$"):
-        load_checkpoint(latest_path(run))
+        load_checkpoint(RunDir(run).latest)
     assert load_checkpoint(_ckpt(run, "step-000000250.pt"))["step"] == 250  # the copy is intact
     resumed = _train(run, resume=True)
     out = capsys.readouterr().out
@@ -206,15 +208,15 @@ def test_flipped_bytes_in_latest_are_caught_and_resume_falls_back_exactly(run, f
 
 
 def test_an_older_checkpoint_resumes_with_a_refilled_buffer(run, capsys):
-    _flip(latest_path(run))
+    _flip(RunDir(run).latest)
     _flip(_ckpt(run, "step-000000250.pt"))
     t = _train(run, resume=True)
     out = capsys.readouterr().out
     assert ("imssr: latest.pt is damaged (checksum mismatch); resuming from step-000000125.pt "
             "at agent step 125\n") in out
     assert "no replay buffer was kept for step-000000125.pt; refilling it with random actions" in out
-    assert t.step == 375 and load_checkpoint(latest_path(run))["step"] == 375
-    _flip(latest_path(run))
+    assert t.step == 375 and load_checkpoint(RunDir(run).latest)["step"] == 375
+    _flip(RunDir(run).latest)
     _flip(_ckpt(run, "step-000000375.pt"))
     _flip(_ckpt(run, "step-000000250.pt"))
     with pytest.raises(ImssrError, match=r"latest\.pt is damaged \(checksum mismatch\), and no retained "
@@ -235,13 +237,13 @@ def test_a_lost_replay_buffer_needs_refill_buffer(run, fault, capsys):
         Trainer(_cfg(), run, resume=True)
     t = Trainer(_cfg(), run, resume=True, refill_buffer=True)  # the failed attempt released the run
     try:
-        assert t.step == 250 and t.learning_starts == 250 + 360 and t.replay.size == 0
+        assert t.step == 250 and t.state.learning_starts == 250 + 360 and t.replay.size == 0
     finally:
         t.close()
     assert "refilling it with random actions until agent step 610" in capsys.readouterr().out
     # Through the CLI, which trains the last episode and saves a buffer again.
     assert main(["train", "--resume", "--refill-buffer", "--out", run, "--no-progress"]) == 0
-    state = load_checkpoint(latest_path(run))
+    state = load_checkpoint(RunDir(run).latest)
     assert state["step"] == 375 and os.path.exists(_ckpt(run, state["replay_file"]))
     assert main(["train", "--refill-buffer", "--out", run]) == 2
     assert "--refill-buffer goes with --resume" in capsys.readouterr().err
@@ -249,7 +251,7 @@ def test_a_lost_replay_buffer_needs_refill_buffer(run, fault, capsys):
 
 def test_files_from_before_checksums_still_load(run):
     """Checkpoints and replay files without checksums (imssr before them) load unverified."""
-    path = latest_path(run)
+    path = RunDir(run).latest
     state = torch.load(path, weights_only=False)
     torch.save(state, path)  # as earlier versions wrote it: no seal
     replay = _ckpt(run, state["replay_file"])
@@ -267,30 +269,13 @@ def test_files_from_before_checksums_still_load(run):
         t.close()
 
 
-def test_a_checkpoint_with_numpy_rng_states_resumes_exactly(run, full):
-    """imssr 0.x wrote the numpy RNG states as RandomState tuples (a numpy array inside): such a
-    checkpoint still loads with weights_only=True (those numpy types are allow-listed) and resumes
-    to the uninterrupted run."""
-    path = latest_path(run)
-    state = load_checkpoint(path)
-    as_tuple = random_state_from_plain
-    state["global_rng"]["numpy"] = as_tuple(state["global_rng"]["numpy"])
-    state["env_rng"]["task"] = as_tuple(state["env_rng"]["task"])
-    for rng in state["eval_env_rngs"].values():
-        rng["task"] = as_tuple(rng["task"])
-    del state["episode_state"]
-    save_checkpoint(run, state, keep=0)
-    assert "numpy.ndarray" in torch.serialization.get_unsafe_globals_in_checkpoint(path)
-    _assert_same_run(_train(run, resume=True), run, full[1], full[0])
-
-
 def test_evaluate_picks_a_checkpoint(run, capsys):
     assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", "125"]) == 0
     assert "step 125" in capsys.readouterr().out
     assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", "999"]) == 2
     assert "no checkpoint at agent step 999" in capsys.readouterr().err
-    _flip(latest_path(run))
-    assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", latest_path(run)]) == 2
+    _flip(RunDir(run).latest)
+    assert main(["evaluate", "--run", run, "--episodes", "1", "--checkpoint", RunDir(run).latest]) == 2
     assert "latest.pt is damaged (checksum mismatch)" in capsys.readouterr().err
     # Without --checkpoint, a damaged latest.pt falls back as --resume does.
     assert main(["evaluate", "--run", run, "--episodes", "1"]) == 0
@@ -326,7 +311,7 @@ def test_two_evaluations_of_one_run_do_not_interleave_their_rows(run):
 
 def _after_failed_save(run_dir):
     """The previous checkpoint is whole and nothing of the failed save is left."""
-    assert load_checkpoint(latest_path(run_dir))["step"] == 250
+    assert load_checkpoint(RunDir(run_dir).latest)["step"] == 250
     assert sorted(os.listdir(os.path.join(run_dir, "checkpoints"))) == [
         "latest.pt", "replay-000000250.npz", "replay-000000250.npz.frames.npy",
         "step-000000125.pt", "step-000000250.pt"]
@@ -345,7 +330,7 @@ def test_checkpoint_write_on_a_full_disk_keeps_the_previous_one(run, full, monke
         t.close()
         monkeypatch.undo()
     match = re.fullmatch(NO_SPACE, str(err.value))
-    assert match and match["path"] == latest_path(run), str(err.value)
+    assert match and match["path"] == RunDir(run).latest, str(err.value)
     _after_failed_save(run)
     _assert_same_run(_train(run, resume=True), run, full[1], full[0])
 
@@ -431,11 +416,11 @@ def test_a_run_on_a_full_file_system_stops_in_one_line_and_resumes(stopped, full
 def test_every_writer_reports_a_full_file_system(tiny_fs):
     mnt = tiny_fs("2m")
     run = os.path.join(mnt, "run")
-    save_checkpoint(run, {"step": 1, "w": torch.zeros(10), "replay_file": None})
-    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {latest_path(run)} "
+    RunDir(run).save_checkpoint({"step": 1, "w": torch.zeros(10), "replay_file": None})
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {RunDir(run).latest} "
                                          r"\(4\.0 MB needed\)$"):
-        save_checkpoint(run, {"step": 2, "w": torch.zeros(1_000_000), "replay_file": None})
-    assert load_checkpoint(latest_path(run))["step"] == 1
+        RunDir(run).save_checkpoint({"step": 2, "w": torch.zeros(1_000_000), "replay_file": None})
+    assert load_checkpoint(RunDir(run).latest)["step"] == 1
     assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["latest.pt", "step-000000001.pt"]
     notes = os.path.join(mnt, "notes.json")
     with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {notes} \(3\.0 MB needed\)$"):
@@ -464,7 +449,7 @@ def test_output_files_honour_the_umask(tmp_path, umask):
         atomic_write_csv(str(run / "table.csv"), ["a"], [[1]])
         CSVLog(str(run / "train.csv"), ["frame"]).write({"frame": 1})
         filled_buffer(60, capacity=100, size=8).save(str(run / "checkpoints" / "replay-000000003.npz"))
-        save_checkpoint(str(run), {"step": 3, "replay_file": "replay-000000003.npz"}, keep=1)
+        RunDir(str(run)).save_checkpoint({"step": 3, "replay_file": "replay-000000003.npz"}, keep=1)
         lock = DirectoryLock(str(run)).acquire()
         lock_mode = stat.S_IMODE(os.stat(run / LOCK_FILE).st_mode)
         lock.release()
@@ -500,6 +485,6 @@ def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
     with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/tb$"):
         log.close()
     assert "Traceback" not in capfd.readouterr().err  # nor the writer thread's
-    result = execute_run(os.path.join(mnt, "sweep-run"), ["--algo", "curl"], 10, 1)
+    result = execute_run(os.path.join(mnt, "sweep-run"), 10, 1)
     assert not result["ok"] and result["returncode"] is None
     assert re.fullmatch(rf"no space left on {mnt} while writing {mnt}/sweep-run/sweep.log", result["error"])

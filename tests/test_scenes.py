@@ -165,7 +165,8 @@ def test_user_footage_reaches_the_scene(tmp_path):
 def test_training_in_a_scene_and_evaluating_in_several(tmp_path):
     from conftest import tiny_config
     from imssr.training import Trainer
-    from imssr.training.checkpoint import latest_path, load_checkpoint
+    from imssr.rundir import RunDir
+    from imssr.training.checkpoint import load_checkpoint
     from imssr.training.logger import read_csv
 
     cfg = tiny_config("im-curl", seed_steps=8, steps=25, eval_every_steps=0)  # 200 frames
@@ -182,6 +183,6 @@ def test_training_in_a_scene_and_evaluating_in_several(tmp_path):
         trainer.close()
     rows = read_csv(tmp_path / "eval.csv")
     assert [(r["frame"], r["mode"]) for r in rows] == [("200", "training"), ("200", "video_hard")]
-    state = load_checkpoint(latest_path(str(tmp_path)))
+    state = load_checkpoint(RunDir(str(tmp_path)).latest)
     assert set(state["eval_env_rngs"]) == {"training", "video_hard"}
     assert "scene" in state["eval_env_rngs"]["video_hard"] and "scene" in state["env_rng"]

@@ -8,11 +8,12 @@ import sys
 import pytest
 import torch
 
+from conftest import train_stopped_at
 from imssr.cli import main
-from imssr.sweep.grid import SweepConfig, build_run_config, expand, load_sweep_file, parse_seeds
-from imssr.sweep.runner import DONE_FILE, LOG_FILE, execute_run, has_checkpoint
+from imssr.rundir import DONE_FILE, SWEEP_LOG, RunDir
+from imssr.sweep.grid import SweepConfig, expand, load_sweep_file, parse_seeds
+from imssr.sweep.runner import execute_run
 from imssr.sweep.sweep import plan_runs, settle, write_status
-from imssr.training.checkpoint import latest_path, save_checkpoint
 from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"  # 1000 frames = 125 agent steps per episode, action repeat 8
@@ -58,59 +59,72 @@ def test_grid_directories_and_beta_level(tmp_path):
                        "walker_walk/im-curl/beta0_0.001/seed_1", "walker_walk/im-curl/beta0_0.001/seed_2",
                        "walker_walk/im-curl/beta0_0.05/seed_1", "walker_walk/im-curl/beta0_0.05/seed_2"]
     assert len(runs) == 12 and len(set(rel)) == 12
-    # Each run's config is what `imssr train` builds from the same arguments.
+    # Each run's config: its grid point on the preset.
     run = runs[4]
-    assert run.train_args(cfg) == ["--algo", "im-curl", "--task", "walker_walk", "--seed", "1", "--beta0", "0.05"]
-    built = build_run_config(run, cfg)
+    built = run.resolved_config(cfg)
+    assert (built.algo, built.env.task) == ("im-curl", "walker_walk")
     assert (built.intrinsic.beta0, built.train.seed, built.train.steps) == (0.05, 1, 500_000)
     # Without a beta sweep: the preset's beta_0 and no extra level.
     plain = expand(SweepConfig(root=str(tmp_path), algos=["im-curl"], tasks=[TASK], seeds=[3]))
     assert [os.path.relpath(r.dir, tmp_path) for r in plain] == [f"{TASK}/im-curl/seed_3"]
-    assert build_run_config(plain[0], cfg).intrinsic.beta0 == 0.01
+    assert plain[0].resolved_config(cfg).intrinsic.beta0 == 0.01
 
 
-def test_a_sweep_run_config_is_what_imssr_train_builds_from_its_arguments(tmp_path):
+def test_the_worker_trains_the_config_the_sweep_writes(tmp_path):
+    """The run's config.json is its one description: `imssr train --config RUN/config.json` builds
+    exactly it, and it is what `imssr train` builds from the sweep's settings as flags (seed,
+    budget, beta_0, the GPU share as the device, --cpus-per-run as the torch threads)."""
     from imssr.cli import _run_config, build_parser
 
+    flags = {"im-soda": ["--algo", "im-soda", "--task", "finger_spin", "--seed", "4", "--steps", "50", "--beta0",
+                         "0.2", "--device", "cuda", "--no-progress", "--set", "train.torch_threads=2",
+                         "--set", "agent.batch_size=8", "--set", "train.eval_episodes=2"],
+             "curl+rnd": ["--algo", "curl+rnd", "--task", TASK, "--seed", "1", "--frames", "3001", "--no-progress",
+                          "--set", "train.torch_threads=1"]}
     for cfg in [SweepConfig(root=str(tmp_path), algos=["im-soda"], tasks=["finger_spin"], seeds=[4], steps=50,
-                            beta0=[0.2], gpus_per_run=0.5, overrides=["agent.batch_size=8", "train.eval_episodes=2"]),
+                            beta0=[0.2], gpus_per_run=0.5, cpus_per_run=2.5,
+                            overrides=["agent.batch_size=8", "train.eval_episodes=2"]),
                 SweepConfig(root=str(tmp_path), algos=["curl+rnd"], tasks=[TASK], seeds=[1], frames=3001)]:
         for run in expand(cfg.validate()):
-            args = build_parser().parse_args(["train", *run.train_args(cfg), "--out", run.dir])
-            built = build_run_config(run, cfg)
-            assert built == _run_config(args, demo=False)
+            built = run.resolved_config(cfg)
+            path = RunDir(run.dir).write_config(built)
+            args = build_parser().parse_args(["train", "--config", path, "--out", run.dir])
+            assert _run_config(args, demo=False) == built
+            by_flags = build_parser().parse_args(["train", *flags[run.algo], "--out", run.dir])
+            assert _run_config(by_flags, demo=False) == built
             assert built.train.device == ("cuda" if cfg.gpus_per_run else "cpu")
+            assert (built.train.torch_threads, built.train.progress) == (max(1, int(cfg.cpus_per_run)), False)
 
 
 def test_run_arguments_and_done_marker(tmp_path):
-    from imssr.sweep.runner import is_done, last_frame, last_step, read_done, write_done
     cfg = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[2], steps=375,
                       gpus_per_run=0.5, overrides=["agent.batch_size=8"])
     (run,) = expand(cfg)
     # A GPU share means training on it, unless the overrides choose a device.
-    assert run.train_args(cfg) == ["--algo", "curl", "--task", TASK, "--seed", "2", "--steps", "375",
-                                   "--device", "cuda", "--set", "agent.batch_size=8"]
+    built = run.resolved_config(cfg)
+    assert (built.algo, built.env.task, built.train.seed, built.train.steps) == ("curl", TASK, 2, 375)
+    assert (built.train.device, built.agent.batch_size) == ("cuda", 8)
     cfg.overrides.append("train.device=cuda:1")
-    assert "--device" not in run.train_args(cfg)
+    assert run.resolved_config(cfg).train.device == "cuda:1"
     # The budget in frames instead: `imssr train --frames` turns it into the task's agent steps.
     by_frames = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[2], frames=3000)
-    assert run.train_args(by_frames)[6:] == ["--frames", "3000"]
-    assert build_run_config(run, by_frames).train.steps == 375  # 3000 / 8 rounded up
+    assert run.resolved_config(by_frames).train.steps == 375  # 3000 / 8 rounded up
     os.makedirs(run.dir)
-    assert not is_done(run.dir, 375)
+    files = RunDir(run.dir)
+    assert not files.is_done(375)
     with open(os.path.join(run.dir, "eval.csv"), "w") as fh:
         fh.write("frame,step,mode,return_mean\n1000,125,training,1.5\n3000,375,training,2.5\n3")  # cut short
-    assert (last_step(os.path.join(run.dir, "eval.csv")), last_frame(os.path.join(run.dir, "eval.csv"))) == (375, 3000)
-    write_done(run.dir, 375, 375, attempt=1, resumed=False, seconds=12.5)
-    assert (read_done(run.dir)["steps"], read_done(run.dir)["final_frame"]) == (375, 3000)
-    assert is_done(run.dir, 375) and is_done(run.dir, 250)
+    assert files.last_evaluation() == (375, 3000)
+    files.write_done(375, 375, attempt=1, resumed=False, seconds=12.5)
+    assert (files.read_done()["steps"], files.read_done()["final_frame"]) == (375, 3000)
+    assert files.is_done(375) and files.is_done(250)
     (status,) = plan_runs(cfg)  # a later sweep over the root: skipped, its time still reported
     assert (status.state, status.steps, status.frames) == ("done", 375, 3000)
     assert (status.final_step, status.final_frame, status.seconds) == (375, 3000, 12.5)
-    assert not is_done(run.dir, 376)  # a larger budget resumes the finished run
+    assert not files.is_done(376)  # a larger budget resumes the finished run
     with open(os.path.join(run.dir, DONE_FILE), "w") as fh:
         fh.write('{"steps": 37')  # torn marker: not done
-    assert not is_done(run.dir, 375)
+    assert not files.is_done(375)
 
 
 def test_sweep_file_equals_flags(tmp_path, capsys):
@@ -205,14 +219,14 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
             *set_args(TINY)]
     cfg = SweepConfig(root=root, algos=["curl", "im-curl"], tasks=[TASK], seeds=[1], steps=250, overrides=TINY)
     interrupted = expand(cfg)[1]
-    # The im-curl run was killed after its first checkpoint (agent step 125 of 250).  One torch
+    # The im-curl run was stopped at its first checkpoint (agent step 125 of 250, an episode end).  One torch
     # thread, as the sweep gives each run: two spin-waiting threads on a busy 2-core machine
     # are ~15x slower.
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    trainer = Trainer(build_run_config(interrupted, cfg), interrupted.dir)
+    trainer = Trainer(interrupted.resolved_config(cfg), interrupted.dir)
     try:
-        trainer.train(stop_at_step=125)
+        train_stopped_at(trainer, 125)
     finally:
         trainer.close()
         torch.set_num_threads(threads)
@@ -235,17 +249,17 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
         assert {(r["steps"], r["frames"]) for r in json.load(fh)["runs"]} == {(250, 2000)}
     # Resumed, not restarted: the episode logged before the interruption is kept as it was.
     assert read_csv(os.path.join(interrupted.dir, "train.csv"))[0] == first_episode
-    assert "(resume)" in open(os.path.join(interrupted.dir, LOG_FILE)).read()
+    assert "(resume)" in open(os.path.join(interrupted.dir, SWEEP_LOG)).read()
 
     # Idempotence: a finished sweep starts nothing (no Ray, no attempt, no file touched).
-    logs = {run.dir: open(os.path.join(run.dir, LOG_FILE)).read() for run in expand(cfg)}
+    logs = {run.dir: open(os.path.join(run.dir, SWEEP_LOG)).read() for run in expand(cfg)}
     mtimes = {run.dir: os.path.getmtime(os.path.join(run.dir, "eval.csv")) for run in expand(cfg)}
     proc = sweep_cli(*grid)
     assert "all 2 runs are done; nothing to start" in proc.stdout
     assert {r["state"] for r in status(root)["runs"]} == {"done"}
     assert all(r["attempts"] == 0 for r in status(root)["runs"])
     for run in expand(cfg):
-        assert open(os.path.join(run.dir, LOG_FILE)).read() == logs[run.dir]
+        assert open(os.path.join(run.dir, SWEEP_LOG)).read() == logs[run.dir]
         assert os.path.getmtime(os.path.join(run.dir, "eval.csv")) == mtimes[run.dir]
 
     # The report reads the sweep back: one seed each, the final evaluation at T = 250 agent steps.
@@ -275,85 +289,8 @@ def test_failing_run_is_retried_then_reported(tmp_path):
     assert not os.path.exists(os.path.join(root, os.path.dirname(run["log"]), DONE_FILE))
 
 
-def old_config(algo, task, seed, frames):
-    """config.json as imssr 0.1 wrote it: no version, budgets and intervals in frames."""
-    from imssr.presets import make_config
-
-    data = make_config(algo, task).to_dict()
-    del data["version"], data["agent"]["final_relu"], data["aux"]["own_batch"]
-    train = data["train"]
-    del train["steps"], train["eval_every_steps"], train["checkpoint_every_steps"]
-    train.update(frames=frames, eval_every_frames=1000, checkpoint_every_frames=1000, seed=seed)
-    for key in ("form", "unbiased_std", "norm_eps", "norm_rtol"):
-        del data["intrinsic"][key]
-    data["intrinsic"]["view"] = "independent"
-    return data
-
-
-def test_old_run_directories_are_done_and_reported_in_agent_steps(tmp_path):
-    """A sweep made when budgets counted frames: config.json with train.frames (no version),
-    done.json and sweep.json with frames.  2000 frames at action repeat 8 are 250 agent steps."""
-    from imssr.report.report import write_report
-    from imssr.sweep.runner import done_steps, is_done
-    from imssr.sweep.sweep import plan_runs, run_sweep
-
-    root = str(tmp_path / "sweep")
-    cfg = SweepConfig(root=root, algos=["curl", "im-curl"], tasks=[TASK], seeds=[1], steps=250, overrides=TINY)
-    runs = expand(cfg)
-    plan = {"sweep": {"frames": 2000}, "runs": []}
-    for i, run in enumerate(runs):
-        os.makedirs(run.dir)
-        with open(os.path.join(run.dir, "config.json"), "w") as fh:
-            json.dump(old_config(run.algo, TASK, run.seed, 2000), fh)
-        with open(os.path.join(run.dir, "eval.csv"), "w") as fh:  # the old loop: first step at or past each frame
-            fh.write("frame,step,mode,return_mean,return_std,episodes,return_min,return_max,wall_time\n"
-                     f"1000,125,training,{10 + i},0,1,0,0,0\n2000,250,training,{100 + i},0,1,0,0,0\n")
-        with open(os.path.join(run.dir, DONE_FILE), "w") as fh:
-            json.dump({"frames": 2000, "final_frame": 2000, "evaluations": 2, "attempt": 1, "resumed": False,
-                       "seconds": 3.0, "finished": "2025-01-01T00:00:00"}, fh)
-        plan["runs"].append({"algo": run.algo, "task": TASK, "seed": run.seed, "beta0": None, "frames": 2000,
-                             "dir": os.path.relpath(run.dir, root)})
-    with open(os.path.join(root, "sweep.json"), "w") as fh:
-        json.dump(plan, fh)
-
-    # Done: the old marker's 2000 frames are the 250 agent steps of the run's action repeat.
-    assert done_steps(runs[0].dir) == 250
-    assert is_done(runs[0].dir, 250) and not is_done(runs[0].dir, 251)
-    # Without a readable config, the last evaluation's step stands in for the budget.
-    os.rename(os.path.join(runs[0].dir, "config.json"), os.path.join(tmp_path, "config.json"))
-    assert done_steps(runs[0].dir) == 250
-    os.rename(os.path.join(tmp_path, "config.json"), os.path.join(runs[0].dir, "config.json"))
-
-    # The report: T = 250 agent steps (from the old plan's frames), points in steps and frames.
-    out = str(tmp_path / "report")
-    write_report(root, out, paper_results=str(tmp_path / "none.csv"), reps=50)
-    table = {(r["label"], r["fraction"]): r for r in read_csv(os.path.join(out, "table.csv"))}
-    assert (table["curl", "1.0"]["step"], table["curl", "1.0"]["frame"], table["curl", "1.0"]["mean"]) == \
-        ("250", "2000", "100")
-    assert (table["im-curl", "0.5"]["step"], table["im-curl", "0.5"]["frame"], table["im-curl", "0.5"]["mean"]) == \
-        ("125", "1000", "11")
-    md = open(os.path.join(out, "report.md")).read()
-    assert "### `training` (T = 250 agent steps)" in md
-    assert f"| `{TASK}` | 8 | 50 steps (400 frames) | 125 steps (1,000 frames) | 250 steps (2,000 frames) |" in md
-    assert "planned but not started" not in md
-    evaluations = read_csv(os.path.join(out, "evaluations.csv"))
-    assert {(r["step"], r["frame"]) for r in evaluations} == {("125", "1000"), ("250", "2000")}
-
-    # A sweep over the old root, in steps or in frames, finds every run done and starts nothing.
-    for budget in ({"steps": 250}, {"frames": 2000}):
-        again = SweepConfig(root=root, algos=["curl", "im-curl"], tasks=[TASK], seeds=[1], overrides=TINY, **budget)
-        statuses = plan_runs(again)
-        assert [(s.state, s.steps, s.frames, s.final_step, s.seconds) for s in statuses] == \
-            [("done", 250, 2000, 250, 3.0)] * 2
-    assert [s.state for s in run_sweep(again, progress=False)] == ["done", "done"]  # no Ray started
-    assert status(root)["counts"]["done"] == 2
-    bigger = SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1], overrides=TINY, steps=300)
-    assert [s.action for s in plan_runs(bigger)] == ["fresh"]  # a larger budget is not done
-
-
 def test_status_and_done_files_are_strict_json(tmp_path):
     """No bare NaN / Infinity in the JSON files a sweep writes (strict parsers refuse them)."""
-    from imssr.sweep.runner import write_done
     from imssr.sweep.sweep import RunStatus, write_status
 
     def strict(path):
@@ -365,7 +302,7 @@ def test_status_and_done_files_are_strict_json(tmp_path):
     st = RunStatus(run, 10, 80, seconds=float("nan"))
     assert strict(write_status(cfg, [st], started=0.0))["runs"][0]["seconds"] is None
     os.makedirs(run.dir)
-    write_done(run.dir, 10, 10, 1, False, seconds=float("inf"))
+    RunDir(run.dir).write_done(10, 10, 1, False, seconds=float("inf"))
     assert strict(os.path.join(run.dir, DONE_FILE))["seconds"] is None
 
 
@@ -378,8 +315,10 @@ def _one_run(tmp_path, *overrides, retries=3):
 
 def test_a_diverged_run_is_not_retried_and_the_status_says_so(tmp_path):
     cfg, st = _one_run(tmp_path, "agent.critic_lr=1e30")
-    result = execute_run(st.run.dir, st.run.train_args(cfg), st.steps, 1)
+    RunDir(st.run.dir).write_config(st.config)  # as the sweep does before the first attempt
+    result = execute_run(st.run.dir, st.steps, 1)
     assert result["diverged"] and not result["interrupted"], result
+    assert RunDir(st.run.dir).status() == "diverged"
     line = settle(st, result, cfg.retries)
     assert st.state == "failed" and len(st.errors) == 1, line  # with 3 retries left
     assert "not retried: it diverges again" in line
@@ -391,8 +330,8 @@ def test_a_diverged_run_is_not_retried_and_the_status_says_so(tmp_path):
 
 def test_a_run_with_only_numbered_checkpoints_resumes(tmp_path):
     cfg, st = _one_run(tmp_path)
-    save_checkpoint(st.run.dir, {"step": 5, "replay_file": None}, keep=1)
-    os.unlink(latest_path(st.run.dir))  # lost; step-000000005.pt is what --resume falls back to
-    assert has_checkpoint(st.run.dir)
+    RunDir(st.run.dir).save_checkpoint({"step": 5, "replay_file": None}, keep=1)
+    os.unlink(RunDir(st.run.dir).latest)  # lost; step-000000005.pt is what --resume falls back to
+    assert RunDir(st.run.dir).has_checkpoint()
     from imssr.sweep.sweep import plan_runs
     assert plan_runs(cfg)[0].action == "resume"

@@ -11,7 +11,8 @@ import time
 import pytest
 
 from imssr.cli import main
-from imssr.training.wandb_run import RUN_ID_FILE, read_run_id
+from imssr.rundir import WANDB_RUN_FILE as RUN_ID_FILE
+from imssr.training.wandb_run import read_run_id
 
 pytest.importorskip("wandb")
 

@@ -36,6 +36,7 @@ from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
 from imssr.networks import Actor, ConvTrunk, Critic, Encoder, ema, weight_init
 from imssr.precision import autocast, configure_cuda, full_precision, optimizer_step, warn_if_bf16_is_slow
 from imssr.replay import FrameReplayBuffer
+from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
 Metrics = dict[str, "torch.Tensor | float"]
 
@@ -105,8 +106,8 @@ class SACAgent:
         # All on the agent's device: crop offsets, overlay indices and kernels are drawn where
         # they are used, with no copy from the host in an update.
         self.gen = torch.Generator(device=self.device).manual_seed(seed)
-        self.noise_gen = torch.Generator(device=self.device).manual_seed(seed + 1)
-        self.intrinsic_gen = torch.Generator(device=self.device).manual_seed(seed + 2)
+        self.noise_gen = torch.Generator(device=self.device).manual_seed(seed + NOISE_SEED_OFFSET)
+        self.intrinsic_gen = torch.Generator(device=self.device).manual_seed(seed + INTRINSIC_SEED_OFFSET)
         self.updates = 0
         warn_if_bf16_is_slow(self.device, cfg.precision)
         configure_cuda(self.device, cfg.tf32)
@@ -357,8 +358,8 @@ class SACAgent:
         self.updates = state["updates"]
         if restore_rng:
             seed = int(self.gen.initial_seed())
-            for offset, (key, gen) in enumerate([("gen", self.gen), ("noise_gen", self.noise_gen),
-                                                  ("intrinsic_gen", self.intrinsic_gen)]):
+            for key, gen, offset in [("gen", self.gen, 0), ("noise_gen", self.noise_gen, NOISE_SEED_OFFSET),
+                                     ("intrinsic_gen", self.intrinsic_gen, INTRINSIC_SEED_OFFSET)]:
                 try:
                     gen.set_state(state[key])
                 except RuntimeError:  # saved on another device type

@@ -19,13 +19,13 @@ from imssr.analysis.measures import (first_visit, knn_distance, nuisance_distanc
                                      state_coordinates)
 from imssr.analysis.report import plot_correlations, save_extremes, spearman_ci, write_rows
 from imssr.analysis.states import SOURCES, StateSample, collect
-from imssr.config import load_config
 from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
-from imssr.training.build import build_agent, resolve_device, restore_agent
-from imssr.training.checkpoint import (latest_path, load_checkpoint, numbered_checkpoints, select_checkpoint,
-                                       usable_checkpoint)
+from imssr.rundir import RunDir
+from imssr.seeds import ANALYSIS_ENV_SEED_OFFSET, ANALYSIS_ROLLOUT_SEED_OFFSET, ANALYSIS_SCENE_SEED_OFFSET
+from imssr.training.build import resolve_device, restore_agent
+from imssr.training.checkpoint import load_checkpoint
 
 __all__ = ["AnalysisOptions", "AnalysisResult", "analyze_run", "intrinsic_signal", "SOURCES", "DEFAULT_MODES"]
 
@@ -96,40 +96,40 @@ class AnalysisResult:
 def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResult:
     """Analyse the run in ``run_dir``; see the module docstring and docs/analysis.md."""
     opts.validate()
-    if not os.path.isdir(run_dir):
-        raise ImssrError(f"run directory not found: {run_dir}")
-    cfg = load_config(os.path.join(run_dir, "config.json"))
+    run = RunDir(run_dir).require()
+    cfg = run.read_config()
     if not cfg.intrinsic.enabled:
         raise ImssrError(f"the run's algorithm {cfg.algo} has no intrinsic reward to analyse (choose an im-, "
                          "+rnd or +re3 algorithm's run)")
-    paths = ([select_checkpoint(run_dir, c) for c in opts.checkpoints] if opts.checkpoints
-             else numbered_checkpoints(run_dir) or [latest_path(run_dir)])
+    paths = ([run.select_checkpoint(c) for c in opts.checkpoints] if opts.checkpoints
+             else run.numbered_checkpoints() or [run.latest])
     ckpts = {}
     for path in paths:
         state = load_checkpoint(path)
         ckpts.setdefault(int(state["step"]), state)
     steps = sorted(ckpts)
-    latest, _, warn = usable_checkpoint(run_dir, verb="analysing")
+    latest, _, warn = run.usable_checkpoint(verb="analysing")
     if warn:
         log(f"imssr: {warn}")
-    device = resolve_device(opts.device)
+    resolve_device(opts.device)  # a bad device fails before any env is built
     e = cfg.env
-    out = opts.out or os.path.join(run_dir, "analysis")
-    env = env_from_config(e, seed=opts.seed + 30_000, mode="training", footage_split="train")
+    out = opts.out or run.analysis_dir
+    env = env_from_config(e, seed=opts.seed + ANALYSIS_ENV_SEED_OFFSET, mode="training", footage_split="train")
     envs = {}
     try:
-        agent = build_agent(cfg, env.observation_space.shape, env.action_space.shape[0], device)
+        # The newest analysed checkpoint's agent; every other checkpoint loads into the same one.
+        agent = run.agent_at(ckpts[steps[-1]], cfg, device=opts.device, env=env).agent
 
         def load(state: dict):
             return restore_agent(agent, state)
 
         assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)
-        rollout_env = (env_from_config(e, seed=opts.seed + 40_000, footage_split="train")
+        rollout_env = (env_from_config(e, seed=opts.seed + ANALYSIS_ROLLOUT_SEED_OFFSET, footage_split="train")
                        if e.mode != "training" else env)
         if rollout_env is not env:
             envs["rollouts"] = rollout_env
-        sample = collect(run_dir, cfg, latest, opts.states, rng, opts.source, rollout_env,
+        sample = collect(run, cfg, latest, opts.states, rng, opts.source, rollout_env,
                          lambda: load(ckpts[steps[-1]]))
         log(f"imssr: analysing {len(sample)} states of {run_dir} ({sample.note}) at agent step(s) "
             f"{', '.join(f'{s:,}' for s in steps)}")
@@ -143,7 +143,8 @@ def analyze_run(run_dir: str, opts: AnalysisOptions, log=print) -> AnalysisResul
             if mode == "training":
                 shifted[mode] = np.stack([env.render_stack(s) for s in sample.stack_physics])
                 continue
-            envs[mode] = env_from_config(e, seed=opts.seed + 50_000 + i, mode=mode, footage_split="test")
+            envs[mode] = env_from_config(e, seed=opts.seed + ANALYSIS_SCENE_SEED_OFFSET + i, mode=mode,
+                                         footage_split="test")
             shifted[mode] = np.stack([envs[mode].render_stack(s) for s in sample.stack_physics])
         novelty_all, per_step_novelty, first = _novelty(sample, env, steps, opts.neighbors)
         padding = sample.buffer.gather(sample.buffer.sample_indices(batch_size(agent)))

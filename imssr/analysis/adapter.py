@@ -11,6 +11,7 @@ import torch
 
 from imssr.augmentations import center_crop
 from imssr.errors import ImssrError
+from imssr.seeds import INTRINSIC_SEED_OFFSET
 
 
 def intrinsic_signal(agent, sample: dict[str, np.ndarray]) -> torch.Tensor:
@@ -47,7 +48,7 @@ def fix_draws(agent, seed: int) -> None:
     """Seed the agent's crop and extra-view generators, so that two checkpoints see the same
     crops and views of the same states and differ only by their weights."""
     agent.gen.manual_seed(seed)
-    agent.intrinsic_gen.manual_seed(seed + 2)
+    agent.intrinsic_gen.manual_seed(seed + INTRINSIC_SEED_OFFSET)
 
 
 def encoder_latents(agent, stacks: np.ndarray, chunk: int = 64) -> np.ndarray:

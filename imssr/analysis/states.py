@@ -26,7 +26,7 @@ from imssr.config import RunConfig
 from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError
-from imssr.training.checkpoint import checkpoint_dir
+from imssr.rundir import RunDir
 
 SOURCES = ("auto", "replay", "rollouts")
 
@@ -59,10 +59,10 @@ class StateSample:
         return len(self.slot)
 
 
-def replay_path(run_dir: str, ckpt: dict) -> Optional[str]:
+def replay_path(run: RunDir, ckpt: dict) -> Optional[str]:
     """The replay file that the run's newest checkpoint names, or None."""
     name = ckpt.get("replay_file")
-    return os.path.join(checkpoint_dir(run_dir), name) if name else None
+    return run.replay_path(name) if name else None
 
 
 def load_replay(path: str, cfg: RunConfig, env) -> FrameReplayBuffer:
@@ -128,7 +128,7 @@ def rollout_buffer(agent, env, n_states: int) -> FrameReplayBuffer:
     return buf
 
 
-def collect(run_dir: str, cfg: RunConfig, latest: dict, n: int, rng: np.random.Generator, source: str,
+def collect(run: RunDir, cfg: RunConfig, latest: dict, n: int, rng: np.random.Generator, source: str,
             env, agent_for_rollouts) -> StateSample:
     """States from the run's replay, or from rollouts (``source``: see :data:`SOURCES`).
 
@@ -139,7 +139,7 @@ def collect(run_dir: str, cfg: RunConfig, latest: dict, n: int, rng: np.random.G
         raise ImssrError(f"unknown source {source!r}; valid: {', '.join(SOURCES)}")
     why = ""
     if source in ("auto", "replay"):
-        path = replay_path(run_dir, latest)
+        path = replay_path(run, latest)
         if path is None:
             why = "the run saved no replay buffer (train.save_buffer off)"
         else:

@@ -1,11 +1,17 @@
 """Auxiliary self-supervised tasks, one module each, registered by name."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.auxiliary.curl import CURL
 from imssr.auxiliary.pad import PAD
 from imssr.auxiliary.soda import SODA
 from imssr.auxiliary.svea import SVEA
-from imssr.config import AgentConfig, AuxConfig
 from imssr.errors import ImssrError
+
+if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
+    from imssr.config import AgentConfig, AuxConfig
 
 AUX_TASKS: dict[str, type[AuxiliaryTask]] = {t.name: t for t in (CURL, SODA, PAD, SVEA)}
 

@@ -13,15 +13,17 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from typing import ClassVar, Literal, Optional
+from typing import TYPE_CHECKING, ClassVar, Literal, Optional
 
 import torch
 from torch import nn
 
 from imssr.batch import Batch, Encoding, NextObsContext
-from imssr.config import AgentConfig, AuxConfig
 from imssr.networks.module import ModuleWithOptimizer
 from imssr.precision import optimizer_step
+
+if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
+    from imssr.config import AgentConfig, AuxConfig, RunConfig
 
 
 @dataclass(kw_only=True)
@@ -50,6 +52,13 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     agent then encodes both in one pass), or None (SODA: views of its own).  The agent reads the
     loss from its pass under ``agent.update_schedule = fused`` when the task trains on the RL
     batch; the task itself never needs to know which schedule runs."""
+
+    @classmethod
+    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
+        """The task's rules on a config, as ``(holds, one-line error)`` pairs, asked by
+        :meth:`RunConfig.validate <imssr.config.RunConfig.validate>` of every task: a config carries
+        every task's settings, chosen or not (a rule on other sections tests ``cfg.aux.name``)."""
+        return []
 
     def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
         super().__init__()

@@ -18,7 +18,7 @@ IM-CURL's signal of o' (``intrinsic.form``):
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import torch
 import torch.nn.functional as F
@@ -27,8 +27,10 @@ from torch import nn
 from imssr.augmentations import random_crop
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
-from imssr.config import AgentConfig, AuxConfig
 from imssr.precision import full_precision
+
+if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
+    from imssr.config import AgentConfig, AuxConfig
 
 
 class CURL(AuxiliaryTask):
@@ -45,7 +47,7 @@ class CURL(AuxiliaryTask):
         return list(self.shared.encoder.parameters())
 
     def trained_parameters(self) -> list[nn.Parameter]:
-        # W first: the order of CURL's saved optimiser state since imssr 0.1.
+        # W first: the order in which checkpoints hold CURL's optimiser state.
         return [*self.own_parameters(), *self.shared_parameters()]
 
     def logits(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:

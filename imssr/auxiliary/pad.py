@@ -18,17 +18,19 @@ which is reused instead of being recomputed.
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import torch
 from torch import nn
 
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
-from imssr.config import AgentConfig, AuxConfig
 from imssr.networks import Projection, mlp, weight_init
 from imssr.networks.encoder import conv_stack
 from imssr.precision import full_precision
+
+if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
+    from imssr.config import AgentConfig, AuxConfig
 
 
 class PAD(AuxiliaryTask):

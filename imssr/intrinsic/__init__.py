@@ -2,12 +2,19 @@
 in-batch normalisation and the beta schedule (:class:`IntrinsicReward`)."""
 from __future__ import annotations
 
-from imssr.config import AgentConfig, IntrinsicConfig
+from typing import TYPE_CHECKING
+
 from imssr.errors import ImssrError
-from imssr.intrinsic.base import IntrinsicSignal, SSLSignal
+from imssr.intrinsic.base import FORMS, IntrinsicSignal, SSLSignal
 from imssr.intrinsic.re3 import RE3
-from imssr.intrinsic.reward import BetaSchedule, IntrinsicReward, normalize
+from imssr.intrinsic.reward import NORMALIZATIONS, SCHEDULES, BetaSchedule, IntrinsicReward, normalize
 from imssr.intrinsic.rnd import RND
+
+if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
+    from imssr.config import AgentConfig, IntrinsicConfig
+
+INTRINSIC_SIGNALS: dict[str, type[IntrinsicSignal]] = {s.name: s for s in (SSLSignal, RND, RE3)}
+"""The signals ``intrinsic.source`` names, in the order of :data:`imssr.algos.SIGNALS`."""
 
 
 def make_signal(cfg: IntrinsicConfig, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
@@ -22,8 +29,8 @@ def make_signal(cfg: IntrinsicConfig, obs_shape: tuple[int, ...], agent_cfg: Age
         return RND(obs_shape[0], agent_cfg.crop_size, cfg)
     if cfg.source == "re3":
         return RE3(obs_shape[0], agent_cfg, cfg)
-    raise ImssrError(f"unknown intrinsic source {cfg.source!r}; valid: ssl, rnd, re3")
+    raise ImssrError(f"unknown intrinsic source {cfg.source!r}; valid: {', '.join(INTRINSIC_SIGNALS)}")
 
 
-__all__ = ["BetaSchedule", "IntrinsicReward", "IntrinsicSignal", "SSLSignal", "RND", "RE3",
-           "make_signal", "normalize"]
+__all__ = ["BetaSchedule", "IntrinsicReward", "IntrinsicSignal", "SSLSignal", "RND", "RE3", "INTRINSIC_SIGNALS",
+           "FORMS", "NORMALIZATIONS", "SCHEDULES", "make_signal", "normalize"]

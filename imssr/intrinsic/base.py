@@ -8,18 +8,36 @@ and everything else stay the same.
 from __future__ import annotations
 
 import abc
-from typing import Callable, ClassVar
+from typing import TYPE_CHECKING, Callable, ClassVar
 
 import torch
 
 from imssr.batch import Batch, NextObsContext
 from imssr.networks.module import ModuleWithOptimizer
 
+if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
+    from imssr.config import RunConfig
+
+FORMS = ("authors", "training")
+"""How IM-CURL's and IM-SODA's signal of o' is computed (``intrinsic.form``)."""
+
 
 class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
     """A per-sample novelty signal of the next observation."""
 
     name: ClassVar[str]
+
+    @classmethod
+    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
+        """The signal's rules on a config, as ``(holds, one-line error)`` pairs, asked by
+        :meth:`RunConfig.validate <imssr.config.RunConfig.validate>` of every signal: a config
+        carries every signal's settings, chosen or not (:meth:`chosen` says whether it is)."""
+        return []
+
+    @classmethod
+    def chosen(cls, cfg: RunConfig) -> bool:
+        """Whether ``cfg`` adds this signal to the reward."""
+        return cfg.intrinsic.enabled and cfg.intrinsic.source == cls.name
 
     @property
     def label(self) -> str:
@@ -39,6 +57,10 @@ class SSLSignal(IntrinsicSignal):
     """IM-SSR (Algorithm 1): the auxiliary task's per-sample loss of o'."""
 
     name = "ssl"
+
+    @classmethod
+    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
+        return [(cfg.intrinsic.form in FORMS, f"intrinsic.form must be one of {', '.join(FORMS)}")]
 
     def __init__(self, task_loss: Callable[[NextObsContext], torch.Tensor], task_name: str):
         super().__init__()

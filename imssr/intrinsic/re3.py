@@ -7,17 +7,29 @@ It has no parameters to learn, so it costs one no-grad encoder pass.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
 from imssr.batch import NextObsContext
-from imssr.config import AgentConfig, IntrinsicConfig
 from imssr.intrinsic.base import IntrinsicSignal
 from imssr.networks import ConvTrunk, Projection, weight_init
+
+if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
+    from imssr.config import AgentConfig, IntrinsicConfig, RunConfig
 
 
 class RE3(IntrinsicSignal):
     name = "re3"
+
+    @classmethod
+    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
+        i = cfg.intrinsic
+        return [(i.re3_k >= 1 and i.re3_dim >= 1, "intrinsic.re3_k and re3_dim must be >= 1"),
+                # The k-th neighbour within the batch, besides the sample itself.
+                (not cls.chosen(cfg) or cfg.agent.batch_size > i.re3_k,
+                 "agent.batch_size must exceed intrinsic.re3_k")]
 
     def __init__(self, channels: int, agent_cfg: AgentConfig, cfg: IntrinsicConfig):
         super().__init__()

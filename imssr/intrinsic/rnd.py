@@ -10,13 +10,20 @@ in-batch normalisation as every other source.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
 from imssr.batch import Batch, NextObsContext
-from imssr.config import IntrinsicConfig
 from imssr.intrinsic.base import IntrinsicSignal
 from imssr.precision import full_precision, optimizer_step
+
+if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
+    from imssr.config import IntrinsicConfig, RunConfig
+
+MIN_CROP = 36
+"""The smallest crop RND's convolutions (8x8/4, 4x4/2, 3x3/1) leave a pixel of."""
 
 
 def rnd_convs(channels: int) -> nn.Sequential:
@@ -33,6 +40,13 @@ def _flat_dim(net: nn.Module, channels: int, size: int) -> int:
 
 class RND(IntrinsicSignal):
     name = "rnd"
+
+    @classmethod
+    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
+        i = cfg.intrinsic
+        return [(i.rnd_lr > 0 and i.rnd_dim >= 1, "intrinsic.rnd_lr must be > 0 and rnd_dim >= 1"),
+                (not cls.chosen(cfg) or cfg.agent.crop_size >= MIN_CROP,
+                 f"intrinsic.source=rnd needs agent.crop_size >= {MIN_CROP} (RND's 8/4, 4/2, 3/1 convolutions)")]
 
     def __init__(self, channels: int, size: int, cfg: IntrinsicConfig):
         super().__init__()

@@ -18,19 +18,6 @@ def conv_output_size(size: int, num_layers: int) -> int:
     return size - 2 * (num_layers - 1)
 
 
-class ConvStack(nn.Sequential):
-    """A :func:`conv_stack`; reads the state dicts of imssr 0.1's ``(Conv, ReLU)`` ordering too."""
-
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # imssr 0.1 put each ReLU after its convolution: convolutions at even indices.
-        # Here they sit at odd ones; the weights are the same layers in the same order.
-        if f"{prefix}0.weight" in state_dict:
-            for key in [k for k in state_dict if k.startswith(prefix)]:
-                index, rest = key[len(prefix):].split(".", 1)
-                state_dict[f"{prefix}{int(index) + 1}.{rest}"] = state_dict.pop(key)
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-
 def conv_stack(filters: int, num_layers: int) -> nn.Sequential:
     """``num_layers`` stride-1 3x3 convolutions of ``filters`` channels, each after a ReLU.
 
@@ -45,7 +32,7 @@ def conv_stack(filters: int, num_layers: int) -> nn.Sequential:
         # the stack's input may have other readers (PAD's head and the critic's read the
         # same shared features).
         layers += [nn.ReLU(inplace=i > 0), nn.Conv2d(filters, filters, 3, stride=1)]
-    return ConvStack(*layers)
+    return nn.Sequential(*layers)
 
 
 class ConvTrunk(nn.Module):

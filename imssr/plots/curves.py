@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import os
 
-from imssr.config import load_config
 from imssr.errors import ImssrError
+from imssr.rundir import RunDir
 from imssr.utils import atomic_path, read_csv
 
 
@@ -16,16 +16,15 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = read_csv(os.path.join(run_dir, "eval.csv"))
+    run = RunDir(run_dir)
+    rows = read_csv(run.eval_log)
     if not rows:
-        raise ImssrError(f"no evaluations in {os.path.join(run_dir, 'eval.csv')}")
-    out_path = out_path or os.path.join(run_dir, "learning_curve.png")
+        raise ImssrError(f"no evaluations in {run.eval_log}")
+    out_path = out_path or run.learning_curve_path
     title = os.path.basename(os.path.abspath(run_dir))
     action_repeat = None
-    cfg_path = os.path.join(run_dir, "config.json")
-    if os.path.exists(cfg_path):
-        # Through the config reader, so a run from before budgets counted agent steps plots too.
-        cfg = load_config(cfg_path)
+    if run.has_config():
+        cfg = run.read_config()
         title = f"{cfg.algo} on {cfg.env.task} (seed {cfg.train.seed})"
         action_repeat = cfg.env.action_repeat
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)

@@ -1,8 +1,7 @@
 """Reading a sweep directory back: every run's identity, budget and evaluations.
 
 Budgets and evaluation points count agent steps; frames (``step * action_repeat``) are kept
-beside them.  Run configs are read through :func:`imssr.config.load_config`, so a run made
-when budgets counted frames reports with the agent steps it trained.
+beside them.
 
 Runs are found by their ``config.json`` at any depth below the root, so a report also works
 on hand-assembled directories and on sweeps that are still running.  ``sweep.json`` (written
@@ -16,11 +15,10 @@ import os
 from dataclasses import dataclass, field
 from typing import Optional
 
-from imssr.config import load_config, steps_for_frames
-from imssr.envs import get_task
+from imssr.config import steps_for_frames
 from imssr.errors import ImssrError
+from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir
 from imssr.sweep.grid import SWEEP_PLAN, beta_label
-from imssr.sweep.runner import read_done
 from imssr.sweep.sweep import status_of
 from imssr.training.logger import read_csv
 from imssr.utils import atomic_write_csv
@@ -41,8 +39,7 @@ class RunResult:
     beta0: Optional[float]
     """beta_0 when the run is a point of a beta sweep (a ``beta0_<value>`` directory level)."""
     steps: int
-    """The run's budget T in agent steps (a config from before budgets counted agent steps is
-    migrated: ``ceil(frames / action_repeat)``, the steps it trained)."""
+    """The run's budget T in agent steps."""
     action_repeat: int
     """Environment frames per agent step."""
     dir: str
@@ -128,13 +125,13 @@ def collect(root: str) -> SweepResults:
     notes: list[str] = []
     runs = []
     for dirpath, dirnames, filenames in os.walk(root):
-        dirnames[:] = sorted(d for d in dirnames if d not in ("checkpoints", "tb", "videos"))
-        if "config.json" not in filenames:
+        dirnames[:] = sorted(d for d in dirnames if d not in (CHECKPOINT_DIR, TB_DIR, VIDEOS_DIR))
+        if CONFIG_FILE not in filenames:
             continue
         run = _read_run(dirpath, root, notes)
         if run is not None:
             runs.append(run)
-    planned = _read_plan(root, runs, notes)
+    planned = _read_plan(root, notes)
     failures = read_failures(root)
     for item in (*runs, *planned):
         item.failure = failures.get(os.path.abspath(item.dir))
@@ -158,7 +155,7 @@ def read_failures(root: str) -> dict[str, str]:
         if not isinstance(run, dict) or run.get("state") != "failed" or not isinstance(run.get("dir"), str):
             continue
         run_dir = os.path.abspath(os.path.join(root, run["dir"]))
-        if read_done(run_dir) is not None:
+        if RunDir(run_dir).read_done() is not None:
             continue
         errors = run.get("errors")
         last = errors[-1] if isinstance(errors, list) and errors and isinstance(errors[-1], str) else ""
@@ -168,9 +165,9 @@ def read_failures(root: str) -> dict[str, str]:
 
 def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     rel = os.path.relpath(run_dir, root)
+    run_files = RunDir(run_dir)
     try:
-        # Through the config reader, which migrates a run made when budgets counted frames.
-        cfg = load_config(os.path.join(run_dir, "config.json"))
+        cfg = run_files.read_config()
         beta_level = any(part.startswith("beta0_") for part in rel.split(os.sep))
         beta0 = float(cfg.intrinsic.beta0) if beta_level else None
     except (ImssrError, OSError, ValueError, KeyError, TypeError) as exc:
@@ -178,7 +175,7 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         return None
     repeat = cfg.env.action_repeat
     run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir)
-    path = os.path.join(run_dir, "eval.csv")
+    path = run_files.eval_log
     rows = read_csv(path)
     if rows and not _ends_with_newline(path):
         rows = rows[:-1]  # a row cut short by a killed writer ("...,training,2." of 2.5)
@@ -205,33 +202,18 @@ def _ends_with_newline(path: str) -> bool:
         return fh.read(1) == b"\n"
 
 
-def _read_plan(root: str, runs: list[RunResult], notes: list[str]) -> list[PlannedRun]:
+def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
     path = os.path.join(root, SWEEP_PLAN)
     if not os.path.exists(path):
         return []
-    repeats = {os.path.abspath(r.dir): r.action_repeat for r in runs}
     try:
         with open(path) as fh:
             plan = json.load(fh)
-        planned = []
-        for r in plan["runs"]:
-            run_dir = os.path.join(root, r["dir"])
-            if r.get("steps") is not None:
-                steps = int(r["steps"])
-            else:
-                # A plan from before budgets counted agent steps: its runs trained
-                # ceil(frames / action_repeat) steps (the run's repeat, else its task's preset's).
-                repeat = repeats.get(os.path.abspath(run_dir)) or _task_action_repeat(r["task"])
-                steps = steps_for_frames(int(r["frames"]), repeat)
-            planned.append(PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), steps, run_dir))
-        return planned
+        return [PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), int(r["steps"]),
+                           os.path.join(root, r["dir"])) for r in plan["runs"]]
     except (OSError, ValueError, KeyError, TypeError, ImssrError) as exc:
         notes.append(f"{SWEEP_PLAN}: unreadable ({exc}); expected seeds come from the runs found")
         return []
-
-
-def _task_action_repeat(task: str) -> int:
-    return get_task(task).action_repeat
 
 
 def write_evaluations(results: SweepResults, path: str) -> str:

@@ -16,8 +16,8 @@ from imssr.config import MAX_SEED, SEED_RULE, RunConfig, logger_fields
 from imssr.envs import get_task
 from imssr.errors import ImssrError
 from imssr.jsonio import dumps
-from imssr.presets import ALGOS, get_algo
-from imssr.presets import build_run_config as build_config
+from imssr.presets import ALGOS, get_algo, run_config
+from imssr.rundir import RunDir
 from imssr.utils import atomic_write_text
 
 LAUNCHERS = ("ray", "slurm", "local")
@@ -25,8 +25,7 @@ LAUNCHERS = ("ray", "slurm", "local")
 
 SWEEP_PLAN = "sweep.json"
 """File under ROOT with the expanded grid (the report reads it for T and the expected seeds).
-Each run holds its budget in agent steps (``steps``) and frames (``frames``); a plan written
-before budgets counted agent steps holds only ``frames``."""
+Each run holds its budget in agent steps (``steps``) and frames (``frames``)."""
 
 
 @dataclass
@@ -56,7 +55,8 @@ class SweepConfig:
     retries: int = 1
     """Extra attempts of a failed run (each resumes from the run's checkpoint if it has one)."""
     cpus_per_run: float = 1.0
-    """CPUs Ray reserves per run; also the run's torch/OpenMP threads (at least 1)."""
+    """CPUs Ray reserves per run; also the run's torch/OpenMP threads (``train.torch_threads``, at
+    least 1, unless the overrides set it)."""
     gpus_per_run: float = 0.0
     """GPUs (fractions allowed) Ray reserves per run; > 0 trains on ``cuda`` unless
     ``train.device`` is overridden."""
@@ -180,24 +180,26 @@ class Run:
         ``train.device`` wins)."""
         return cfg.gpus > 0 and not any(o.startswith("train.device=") for o in cfg.overrides)
 
-    def train_args(self, cfg: SweepConfig) -> list[str]:
-        """``imssr train`` arguments of this run (without --out / --resume)."""
-        args = ["--algo", self.algo, "--task", self.task, "--seed", str(self.seed)]
+    def resolved_config(self, cfg: SweepConfig) -> RunConfig:
+        """The run's whole config, which the sweep writes to its ``config.json`` and the worker
+        trains (``imssr train --config RUN/config.json``): the preset of its algo and task (a run
+        that has a checkpoint: its own ``config.json``, as ``imssr train --resume`` reads it),
+        then the sweep's seed, budget, device, threads and loggers, then the overrides."""
+        values: dict[str, Any] = {"train.seed": self.seed, "train.progress": False,
+                                  "train.torch_threads": max(1, int(cfg.cpus_per_run))}
         if cfg.steps is not None:
-            args += ["--steps", str(cfg.steps)]
-        elif cfg.frames is not None:
-            args += ["--frames", str(cfg.frames)]
-        if self.beta0 is not None:
-            args += ["--beta0", repr(float(self.beta0))]
+            values["train.steps"] = cfg.steps
         if self.on_gpu(cfg):
-            args += ["--device", "cuda"]
+            values["train.device"] = "cuda"
         if cfg.logger:
-            args += ["--logger", cfg.logger]
-            if logger_fields(cfg.logger)["train.wandb"]:
-                args += ["--set", f"train.wandb_group={cfg.wandb_group}"]
-        for item in cfg.overrides:
-            args += ["--set", item]
-        return args
+            values.update(logger_fields(cfg.logger))
+            if values["train.wandb"]:
+                values["train.wandb_group"] = cfg.wandb_group
+        run = RunDir(self.dir)
+        resume = run.has_checkpoint() and run.has_config()
+        return run_config(self.algo, self.task, resume_dir=self.dir if resume else None, values=values,
+                                frames=cfg.frames if cfg.steps is None else None, beta0=self.beta0,
+                                overrides=cfg.overrides)
 
 
 def beta_label(value: float) -> str:
@@ -218,23 +220,6 @@ def expand(cfg: SweepConfig) -> list[Run]:
                 for seed in cfg.seeds:
                     runs.append(Run(algo, task, seed, beta, os.path.join(*parts, f"seed_{seed}")))
     return runs
-
-
-def build_run_config(run: Run, cfg: SweepConfig) -> RunConfig:
-    """The run's RunConfig as ``imssr train`` builds it from :meth:`Run.train_args` (the same
-    :func:`imssr.presets.build_run_config`; a test checks that the two agree)."""
-    values: dict[str, Any] = {"train.seed": run.seed}
-    if cfg.steps is not None:
-        values["train.steps"] = cfg.steps
-    if run.on_gpu(cfg):
-        values["train.device"] = "cuda"
-    if cfg.logger:
-        values.update(logger_fields(cfg.logger))
-        if values["train.wandb"]:
-            values["train.wandb_group"] = cfg.wandb_group
-    return build_config(run.algo, run.task, values=values,
-                        frames=cfg.frames if cfg.steps is None else None, beta0=run.beta0,
-                        overrides=cfg.overrides)
 
 
 def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, tuple[int, int]]) -> str:

@@ -32,13 +32,15 @@ SUBMITIT_FOLDER = ".submitit"
 
 @dataclass(frozen=True)
 class Attempt:
-    """What an attempt runs: ``imssr train`` of one run directory to ``steps`` agent steps."""
+    """What an attempt runs: ``imssr train`` of one run directory (its ``config.json``) to
+    ``steps`` agent steps."""
 
     run_dir: str
-    train_args: list[str]
+    """The run directory."""
     steps: int
+    """The budget in agent steps that makes the run done."""
     attempt: int
-    threads: int
+    """The attempt's number (1 for the first of this sweep)."""
 
 
 class Launcher:
@@ -107,7 +109,7 @@ class LocalLauncher(Launcher):
         return min(fits, self.cfg.max_parallel) if self.cfg.max_parallel else fits
 
     def submit(self, attempts: list[Attempt]) -> list[RunAttempt]:
-        return [RunAttempt(a.run_dir, a.train_args, a.steps, a.attempt, a.threads) for a in attempts]
+        return [RunAttempt(a.run_dir, a.steps, a.attempt) for a in attempts]
 
     def wait(self, handles: list[RunAttempt], timeout_s: float) -> list[RunAttempt]:
         return _wait_polling(handles, lambda h: h.poll() is not None, timeout_s)
@@ -138,7 +140,7 @@ class RayLauncher(Launcher):
         return _capacity(self.ray, self.cfg)
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
-        return [self.task.remote(a.run_dir, a.train_args, a.steps, a.attempt, a.threads) for a in attempts]
+        return [self.task.remote(a.run_dir, a.steps, a.attempt) for a in attempts]
 
     def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
         ready, _ = self.ray.wait(list(handles), num_returns=1, timeout=timeout_s)
@@ -191,7 +193,7 @@ class SlurmLauncher(Launcher):
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
         with self.executor.batch():
-            jobs = [self.executor.submit(execute_run, a.run_dir, a.train_args, a.steps, a.attempt, a.threads)
+            jobs = [self.executor.submit(execute_run, a.run_dir, a.steps, a.attempt)
                     for a in attempts]
         return jobs
 
@@ -215,9 +217,9 @@ class SlurmLauncher(Launcher):
                 pass
 
 
-def _remote_run(run_dir: str, train_args: list[str], steps: int, attempt: int, threads: int) -> dict:
+def _remote_run(run_dir: str, steps: int, attempt: int) -> dict:
     """The Ray task body (module level, so workers import it rather than unpickle code)."""
-    return execute_run(run_dir, train_args, steps, attempt, threads)
+    return execute_run(run_dir, steps, attempt)
 
 
 def _check_reachable(address: str, timeout_s: float = 5.0) -> None:

@@ -4,9 +4,12 @@ Each attempt of a run is ``imssr train`` in a subprocess (:class:`imssr.sweep.ru
 started by the launcher ``--launcher`` names (:mod:`imssr.sweep.launchers`: a Ray task, a SLURM
 job through submitit, or the sweep itself); planning, retries and the status file are here,
 the same for every launcher.  Before anything starts, every run is
-classified from its directory: ``done.json`` with a budget (in agent steps) at least the
-sweep's means done (skipped), a checkpoint means resume, nothing means a fresh start.  A failed attempt is
-retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
+classified from its directory (:class:`imssr.rundir.RunDir`): ``done.json`` with a budget (in
+agent steps) at least the sweep's means done (skipped), a checkpoint means resume (unless the
+sweep's config differs from the run's in a setting a resume may not change: then the run is
+failed, not started), nothing means a fresh start.  Each run to train gets its resolved
+``config.json``, which its worker trains (``imssr train --config RUN/config.json``).  A failed
+attempt is retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
 still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.  A run that
 diverged is not retried (it diverges again from the same checkpoint); one stopped by a signal
 (preemption: ``imssr train`` checkpoints and exits 130) is interrupted, not failed, and resumes.
@@ -24,12 +27,14 @@ from typing import Optional
 
 from tqdm import tqdm
 
-from imssr.errors import INTERRUPTED_EXIT
+from imssr.config import RunConfig
+from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.jsonio import dumps
-from imssr.sweep.grid import Run, SweepConfig, build_run_config, expand, save_plan
+from imssr.rundir import SWEEP_LOG, RunDir
+from imssr.sweep.grid import Run, SweepConfig, expand, save_plan
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
-from imssr.sweep.runner import LOG_FILE, has_checkpoint, is_done, last_frame, last_step, read_done
 from imssr.training.lock import DirectoryLock
+from imssr.training.loop import RESUMABLE_CHANGES
 from imssr.utils import atomic_write_text
 
 STATUS_FILE = "sweep_status.json"
@@ -68,6 +73,9 @@ class RunStatus:
     """Environment frame of the run's last evaluation."""
     seconds: float = 0.0
     """Wall time of this invocation's attempts."""
+    config: Optional[RunConfig] = None
+    """The run's resolved config, which the sweep writes to its ``config.json`` before the first
+    attempt (:meth:`imssr.sweep.grid.Run.resolved_config`)."""
 
     def to_dict(self, root: str) -> dict:
         return {"name": self.run.name, "dir": os.path.relpath(self.run.dir, root), "algo": self.run.algo,
@@ -76,7 +84,7 @@ class RunStatus:
                 "attempts": self.attempts, "errors": self.errors, "interruptions": self.interruptions,
                 "note": self.note, "final_step": self.final_step,
                 "final_frame": self.final_frame,
-                "seconds": round(self.seconds, 1), "log": os.path.relpath(os.path.join(self.run.dir, LOG_FILE), root)}
+                "seconds": round(self.seconds, 1), "log": os.path.relpath(RunDir(self.run.dir).sweep_log, root)}
 
 
 def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
@@ -85,20 +93,49 @@ def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
     runs = expand(cfg)
     statuses = []
     for run in runs:
-        # Builds each run's config exactly as `imssr train` will: a bad override fails here,
-        # once, instead of N times on the workers.
-        run_cfg = build_run_config(run, cfg)
-        status = RunStatus(run, run_cfg.total_steps, run_cfg.total_frames)
-        if is_done(run.dir, status.steps):
+        # Each run's whole config, as its worker will train it: a bad override fails here, once,
+        # instead of N times on the workers.
+        run_cfg = run.resolved_config(cfg)
+        status = RunStatus(run, run_cfg.total_steps, run_cfg.total_frames, config=run_cfg)
+        run_dir = RunDir(run.dir)
+        if run_dir.is_done(status.steps):
             status.state, status.action = "done", "done"
-            eval_csv = os.path.join(run.dir, "eval.csv")
-            status.final_step, status.final_frame = last_step(eval_csv), last_frame(eval_csv)
+            status.final_step, status.final_frame = run_dir.last_evaluation()
             # A later sweep over the same root still reports how long the run took.
-            status.seconds = float(read_done(run.dir).get("seconds", 0.0))
-        elif has_checkpoint(run.dir):
+            status.seconds = float(run_dir.read_done().get("seconds", 0.0))
+        elif run_dir.has_checkpoint():
             status.action = "resume"
+            conflict = config_conflict(run_dir, run_cfg)
+            if conflict:
+                status.state, status.note = "failed", "not started: the sweep's config differs from the run's"
+                status.errors.append(conflict)
         statuses.append(status)
     return statuses
+
+
+def config_conflict(run: RunDir, cfg: RunConfig) -> str:
+    """Why ``cfg`` cannot resume the run in ``run`` (its ``config.json`` differs in a setting that
+    :data:`imssr.training.loop.RESUMABLE_CHANGES` does not allow to change); empty when it can.
+    The sweep then leaves the run's config.json as it is, so that it still describes the run."""
+    if not run.has_config():
+        return ""
+    try:
+        saved = _flat(run.read_config().to_dict())
+    except ImssrError as exc:
+        return f"its config.json is unreadable ({exc})"
+    now = _flat(cfg.to_dict())
+    diff = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k) and k not in RESUMABLE_CHANGES)
+    if not diff:
+        return ""
+    return (f"{run.path} holds a run made with a different config ({', '.join(diff[:5])}"
+            f"{', ...' if len(diff) > 5 else ''}); resume it with its own settings or choose another --root")
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
 
 
 def write_status(cfg: SweepConfig, statuses: list[RunStatus], started: float, finished: bool = False) -> str:
@@ -122,8 +159,12 @@ def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
         what = {"done": "done, skipped", "resume": "resume from checkpoint", "fresh": "new"}[s.action]
         lines.append(f"  {os.path.relpath(s.run.dir, os.path.abspath(cfg.root))}\t{s.run.name}, "
                      f"{s.steps:,} agent steps ({s.frames:,} frames)\t[{what}]")
-    lines.append("e.g. imssr train " + " ".join(statuses[0].run.train_args(cfg)) + f" --out {statuses[0].run.dir}"
-                 if statuses else "")
+    if statuses:
+        run = RunDir(statuses[0].run.dir)
+        lines.append(f"each run trains the config the sweep writes to its directory, e.g. "
+                     f"imssr train --config {run.config_path} --out {run.path}")
+    else:
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -138,11 +179,11 @@ class _Progress:
 
     def refresh(self) -> None:
         counts = {s: sum(st.state == s for st in self.statuses) for s in STATES}
-        # Agent steps trained so far over all runs, from the tails of their train.csv logs
-        # (steps, not frames: runs of tasks with different action repeats weigh by their T).
+        # Agent steps trained so far over all runs (steps, not frames: runs of tasks with
+        # different action repeats weigh by their T).
         total = sum(st.steps for st in self.statuses) or 1
         trained = sum(st.steps if st.state == "done" else
-                      min(st.steps, last_step(os.path.join(st.run.dir, "train.csv"))) for st in self.statuses)
+                      min(st.steps, RunDir(st.run.dir).trained_steps()) for st in self.statuses)
         self.bar.n = counts["done"] + counts["failed"]
         self.bar.set_postfix_str(f"queued {counts['queued']} running {counts['running']} done {counts['done']} "
                                  f"failed {counts['failed']} | steps {100 * trained / total:.0f}%", refresh=False)
@@ -181,12 +222,20 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     save_plan(cfg, [s.run for s in statuses], {s.run.dir: (s.steps, s.frames) for s in statuses})
     started = time.time()
     status_path = write_status(cfg, statuses, started)
-    todo = deque(s for s in statuses if s.state != "done")
+    todo = deque(s for s in statuses if s.state == "queued")
+    for st in todo:
+        # The one description of the run its worker trains (written before any attempt, and
+        # not again between attempts: the training keeps what it adds, e.g. footage folders).
+        RunDir(st.run.dir).write_config(st.config)
+    refused = [s for s in statuses if s.state == "failed"]
+    for st in refused:
+        print(f"imssr: {st.run.name} not started: {st.errors[-1]}", flush=True)
     if not todo:
-        print(f"imssr: all {len(statuses)} runs are done; nothing to start ({status_path})", flush=True)
+        if not refused:
+            print(f"imssr: all {len(statuses)} runs are done; nothing to start ({status_path})", flush=True)
         write_status(cfg, statuses, started, finished=True)
         return statuses
-    print(f"imssr: {len(statuses)} runs, {len(statuses) - len(todo)} done, "
+    print(f"imssr: {len(statuses)} runs, {sum(s.state == 'done' for s in statuses)} done, "
           f"{sum(s.action == 'resume' for s in todo)} to resume, {sum(s.action == 'fresh' for s in todo)} new "
           f"({cfg.launcher}); status in {status_path}", flush=True)
     ui = None
@@ -196,7 +245,6 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
         launcher.start()
         parallel = launcher.capacity()
         ui = _Progress(statuses, progress)
-        threads = max(1, int(cfg.cpus_per_run))
         while todo or inflight:
             batch = []
             while todo and len(inflight) + len(batch) < parallel:
@@ -204,8 +252,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
                 st.state, st.attempts = "running", st.attempts + 1
                 batch.append(st)
             if batch:
-                handles = launcher.submit([Attempt(st.run.dir, st.run.train_args(cfg), st.steps, st.attempts,
-                                                   threads) for st in batch])
+                handles = launcher.submit([Attempt(st.run.dir, st.steps, st.attempts) for st in batch])
                 inflight.update(zip(handles, batch))
                 write_status(cfg, statuses, started)
             ready = launcher.wait(list(inflight), poll_s)
@@ -243,7 +290,7 @@ def settle(st: RunStatus, result: dict, retries: int) -> str:
     st.seconds += result.get("seconds", 0.0)
     st.final_step = result.get("final_step", st.final_step)
     st.final_frame = result.get("final_frame", st.final_frame)
-    log = os.path.join(st.run.dir, LOG_FILE)
+    log = RunDir(st.run.dir).sweep_log
     if result["ok"]:
         st.state = "done"
         return (f"done    {st.run.name}: step {st.final_step} (frame {st.final_frame})"
@@ -289,7 +336,7 @@ def summarize(statuses: list[RunStatus]) -> tuple[str, int]:
     if failed:
         names = ", ".join(s.run.name for s in failed[:3]) + (" ..." if len(failed) > 3 else "")
         return (f"{len(failed)} of {len(statuses)} runs failed after retries ({names}); "
-                f"{done} done; see sweep_status.json and each run's {LOG_FILE}"), 1
+                f"{done} done; see sweep_status.json and each run's {SWEEP_LOG}"), 1
     return f"all {len(statuses)} runs done", 0
 
 

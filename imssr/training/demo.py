@@ -6,10 +6,9 @@ only turns a finished demo run into something a newcomer can look at.
 """
 from __future__ import annotations
 
-import os
-
 from imssr.config import RunConfig
 from imssr.plots.media import save_video
+from imssr.rundir import RunDir
 from imssr.training.evaluate import evaluate
 from imssr.training.logger import read_csv
 
@@ -32,7 +31,7 @@ def record_episode(trainer, path: str) -> str:
 
 def summary(cfg: RunConfig, run_dir: str, minutes: float, gif: str, png: str) -> str:
     """The demo's last line: what the curve shows, where the files are, the paper-scale command."""
-    rows = [r for r in read_csv(os.path.join(run_dir, "eval.csv")) if r["mode"] == cfg.env.mode]
+    rows = [r for r in read_csv(RunDir(run_dir).eval_log) if r["mode"] == cfg.env.mode]
     first, best, last = rows[0], max(rows, key=lambda r: float(r["return_mean"])), rows[-1]
     ret = lambda r: f"{float(r['return_mean']):.0f} at agent step {int(r['step']):,}"  # noqa: E731
     best_text = "" if best is last else f" (best {ret(best)})"

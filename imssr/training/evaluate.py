@@ -2,18 +2,17 @@
 evaluation of a saved run (``imssr evaluate``)."""
 from __future__ import annotations
 
-import os
 from typing import Callable, Optional
 
 import numpy as np
 
-from imssr.config import load_config
 from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
-from imssr.errors import DivergedError, ImssrError
+from imssr.errors import DivergedError
 from imssr.plots.media import save_montage, save_video
-from imssr.training.build import build_agent, resolve_device, restore_agent
-from imssr.training.checkpoint import run_checkpoint
+from imssr.rundir import RunDir
+from imssr.seeds import evaluation_seed
+from imssr.training.build import resolve_device
 from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, append_locked, episode_rows
 
 
@@ -55,12 +54,6 @@ def _hwc(frame: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(frame, 0, -1))
 
 
-def evaluation_seed(cfg) -> int:
-    """Seed of the envs that evaluate a saved run by default: the run seed + 20,000, which no env
-    of its training (seed) or of its evaluations during training (seed + 10,000) used."""
-    return cfg.train.seed + 20_000
-
-
 def eval_row(frame: int, step: int, mode: str, returns: list[float]) -> dict:
     """The ``eval.csv`` summary of one evaluation."""
     return {"frame": frame, "step": step, "mode": mode,
@@ -91,31 +84,27 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
         log: where progress lines go (default: stdout, flushed).
     """
     log = log or _say
-    if not os.path.isdir(run_dir):
-        raise ImssrError(f"run directory not found: {run_dir}")
-    cfg = load_config(os.path.join(run_dir, "config.json"))
+    run = RunDir(run_dir).require()
+    cfg = run.read_config()
     scenes = ([m.strip() for m in modes.split(",") if m.strip()] if modes
               else cfg.train.eval_mode_list(cfg.env.mode))
     for mode in scenes:
         get_mode(mode)
-    ckpt, note = run_checkpoint(run_dir, checkpoint)
+    ckpt, note = run.checkpoint(checkpoint)
     if note:
         log(f"imssr: {note}")
-    torch_device = resolve_device(device)
-    seed = evaluation_seed(cfg) if seed is None else seed
+    resolve_device(device)  # a bad device fails before any env is built
+    seed = evaluation_seed(cfg.train.seed) if seed is None else seed
     agent = None
     pictures = {}
-    summary_path = os.path.join(run_dir, "evaluate.csv")
-    episodes_path = os.path.join(run_dir, "evaluate_episodes.csv")
     rows, episodes_rows = [], []
     for mode in dict.fromkeys(scenes):
         # Unseen footage: evaluation draws from the test pool.
         env = env_from_config(cfg.env, seed=seed, mode=mode, footage_split="test", footage_path=footage)
-        if agent is None:
-            agent = restore_agent(build_agent(cfg, env.observation_space.shape, env.action_space.shape[0],
-                                              torch_device), ckpt)
         frames: Optional[list] = [] if (video or montage) else None
         try:
+            if agent is None:
+                agent = run.agent_at(ckpt, cfg, device=device, env=env).agent
             returns = evaluate(agent, env, episodes, record=frames)
         finally:
             env.close()
@@ -125,18 +114,18 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
         log(f"{mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
             f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
         if video:
-            log(f"  video: {save_video(frames, os.path.join(run_dir, 'videos', f'{mode}.{video}'))}")
+            log(f"  video: {save_video(frames, run.video_path(f'{mode}.{video}'))}")
         if montage:
             pictures[mode] = frames[min(len(frames) - 1, 20)]
     if pictures:
-        path = save_montage(pictures, os.path.join(run_dir, "montage.png"),
+        path = save_montage(pictures, run.montage_path,
                             f"{cfg.algo} on {cfg.env.task}, frame {ckpt['frame']}")
         log(f"montage: {path}")
     # Appended to, one summary row per scene and one row per episode (with the checkpoint's step),
     # each file in one locked append: two evaluations of the run at once never interleave.
-    append_locked(episodes_path, EVAL_EPISODE_COLUMNS, episodes_rows)
-    append_locked(summary_path, EVAL_COLUMNS, rows)
-    log(f"imssr: evaluation written to {summary_path} and {episodes_path}")
+    append_locked(run.evaluate_episodes_log, EVAL_EPISODE_COLUMNS, episodes_rows)
+    append_locked(run.evaluate_log, EVAL_COLUMNS, rows)
+    log(f"imssr: evaluation written to {run.evaluate_log} and {run.evaluate_episodes_log}")
 
 
 def _say(text: str) -> None:

@@ -18,6 +18,7 @@ from typing import Iterable, Optional
 import numpy as np
 
 from imssr.plots.media import save_video
+from imssr.rundir import RunDir
 from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full, read_csv
 
 VIDEO_FPS = 25.0
@@ -116,15 +117,16 @@ class Logger:
     def __init__(self, out_dir: str, tensorboard: bool = True, resume_frame: Optional[int] = None,
                  wandb=None):
         self.out_dir, self.wandb = out_dir, wandb
+        self.run = run = RunDir(out_dir)
         if resume_frame is None:
             # A fresh run: logs left by a run killed before its first checkpoint are stale.
-            for name in ("train.csv", "eval.csv", "eval_episodes.csv"):
-                if os.path.exists(os.path.join(out_dir, name)):
-                    os.unlink(os.path.join(out_dir, name))
-            shutil.rmtree(os.path.join(out_dir, "tb"), ignore_errors=True)
-        self.train = CSVLog(os.path.join(out_dir, "train.csv"), TRAIN_COLUMNS)
-        self.eval = CSVLog(os.path.join(out_dir, "eval.csv"), EVAL_COLUMNS)
-        self.eval_episodes = CSVLog(os.path.join(out_dir, "eval_episodes.csv"), EVAL_EPISODE_COLUMNS)
+            for path in run.training_logs:
+                if os.path.exists(path):
+                    os.unlink(path)
+            shutil.rmtree(run.tb_dir, ignore_errors=True)
+        self.train = CSVLog(run.train_log, TRAIN_COLUMNS)
+        self.eval = CSVLog(run.eval_log, EVAL_COLUMNS)
+        self.eval_episodes = CSVLog(run.eval_episodes_log, EVAL_EPISODE_COLUMNS)
         if resume_frame is not None:
             for log in (self.train, self.eval, self.eval_episodes):
                 log.truncate_after(resume_frame)
@@ -137,9 +139,9 @@ class Logger:
                 SummaryWriter = None
             if SummaryWriter is not None:
                 _quiet_tensorboard_disk_full()
-                self.tb_dir = os.path.join(out_dir, "tb")
+                self.tb_dir = run.tb_dir
                 # purge_step drops events newer than the checkpoint on resume.
-                self.tb = SummaryWriter(os.path.join(out_dir, "tb"), purge_step=None if resume_frame is None else resume_frame + 1)
+                self.tb = SummaryWriter(run.tb_dir, purge_step=None if resume_frame is None else resume_frame + 1)
 
     def rewrite_eval(self, history: list[dict]) -> None:
         """Rewrite the evaluation CSVs from a checkpoint's history (``row`` + ``returns``)."""
@@ -159,7 +161,7 @@ class Logger:
     def log_video(self, mode: str, frames: list[np.ndarray], frame: int, step: int, fmt: str) -> str:
         """One evaluation episode in scene ``mode`` (``(H, W, 3)`` uint8 frames) as
         ``videos/step_<step>_<mode>.<fmt>``, to TensorBoard and to W&B; returns the file's path."""
-        path = save_video(frames, os.path.join(self.out_dir, "videos", f"step_{step:09d}_{mode}.{fmt}"),
+        path = save_video(frames, self.run.video_path(f"step_{step:09d}_{mode}.{fmt}"),
                           fps=VIDEO_FPS)
         if self.tb is not None and self._tensorboard_takes_video():
             # (N, T, C, H, W) uint8, one video.

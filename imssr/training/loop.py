@@ -1,43 +1,42 @@
 """The training loop: seed phase, updates, evaluation, logging, checkpoints.
 
-Counters: ``frame`` counts environment (simulator) frames, ``step`` counts
-agent steps (``frame = step * action_repeat``).  The budget, evaluation and
-checkpoint intervals and the beta schedule count agent steps, as the authors'
-code does; every log carries both counters.
-Checkpoints are taken at episode ends, where the next thing the loop does is a
-reset from the saved task RNG, so ``--resume`` reproduces the uninterrupted run.
+Counters (:class:`~imssr.training.state.RunState`): ``frame`` counts environment (simulator)
+frames, ``step`` counts agent steps (``frame = step * action_repeat``).  The budget, evaluation
+and checkpoint intervals and the beta schedule count agent steps, as the authors' code does;
+every log carries both counters.
+Checkpoints are taken at episode ends, where the next thing the loop does is a reset from the
+saved task RNG, so ``--resume`` reproduces the uninterrupted run; a stop request checkpoints
+the open episode too (:class:`~imssr.training.state.Episode`), which a resume steps through again.
 """
 from __future__ import annotations
 
 import math
 import os
 import signal
-import sys
 import threading
 import time
-from collections import defaultdict
-from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from imssr._gl import gl_renderer, software_rendering_warning
-from imssr.config import RunConfig, steps_for_frames
+from imssr.config import RunConfig
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
 from imssr.replay import make_replay_buffer, replay_placement
-from imssr.replay.buffer import ReplayFileError, frames_path
+from imssr.replay.buffer import ReplayFileError
+from imssr.rundir import RunDir
+from imssr.seeds import TRAINING_EVAL_SEED_OFFSET
 from imssr.training.build import build_agent, resolve_device
-from imssr.training.checkpoint import checkpoint_dir, latest_path, save_checkpoint, usable_checkpoint
-from imssr.training.lock import DirectoryLock
 from imssr.training.evaluate import eval_row, evaluate, non_finite_text
 from imssr.training.logger import Logger
-from imssr.utils import atomic_write_text, contention_warning, rng_states, seed_everything, set_rng_states
+from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
+from imssr.training.state import Episode, RunState
+from imssr.utils import contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
 RESUMABLE_CHANGES = {"train.steps", "train.device", "train.replay_device", "train.progress",
@@ -47,51 +46,10 @@ RESUMABLE_CHANGES = {"train.steps", "train.device", "train.replay_device", "trai
                      "train.wandb", "train.wandb_project", "train.wandb_group", "train.eval_video_every",
                      "train.eval_video_format"}
 
-PROGRESS_EVERY_S = 60.0
-"""Seconds of wall time between progress lines when stdout is not a terminal (a SLURM or nohup
-log): agent step, frames per second, ETA and the last episode's return."""
 # Training metrics in the order a divergence names them: the raw intrinsic signal (its mean), which
 # enters the critic's target within the same update, then the critic's loss.
 DIVERGENCE_ORDER = ("r_int_raw", "critic_loss", "actor_loss", "alpha_loss", "aux_loss", "rnd_loss", "q_mean",
                     "alpha", "entropy")
-
-
-@dataclass
-class StepSchedule:
-    """An event every ``every`` agent steps (0: never): due at the first agent step checked at or
-    past ``next_step``.  It saves itself under ``next_<name>_step``, the checkpoint key imssr has
-    always used, so older checkpoints resume."""
-
-    name: str
-    """``eval`` or ``ckpt``: names the checkpoint key."""
-    every: int
-    """Agent steps between two events; 0 turns the event off."""
-    next_step: Optional[int] = None
-    """The agent step at or after which the event is next due; None when off."""
-
-    def __post_init__(self):
-        if self.next_step is None and self.every:
-            self.next_step = self.every
-
-    @property
-    def key(self) -> str:
-        return f"next_{self.name}_step"
-
-    def due(self, step: int) -> bool:
-        return self.next_step is not None and step >= self.next_step
-
-    def advance(self, step: int) -> None:
-        """Move past ``step``: the next event falls on the first multiple after it of the schedule."""
-        while self.due(step):
-            self.next_step += self.every
-
-    def state_dict(self) -> dict:
-        return {self.key: self.next_step}
-
-    def load_state_dict(self, counters: dict, step: int, saved_every: int) -> None:
-        """Resume at agent step ``step``: the saved next step if the interval is unchanged
-        (``saved_every``), else the first multiple of the new interval after ``step``."""
-        self.next_step = counters[self.key] if saved_every == self.every else _next_multiple(step, self.every)
 
 
 class TrainingInterrupted(Exception):
@@ -167,13 +125,12 @@ class Trainer:
             raise ImssrError(f"--out {out_dir} is a file, not a directory")
         # A second process on the same directory fails here, before the Logger of a fresh
         # run deletes the first one's logs and tb/.
-        self._lock = DirectoryLock(out_dir).acquire()
+        self.run_dir = RunDir(out_dir)
+        self._lock = self.run_dir.open()
         self.refill_buffer = refill_buffer
         self.stop = stop or StopRequest()  # uninstalled: never set
-        # The open episode, so that a stop mid-episode can checkpoint it (see _episode_state).
-        self._episode_env_rng: Optional[dict] = None
-        self._episode_actions: list[np.ndarray] = []
-        self._resume_episode: Optional[dict] = None
+        self._resume_episode: Optional[dict] = None  # the episode a stop left open, to rebuild
+        self._saved_step = -1  # the agent step of this process's last checkpoint
         self._replay_file: Optional[str] = None  # the replay file that latest.pt names
         self.resumed_from: Optional[str] = None
         self._fallback = False
@@ -184,6 +141,8 @@ class Trainer:
             raise
 
     def _setup(self, cfg: RunConfig, out_dir: str, resume: bool) -> None:
+        """Check the config and the run directory, build the envs, agent and replay buffer,
+        restore a resumed run's checkpoint, write config.json and open the logs."""
         if not resume:
             # Sources named by environment variables are written into the run's
             # config, so a resume or `imssr evaluate` in another shell uses the same.
@@ -203,11 +162,36 @@ class Trainer:
                 raise ImssrError(f"the run in {out_dir} is already at agent step {ckpt['step']:,}, past the "
                                  f"budget of {cfg.train.steps:,} steps asked for; resume with --steps "
                                  f"{ckpt['step']} or more")
-        elif os.path.exists(latest_path(out_dir)):
+        elif self.run_dir.has_run():
             raise ImssrError(f"{out_dir} already holds a run; pass --resume to continue it "
                              "or choose another --out")
-        if cfg.train.torch_threads:
-            torch.set_num_threads(cfg.train.torch_threads)
+        self._set_threads(ckpt)
+        seed_everything(cfg.train.seed)
+        e = cfg.env
+        # Training footage and evaluation footage come from disjoint pools.
+        self.env = env_from_config(e, seed=cfg.train.seed, footage_split="train")
+        self.eval_modes = cfg.train.eval_mode_list(e.mode)
+        self.eval_envs = {m: env_from_config(e, seed=cfg.train.seed + TRAINING_EVAL_SEED_OFFSET, mode=m,
+                                             footage_split="test")
+                          for m in self.eval_modes}
+        self._warn_on_software_rendering()
+        self._build_agent_and_replay()
+        os.makedirs(out_dir, exist_ok=True)
+        if ckpt is not None:
+            self._restore(ckpt)
+        self.run_dir.write_config(cfg)
+        self.logger = self._open_logger(resumed=ckpt is not None)
+        if ckpt is not None:
+            # The checkpoint's evaluation history is authoritative for eval logs.
+            self.logger.rewrite_eval(self.state.eval_history)
+            print(f"imssr: resuming from agent step {self.step:,} (frame {self.frame:,}) of "
+                  f"{cfg.train.steps:,}", flush=True)
+
+    def _set_threads(self, ckpt: Optional[dict]) -> None:
+        """Apply ``train.torch_threads``; warn when the threads would contend with busy cores, and
+        when a CPU run resumes with another thread count than checkpoint ``ckpt`` was saved with."""
+        if self.cfg.train.torch_threads:
+            torch.set_num_threads(self.cfg.train.torch_threads)
         warning = contention_warning(torch.get_num_threads())
         if warning:
             print(warning, flush=True)
@@ -215,18 +199,20 @@ class Trainer:
             warning = thread_warning(ckpt.get("torch_threads"), torch.get_num_threads(), self.device)
             if warning:
                 print(warning, flush=True)
-        seed_everything(cfg.train.seed)
-        e = cfg.env
-        # Training footage and evaluation footage come from disjoint pools.
-        self.env = env_from_config(e, seed=cfg.train.seed, footage_split="train")
-        self.eval_modes = cfg.train.eval_mode_list(e.mode)
-        self.eval_envs = {m: env_from_config(e, seed=cfg.train.seed + 10_000, mode=m, footage_split="test")
-                          for m in self.eval_modes}
+
+    def _warn_on_software_rendering(self) -> None:
+        """On a GPU machine, warn when MuJoCo's EGL renders on the CPU (llvmpipe)."""
         if torch.cuda.is_available():
             warning = software_rendering_warning(os.environ.get("MUJOCO_GL", "egl"),
                                                  gl_renderer(self.env.physics), gpu=True)
             if warning:
                 print(warning, flush=True)
+
+    def _build_agent_and_replay(self) -> None:
+        """The agent, the replay buffer and the loop's state at agent step 0, in the order
+        their random draws have always had (weights, SODA's image pool, then the streams spawned
+        from the seed)."""
+        cfg, e = self.cfg, self.cfg.env
         self.action_dim = self.env.action_space.shape[0]
         self.agent = build_agent(cfg, self.env.observation_space.shape, self.action_dim, self.device)
         if self.agent.aux is not None:
@@ -241,42 +227,36 @@ class Trainer:
         self.replay = make_replay_buffer(self.replay_placement.device, cfg.train.replay_capacity,
                                          (3, e.image_size, e.image_size), self.action_dim, e.frame_stack,
                                          seed=replay_seq, physics_dim=self.env.physics_state_dim)
-        self.action_rng = np.random.default_rng(action_seq)
-        self.frame = self.step = self.episode = 0
-        self.eval_schedule = StepSchedule("eval", cfg.train.eval_every_steps)
-        self.ckpt_schedule = StepSchedule("ckpt", cfg.train.checkpoint_every_steps)
-        self.last_eval_step = -1
-        # Agent step from which the agent acts and learns (later after a resume
-        # without a saved buffer: the buffer refills with random actions first).
-        self.learning_starts = cfg.train.seed_steps
-        self.eval_history: list[dict] = []
-        os.makedirs(out_dir, exist_ok=True)
-        if ckpt is not None:
-            self._restore(ckpt)
-        atomic_write_text(os.path.join(out_dir, "config.json"), cfg.to_json() + "\n")
+        t = cfg.train
+        self.state = RunState.fresh(t.eval_every_steps, t.checkpoint_every_steps, t.seed_steps, action_seq)
+
+    def _open_logger(self, resumed: bool) -> Logger:
+        """The run's logs (CSV, TensorBoard, W&B); a resumed run's are cut back to its checkpoint."""
+        cfg, out_dir = self.cfg, self.out_dir
         wandb = None
         if cfg.train.wandb:
             # Imported here: W&B is an extra, and a run without it must not load it.
             from imssr.training.wandb_run import WandbRun
 
-            wandb = WandbRun(cfg, out_dir, resume=ckpt is not None, warn=lambda text: print(text, flush=True))
-        self.logger = Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if ckpt else None,
-                             wandb=wandb)
-        if ckpt is not None and "next_eval_step" not in ckpt:
-            print(f"imssr: resuming a run made before budgets counted agent steps: its budget is "
-                  f"{cfg.budget_text()}", flush=True)
-        if ckpt is not None:
-            # The checkpoint's evaluation history is authoritative for eval logs.
-            self.logger.rewrite_eval(self.eval_history)
-            print(f"imssr: resuming from agent step {self.step:,} (frame {self.frame:,}) of "
-                  f"{cfg.train.steps:,}", flush=True)
+            wandb = WandbRun(cfg, out_dir, resume=resumed, warn=lambda text: print(text, flush=True))
+        return Logger(out_dir, cfg.train.tensorboard, resume_frame=self.frame if resumed else None, wandb=wandb)
+
+    @property
+    def step(self) -> int:
+        """The agent step the run is at (:attr:`state` holds it)."""
+        return self.state.step
+
+    @property
+    def frame(self) -> int:
+        """The environment frame the run is at (:attr:`state` holds it)."""
+        return self.state.frame
 
     # -- resume ------------------------------------------------------------------
     def _check_resume(self) -> dict:
-        ckpt, path, note = usable_checkpoint(self.out_dir)
+        ckpt, path, note = self.run_dir.usable_checkpoint()
         if note:
             print(f"imssr: {note}", flush=True)
-        self.resumed_from, self._fallback = path, path != latest_path(self.out_dir)
+        self.resumed_from, self._fallback = path, path != self.run_dir.latest
         # Through the config class, so settings added since the run started read as defaults.
         try:
             saved = _flatten(RunConfig.from_dict(ckpt["config"]).to_dict())
@@ -291,34 +271,42 @@ class Trainer:
         return ckpt
 
     def _restore(self, ckpt: dict) -> None:
+        """Continue from checkpoint ``ckpt``: the agent, the loop's state, every generator, the
+        replay buffer (or a refill when there is none) and the episode a stop left open."""
         try:
             self.agent.load_state_dict(ckpt["agent"])
         except (RuntimeError, KeyError, ValueError) as exc:
             raise ImssrError(f"checkpoint does not match this agent: {str(exc).splitlines()[0]}") from None
-        self.frame, self.step, self.episode = ckpt["frame"], ckpt["step"], ckpt["episode"]
-        self.learning_starts = ckpt.get("learning_starts", self.cfg.train.seed_steps)
-        self.eval_history = list(ckpt.get("eval_history", []))
-        counters = _step_counters(ckpt, self.cfg.env.action_repeat)
-        self.last_eval_step = counters["last_eval_step"]
+        counters = _step_counters(ckpt)
         saved_train = RunConfig.from_dict(ckpt["config"]).train
         # Intervals may change on resume: keep the saved schedule only when they did not.
-        self.eval_schedule.load_state_dict(counters, self.step, saved_train.eval_every_steps)
-        self.ckpt_schedule.load_state_dict(counters, self.step, saved_train.checkpoint_every_steps)
+        self.state.load(ckpt, counters, saved_train.eval_every_steps, saved_train.checkpoint_every_steps)
         self.env.set_rng_state(ckpt["env_rng"])
         saved = ckpt.get("eval_env_rngs") or {self.cfg.env.mode: ckpt.get("eval_env_rng")}
         for mode, env in self.eval_envs.items():
             if saved.get(mode) is not None:  # a scene added on resume starts from its seed
                 env.set_rng_state(saved[mode])
-        self.action_rng.bit_generator.state = ckpt["action_rng"]
         set_rng_states(ckpt["global_rng"])
+        refill = self._load_replay(ckpt)
+        if ckpt.get("episode_state") is not None and not refill:
+            # Stopped mid-episode: train() rebuilds the open episode before it continues.
+            self._resume_episode = ckpt["episode_state"]
+        if refill:
+            self.state.learning_starts = self.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
+            print(f"imssr: warning: {refill}; refilling it with random "
+                  f"actions until agent step {self.state.learning_starts} (the resume is not exact)", flush=True)
+
+    def _load_replay(self, ckpt: dict) -> Optional[str]:
+        """Load the replay buffer checkpoint ``ckpt`` names; returns why it must be refilled
+        instead (None when it loaded)."""
         refill = None if ckpt.get("replay_file") else "checkpoint holds no replay buffer"
         if ckpt.get("replay_file"):
-            path = os.path.join(checkpoint_dir(self.out_dir), ckpt["replay_file"])
+            path, frames = self.run_dir.replay_files(ckpt["replay_file"])
             try:
                 self.replay.load(path, ckpt["replay_state"]["rng"])
             except ReplayFileError as exc:
                 # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
-                if self._fallback and not (os.path.exists(path) and os.path.exists(frames_path(path))):
+                if self._fallback and not (os.path.exists(path) and os.path.exists(frames)):
                     refill = f"no replay buffer was kept for {os.path.basename(self.resumed_from)}"
                 elif self.refill_buffer:
                     refill = str(exc)
@@ -329,79 +317,56 @@ class Trainer:
                 if self.replay.state_dict()["head"] != ckpt["replay_state"]["head"]:
                     raise ImssrError(f"replay buffer {path} does not match the checkpoint")
                 self._replay_file = ckpt["replay_file"]
-        if ckpt.get("episode_state") is not None and not refill:
-            # Stopped mid-episode: train() rebuilds the open episode before it continues.
-            self._resume_episode = ckpt["episode_state"]
-        if refill:
-            self.learning_starts = self.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
-            print(f"imssr: warning: {refill}; refilling it with random "
-                  f"actions until agent step {self.learning_starts} (the resume is not exact)", flush=True)
+        return refill
 
-    def save(self, episode: Optional[dict] = None) -> None:
-        """Checkpoint now (``episode``: the open episode's state, :meth:`_episode_state`, when
-        stopping mid-episode).  A save that fails (a full disk) leaves the previous checkpoint as
-        it was and removes the replay files it wrote, which no checkpoint names."""
-        latest = latest_path(self.out_dir)
+    def save(self, episode: Optional[Episode] = None) -> None:
+        """Checkpoint now (``episode``: the open episode, when stopping in its middle).  A save
+        that fails (a full disk) leaves the previous checkpoint as it was and removes the replay
+        files it wrote, which no checkpoint names."""
+        latest = self.run_dir.latest
         before = _identity(latest)
         try:
             self._save(episode)
         except ImssrError:
-            replay_file = f"replay-{self.step:09d}.npz"
+            replay_file = self.run_dir.replay_name(self.step)
             if (self.cfg.train.save_buffer and replay_file != self._replay_file
                     and _identity(latest) == before):
-                path = os.path.join(checkpoint_dir(self.out_dir), replay_file)
-                for p in (path, frames_path(path)):
+                for p in self.run_dir.replay_files(replay_file):
                     if os.path.exists(p):
                         os.unlink(p)
             raise
-        self._replay_file = f"replay-{self.step:09d}.npz" if self.cfg.train.save_buffer else None
+        self._replay_file = self.run_dir.replay_name(self.step) if self.cfg.train.save_buffer else None
         self._saved_step = self.step
 
-    def _episode_state(self, ep_return: float, ep_frames: int, sums: dict, counts: dict) -> dict:
-        """The open episode as a checkpoint holds it: the env's RNG state at its reset and the
-        actions since, from which :meth:`_rebuild_episode` steps the env to where it stopped
-        (physics, scene and frame stack bit for bit, without storing simulator internals), and
-        the episode's sums so far.  Its transitions are in the saved replay buffer already."""
-        actions = (np.stack(self._episode_actions) if self._episode_actions
-                   else np.zeros((0, self.action_dim), np.float32))
-        return {"env_rng": self._episode_env_rng, "actions": torch.from_numpy(actions.astype(np.float32)),
-                "return": float(ep_return), "frames": int(ep_frames),
-                # Floats: the same values as the float32 sums (exact in float64), on any device.
-                "sums": {k: float(v) for k, v in sums.items()}, "counts": dict(counts)}
-
-    def _rebuild_episode(self, state: dict):
-        """Step the env through the saved open episode; returns its current observation."""
+    def _rebuild_episode(self, state: dict) -> tuple[Episode, np.ndarray]:
+        """Step the env through the open episode a checkpoint saved (``episode_state``); returns
+        the episode and its current observation."""
+        episode = Episode.from_state_dict(state)
         saved_rng = self.env.get_rng_state()
-        self.env.set_rng_state(state["env_rng"])
+        self.env.set_rng_state(episode.env_rng)
         obs, _ = self.env.reset()
-        actions = state["actions"].numpy()
-        for action in actions:
+        for action in episode.actions:
             obs, *_ = self.env.step(action)
         if self.env.get_rng_state() != saved_rng:
             raise ImssrError(f"cannot rebuild the episode open in {self.resumed_from}: the environment's "
                              "random state differs from the saved one")
-        self._episode_env_rng, self._episode_actions = state["env_rng"], list(actions)
-        return obs
+        return episode, obs
 
-    def _save(self, episode: Optional[dict] = None) -> None:
+    def _save(self, episode: Optional[Episode] = None) -> None:
         replay_file = None
         if self.cfg.train.save_buffer:
-            replay_file = f"replay-{self.step:09d}.npz"
-            self.replay.save(os.path.join(checkpoint_dir(self.out_dir), replay_file))
+            replay_file = self.run_dir.replay_name(self.step)
+            self.replay.save(self.run_dir.replay_path(replay_file))
         state = {
-            "config": self.cfg.to_dict(), "frame": self.frame, "step": self.step,
-            "episode": self.episode, "agent": self.agent.state_dict(),
-            **self.eval_schedule.state_dict(), **self.ckpt_schedule.state_dict(),
-            "last_eval_step": self.last_eval_step, "learning_starts": self.learning_starts,
-            "eval_history": self.eval_history,
+            "config": self.cfg.to_dict(), **self.state.state_dict(), "agent": self.agent.state_dict(),
             "env_rng": self.env.get_rng_state(), "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
-            "action_rng": self.action_rng.bit_generator.state, "global_rng": rng_states(),
+            "global_rng": rng_states(),
             "replay_file": replay_file, "replay_state": self.replay.state_dict(),
             # A resume with another thread count is valid but not bit-identical (thread_warning).
             "torch_threads": torch.get_num_threads(),
-            "episode_state": episode,
+            "episode_state": None if episode is None else episode.state_dict(self.action_dim),
         }
-        save_checkpoint(self.out_dir, state, keep=self.cfg.train.keep_checkpoints)
+        self.run_dir.save_checkpoint(state, keep=self.cfg.train.keep_checkpoints)
 
     # -- the loop ----------------------------------------------------------------
     @property
@@ -413,141 +378,168 @@ class Trainer:
         """Evaluate in every scene of ``train.eval_modes``; one ``eval.csv`` row each.  At every
         ``train.eval_video_every``-th evaluation, the first episode of each scene is recorded
         (the frames the evaluation renders anyway, so the returns do not change)."""
-        t = self.cfg.train
+        t, s = self.cfg.train, self.state
         # This evaluation's number, counted from the history so that a resume keeps the rhythm.
-        number = len({item["row"]["step"] for item in self.eval_history}) + 1
+        number = len({item["row"]["step"] for item in s.eval_history}) + 1
         record = t.eval_video_every > 0 and number % t.eval_video_every == 0
         rows = []
         for mode, env in self.eval_envs.items():
             frames: Optional[list] = [] if record else None
             returns = evaluate(self.agent, env, t.eval_episodes, record=frames)
-            row = dict(eval_row(self.frame, self.step, mode, returns), wall_time=time.time())
+            row = dict(eval_row(s.frame, s.step, mode, returns), wall_time=time.time())
             self.logger.log_eval(row, returns)
             if frames:
-                self.logger.log_video(mode, frames, self.frame, self.step, t.eval_video_format)
-            self.eval_history.append({"row": row, "returns": returns})
+                self.logger.log_video(mode, frames, s.frame, s.step, t.eval_video_format)
+            s.eval_history.append({"row": row, "returns": returns})
             rows.append(row)
-        self.last_eval_step = self.step
+        s.last_eval_step = s.step
         return rows
 
     progress_every_s: float = PROGRESS_EVERY_S
     """Seconds between progress lines when stdout is not a terminal (see :data:`PROGRESS_EVERY_S`)."""
 
-    def train(self, stop_at_step: Optional[int] = None) -> None:
-        """Train to ``cfg.train.steps`` agent steps.  ``stop_at_step`` stops early after the
-        first checkpoint at or past it, as a killed process would (for tests).
+    def train(self) -> None:
+        """Train to ``cfg.train.steps`` agent steps: act, learn, step the env; evaluate and
+        checkpoint when due; log each episode at its end.  A stop request (:attr:`stop`)
+        checkpoints after the current agent step and raises :class:`TrainingInterrupted`.
 
         A NaN or infinite action (checked on the host before the simulator sees it), training
         metric (checked once per episode, with the episode's metrics) or intrinsic signal stops
         the run with :class:`DivergedError` ("diverged at agent step N: critic loss nan"); the
         last checkpoint is from before it, since nothing is saved after a divergence.
         """
-        cfg, t = self.cfg, self.cfg.train
-        total_steps = cfg.total_steps
-        bar = tqdm(total=total_steps, initial=min(self.step, total_steps), unit="step",
-                   disable=None if t.progress else True, dynamic_ncols=True,
-                   desc=f"{cfg.algo} {cfg.env.task} s{t.seed}")
-        need_reset, obs = True, None
-        ep_return, ep_frames, ep_start = 0.0, 0, time.time()
-        sums: dict[str, float] = defaultdict(float)
-        counts: dict[str, int] = defaultdict(int)
-        # A line every progress_every_s seconds where no progress bar shows (a log file).
-        log_progress = bar.disable and not _isatty(sys.stdout)
-        started, start_step, start_frame = time.monotonic(), self.step, self.frame
-        next_progress, last_return = started + self.progress_every_s, None
-        self._saved_step = -1
-        if self._resume_episode is not None:
-            ep = self._resume_episode
-            obs, need_reset = self._rebuild_episode(ep), False
-            ep_return, ep_frames = ep["return"], ep["frames"]
-            sums.update(ep["sums"])
-            counts.update(ep["counts"])
-            self._resume_episode = None
+        cfg, s, total = self.cfg, self.state, self.cfg.total_steps
+        progress = Progress(total, s.step, s.frame, f"{cfg.algo} {cfg.env.task} s{cfg.train.seed}",
+                            bar=cfg.train.progress, every_s=self.progress_every_s)
+        episode, obs = self._reopen_episode()
         try:
-            while self.step < total_steps:
-                if need_reset:
-                    self._episode_env_rng, self._episode_actions = self.env.get_rng_state(), []
-                    obs, info = self.env.reset()
-                    self.replay.add_first(info["frame"], self.env.physics_state(), self.step)
-                    need_reset, ep_return, ep_frames, ep_start = False, 0.0, 0, time.time()
-                    sums.clear(); counts.clear()
-                if self.step < self.learning_starts:
-                    action = self.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
-                else:
-                    action = self.agent.act(obs, deterministic=False)
-                    if not np.isfinite(action).all():  # a few host values: no device sync
-                        raise DivergedError(f"action {non_finite_text(action)}")
-                    # The burst: once, when the first seed phase ends (not after a refill).
-                    n_updates = max(1, t.burst_updates) if self.step == t.seed_steps else 1
-                    for _ in range(n_updates):
-                        for k, v in self.agent.update(self.replay, self.step).items():
-                            sums[k] += v; counts[k] += 1
-                obs, reward, terminated, truncated, info = self.env.step(action)
-                self._episode_actions.append(action)
-                self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"],
-                                self.env.physics_state(), self.step + 1)
-                self.step += 1
-                self.frame += info["sim_steps"]
-                ep_return += reward
-                ep_frames += info["sim_steps"]
-                bar.update(1)
-                if log_progress and time.monotonic() >= next_progress:
-                    now = time.monotonic()
-                    next_progress = now + self.progress_every_s
-                    print(_progress_line(self.step, total_steps, self.frame - start_frame,
-                                         self.step - start_step, now - started, last_return), flush=True)
-                if self.eval_schedule.due(self.step):
-                    rows = self.run_eval()
-                    self.eval_schedule.advance(self.step)
-                    _say(bar, f"eval step {self.step} frame {self.frame}: return " + _summary(rows))
-                if terminated or truncated:
-                    dt = max(time.time() - ep_start, 1e-9)
-                    row = {"frame": self.frame, "step": self.step, "episode": self.episode,
-                           "episode_return": ep_return, "episode_frames": ep_frames,
-                           "fps": ep_frames / dt, "updates": counts.get("critic_loss", 0),
-                           "wall_time": time.time()}
-                    # One host sync per episode, not one per metric per update.
-                    row.update({k: float(sums[k]) / counts[k] for k in sums})
-                    bad = _first_non_finite(row, sums, self._metric_names())
-                    if bad:
-                        raise DivergedError(bad)
-                    self.logger.log_train(row)
-                    last_return = ep_return
-                    bar.set_postfix(ret=f"{ep_return:.1f}", fps=f"{ep_frames / dt:.0f}", frame=self.frame)
-                    self.episode += 1
-                    need_reset = True
-                    last = self.step >= total_steps
-                    if last and self.last_eval_step != self.step:
-                        rows = self.run_eval()
-                        _say(bar, f"final eval step {self.step} frame {self.frame}: return " + _summary(rows))
-                    if last or self.ckpt_schedule.due(self.step):
-                        self.ckpt_schedule.advance(self.step)
-                        self.save()
-                        if stop_at_step is not None and self.step >= stop_at_step and not last:
-                            return
-                if self.stop.signal_name is not None and self.step < total_steps:
-                    # A periodic checkpoint (with the replay buffer) of this agent step, unless
-                    # the episode's end just wrote one.
-                    if self._saved_step != self.step:
-                        self.save(None if need_reset else self._episode_state(ep_return, ep_frames, sums, counts))
-                    raise TrainingInterrupted(
-                        f"stopped at agent step {self.step} by {self.stop.signal_name}; "
-                        f"continue with: imssr train --out {self.out_dir} --resume")
-            if not need_reset:
-                # Budget ended mid-episode: evaluate and checkpoint what we have.
-                if self.last_eval_step != self.step:
-                    self.run_eval()
-                self.save()
-            if self.logger.wants_media:
-                self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
+            while s.step < total:
+                if episode is None:
+                    episode, obs = self._start_episode()
+                action = self._act(obs, episode)
+                obs, episode_over = self._env_step(action, episode)
+                progress.step(s.step, s.frame, s.last_return)
+                self._evaluate_if_due(progress)
+                if episode_over:
+                    self._end_episode(episode, progress)
+                    episode = None
+                    self._final_evaluation_if_last(progress)
+                    self._checkpoint_if_due()
+                self._stop_if_requested(episode)
+            self._finish(episode)
         except NonFiniteError as exc:
-            # Named by the first non-finite training metric of the episode so far (one host
-            # sync, only now), else by what was found (the action, the intrinsic signal).
-            what = _first_non_finite({k: float(v) for k, v in sums.items()}, sums, self._metric_names()) or str(exc)
-            raise DivergedError(f"{DIVERGED_PREFIX} {self.step}: {what}") from None
+            raise DivergedError(f"{DIVERGED_PREFIX} {s.step}: {self._divergence(exc, episode)}") from None
         finally:
-            bar.close()
+            progress.close()
             self.logger.close()
+
+    # The loop's steps, in the order it takes them.
+    def _reopen_episode(self) -> tuple[Optional[Episode], Optional[np.ndarray]]:
+        """The episode a stop left open and its observation, rebuilt (None, None: none)."""
+        if self._resume_episode is None:
+            return None, None
+        state, self._resume_episode = self._resume_episode, None
+        return self._rebuild_episode(state)
+
+    def _start_episode(self) -> tuple[Episode, np.ndarray]:
+        """Reset the training env (remembering its RNG state for a rebuild) and store the first
+        frame; returns the new episode and its first observation."""
+        episode = Episode(env_rng=self.env.get_rng_state())
+        obs, info = self.env.reset()
+        self.replay.add_first(info["frame"], self.env.physics_state(), self.state.step)
+        return episode, obs
+
+    def _act(self, obs: np.ndarray, episode: Episode) -> np.ndarray:
+        """This agent step's action: uniform random until ``learning_starts``, else the policy's
+        sample, after which the agent learns (:meth:`_learn`)."""
+        s = self.state
+        if s.step < s.learning_starts:
+            return s.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+        action = self.agent.act(obs, deterministic=False)
+        if not np.isfinite(action).all():  # a few host values: no device sync
+            raise DivergedError(f"action {non_finite_text(action)}")
+        self._learn(episode)
+        return action
+
+    def _learn(self, episode: Episode) -> None:
+        """One update, or the burst of ``train.burst_updates`` once, when the first seed phase
+        ends (not after a refill); the episode sums their metrics."""
+        t, step = self.cfg.train, self.state.step
+        for _ in range(max(1, t.burst_updates) if step == t.seed_steps else 1):
+            episode.add_metrics(self.agent.update(self.replay, step))
+
+    def _env_step(self, action: np.ndarray, episode: Episode) -> tuple[np.ndarray, bool]:
+        """Step the training env, store the transition and count the agent step; returns the
+        next observation and whether the episode is over."""
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"],
+                        self.env.physics_state(), self.state.step + 1)
+        self.state.step += 1
+        self.state.frame += info["sim_steps"]
+        episode.add_step(action, reward, info["sim_steps"])
+        return obs, terminated or truncated
+
+    def _evaluate_if_due(self, progress: Progress) -> None:
+        """The periodic evaluation, at the first agent step at or past the schedule's next."""
+        s = self.state
+        if s.eval_schedule.due(s.step):
+            rows = self.run_eval()
+            s.eval_schedule.advance(s.step)
+            progress.say(f"eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+
+    def _end_episode(self, episode: Episode, progress: Progress) -> None:
+        """Log the finished episode's ``train.csv`` row, unless a metric diverged (then raise)."""
+        s = self.state
+        row = episode.train_row(s.frame, s.step, s.episode)
+        bad = first_non_finite(row, episode.sums, self._metric_names())
+        if bad:
+            raise DivergedError(bad)
+        self.logger.log_train(row)
+        s.last_return = episode.total_reward
+        progress.episode_end(episode.total_reward, row["fps"], s.frame)
+        s.episode += 1
+
+    def _final_evaluation_if_last(self, progress: Progress) -> None:
+        """At the episode end that spends the budget: the final evaluation, unless this agent
+        step was just evaluated."""
+        s = self.state
+        if s.step >= self.cfg.total_steps and s.last_eval_step != s.step:
+            rows = self.run_eval()
+            progress.say(f"final eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+
+    def _checkpoint_if_due(self) -> None:
+        """At an episode end: a checkpoint when the schedule says so, and at the last one."""
+        s = self.state
+        if s.step >= self.cfg.total_steps or s.ckpt_schedule.due(s.step):
+            s.ckpt_schedule.advance(s.step)
+            self.save()
+
+    def _stop_if_requested(self, episode: Optional[Episode]) -> None:
+        """On a stop request before the budget is spent: a checkpoint of this agent step (with
+        the open ``episode``, if any) unless an episode end just wrote one, then
+        :class:`TrainingInterrupted`."""
+        if self.stop.signal_name is None or self.step >= self.cfg.total_steps:
+            return
+        if self._saved_step != self.step:
+            self.save(episode)
+        raise TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; "
+                                  f"continue with: imssr train --out {self.out_dir} --resume")
+
+    def _finish(self, episode: Optional[Episode]) -> None:
+        """The budget is spent: when it ended mid-episode, evaluate (unless this agent step was)
+        and checkpoint what there is; the learning curve goes to W&B."""
+        if episode is not None:
+            if self.state.last_eval_step != self.step:
+                self.run_eval()
+            self.save()
+        if self.logger.wants_media:
+            self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
+
+    def _divergence(self, exc: NonFiniteError, episode: Optional[Episode]) -> str:
+        """What diverged: the first non-finite training metric of the open ``episode`` (one host
+        sync, only now), else what ``exc`` found (the action, the intrinsic signal)."""
+        sums = {} if episode is None else episode.sums
+        return first_non_finite({k: float(v) for k, v in sums.items()}, sums, self._metric_names()) or str(exc)
 
     def _metric_names(self) -> dict[str, str]:
         """How a divergence names the metrics that are not named by their key."""
@@ -585,7 +577,7 @@ def thread_warning(saved: Optional[int], now: int, device) -> Optional[str]:
             f"(--set train.torch_threads={saved} keeps it exact)")
 
 
-def _first_non_finite(values: dict, keys, names: Optional[dict[str, str]] = None) -> Optional[str]:
+def first_non_finite(values: dict, keys, names: Optional[dict[str, str]] = None) -> Optional[str]:
     """``"critic loss nan"`` for the first of ``keys`` (in :data:`DIVERGENCE_ORDER`, then the
     rest) whose value in ``values`` is NaN or infinite, named as in ``names`` or by its key;
     None when all are finite."""
@@ -597,54 +589,6 @@ def _first_non_finite(values: dict, keys, names: Optional[dict[str, str]] = None
     return None
 
 
-def _isatty(stream) -> bool:
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError):  # no isatty, or a closed stream
-        return False
-
-
-def _progress_line(step: int, total: int, frames: int, steps: int, seconds: float,
-                   last_return: Optional[float]) -> str:
-    """``imssr: agent step 1,200/500,000 (0.2%), 310 frames/s, ETA 3:12:40, last episode return 12.5``:
-    rates over this process's training so far."""
-    seconds = max(seconds, 1e-9)
-    eta = "unknown" if steps <= 0 else _hms((total - step) * seconds / steps)
-    ret = "none yet" if last_return is None else f"{last_return:.1f}"
-    return (f"imssr: agent step {step:,}/{total:,} ({100 * step / max(total, 1):.1f}%), "
-            f"{frames / seconds:,.0f} frames/s, ETA {eta}, last episode return {ret}")
-
-
-def _hms(seconds: float) -> str:
-    seconds = int(round(seconds))
-    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
-
-
-def _next_multiple(step: int, every: int) -> Optional[int]:
-    return None if not every else (step // every + 1) * every
-
-
-def _step_counters(ckpt: dict, action_repeat: int) -> dict:
-    """The loop's schedule counters in agent steps, from a checkpoint of any version.
-
-    Checkpoints written before budgets counted agent steps hold frame counters; the next
-    evaluation / checkpoint falls on the first agent step at or past the saved frame, as it did.
-    """
-    if "next_eval_step" in ckpt:
-        return {k: ckpt[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
-    ceil = lambda frame: None if frame is None else steps_for_frames(frame, action_repeat)  # noqa: E731
-    last = ckpt["last_eval_frame"]
-    return {"next_eval_step": ceil(ckpt["next_eval_frame"]), "next_ckpt_step": ceil(ckpt["next_ckpt_frame"]),
-            "last_eval_step": -1 if last < 0 else last // action_repeat}
-
-
-def _summary(rows: list[dict]) -> str:
-    text = ", ".join(f"{r['mode']} {r['return_mean']:.1f} ± {r['return_std']:.1f}" for r in rows)
-    return text if len(rows) > 1 else text.split(" ", 1)[1]
-
-
-def _say(bar, text: str) -> None:
-    if not bar.disable:
-        bar.write(text)
-    else:
-        print(text, flush=True)
+def _step_counters(ckpt: dict) -> dict:
+    """The loop's schedule counters, in agent steps, from a checkpoint."""
+    return {k: ckpt[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}

@@ -1,6 +1,6 @@
 """A run's Weights & Biases run (the ``wandb`` extra, imported only when ``train.wandb`` is on).
 
-The W&B run id is kept in ``RUN/wandb_run.json``, written before the W&B run starts, so a
+The W&B run id is kept in the run directory (``wandb_run.json``), written before the W&B run starts, so a
 ``--resume`` (after a kill -9 too) continues the same W&B run (``resume="allow"``).  W&B is a
 side channel: once the extra is there, nothing it does may stop a training.  An unwritable W&B
 directory, a failed start or a failed log call prints one warning line and turns W&B off for
@@ -16,11 +16,8 @@ from typing import Optional
 
 from imssr.config import RunConfig
 from imssr.extras import require
+from imssr.rundir import RunDir
 from imssr.utils import atomic_write_text
-
-RUN_ID_FILE = "wandb_run.json"
-"""In the run directory: ``{"id": ...}``, the W&B run that ``--resume`` continues."""
-
 
 def run_tags(cfg: RunConfig) -> list[str]:
     """The run's W&B tags: algo, task, seed and (algos with an intrinsic reward) beta_0."""
@@ -33,7 +30,7 @@ def run_tags(cfg: RunConfig) -> list[str]:
 def read_run_id(out_dir: str) -> Optional[str]:
     """The W&B run id kept in ``out_dir`` (None when there is none or it is unreadable)."""
     try:
-        with open(os.path.join(out_dir, RUN_ID_FILE)) as fh:
+        with open(RunDir(out_dir).wandb_run_path) as fh:
             run_id = json.load(fh).get("id")
     except (OSError, ValueError, AttributeError):
         return None
@@ -59,7 +56,7 @@ class WandbRun:
         if run_id is None:
             # From the OS's entropy: the seeded random streams of the run are left alone.
             run_id = secrets.token_hex(6)
-            atomic_write_text(os.path.join(out_dir, RUN_ID_FILE), json.dumps({"id": run_id}) + "\n")
+            atomic_write_text(RunDir(out_dir).wandb_run_path, json.dumps({"id": run_id}) + "\n")
         self.run_id = run_id
         directory = os.environ.get("WANDB_DIR") or out_dir
         problem = _unwritable(directory)

@@ -1,0 +1,88 @@
+"""What a person watching a training run sees: a progress bar on a terminal, else (a SLURM or
+nohup log) a line every :data:`PROGRESS_EVERY_S` seconds, and a line per evaluation."""
+from __future__ import annotations
+
+import sys
+import time
+from typing import Optional
+
+from tqdm import tqdm
+
+PROGRESS_EVERY_S = 60.0
+"""Seconds of wall time between progress lines when stdout is not a terminal (a SLURM or nohup
+log): agent step, frames per second, ETA and the last episode's return."""
+
+
+class Progress:
+    """The progress of one training process from agent step ``step`` / frame ``frame`` to
+    ``total`` agent steps.
+
+    Args:
+        total: the budget in agent steps.
+        step, frame: where this process starts (a resume starts past 0).
+        desc: the bar's label.
+        bar: show a progress bar (``train.progress``; tqdm shows none when stderr is no terminal).
+        every_s: seconds between progress lines when there is no bar and stdout is no terminal.
+    """
+
+    def __init__(self, total: int, step: int, frame: int, desc: str, bar: bool = True,
+                 every_s: float = PROGRESS_EVERY_S):
+        self.total, self.every_s = total, every_s
+        self.bar = tqdm(total=total, initial=min(step, total), unit="step", disable=None if bar else True,
+                        dynamic_ncols=True, desc=desc)
+        # A line every every_s seconds where no progress bar shows (a log file).
+        self.lines = self.bar.disable and not _isatty(sys.stdout)
+        self.started, self.start_step, self.start_frame = time.monotonic(), step, frame
+        self.next_line = self.started + every_s
+
+    def step(self, step: int, frame: int, last_return: Optional[float]) -> None:
+        """One agent step done, now at ``step`` / ``frame``: the bar moves, or a line is due."""
+        self.bar.update(1)
+        if self.lines and time.monotonic() >= self.next_line:
+            now = time.monotonic()
+            self.next_line = now + self.every_s
+            print(progress_line(step, self.total, frame - self.start_frame, step - self.start_step,
+                                now - self.started, last_return), flush=True)
+
+    def episode_end(self, episode_return: float, fps: float, frame: int) -> None:
+        """The bar shows the episode just finished."""
+        self.bar.set_postfix(ret=f"{episode_return:.1f}", fps=f"{fps:.0f}", frame=frame)
+
+    def say(self, text: str) -> None:
+        """A line of its own, above the bar when it shows."""
+        if not self.bar.disable:
+            self.bar.write(text)
+        else:
+            print(text, flush=True)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def progress_line(step: int, total: int, frames: int, steps: int, seconds: float,
+                  last_return: Optional[float]) -> str:
+    """``imssr: agent step 1,200/500,000 (0.2%), 310 frames/s, ETA 3:12:40, last episode return 12.5``:
+    rates over this process's training so far (``frames`` and ``steps`` in ``seconds``)."""
+    seconds = max(seconds, 1e-9)
+    eta = "unknown" if steps <= 0 else _hms((total - step) * seconds / steps)
+    ret = "none yet" if last_return is None else f"{last_return:.1f}"
+    return (f"imssr: agent step {step:,}/{total:,} ({100 * step / max(total, 1):.1f}%), "
+            f"{frames / seconds:,.0f} frames/s, ETA {eta}, last episode return {ret}")
+
+
+def eval_summary(rows: list[dict]) -> str:
+    """``12.5 ± 3.0`` for one scene's ``eval.csv`` row, ``train 12.5 ± 3.0, color_hard ...`` for several."""
+    text = ", ".join(f"{r['mode']} {r['return_mean']:.1f} ± {r['return_std']:.1f}" for r in rows)
+    return text if len(rows) > 1 else text.split(" ", 1)[1]
+
+
+def _isatty(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+def _hms(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

@@ -1,0 +1,321 @@
+"""The training loop's parts, each on its own: the run state a checkpoint holds, the open
+episode, progress lines, divergence, and the trainer's evaluation, checkpoint and stop steps."""
+import ast
+import inspect
+import math
+import re
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import StopAtStep, tiny_config
+from imssr.errors import DivergedError, NonFiniteError
+from imssr.training import Trainer
+from imssr.rundir import RunDir
+from imssr.training.checkpoint import load_checkpoint
+from imssr.training.loop import TrainingInterrupted, first_non_finite
+from imssr.training.progress import Progress, eval_summary, progress_line
+from imssr.training.state import Episode, RunState
+
+# The checkpoint keys of the loop's state: their names and meaning are the checkpoint format.
+RUN_STATE_KEYS = {"frame", "step", "episode", "next_eval_step", "next_ckpt_step", "last_eval_step",
+                  "learning_starts", "eval_history", "action_rng"}
+
+
+# -- RunState ------------------------------------------------------------------------
+def test_a_fresh_run_state_starts_at_step_0_with_its_schedules():
+    s = RunState.fresh(eval_every=100, ckpt_every=0, seed_steps=60, action_seed=7)
+    assert (s.frame, s.step, s.episode, s.last_eval_step, s.learning_starts) == (0, 0, 0, -1, 60)
+    assert s.eval_schedule.next_step == 100 and s.ckpt_schedule.next_step is None
+    assert s.eval_history == [] and s.last_return is None
+    assert s.action_rng.uniform() == np.random.default_rng(7).uniform()
+
+
+def test_run_state_saves_under_the_checkpoint_keys_and_loads_back():
+    s = RunState.fresh(eval_every=100, ckpt_every=250, seed_steps=60, action_seed=7)
+    s.frame, s.step, s.episode, s.last_eval_step = 2400, 300, 2, 300
+    s.eval_schedule.advance(300)
+    s.eval_history.append({"row": {"step": 300}, "returns": [1.0]})
+    s.last_return = 12.5
+    s.action_rng.uniform(size=5)
+    state = s.state_dict()
+    assert set(state) == RUN_STATE_KEYS
+    assert (state["frame"], state["step"], state["episode"]) == (2400, 300, 2)
+    assert (state["next_eval_step"], state["next_ckpt_step"], state["last_eval_step"]) == (400, 250, 300)
+    assert state["learning_starts"] == 60 and state["action_rng"] == s.action_rng.bit_generator.state
+
+    other = RunState.fresh(eval_every=100, ckpt_every=250, seed_steps=60, action_seed=99)
+    counters = {k: state[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
+    other.load(state, counters, saved_eval_every=100, saved_ckpt_every=250)
+    assert other.state_dict() == state
+    assert other.eval_history is not s.eval_history  # a copy: the checkpoint's list stays as saved
+    assert other.last_return is None  # per process, not saved
+    assert other.action_rng.uniform() == s.action_rng.uniform()  # the same stream goes on
+
+
+def test_run_state_load_restarts_a_schedule_whose_interval_changed_and_keeps_older_defaults():
+    saved = RunState.fresh(eval_every=100, ckpt_every=250, seed_steps=60, action_seed=7)
+    saved.step = 260
+    state = saved.state_dict()
+    del state["learning_starts"]  # a checkpoint from before the key existed
+    s = RunState.fresh(eval_every=40, ckpt_every=250, seed_steps=80, action_seed=7)
+    counters = {"next_eval_step": 100, "next_ckpt_step": 250, "last_eval_step": -1}
+    s.load(state, counters, saved_eval_every=100, saved_ckpt_every=250)
+    assert s.eval_schedule.next_step == 280 and s.ckpt_schedule.next_step == 250
+    assert s.learning_starts == 80
+
+
+# -- Episode -------------------------------------------------------------------------
+def test_an_episode_sums_its_steps_and_metrics_into_its_train_row():
+    ep = Episode(env_rng={"seed": 1})
+    ep.add_step(np.array([0.5], np.float32), 1.5, 8)
+    ep.add_step(np.array([-0.5], np.float32), 0.25, 8)
+    ep.add_metrics({"critic_loss": torch.tensor(1.0), "alpha": torch.tensor(0.5)})
+    ep.add_metrics({"critic_loss": torch.tensor(3.0), "alpha": torch.tensor(0.25)})
+    row = ep.train_row(frame=1016, step=127, episode=3)
+    assert (row["frame"], row["step"], row["episode"]) == (1016, 127, 3)
+    assert row["episode_return"] == 1.75 and row["episode_frames"] == 16 and row["updates"] == 2
+    assert row["critic_loss"] == 2.0 and row["alpha"] == 0.375
+    assert row["fps"] > 0 and row["wall_time"] > 0
+    assert list(row)[:8] == ["frame", "step", "episode", "episode_return", "episode_frames", "fps", "updates",
+                             "wall_time"]
+
+
+def test_an_episode_without_updates_has_no_metric_columns():
+    ep = Episode(env_rng={})
+    ep.add_step(np.zeros(1, np.float32), 0.0, 8)
+    row = ep.train_row(8, 1, 0)
+    assert row["updates"] == 0 and "critic_loss" not in row
+
+
+def test_an_episode_round_trips_through_its_checkpoint_state():
+    ep = Episode(env_rng={"state": [1, 2]})
+    for i in range(3):
+        ep.add_step(np.full(2, i / 4, np.float32), 0.5, 8)
+        ep.add_metrics({"critic_loss": torch.tensor(0.1 * (i + 1))})
+    state = ep.state_dict(action_dim=2)
+    assert set(state) == {"env_rng", "actions", "return", "frames", "sums", "counts"}
+    assert state["actions"].dtype == torch.float32 and state["actions"].shape == (3, 2)
+    assert state["return"] == 1.5 and state["frames"] == 24 and state["counts"] == {"critic_loss": 3}
+    assert isinstance(state["sums"]["critic_loss"], float)
+    back = Episode.from_state_dict(state)
+    assert back.env_rng == ep.env_rng and back.total_reward == ep.total_reward and back.frames == ep.frames
+    assert [a.tolist() for a in back.actions] == [a.tolist() for a in ep.actions]
+    assert back.sums["critic_loss"] == float(ep.sums["critic_loss"]) and back.counts == ep.counts
+    back.add_metrics({"critic_loss": torch.tensor(1.0), "alpha": torch.tensor(0.5)})  # goes on summing
+    assert back.counts == {"critic_loss": 4, "alpha": 1}
+
+
+def test_an_episode_just_reset_saves_no_actions_of_the_action_shape():
+    state = Episode(env_rng={}).state_dict(action_dim=6)
+    assert state["actions"].shape == (0, 6) and state["sums"] == {} and state["counts"] == {}
+
+
+# -- progress ------------------------------------------------------------------------
+def test_progress_prints_a_line_when_due_where_no_bar_shows(capsys):
+    p = Progress(total=10, step=4, frame=32, desc="x", bar=False, every_s=0.0)
+    p.step(5, 40, None)
+    p.step(6, 48, 12.25)
+    p.say("eval step 6 frame 48: return 1.0 ± 0.0")
+    p.close()
+    out = capsys.readouterr().out.splitlines()
+    assert re.fullmatch(r"imssr: agent step 5/10 \(50\.0%\), [\d,]+ frames/s, ETA \d+:\d\d:\d\d, "
+                        r"last episode return none yet", out[0]), out
+    assert out[1].endswith("last episode return 12.2") and out[2] == "eval step 6 frame 48: return 1.0 ± 0.0"
+
+
+def test_progress_waits_every_s_between_lines(capsys):
+    p = Progress(total=10, step=0, frame=0, desc="x", bar=False, every_s=3600.0)
+    for i in range(1, 6):
+        p.step(i, 8 * i, None)
+    p.close()
+    assert capsys.readouterr().out == ""
+
+
+def test_progress_line_and_eval_summary_texts():
+    assert progress_line(1200, 500_000, 3100, 100, 10.0, 12.5) == (
+        "imssr: agent step 1,200/500,000 (0.2%), 310 frames/s, ETA 13:51:20, last episode return 12.5")
+    assert "ETA unknown" in progress_line(0, 10, 0, 0, 0.0, None)
+    one = [{"mode": "train", "return_mean": 12.5, "return_std": 3.0}]
+    assert eval_summary(one) == "12.5 ± 3.0"
+    two = one + [{"mode": "color_hard", "return_mean": 1.0, "return_std": 0.5}]
+    assert eval_summary(two) == "train 12.5 ± 3.0, color_hard 1.0 ± 0.5"
+
+
+# -- divergence ----------------------------------------------------------------------
+def test_first_non_finite_names_the_signal_before_the_losses():
+    values = {"critic_loss": math.nan, "r_int_raw": math.inf, "alpha": 0.1, "zeta": -math.inf}
+    names = {"r_int_raw": "intrinsic reward (CURL)"}
+    assert first_non_finite(values, values, names) == "intrinsic reward (CURL) inf"
+    del values["r_int_raw"]
+    assert first_non_finite(values, values) == "critic loss nan"
+    assert first_non_finite({"zeta": -math.inf, "alpha": 0.1}, ["zeta", "alpha"]) == "zeta -inf"
+    assert first_non_finite({"alpha": 0.1, "step": 3}, ["alpha", "step"]) is None
+
+
+# -- the trainer's steps -------------------------------------------------------------
+@pytest.fixture
+def trainer(tmp_path):
+    # 125 agent steps an episode, evaluations and checkpoints every 125, a budget of 250.
+    t = Trainer(tiny_config("curl", steps=250), str(tmp_path / "run"))
+    yield t
+    t.close()
+
+
+class _Calls:
+    """Stands in for a trainer method and records its calls."""
+
+    def __init__(self, result=None):
+        self.calls, self.result = [], result
+
+    def __call__(self, *args):
+        self.calls.append(args)
+        return self.result
+
+
+class _Said:
+    def __init__(self):
+        self.lines = []
+
+    def say(self, text):
+        self.lines.append(text)
+
+
+ROWS = [{"mode": "train", "return_mean": 3.0, "return_std": 1.0}]
+
+
+def test_evaluate_if_due_evaluates_at_the_schedule_and_moves_it_on(trainer):
+    trainer.run_eval, said, s = _Calls(ROWS), _Said(), trainer.state
+    s.step, s.frame = 124, 992
+    trainer._evaluate_if_due(said)
+    assert trainer.run_eval.calls == [] and said.lines == []
+    s.step, s.frame = 126, 1008  # checked late: still due, and the next one is at 250
+    trainer._evaluate_if_due(said)
+    assert len(trainer.run_eval.calls) == 1 and s.eval_schedule.next_step == 250
+    assert said.lines == ["eval step 126 frame 1008: return 3.0 ± 1.0"]
+
+
+def test_the_final_evaluation_comes_once_at_the_end_of_the_budget(trainer):
+    trainer.run_eval, said, s = _Calls(ROWS), _Said(), trainer.state
+    s.step, s.frame = 249, 1992
+    trainer._final_evaluation_if_last(said)
+    assert trainer.run_eval.calls == []
+    s.step, s.frame, s.last_eval_step = 250, 2000, 250  # the periodic evaluation took this step
+    trainer._final_evaluation_if_last(said)
+    assert trainer.run_eval.calls == []
+    s.last_eval_step = 125
+    trainer._final_evaluation_if_last(said)
+    assert len(trainer.run_eval.calls) == 1 and said.lines == ["final eval step 250 frame 2000: return 3.0 ± 1.0"]
+
+
+def test_checkpoint_if_due_saves_at_the_schedule_and_at_the_end(trainer):
+    trainer.save, s = _Calls(), trainer.state
+    s.step = 124
+    trainer._checkpoint_if_due()
+    assert trainer.save.calls == []
+    s.step = 130
+    trainer._checkpoint_if_due()
+    assert trainer.save.calls == [()] and s.ckpt_schedule.next_step == 250
+    trainer.state.ckpt_schedule.next_step = None  # no periodic checkpoint: the last one still comes
+    s.step = 250
+    trainer._checkpoint_if_due()
+    assert len(trainer.save.calls) == 2
+
+
+def test_stop_if_requested_checkpoints_the_open_episode_and_stops(trainer):
+    s = trainer.state
+    s.step = 40
+    trainer._stop_if_requested(None)  # no request: nothing
+    trainer.stop = StopAtStep(trainer, 40)
+    episode, _ = trainer._start_episode()
+    episode.add_step(np.array([0.25], np.float32), 1.0, 8)
+    with pytest.raises(TrainingInterrupted, match=r"^stopped at agent step 40 by SIGTERM; continue with: "
+                                                  r"imssr train --out \S+ --resume$"):
+        trainer._stop_if_requested(episode)
+    saved = load_checkpoint(RunDir(trainer.out_dir).latest)
+    assert saved["step"] == 40 and saved["episode_state"]["return"] == 1.0
+    assert saved["episode_state"]["actions"].tolist() == [[0.25]]
+
+
+def test_stop_if_requested_does_not_save_twice_nor_past_the_budget(trainer):
+    trainer.save, s = _Calls(), trainer.state
+    trainer.stop = StopAtStep(trainer, 0)
+    s.step, trainer._saved_step = 125, 125  # an episode end just checkpointed this step
+    with pytest.raises(TrainingInterrupted):
+        trainer._stop_if_requested(None)
+    assert trainer.save.calls == []
+    s.step = 250  # the budget is spent: the run finishes instead
+    trainer._stop_if_requested(None)
+    assert trainer.save.calls == []
+
+
+def test_end_episode_logs_its_row_or_raises_on_a_non_finite_metric(trainer):
+    s, said = trainer.state, _Progress()
+    ep = Episode(env_rng={})
+    ep.add_step(np.zeros(1, np.float32), 2.5, 1000)
+    ep.add_metrics({"critic_loss": torch.tensor(1.0)})
+    s.step, s.frame = 125, 1000
+    trainer.logger.log_train = _Calls()
+    trainer._end_episode(ep, said)
+    (row,), = trainer.logger.log_train.calls
+    assert row["episode"] == 0 and row["episode_return"] == 2.5 and row["critic_loss"] == 1.0
+    assert s.episode == 1 and s.last_return == 2.5 and said.ended == [(2.5, 1000)]
+    ep.add_metrics({"critic_loss": torch.tensor(math.nan)})
+    with pytest.raises(DivergedError, match="^critic loss nan$"):
+        trainer._end_episode(ep, said)
+    assert s.episode == 1 and len(trainer.logger.log_train.calls) == 1
+
+
+class _Progress(_Said):
+    def __init__(self):
+        super().__init__()
+        self.ended = []
+
+    def episode_end(self, episode_return, fps, frame):
+        self.ended.append((episode_return, frame))
+
+
+def test_a_divergence_names_the_open_episodes_first_non_finite_metric(trainer):
+    ep = Episode(env_rng={})
+    ep.add_metrics({"critic_loss": torch.tensor(math.inf), "actor_loss": torch.tensor(math.nan)})
+    assert trainer._divergence(NonFiniteError("intrinsic signal nan"), ep) == "critic loss inf"
+    ep = Episode(env_rng={})
+    ep.add_metrics({"critic_loss": torch.tensor(1.0)})
+    assert trainer._divergence(NonFiniteError("intrinsic signal nan"), ep) == "intrinsic signal nan"
+    assert trainer._divergence(DivergedError("action [nan]"), None) == "action [nan]"
+
+
+def test_seed_phase_actions_come_from_the_loop_generator_then_the_agent_learns(trainer):
+    s = trainer.state
+    ep, obs = trainer._start_episode()
+    expected = np.random.default_rng(np.random.SeedSequence(trainer.cfg.train.seed).spawn(2)[1])
+    assert np.array_equal(trainer._act(obs, ep), expected.uniform(-1.0, 1.0, 1).astype(np.float32))
+    assert ep.counts == {}
+    obs, over = trainer._env_step(np.zeros(1, np.float32), ep)
+    assert (s.step, s.frame, ep.frames, over) == (1, 8, 8, False)
+    assert trainer.replay.size == 2  # the reset's frame and this step's
+    s.learning_starts = 0  # an agent with a batch to learn from: one update
+    trainer.agent.update = _Calls({"critic_loss": torch.tensor(0.5)})
+    trainer._act(obs, ep)
+    assert len(trainer.agent.update.calls) == 1 and ep.counts == {"critic_loss": 1}
+
+
+def test_the_burst_runs_once_when_the_first_seed_phase_ends(trainer):
+    trainer.cfg.train.burst_updates = 3
+    trainer.agent.update = _Calls({"critic_loss": torch.tensor(0.5)})
+    ep = Episode(env_rng={})
+    trainer.state.step = trainer.cfg.train.seed_steps
+    trainer._learn(ep)
+    trainer.state.step += 1
+    trainer._learn(ep)
+    assert len(trainer.agent.update.calls) == 4 and ep.counts == {"critic_loss": 4}
+
+
+def test_the_training_loop_stays_short():
+    """Trainer.train reads top to bottom: at most 50 lines besides its docstring."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(Trainer.train)))
+    body = tree.body[0].body
+    start = body[1].lineno if isinstance(body[0], ast.Expr) else body[0].lineno
+    assert body[-1].end_lineno - start + 1 <= 50

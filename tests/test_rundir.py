@@ -1,0 +1,186 @@
+"""RunDir: a run directory's layout, its checkpoints (which one, and the fallback), its status,
+and the agent of a run at a checkpoint."""
+from __future__ import annotations
+
+import contextlib
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import tiny_config
+from imssr.errors import ImssrError
+from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir)
+from imssr.training.checkpoint import CheckpointDamaged, load_checkpoint
+
+
+def _damage(path: str) -> None:
+    """Flip one byte in the middle of a file (its checksum no longer matches)."""
+    with open(path, "r+b") as fh:
+        fh.seek(os.path.getsize(path) // 2)
+        byte = fh.read(1)
+        fh.seek(-1, os.SEEK_CUR)
+        fh.write(bytes([byte[0] ^ 0xFF]))
+
+
+def _state(step: int, **extra) -> dict:
+    return {"step": step, "frame": step * 8, "replay_file": None, "w": torch.full((4,), float(step)), **extra}
+
+
+def test_layout(tmp_path):
+    run = RunDir(tmp_path / "run")
+    root = str(tmp_path / "run")
+    assert run.config_path == os.path.join(root, CONFIG_FILE) == os.path.join(root, "config.json")
+    assert (run.train_log, run.eval_log) == (os.path.join(root, TRAIN_LOG), os.path.join(root, EVAL_LOG))
+    assert run.log("evaluate_episodes") == run.evaluate_episodes_log == os.path.join(root, "evaluate_episodes.csv")
+    assert run.latest == os.path.join(root, "checkpoints", LATEST_CHECKPOINT)
+    assert run.numbered(250) == os.path.join(root, "checkpoints", "step-000000250.pt")
+    # The replay file's name, formatted in one place, and its frames beside it.
+    assert RunDir.replay_name(250) == "replay-000000250.npz"
+    assert run.replay_files("replay-000000250.npz") == (
+        os.path.join(root, "checkpoints", "replay-000000250.npz"),
+        os.path.join(root, "checkpoints", "replay-000000250.npz.frames.npy"))
+    assert run.video_path("training.gif") == os.path.join(root, "videos", "training.gif")
+    assert (run.analysis_dir, run.tb_dir) == (os.path.join(root, "analysis"), os.path.join(root, "tb"))
+    assert (run.done_path, run.status_path) == (os.path.join(root, DONE_FILE), os.path.join(root, STATUS_FILE))
+    assert os.fspath(run) == root
+    with pytest.raises(ImssrError, match=f"^run directory not found: {root}$"):
+        run.require()
+
+
+def test_save_keeps_the_newest_copies_and_only_the_replay_files_latest_names(tmp_path):
+    run = RunDir(tmp_path)
+    os.makedirs(run.checkpoint_dir)
+    for name in ("replay-000000001.npz", "replay-000000001.npz.frames.npy", ".tmp-left-by-a-kill"):
+        (tmp_path / "checkpoints" / name).write_bytes(b"x")
+    for step in (1, 2, 3):
+        current = RunDir.replay_name(step)
+        for path in run.replay_files(current):
+            open(path, "wb").close()
+        run.save_checkpoint(_state(step, replay_file=current), keep=2)
+    assert run.checkpoint_steps() == [2, 3]
+    assert sorted(os.listdir(run.checkpoint_dir)) == [
+        "latest.pt", "replay-000000003.npz", "replay-000000003.npz.frames.npy",
+        "step-000000002.pt", "step-000000003.pt"]
+    # Real copies: the numbered file of latest's step is equal to it, not the same file.
+    assert load_checkpoint(run.numbered(3))["step"] == load_checkpoint(run.latest)["step"] == 3
+    assert os.stat(run.numbered(3)).st_ino != os.stat(run.latest).st_ino
+    run.save_checkpoint(_state(4), keep=0)
+    assert run.checkpoint_steps() == [2, 3] and not any(n.startswith("replay-") for n in os.listdir(run.checkpoint_dir))
+
+
+def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):
+    run = RunDir(tmp_path)
+    with pytest.raises(ImssrError, match="^nothing to resume: .*latest.pt does not exist$"):
+        run.usable_checkpoint()
+    assert not run.has_checkpoint()
+    for step in (125, 250):
+        run.save_checkpoint(_state(step), keep=2)
+    state, path, note = run.usable_checkpoint()
+    assert (state["step"], path, note) == (250, run.latest, None)
+    # By step, by file name inside checkpoints/, by path.
+    assert run.checkpoint("125")[0]["step"] == 125
+    assert run.checkpoint("step-000000125.pt")[0]["step"] == 125
+    assert run.checkpoint(run.numbered(250))[0]["step"] == 250
+    with pytest.raises(ImssrError, match="no checkpoint at agent step 99 .*; retained steps: 125, 250"):
+        run.checkpoint("99")
+    with pytest.raises(ImssrError, match="^checkpoint not found: nope.pt$"):
+        run.checkpoint("nope.pt")
+    # A damaged latest.pt: the newest numbered checkpoint that verifies, with a note.
+    _damage(run.latest)
+    _damage(run.numbered(250))
+    state, path, note = run.usable_checkpoint()
+    assert (state["step"], path) == (125, run.numbered(125))
+    assert note == "latest.pt is damaged (checksum mismatch); resuming from step-000000125.pt at agent step 125"
+    assert run.checkpoint(verb="evaluating")[1].endswith("evaluating step-000000125.pt at agent step 125")
+    # A named checkpoint is that one, damaged or not.
+    with pytest.raises(CheckpointDamaged, match="checksum mismatch"):
+        run.checkpoint("250")
+    # latest.pt missing: a retained checkpoint still counts as something to resume.
+    os.unlink(run.latest)
+    assert run.has_checkpoint() and not run.has_run()
+    assert run.usable_checkpoint()[2].startswith("latest.pt is missing; resuming from step-000000125.pt")
+    _damage(run.numbered(125))
+    with pytest.raises(ImssrError, match="is missing, and no retained step-\\*.pt checkpoint in .* is valid"):
+        run.usable_checkpoint()
+
+
+def test_status_transitions(tmp_path):
+    run = RunDir(tmp_path / "run")
+    assert run.status() == "new"
+    lock = run.open()
+    try:
+        assert run.status() == "running"  # whatever it recorded before
+    finally:
+        lock.release()
+    assert run.status() == "new"
+    run.save_checkpoint(_state(5), keep=1)
+    assert run.status() == "interrupted"  # a checkpoint and no record: killed outright
+    for ending in ("failed", "diverged", "interrupted", "finished"):
+        run.write_status(ending, step=5, error="imssr: error: something")
+        assert run.status() == ending and run.read_status()["step"] == 5
+    with pytest.raises(ValueError):
+        run.write_status("running")
+    # A training that starts drops the record of the last one.
+    run.write_status("failed", step=5)
+    run.open().release()
+    assert run.read_status() is None and run.status() == "interrupted"
+    # A sweep's done marker: finished (with a budget), whatever a torn record says.
+    (tmp_path / "run" / STATUS_FILE).write_text('{"state": "fail')
+    run.write_done(250, 250, attempt=1, resumed=False)
+    assert run.status() == "finished" and run.is_done(250) and not run.is_done(251)
+    assert run.done_steps() == 250
+
+
+def test_progress_comes_from_the_last_complete_rows(tmp_path):
+    run = RunDir(tmp_path)
+    assert (run.last_evaluation(), run.trained_steps()) == ((0, 0), 0)
+    (tmp_path / "eval.csv").write_text("frame,step,mode\n1000,125,training\n2000,250,training\n30")
+    (tmp_path / "train.csv").write_text("frame,step\n1000,125\n" + "".join(f"{8 * s},{s}\n" for s in range(126, 900)))
+    assert run.last_evaluation() == (250, 2000) and run.trained_steps() == 899
+
+
+def test_load_agent_builds_the_run_at_its_checkpoint_and_refuses_a_mismatch(tmp_path):
+    from imssr.training.build import build_agent
+
+    cfg = tiny_config("curl")
+    run = RunDir(tmp_path / "run")
+    run.write_config(cfg)
+    trained = build_agent(cfg, (9, 100, 100), 1, "cpu")
+    with torch.no_grad():
+        for p in trained.nets.parameters():
+            p.add_(0.5)
+    run.save_checkpoint({"step": 125, "frame": 1000, "agent": trained.state_dict(), "replay_file": None})
+    loaded = run.load_agent(device="cpu")
+    assert (loaded.step, loaded.frame, loaded.note, loaded.obs_shape) == (125, 1000, None, (9, 100, 100))
+    obs = np.random.default_rng(0).integers(0, 255, (9, 100, 100), dtype=np.uint8)
+    assert np.array_equal(loaded.agent.act(obs, True), trained.act(obs, True))
+    # The checkpoint of another architecture than config.json describes: one line.
+    cfg.agent.hidden_dim = 64
+    run.write_config(cfg)
+    with pytest.raises(ImssrError, match="^checkpoint does not match the run's config: "):
+        run.load_agent(device="cpu")
+    with pytest.raises(ImssrError, match="^run directory not found"):
+        RunDir(tmp_path / "none").load_agent()
+
+
+def test_recording_says_how_a_training_ended(tmp_path):
+    from imssr.errors import DivergedError
+
+    class Stopped(Exception):
+        pass
+
+    run = RunDir(tmp_path)
+    cases = [(None, "finished"), (Stopped("stopped at agent step 7 by SIGTERM"), "interrupted"),
+             (KeyboardInterrupt(), "interrupted"), (DivergedError("diverged at agent step 7: critic loss nan"),
+                                                    "diverged"), (ImssrError("no space left\nmore"), "failed")]
+    for exc, state in cases:
+        with pytest.raises(type(exc)) if exc else contextlib.nullcontext():
+            with run.recording(lambda: 7, interrupted=(Stopped,)):
+                if exc:
+                    raise exc
+        record = run.read_status()
+        assert (record["state"], record["step"], run.status()) == (state, 7, state)
+        assert record["error"] == ("" if exc is None else (str(exc).splitlines() or ["KeyboardInterrupt"])[0])
+
