@@ -15,13 +15,13 @@ import torch
 from conftest import without_timing
 from imssr.cli import main
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.errors import INTERRUPTED_EXIT
 from imssr.sweep.grid import SweepConfig
 from imssr.sweep.runner import execute_run
 from imssr.sweep.sweep import plan_runs, settle
-from imssr.training.lock import LOCK_FILE
+from imssr.rundir.lock import LOCK_FILE
 
 # Tiny curl on cartpole: 3 episodes of 125 agent steps, updates from agent step 100, no
 # periodic checkpoint before the end (the stop writes the only one).

@@ -11,7 +11,7 @@ from conftest import tiny_config, train_stopped_at
 from imssr.errors import DivergedError, ImssrError
 from imssr.training import Trainer
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"

@@ -12,7 +12,7 @@ import torch
 from conftest import tiny_config
 from imssr.errors import ImssrError
 from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir)
-from imssr.training.checkpoint import CheckpointDamaged, load_checkpoint
+from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 
 
 def _damage(path: str) -> None:
