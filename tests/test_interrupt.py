@@ -27,7 +27,7 @@ from imssr.rundir.lock import LOCK_FILE
 # periodic checkpoint before the end (the stop writes the only one).
 TRAIN = ["train", "--algo", "curl", "--task", "cartpole_swingup_sparse", "--steps", "375", "--no-progress",
          "--seed", "3", *[a for kv in (
-             "agent.hidden_dim=32", "agent.feature_dim=16", "agent.batch_size=8", "aux.batch_size=8",
+             "agent.hidden_dim=32", "agent.encoder_filters=8", "agent.feature_dim=16", "agent.batch_size=8", "aux.batch_size=8",
              "agent.encoder_filters=8", "train.replay_capacity=2000", "train.seed_steps=100",
              "train.burst_updates=0", "train.eval_every_steps=250", "train.eval_episodes=1",
              "train.checkpoint_every_steps=0", "train.tensorboard=false", "train.torch_threads=1")
