@@ -242,7 +242,7 @@ def main() -> int:
     print("steps/s: 1 / mean wall time of one training step (act, every update of that agent step, "
           "env step with rendering, replay add)" + ("; each step ends with torch.cuda.synchronize()."
                                                      if cuda else "."))
-    print(f"x fp32 eager: steps/s over the same algorithm's fp32/off steps/s, same process (> 1 is faster).")
+    print("x fp32 eager: steps/s over the same algorithm's fp32/off steps/s, same process (> 1 is faster).")
     print(f"hours for {a.total_steps:,} steps: {a.total_steps:,} agent steps x mean step time; excludes "
           f"evaluation, the seed phase (cheaper random steps, then its burst of updates), "
           f"checkpoints and logging.")

@@ -22,7 +22,7 @@ from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.presets import run_config
-from imssr.rundir import EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir
+from imssr.rundir import EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir, run_path
 from imssr.seeds import evaluation_seed
 from imssr.training.evaluate import eval_row, evaluate
 from imssr.training.loop import StopRequest, Trainer, TrainingInterrupted
@@ -146,7 +146,7 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
     cfg = run_config(None if resume else algo, None if resume else task, demo=demo,
                      resume_dir=out if resume else None, values=values, frames=frames,
                      overrides=list(overrides))
-    out = out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
+    out = out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)
     stop = StopRequest().install()
     try:
         trainer = Trainer(cfg, out, resume=resume, stop=stop)

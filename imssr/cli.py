@@ -18,6 +18,7 @@ from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, explain, make_config, run_config
+from imssr.rundir import run_path
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
@@ -376,7 +377,7 @@ def cmd_train(args, demo: bool = False) -> int:
     if refill and not args.resume:
         raise ImssrError("--refill-buffer goes with --resume")
     cfg = _run_config(args, demo)
-    out = args.out or os.path.join("runs", cfg.env.task, cfg.algo, f"seed_{cfg.train.seed}")
+    out = args.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)
     # From here on SIGTERM / SIGINT stop the run after the current agent step, with a checkpoint.
     stop = StopRequest().install()
     try:

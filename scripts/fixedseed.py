@@ -81,7 +81,7 @@ def run(out_root: str, only: list[str] | None) -> None:
             raise SystemExit(f"fixedseed: {name} failed with status {proc.returncode}")
         # The tree that trained the run reads its own checkpoint (its own loader, its own format).
         sys.path.insert(0, os.getcwd())
-        from imssr.training.checkpoint import load_checkpoint
+        from imssr.rundir.checkpoint import load_checkpoint
         state = load_checkpoint(os.path.join(out, "checkpoints", "latest.pt"))
         flat: dict = {}
         _flatten(state["agent"], "agent", flat)

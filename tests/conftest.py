@@ -16,6 +16,7 @@ def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **
     """The paper's preset shrunk: small MLPs and batches, short budgets."""
     cfg = make_config(algo, task)
     cfg.agent.hidden_dim = 32
+    cfg.agent.encoder_filters = 8
     cfg.agent.feature_dim = 16
     cfg.agent.batch_size = 8
     cfg.aux.batch_size = 8

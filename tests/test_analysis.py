@@ -216,7 +216,7 @@ def test_analyze_rolls_out_the_policy_when_the_replay_has_no_physics(tiny_run, t
 
     # A replay written before physics were recorded: auto falls back to rollouts and says why.
     from imssr.rundir import RunDir
-    from imssr.training.checkpoint import load_checkpoint
+    from imssr.rundir.checkpoint import load_checkpoint
 
     copy = tmp_path / "old-run"
     shutil.copytree(run, copy)

@@ -114,7 +114,7 @@ def test_load_run_errors(tmp_path, tiny_run):
 
 def test_train_resumes_to_a_larger_budget(tmp_path):
     tiny = ["train.seed_steps=20", "train.burst_updates=0", "train.eval_episodes=1", "train.eval_every_steps=20",
-            "agent.batch_size=8", "agent.hidden_dim=32", "agent.feature_dim=16", "train.tensorboard=false"]
+            "agent.batch_size=8", "agent.hidden_dim=32", "agent.encoder_filters=8", "agent.feature_dim=16", "train.tensorboard=false"]
     out = str(tmp_path / "run")
     run = imssr.train("curl", "cartpole_swingup_sparse", out=out, steps=40, progress=False, overrides=tiny)
     assert run.step == 40

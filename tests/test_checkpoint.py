@@ -9,7 +9,7 @@ from conftest import tiny_config, train_run, train_stopped_at, without_timing
 from imssr.errors import ImssrError
 from imssr.training import Trainer
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.training.state import StepSchedule
 

@@ -12,7 +12,7 @@ from imssr.training.logger import read_csv
 
 TINY = ["--steps", "250", "--seed-steps", "60", "--batch-size", "8", "--eval-every", "125",
         "--eval-episodes", "1", "--replay-capacity", "3000", "--no-progress",
-        "--set", "agent.hidden_dim=32", "--set", "agent.feature_dim=16", "--set", "train.burst_updates=0"]
+        "--set", "agent.hidden_dim=32", "--set", "agent.encoder_filters=8", "--set", "agent.feature_dim=16", "--set", "train.burst_updates=0"]
 
 
 def imssr(*args, check=True, **kw):

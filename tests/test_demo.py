@@ -27,7 +27,8 @@ def test_demo_end_to_end_leaves_curve_gif_and_the_paper_command(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "imssr", "demo", "--out", str(out), "--steps", "40", "--seed-steps", "20",
          "--eval-every", "20", "--eval-episodes", "1", "--batch-size", "8", "--no-progress",
-         "--set", "train.burst_updates=5", "--set", "agent.hidden_dim=32"],
+         "--set", "train.burst_updates=5", "--set", "agent.hidden_dim=32",
+         "--set", "agent.encoder_filters=8"],
         capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert [r["step"] for r in read_csv(out / "eval.csv")] == ["20", "40"]

@@ -13,7 +13,7 @@ from imssr.cli import main
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 from imssr.utils import atomic_write_text
 
 

@@ -15,19 +15,19 @@ import torch
 from conftest import without_timing
 from imssr.cli import main
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.errors import INTERRUPTED_EXIT
 from imssr.sweep.grid import SweepConfig
 from imssr.sweep.runner import execute_run
 from imssr.sweep.sweep import plan_runs, settle
-from imssr.training.lock import LOCK_FILE
+from imssr.rundir.lock import LOCK_FILE
 
 # Tiny curl on cartpole: 3 episodes of 125 agent steps, updates from agent step 100, no
 # periodic checkpoint before the end (the stop writes the only one).
 TRAIN = ["train", "--algo", "curl", "--task", "cartpole_swingup_sparse", "--steps", "375", "--no-progress",
          "--seed", "3", *[a for kv in (
-             "agent.hidden_dim=32", "agent.feature_dim=16", "agent.batch_size=8", "aux.batch_size=8",
+             "agent.hidden_dim=32", "agent.encoder_filters=8", "agent.feature_dim=16", "agent.batch_size=8", "aux.batch_size=8",
              "agent.encoder_filters=8", "train.replay_capacity=2000", "train.seed_steps=100",
              "train.burst_updates=0", "train.eval_every_steps=250", "train.eval_episodes=1",
              "train.checkpoint_every_steps=0", "train.tensorboard=false", "train.torch_threads=1")

@@ -123,7 +123,7 @@ def test_killed_slurm_driver_rerun_skips_finished_runs(tmp_path):
     """The SLURM launcher (submitit's local executor): the driver is killed (-9) once the first run
     is done; jobs it submitted may outlive it, as SLURM jobs do.  Once nothing trains in the run
     directories any more, the same sweep starts nothing for finished runs and completes the rest."""
-    from imssr.training.lock import DirectoryLock
+    from imssr.rundir.lock import DirectoryLock
 
     root = str(tmp_path / "sweep")
     script = (f"from imssr.sweep.grid import SweepConfig\nfrom imssr.sweep.sweep import run_sweep\n"

@@ -14,7 +14,7 @@ from conftest import StopAtStep, tiny_config
 from imssr.errors import DivergedError, NonFiniteError
 from imssr.training import Trainer
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.loop import TrainingInterrupted, first_non_finite
 from imssr.training.progress import Progress, eval_summary, progress_line
 from imssr.training.state import Episode, RunState

@@ -11,13 +11,13 @@ from conftest import tiny_config, train_stopped_at
 from imssr.errors import DivergedError, ImssrError
 from imssr.training import Trainer
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"
 # cartpole episodes are 1000 frames: at action repeat 50 an episode is 20 agent steps.
 FAST = ["--steps", "60", "--seed-steps", "10", "--batch-size", "8", "--eval-every", "0", "--eval-episodes", "1",
-        "--replay-capacity", "1000", "--no-progress", "--no-tensorboard", "--set", "agent.hidden_dim=32",
+        "--replay-capacity", "1000", "--no-progress", "--no-tensorboard", "--set", "agent.hidden_dim=32", "--set", "agent.encoder_filters=8",
         "--set", "agent.feature_dim=16", "--set", "train.burst_updates=0", "--set", "env.action_repeat=50"]
 
 

@@ -25,8 +25,8 @@ from imssr.replay import FrameReplayBuffer
 from imssr.training import Trainer
 from imssr.training.evaluate import evaluate_run
 from imssr.rundir import RunDir
-from imssr.training.checkpoint import CheckpointDamaged, load_checkpoint
-from imssr.training.lock import LOCK_FILE, DirectoryLock
+from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
+from imssr.rundir.lock import LOCK_FILE, DirectoryLock
 from imssr.training.logger import CSVLog, Logger, read_csv
 from imssr.utils import atomic_write_csv, atomic_write_text
 
@@ -97,7 +97,7 @@ def _flip(path, count=64):
 
 # -- two writers ---------------------------------------------------------------------------
 
-HOLD = ("import sys\nfrom imssr.training.lock import DirectoryLock\n"
+HOLD = ("import sys\nfrom imssr.rundir.lock import DirectoryLock\n"
         "DirectoryLock(sys.argv[1]).acquire()\nprint('locked', flush=True)\nsys.stdin.read()\n")
 
 

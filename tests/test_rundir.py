@@ -3,7 +3,9 @@ and the agent of a run at a checkpoint."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
+import threading
 
 import numpy as np
 import pytest
@@ -12,7 +14,7 @@ import torch
 from conftest import tiny_config
 from imssr.errors import ImssrError
 from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir)
-from imssr.training.checkpoint import CheckpointDamaged, load_checkpoint
+from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 
 
 def _damage(path: str) -> None:
@@ -131,6 +133,27 @@ def test_status_transitions(tmp_path):
     run.write_done(250, 250, attempt=1, resumed=False)
     assert run.status() == "finished" and run.is_done(250) and not run.is_done(251)
     assert run.done_steps() == 250
+
+
+def test_a_status_probe_does_not_turn_a_starting_writer_away(tmp_path):
+    """RunDir.in_use() holds a shared lock for an instant; a writer that starts in that instant
+    waits for it instead of calling the run busy. A real writer still turns it away."""
+    run = RunDir(tmp_path / "run")
+    os.makedirs(run.path)
+    with open(run.lock_path, "w") as fh:  # what a writer killed with -9 leaves: a file, no lock
+        fh.write("999999 elsewhere\n")
+    assert not run.in_use()
+    probe = os.open(run.lock_path, os.O_RDONLY)
+    fcntl.flock(probe, fcntl.LOCK_SH | fcntl.LOCK_NB)  # as in_use() does, between open and close
+    threading.Timer(0.05, os.close, (probe,)).start()
+    lock = run.open()  # acquired once the probe lets go
+    try:
+        assert run.in_use() and run.status() == "running"
+        with pytest.raises(ImssrError, match="is in use by PID"):
+            RunDir(tmp_path / "run").open()
+    finally:
+        lock.release()
+    assert not run.in_use()
 
 
 def test_progress_comes_from_the_last_complete_rows(tmp_path):

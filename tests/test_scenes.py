@@ -166,7 +166,7 @@ def test_training_in_a_scene_and_evaluating_in_several(tmp_path):
     from conftest import tiny_config
     from imssr.training import Trainer
     from imssr.rundir import RunDir
-    from imssr.training.checkpoint import load_checkpoint
+    from imssr.rundir.checkpoint import load_checkpoint
     from imssr.training.logger import read_csv
 
     cfg = tiny_config("im-curl", seed_steps=8, steps=25, eval_every_steps=0)  # 200 frames

@@ -19,7 +19,7 @@ pytest.importorskip("wandb")
 TASK = "cartpole_swingup_sparse"
 TINY_ARGS = ["--algo", "im-curl", "--task", TASK, "--steps", "250", "--seed-steps", "60", "--eval-every", "125",
              "--eval-episodes", "1", "--checkpoint-every", "125", "--batch-size", "8", "--no-progress",
-             "--set", "train.burst_updates=0", "--set", "aux.batch_size=8", "--set", "agent.hidden_dim=32",
+             "--set", "train.burst_updates=0", "--set", "aux.batch_size=8", "--set", "agent.hidden_dim=32", "--set", "agent.encoder_filters=8",
              "--set", "agent.feature_dim=16", "--set", "agent.encoder_filters=8",
              "--set", "train.replay_capacity=3000"]
 

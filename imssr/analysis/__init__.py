@@ -25,7 +25,7 @@ from imssr.errors import ImssrError
 from imssr.rundir import RunDir
 from imssr.seeds import ANALYSIS_ENV_SEED_OFFSET, ANALYSIS_ROLLOUT_SEED_OFFSET, ANALYSIS_SCENE_SEED_OFFSET
 from imssr.training.build import resolve_device, restore_agent
-from imssr.training.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import load_checkpoint
 
 __all__ = ["AnalysisOptions", "AnalysisResult", "analyze_run", "intrinsic_signal", "SOURCES", "DEFAULT_MODES"]
 

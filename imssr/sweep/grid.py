@@ -17,7 +17,7 @@ from imssr.envs import get_task
 from imssr.errors import ImssrError
 from imssr.jsonio import dumps
 from imssr.presets import ALGOS, get_algo, run_config
-from imssr.rundir import RunDir
+from imssr.rundir import RunDir, run_path
 from imssr.utils import atomic_write_text
 
 LAUNCHERS = ("ray", "slurm", "local")
@@ -216,9 +216,9 @@ def expand(cfg: SweepConfig) -> list[Run]:
             # Base algos have no beta_0: in a beta sweep they run once, as the beta_0 = 0 line.
             betas = cfg.beta0 if (cfg.beta0 and ALGOS[algo].intrinsic_enabled) else [None]
             for beta in betas:
-                parts = [root, task, algo] + ([] if beta is None else [f"beta0_{beta_label(beta)}"])
+                label = None if beta is None else beta_label(beta)
                 for seed in cfg.seeds:
-                    runs.append(Run(algo, task, seed, beta, os.path.join(*parts, f"seed_{seed}")))
+                    runs.append(Run(algo, task, seed, beta, run_path(root, task, algo, seed, label)))
     return runs
 
 

@@ -33,7 +33,7 @@ from imssr.jsonio import dumps
 from imssr.rundir import SWEEP_LOG, RunDir
 from imssr.sweep.grid import Run, SweepConfig, expand, save_plan
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
-from imssr.training.lock import DirectoryLock
+from imssr.rundir.lock import DirectoryLock
 from imssr.training.loop import RESUMABLE_CHANGES
 from imssr.utils import atomic_write_text
 
@@ -205,7 +205,7 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0,
     status of each.  ``submitit_cluster``: submitit's executor for ``--launcher slurm``
     (``local`` runs the jobs on this machine).
 
-    The sweep holds a lock on its root (:mod:`imssr.training.lock`), so a second sweep over the
+    The sweep holds a lock on its root (:mod:`imssr.rundir.lock`), so a second sweep over the
     same root fails at once ("ROOT is in use by PID n"); each run's training locks its own
     directory as ``imssr train`` does.
     """

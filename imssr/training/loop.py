@@ -115,7 +115,7 @@ class Trainer:
             set, :meth:`train` checkpoints after the current agent step and raises
             :class:`TrainingInterrupted`.
 
-    The trainer holds an exclusive lock on ``out_dir`` (:mod:`imssr.training.lock`) from
+    The trainer holds an exclusive lock on ``out_dir`` (:mod:`imssr.rundir.lock`) from
     before it writes or deletes anything there until :meth:`close`.
     """
 

@@ -18,7 +18,7 @@ Layout of ``RUN/`` (every name below is a constant of this module)::
     status.json             how the last training of the run ended (see :meth:`RunDir.status`)
     done.json               ``imssr sweep``: the run reached its budget
     sweep.log               ``imssr sweep``: the output of every attempt
-    .imssr.lock             held while a process writes the run (:mod:`imssr.training.lock`)
+    .imssr.lock             held while a process writes the run (:mod:`imssr.rundir.lock`)
     checkpoints/
         latest.pt                      the checkpoint a resume continues from
         step-<step>.pt                 the ``train.keep_checkpoints`` newest, real copies
@@ -49,8 +49,8 @@ from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
 from imssr.jsonio import dumps
 from imssr.replay.buffer import frames_path
-from imssr.training.checkpoint import CheckpointDamaged, copy_checkpoint, load_checkpoint, write_checkpoint
-from imssr.training.lock import LOCK_FILE, DirectoryLock
+from imssr.rundir.checkpoint import CheckpointDamaged, copy_checkpoint, load_checkpoint, write_checkpoint
+from imssr.rundir.lock import LOCK_FILE, DirectoryLock
 from imssr.utils import atomic_write_text, read_csv
 
 CONFIG_FILE = "config.json"
@@ -102,7 +102,15 @@ NEW, RUNNING, INTERRUPTED, FINISHED, FAILED, DIVERGED = "new", "running", "inter
 ENDINGS = (INTERRUPTED, FINISHED, FAILED, DIVERGED)
 """The states a training records in ``status.json`` when it ends."""
 
-__all__ = ["RunDir", "LoadedAgent", "LOCK_FILE"]
+__all__ = ["RunDir", "LoadedAgent", "LOCK_FILE", "run_path"]
+
+
+def run_path(root: str, task: str, algo: str, seed: int, beta0_label: Optional[str] = None) -> str:
+    """Where a run lives under ``root``: ``ROOT/<task>/<algo>/seed_<n>``, or
+    ``ROOT/<task>/<algo>/beta0_<label>/seed_<n>`` for a point of a beta_0 sweep. ``imssr train``
+    and ``imssr.train`` default to ``root="runs"``; a sweep's runs are these paths under its root."""
+    beta = [] if beta0_label is None else [f"beta0_{beta0_label}"]
+    return os.path.join(root, task, algo, *beta, f"seed_{seed}")
 
 
 @dataclass

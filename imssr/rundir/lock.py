@@ -17,6 +17,7 @@ import errno
 import fcntl
 import os
 import socket
+import time
 from typing import Optional
 
 from imssr.errors import ImssrError
@@ -49,7 +50,7 @@ class DirectoryLock:
                 with disk_full_as_error(self.path):
                     fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
                 try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    _flock_exclusive(fd)
                 except OSError as exc:
                     owner = _owner(fd)
                     os.close(fd)
@@ -109,6 +110,24 @@ class DirectoryLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+# RunDir.in_use() (a status probe) holds a shared lock for a few microseconds; a writer that
+# meets one waits this long before it calls the directory busy.
+_PROBE_WAIT_S, _PROBE_TRIES = 0.02, 10
+
+
+def _flock_exclusive(fd: int) -> None:
+    """``flock(LOCK_EX | LOCK_NB)``, tried again for up to 0.2 s while another process holds
+    the lock: a writer holds it for its whole run, a probe only for an instant."""
+    for attempt in range(_PROBE_TRIES):
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES) or attempt == _PROBE_TRIES - 1:
+                raise
+            time.sleep(_PROBE_WAIT_S)
 
 
 def _missing_dirs(directory: str) -> list[str]:
