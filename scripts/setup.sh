@@ -25,7 +25,7 @@ if [ ! -x .venv/bin/python ]; then
   echo "setup: creating .venv with $($PY --version)"
   "$PY" -m venv .venv
 fi
-if ! .venv/bin/python -c "import imssr, docstring_parser, pytest, ray, rliable, wandb, submitit" >/dev/null 2>&1 \
+if ! .venv/bin/python -c "import imssr, docstring_parser, pytest, xdist, ray, rliable, wandb, submitit" >/dev/null 2>&1 \
    || [ pyproject.toml -nt .venv/.imssr-installed ]; then
   echo "setup: installing imssr with its sweep, report, wandb, slurm and test extras into .venv"
   # (grep drops pip's notes about local wheel folders that this machine lacks)

@@ -1,6 +1,8 @@
 """Shared fixtures: tiny configurations that exercise the real code paths quickly."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,13 @@ import imssr  # noqa: F401 - configures MUJOCO_GL before dm_control loads
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
 
-torch.set_num_threads(2)
+# Two torch threads; one per process when pytest-xdist runs the suite on several workers
+# (`-n 2`), whose CLI subprocesses inherit OMP_NUM_THREADS (train.torch_threads=0 keeps torch's
+# default), so that workers do not contend for the cores.
+TORCH_THREADS = 1 if os.environ.get("PYTEST_XDIST_WORKER") else 2
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+torch.set_num_threads(TORCH_THREADS)
 
 
 def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **train):

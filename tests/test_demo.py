@@ -14,9 +14,11 @@ def test_demo_preset_is_im_ssr_on_dense_cartpole_with_the_fused_schedule():
     assert cfg.algo == "im-curl" and cfg.intrinsic.enabled and cfg.intrinsic.beta0 > 0
     assert cfg.env.task == "cartpole_swingup" and cfg.env.action_repeat == 8
     assert cfg.agent.update_schedule == "fused" and paper.agent.update_schedule == "sequential"
-    # Learning starts after ~500 updates (docs/performance.md): the demo must get well past that.
+    # Learning shows after ~500 updates in every measured seed (docs/performance.md, "The demo"):
+    # the demo gives twice that, and evaluates at least three times after its burst.
     updates = cfg.train.steps - cfg.train.seed_steps + cfg.train.burst_updates
-    assert updates >= 3 * 500
+    assert updates >= 2 * 500
+    assert (cfg.train.steps - cfg.train.seed_steps) // cfg.train.eval_every_steps >= 3
     # The network is the authors', only the batch shrinks.
     assert (cfg.agent.feature_dim, cfg.agent.projection_tanh, cfg.agent.final_relu) == \
         (paper.agent.feature_dim, paper.agent.projection_tanh, paper.agent.final_relu)

@@ -7,8 +7,12 @@ from imssr.training import Trainer
 from imssr.training.logger import read_csv
 
 
-@pytest.mark.parametrize("algo", ["curl", "im-curl"])
-@pytest.mark.parametrize("task", PAPER_TASKS)
+# A base algorithm's preset is its im-X preset with the intrinsic reward off (the last test), and every algorithm trains with and without it in test_algorithms.py: so
+# IM-CURL on every paper task, and CURL on one.
+CASES = [(task, "im-curl") for task in PAPER_TASKS] + [("cartpole_swingup_sparse", "curl")]
+
+
+@pytest.mark.parametrize("task,algo", CASES)
 def test_paper_preset_trains(task, algo, tmp_path):
     cfg = make_config(algo, task)
     # Only the budget shrinks: 8 random steps fill the buffer, then 2 full-size updates.
@@ -26,3 +30,13 @@ def test_paper_preset_trains(task, algo, tmp_path):
     assert trainer.agent.updates == 2
     rows = read_csv(tmp_path / "eval.csv")
     assert len(rows) == 1 and int(rows[0]["step"]) == 10 and int(rows[0]["frame"]) == 10 * cfg.env.action_repeat
+
+
+@pytest.mark.parametrize("task", PAPER_TASKS)
+@pytest.mark.parametrize("base", ["curl", "soda"])
+def test_a_base_preset_is_its_im_preset_without_the_intrinsic_reward(task, base):
+    """What lets test_paper_preset_trains run CURL on one task only."""
+    plain, im = make_config(base, task), make_config(f"im-{base}", task)
+    assert not plain.intrinsic.enabled and im.intrinsic.enabled
+    for section in ("env", "agent", "aux", "train"):
+        assert getattr(plain, section) == getattr(im, section), section

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config, train_stopped_at
+from conftest import TORCH_THREADS, tiny_config, train_stopped_at
 from imssr.errors import DivergedError, ImssrError
 from imssr.training import Trainer
 from imssr.rundir import RunDir
@@ -139,7 +139,7 @@ def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_sma
         resumed.close()
         assert "torch thread" not in capsys.readouterr().out
     finally:
-        torch.set_num_threads(2)  # conftest's
+        torch.set_num_threads(TORCH_THREADS)
 
 
 def test_progress_lines_when_stdout_is_not_a_terminal(tmp_path, capsys):
