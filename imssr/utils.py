@@ -213,6 +213,7 @@ def contention_warning(threads: int, load: float | None = None, cores: int | Non
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     if load + threads <= cores + 0.5:
         return None
-    return (f"imssr: warning: load average {load:.1f} on {cores} cores and {threads} torch threads; "
+    return (f"imssr: warning: other processes keep {load:.1f} of {cores} cores busy and this run uses "
+            f"{threads} torch threads; "
             "threads that contend with other processes can run many times slower "
             "(set --set train.torch_threads=1, or stop the other jobs)")
