@@ -8,6 +8,7 @@ import os
 import random
 import re
 import secrets
+import time
 from typing import Iterable, Iterator, Optional
 
 import numpy as np
@@ -162,13 +163,41 @@ def random_state_from_plain(state) -> tuple:
             state["has_gauss"], state["gauss"])
 
 
+def _cpu_times() -> Optional[tuple[int, int]]:
+    """(idle, total) jiffies of all CPUs from ``/proc/stat`` (Linux), or None."""
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            fields = [int(v) for v in fh.readline().split()[1:9]]  # user .. steal, no guest time
+    except (OSError, ValueError):
+        return None
+    return (fields[3] + fields[4], sum(fields)) if len(fields) >= 5 else None
+
+
+def busy_cores(before: tuple[int, int], after: tuple[int, int], ncpu: int) -> float:
+    """Cores kept busy between two :func:`_cpu_times` readings of a machine with ``ncpu`` CPUs."""
+    idle, total = after[0] - before[0], after[1] - before[1]
+    return 0.0 if total <= 0 else ncpu * (1.0 - idle / total)
+
+
+def busy_cores_now(interval_s: float = 0.2) -> Optional[float]:
+    """Cores that other processes keep busy now (this process sleeps while it looks), or None."""
+    before = _cpu_times()
+    if before is None:
+        return None
+    time.sleep(interval_s)
+    after = _cpu_times()
+    return None if after is None else busy_cores(before, after, os.cpu_count() or 1)
+
+
 def contention_warning(threads: int, load: float | None = None, cores: int | None = None) -> str | None:
     """A one-line warning if ``threads`` torch threads would contend with other busy processes.
 
     torch's intra-op pool spins on every thread; when the cores are already busy
     (another run, a test suite) a 2-thread update on a 2-core machine was measured
-    running many times slower than with 1 thread.  ``load`` is the 1-minute load
-    average and ``cores`` the usable cores (both read from the OS when None).
+    running many times slower than with 1 thread.  ``load`` is how many cores other processes
+    keep busy and ``cores`` the usable cores (both read from the OS when None): the smaller of
+    the 1-minute load average and the cores busy during a 0.2 s look at ``/proc/stat``, so that
+    a job that ended seconds ago (``scripts/setup.sh`` before ``imssr demo``) does not count.
     """
     if threads <= 1:
         return None
@@ -177,10 +206,14 @@ def contention_warning(threads: int, load: float | None = None, cores: int | Non
             load = os.getloadavg()[0]
         except OSError:  # not available on this platform
             return None
+        now = busy_cores_now()
+        if now is not None:
+            load = min(load, now)
     if cores is None:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     if load + threads <= cores + 0.5:
         return None
-    return (f"imssr: warning: load average {load:.1f} on {cores} cores and {threads} torch threads; "
+    return (f"imssr: warning: other processes keep {load:.1f} of {cores} cores busy and this run uses "
+            f"{threads} torch threads; "
             "threads that contend with other processes can run many times slower "
             "(set --set train.torch_threads=1, or stop the other jobs)")

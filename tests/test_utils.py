@@ -3,7 +3,7 @@ import os
 
 import pytest
 
-from imssr.utils import atomic_path, atomic_write_csv, atomic_write_text, contention_warning
+from imssr.utils import atomic_path, atomic_write_csv, atomic_write_text, busy_cores, busy_cores_now, contention_warning
 
 
 def test_atomic_write_replaces_whole_file(tmp_path):
@@ -44,3 +44,16 @@ def test_contention_warning(threads, load, cores, warns):
     assert (message is not None) == warns
     if warns:
         assert "\n" not in message and "train.torch_threads=1" in message
+
+
+def test_busy_cores_reads_the_share_of_non_idle_time():
+    # (idle, total) jiffies: 2 CPUs, 100 jiffies each elapsed, 150 of the 200 idle -> half a core busy
+    assert busy_cores((1000, 4000), (1150, 4200), ncpu=2) == pytest.approx(0.5)
+    assert busy_cores((1000, 4000), (1000, 4200), ncpu=2) == pytest.approx(2.0)
+    assert busy_cores((1000, 4000), (1000, 4000), ncpu=2) == 0.0  # no time passed
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="Linux only")
+def test_busy_cores_now_is_a_share_of_the_machine():
+    now = busy_cores_now(0.05)
+    assert now is not None and 0.0 <= now <= (os.cpu_count() or 1) + 1e-9
