@@ -201,16 +201,17 @@ def contention_warning(threads: int, load: float | None = None, cores: int | Non
     """
     if threads <= 1:
         return None
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     if load is None:
         try:
             load = os.getloadavg()[0]
         except OSError:  # not available on this platform
             return None
-        now = busy_cores_now()
-        if now is not None:
-            load = min(load, now)
-    if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        if load + threads > cores + 0.5:  # only then is the 0.2 s look worth taking
+            now = busy_cores_now()
+            if now is not None:
+                load = min(load, now)
     if load + threads <= cores + 0.5:
         return None
     return (f"imssr: warning: other processes keep {load:.1f} of {cores} cores busy and this run uses "
