@@ -1,6 +1,12 @@
 """An update never waits for the device: no tensor is read back to the host inside
-``SACAgent.update``, for every algorithm and both schedules (checked on CPU, where the same
-calls would be the syncs on a GPU)."""
+``SACAgent.update``, for every algorithm, both schedules and both precisions.
+
+On CPU the check patches the Python-level ways of reading a tensor's values (``HOST_READS``:
+what ``if t:``, ``float(t)``, ``int(t)``, ``range(t)``, indexing a list by ``t``, ``np.asarray(t)``
+and f-strings go through); those calls are the syncs on a GPU.  Syncs that happen inside C++
+(a boolean-mask index, ``nonzero``, a size taken from a tensor) cannot be seen from Python: the
+CUDA test at the end runs the same update under ``torch.cuda.set_sync_debug_mode("error")``,
+which sees every one, on a machine with a GPU."""
 import contextlib
 
 import pytest
@@ -11,18 +17,21 @@ from imssr.agents import SACAgent
 from imssr.algos import ALGOS
 
 # What reads a tensor's values on the host (each waits for the device on a GPU).
-HOST_READS = ("item", "__bool__", "__float__", "__int__", "cpu", "numpy", "tolist")
+HOST_READS = ("item", "__bool__", "__float__", "__int__", "__index__", "cpu", "numpy", "tolist")
 
 
-def small_agent(algo: str, schedule: str, precision: str = "fp32") -> SACAgent:
-    """The preset on 60 px frames, 4 thin convolutions, batch 8."""
+def small_agent(algo: str, schedule: str, precision: str = "fp32", device: str = "cpu", **aux) -> SACAgent:
+    """The preset on 60 px frames, 4 thin convolutions, batch 8; ``aux`` sets fields of
+    ``cfg.aux`` (``own_batch``) or ``cfg.intrinsic`` (``form``)."""
     cfg = tiny_config(algo)
     cfg.agent.update_schedule = schedule
     cfg.agent.precision = precision
+    for field, value in aux.items():
+        setattr(cfg.intrinsic if field == "form" else cfg.aux, field, value)
     cfg.agent.encoder_layers, cfg.agent.encoder_filters, cfg.agent.crop_size = 4, 8, 52
     cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, 1)
     cfg.aux.image_pool_size = 8
-    return SACAgent((9, 60, 60), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
+    return SACAgent((9, 60, 60), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0, device=device)
 
 
 @contextlib.contextmanager
@@ -49,10 +58,13 @@ def optimizer_step_counters(agent: SACAgent) -> set[int]:
     return {id(s["step"]) for opt in opts for s in opt.state.values()}
 
 
-@pytest.mark.parametrize("schedule", ["sequential", "fused"])
-@pytest.mark.parametrize("algo", sorted(ALGOS))
-def test_update_reads_nothing_back_from_the_device(monkeypatch, algo, schedule):
-    agent = small_agent(algo, schedule)
+# Update paths the presets do not take: PAD on the RL batch (the fused schedule's joint o + o'
+# pass, IM-PAD's reward from the training loss) and the intrinsic signal in the training loss's form.
+VARIANTS = [("pad", dict(own_batch=False)), ("im-pad", dict(own_batch=False)),
+            ("im-curl", dict(form="training")), ("im-soda", dict(form="training"))]
+
+
+def update_without_host_reads(monkeypatch, agent: SACAgent) -> None:
     replay = filled_buffer(60, action_dim=2, size=60)
     agent.update(replay, 0)  # creates the optimisers' state
     with host_reads_raise(monkeypatch, optimizer_step_counters(agent)):
@@ -61,8 +73,49 @@ def test_update_reads_nothing_back_from_the_device(monkeypatch, algo, schedule):
     assert "critic_loss" in metrics and "actor_loss" in metrics
 
 
+@pytest.mark.parametrize("schedule", ["sequential", "fused"])
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+def test_update_reads_nothing_back_from_the_device(monkeypatch, algo, schedule):
+    update_without_host_reads(monkeypatch, small_agent(algo, schedule))
+
+
+# bf16 adds autocast regions and float32 islands (docs/performance.md): every auxiliary task
+# with its own intrinsic reward, and the two other signals.
+@pytest.mark.parametrize("schedule", ["sequential", "fused"])
+@pytest.mark.parametrize("algo", ["im-curl", "im-soda", "im-pad", "im-svea", "curl+rnd", "curl+re3"])
+def test_bf16_update_reads_nothing_back_from_the_device(monkeypatch, algo, schedule):
+    update_without_host_reads(monkeypatch, small_agent(algo, schedule, "bf16"))
+
+
+@pytest.mark.parametrize("schedule", ["sequential", "fused"])
+@pytest.mark.parametrize("algo,aux", VARIANTS, ids=[f"{a}-{k}={v}" for a, kw in VARIANTS for k, v in kw.items()])
+def test_other_update_paths_read_nothing_back(monkeypatch, algo, aux, schedule):
+    agent = small_agent(algo, schedule, **aux)
+    if algo.endswith("pad") and schedule == "fused":
+        assert agent.fuse_aux  # the joint pass is what this case is for
+    update_without_host_reads(monkeypatch, agent)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("schedule", ["sequential", "fused"])
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+def test_cuda_update_never_synchronizes(algo, schedule):
+    """CUDA's own sync detector: any synchronizing call inside the update raises."""
+    agent = small_agent(algo, schedule, device="cuda")
+    replay = filled_buffer(60, action_dim=2, size=60)
+    agent.update(replay, 0)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")  # the host store's sample into pinned memory included
+    try:
+        agent.update(replay, 2)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+
+
 def test_the_guard_catches_a_host_read(monkeypatch):
     with host_reads_raise(monkeypatch, set()), pytest.raises(AssertionError, match="Tensor.item"):
         torch.ones(1).item()
     with host_reads_raise(monkeypatch, set()), pytest.raises(AssertionError, match="Tensor.__bool__"):
         bool(torch.ones(1) > 0)
+    with host_reads_raise(monkeypatch, set()), pytest.raises(AssertionError, match="Tensor.__index__"):
+        [0, 1][torch.tensor(1)]

@@ -90,9 +90,24 @@ def test_precision_is_validated_and_bf16_is_one_override():
         apply_overrides(make_config("curl", "cartpole_swingup"), ["agent.precision=fp16"]).validate()
 
 
-def test_a_cpu_without_native_bfloat16_is_told_once():
+def test_native_bfloat16_is_read_from_cpuinfo_and_only_cpu_bf16_can_be_slow():
     assert native_bf16("processor\t: 0\nflags\t\t: fpu sse avx512f avx512_bf16 avx512_vnni\n")
     assert native_bf16("Features\t: fp asimd bf16 i8mm\n")
     assert not native_bf16("flags\t\t: fpu sse avx2 avx512f avx512bw\n")
     assert warn_if_bf16_is_slow(torch.device("cpu"), "fp32") is None
     assert warn_if_bf16_is_slow(torch.device("cuda"), "bf16") is None
+
+
+@pytest.mark.parametrize("native", [False, True, None])
+def test_the_slow_bf16_warning_is_printed_once_and_only_without_native_bfloat16(native, monkeypatch, capsys):
+    import imssr.precision as precision
+
+    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: native)
+    monkeypatch.setattr(precision, "_warned_slow_bf16", False)
+    lines = [warn_if_bf16_is_slow(torch.device("cpu"), "bf16") for _ in range(3)]
+    printed = capsys.readouterr().err.splitlines()
+    if native is False:  # AVX2 without avx512_bf16: emulated
+        assert lines[0] == lines[1] == lines[2] and lines[0].startswith("imssr: warning: agent.precision=bf16")
+        assert printed == [lines[0]]
+    else:  # native bfloat16, or a machine that cannot tell
+        assert lines == [None, None, None] and printed == []

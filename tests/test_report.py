@@ -274,3 +274,29 @@ def test_runs_the_sweep_lists_as_failed_are_reported_as_failed(tmp_path, paper_c
     write_report(root, out, paper_results=paper_csv, reps=200)
     assert table(out)["training", "curl", "1.0"]["failed_seeds"] == "0"
     assert "**1 failed**" in open(os.path.join(out, "report.md")).read()
+
+
+def test_compare_sweeps_table_and_exit_status(tmp_path):
+    """scripts/compare_sweeps.py: the reference's spread at every common step, the candidate's
+    mean inside or not, exit 1 when any point leaves the spread."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), os.pardir, "scripts", "compare_sweeps.py")
+    spec = importlib.util.spec_from_file_location("compare_sweeps", path)
+    compare_sweeps = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare_sweeps)
+    ref, near, far = (str(tmp_path / name) for name in ("ref", "near", "far"))
+    for seed, (a, b) in enumerate([(10.0, 100.0), (20.0, 200.0), (30.0, 300.0)], start=1):
+        make_run(ref, "im-curl", seed, [("training", 250, a), ("training", 500, b)])
+        make_run(near, "im-curl", seed, [("training", 250, a + 1), ("training", 500, b - 50)])
+        make_run(far, "im-curl", seed, [("training", 250, a), ("training", 500, b + 150)])
+    table, inside = compare_sweeps.compare(ref, near, "fp32", "bf16")
+    assert inside
+    rows = [line for line in table.splitlines() if line.startswith("| 250") or line.startswith("| 500")]
+    assert rows[0] == "| 250 | s1: 10.0, s2: 20.0, s3: 30.0 | 20.0 [10.0, 30.0] | s1: 11.0, s2: 21.0, s3: 31.0 | " \
+                      "21.0 | +0.10 | yes |"
+    assert rows[1].endswith("| 150.0 | -0.50 | yes |")
+    table, inside = compare_sweeps.compare(ref, far, "fp32", "bf16")
+    assert not inside and table.splitlines()[-1].endswith("| 350.0 | +1.50 | **no** |")
+    assert compare_sweeps.main([ref, far]) == 1 and compare_sweeps.main([ref, near]) == 0
+    assert compare_sweeps.main([ref, str(tmp_path / "missing")]) == 2

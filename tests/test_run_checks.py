@@ -1,6 +1,7 @@
 """Guards of a real training run: divergence stops in one line and keeps the last checkpoint,
 resume says where it resumes and warns on another thread count, a smaller budget is refused,
 progress lines for logs, and a bad image folder fails before the seed phase."""
+import os
 import re
 
 import numpy as np
@@ -56,6 +57,31 @@ def test_divergence_stops_in_one_line_and_keeps_the_last_good_checkpoint(tmp_pat
         assert resumed.step == 20 and all(torch.isfinite(p).all() for p in resumed.agent.nets.parameters())
     finally:
         resumed.close()
+
+
+def test_a_stop_right_after_a_diverged_update_saves_nothing(tmp_path):
+    """A stop request in the agent step whose update diverged, before any action is NaN: the
+    checkpoint the stop would write is refused, the run's last checkpoint stays the good one."""
+    out = str(tmp_path / "run")
+    t = Trainer(fast(), out)
+    update = t.agent.update
+
+    def poisoned(replay, step):
+        if step == 25:
+            with torch.no_grad():
+                next(t.agent.nets.critic.parameters()).fill_(float("nan"))
+            t.stop.signal_name = "SIGTERM"  # as StopRequest's handler records it
+        return update(replay, step)
+
+    t.agent.update = poisoned
+    try:
+        with pytest.raises(DivergedError, match=r"^diverged at agent step 26: critic loss nan$"):
+            t.train()
+    finally:
+        t.close()
+    assert load_checkpoint(RunDir(out).latest)["step"] == 20
+    assert RunDir(out).replay_files(RunDir(out).replay_name(26)) and \
+        not any(os.path.exists(p) for p in RunDir(out).replay_files(RunDir(out).replay_name(26)))
 
 
 def test_a_non_finite_intrinsic_signal_stops_the_run_naming_the_signal(tmp_path):

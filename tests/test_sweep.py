@@ -127,6 +127,22 @@ def test_run_arguments_and_done_marker(tmp_path):
     assert not files.is_done(375)
 
 
+@pytest.mark.skipif(not os.access("/proc/self/autogroup", os.W_OK), reason="no writable Linux autogroup")
+def test_a_niced_sweep_starts_niced_trainings_across_session_groups():
+    """A training runs in a session of its own (so that stopping it signals its process group);
+    under autogroup scheduling its nice value would count only inside that session, so the
+    session's group gets the nice value of the sweep that started it."""
+    code = ("import os; from imssr.sweep.runner import start_training; os.nice(7); "
+            "p = start_training(['sleep', '30'], open(os.devnull, 'w'), dict(os.environ)); "
+            "print(os.getsid(p.pid) == p.pid, open('/proc/self/autogroup').read().split()[0] != "
+            "open(f'/proc/{p.pid}/autogroup').read().split()[0], open(f'/proc/{p.pid}/autogroup').read().strip()); "
+            "p.kill()")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True).stdout
+    own_session, own_group, autogroup = out.split(" ", 2)
+    assert (own_session, own_group) == ("True", "True")
+    assert autogroup.strip().endswith("nice 7"), autogroup
+
+
 def test_sweep_file_equals_flags(tmp_path, capsys):
     path = tmp_path / "sweep.json"
     path.write_text(json.dumps({"algos": ["curl", "im-curl"], "tasks": TASK, "seeds": "1-2", "steps": 250,

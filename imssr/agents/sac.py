@@ -73,7 +73,9 @@ class SACAgent:
         n = self.nets
         self.target_entropy = -float(action_dim)
         # torch's default implementation: the foreach kernels on CUDA (a few launches per step, no
-        # host sync), the per-tensor loop on CPU (the reference's numbers).
+        # host sync), the per-tensor loop on CPU (foreach is bit-identical there and gains nothing).
+        # No optimiser step is captured in a CUDA graph (agent.compile compiles forward passes
+        # only), so Adam needs no capturable=True.
         self.critic_opt = torch.optim.Adam(n.critic.parameters(), lr=cfg.critic_lr,
                                            betas=(cfg.critic_beta1, 0.999))
         # The actor trains its projection and MLP only; the trunk is the critic's.

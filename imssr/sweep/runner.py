@@ -23,11 +23,30 @@ from imssr.utils import disk_full_as_error
 INTERRUPTED_STATUSES = (INTERRUPTED_EXIT, -signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM)
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
     # If the Ray worker that waits on this training is killed (force-cancelled task, Ray
     # shut down), the training must not live on as an orphan holding CPUs.
-
     ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    # With autogroup scheduling (Linux's default on desktops and many servers), CPU time is
+    # shared between sessions first and nice values count only inside a session.  The training
+    # runs in a session of its own, so `nice -n 19 imssr sweep` would not make it yield to
+    # anything; its new session's autogroup gets the nice value it inherited instead.
+    niceness = os.nice(0)
+    if niceness > 0:
+        try:
+            with open("/proc/self/autogroup", "w") as fh:
+                fh.write(str(niceness))
+        except OSError:  # no autogroup support, or not allowed: plain nice still applies
+            pass
+
+
+def start_training(cmd: list[str], log, env: dict) -> subprocess.Popen:
+    """``cmd`` in a new session (so that :meth:`RunAttempt.stop` can signal its whole process
+    group) writing to ``log``; on Linux it dies with its parent and keeps the parent's nice
+    value across the scheduler's session groups."""
+    preexec = _child_setup if sys.platform.startswith("linux") else None
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                            preexec_fn=preexec, start_new_session=True)
 
 
 class RunAttempt:
@@ -69,9 +88,7 @@ class RunAttempt:
             return
         with log:
             self.offset = log.tell()
-            preexec = _die_with_parent if sys.platform.startswith("linux") else None
-            self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                         preexec_fn=preexec, start_new_session=True)
+            self.proc = start_training(cmd, log, env)
 
     def poll(self) -> Optional[int]:
         """The exit status, or None while the training runs."""

@@ -521,6 +521,7 @@ class Trainer:
         if self.stop.signal_name is None or self.step >= self.cfg.total_steps:
             return
         if self._saved_step != self.step:
+            self._raise_if_diverged(episode)
             self.save(episode)
         raise TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; "
                                   f"continue with: imssr train --out {self.out_dir} --resume")
@@ -529,11 +530,22 @@ class Trainer:
         """The budget is spent: when it ended mid-episode, evaluate (unless this agent step was)
         and checkpoint what there is; the learning curve goes to W&B."""
         if episode is not None:
+            self._raise_if_diverged(episode)
             if self.state.last_eval_step != self.step:
                 self.run_eval()
             self.save()
         if self.logger.wants_media:
             self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
+
+    def _raise_if_diverged(self, episode: Optional[Episode]) -> None:
+        """Before a checkpoint in the middle of ``episode``: its metrics so far, which are
+        otherwise checked only at its end, so that no checkpoint holds an agent whose update
+        diverged (one host sync per such checkpoint)."""
+        if episode is not None:
+            bad = first_non_finite({k: float(v) for k, v in episode.sums.items()}, episode.sums,
+                                   self._metric_names())
+            if bad:
+                raise DivergedError(bad)
 
     def _divergence(self, exc: NonFiniteError, episode: Optional[Episode]) -> str:
         """What diverged: the first non-finite training metric of the open ``episode`` (one host
