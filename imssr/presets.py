@@ -450,7 +450,7 @@ DEMO = (
     Setting("agent.update_schedule", "fused", "demo", "one encoder pass and one backward for critic + "
             "CURL: 0.8x the sequential step"),
     Setting("train.steps", 1000, "demo", "8 episodes, 1,000 updates: 6x-29x the untrained return at "
-            "the last evaluation in seeds 0-2, >= 3x in 5 of 6 seeded runs; 8-13 min on 2 cores"),
+            "the last evaluation in seeds 0-2 at 2 threads, >= 3x in 5 of 6 seeded runs; 8-13 min on 2 cores"),
     Setting("train.seed_steps", 250, "demo"),
     Setting("train.burst_updates", 250, "demo", "as many as seed steps, as in the authors' loop"),
     Setting("train.eval_every_steps", 250, "demo"),

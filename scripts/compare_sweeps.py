@@ -3,16 +3,17 @@
     .venv/bin/python scripts/compare_sweeps.py REFERENCE CANDIDATE [--ref-name fp32] [--name bf16]
 
 Both roots are read as ``imssr report`` reads them (every run directory below the root).  Runs are
-matched by (task, algo, evaluation mode); at every evaluation step both sweeps reached, one row
-gives the reference's seeds (their mean, min and max), the candidate's seeds and mean, the
-difference of the means in units of the reference's seed standard deviation, and whether the
-candidate's mean lies inside the reference's [min, max].  Runs with the same seed are also
-compared seed by seed (same seed = same initial weights, environment and replay draws, so a
-difference there is the change itself plus the chaos it seeds).
+matched by (task, algo with its beta_0 in a beta sweep, evaluation mode); at every evaluation step
+of the reference, one row gives the reference's seeds (their mean, min and max), the candidate's
+seeds and mean, the difference of the means in units of the reference's seed standard deviation,
+and whether the candidate's mean lies inside the reference's [min, max].  Seeds are listed by
+number, side by side (same seed = same initial weights, environment and replay draws).
 
 Written for issue 20 part 3 (fp32 against bf16 at the same seeds, docs/results/bf16_learning);
-it compares any two sweeps, e.g. two revisions' fixed-seed sweeps.  Exits 1 when a candidate mean
-leaves the reference's spread at any point, 0 otherwise.
+it compares any two sweeps, e.g. two revisions' fixed-seed sweeps.  Exit status 0 when every
+candidate mean lies in the reference's spread and the candidate has every step and seed the
+reference has; 1 when a mean leaves the spread, a step or seed is missing (the table says which),
+or a point has fewer than 2 reference seeds (no spread); 2 on unreadable input or no common data.
 """
 from __future__ import annotations
 
@@ -25,38 +26,52 @@ from imssr.report.results import collect
 
 
 def curves(root: str) -> dict[tuple[str, str, str], dict[int, dict[int, float]]]:
-    """``(task, algo, mode) -> step -> seed -> mean evaluation return``."""
+    """``(task, label, mode) -> step -> seed -> mean evaluation return`` (label: the algo, with
+    beta_0 in a beta sweep)."""
     out: dict = {}
     for run in collect(root).runs:
         for mode, step, _frame, ret in run.evals:
-            out.setdefault((run.task, run.algo, mode), {}).setdefault(step, {})[run.seed] = ret
+            out.setdefault((run.task, run.label, mode), {}).setdefault(step, {})[run.seed] = ret
     return out
 
 
 def compare(ref_root: str, cand_root: str, ref_name: str, name: str) -> tuple[str, bool]:
-    """The Markdown table, and whether every candidate mean lies in the reference's spread."""
+    """The Markdown table, and whether the candidate passes: complete, and every mean inside the
+    reference's spread."""
     ref, cand = curves(ref_root), curves(cand_root)
-    lines, inside_all = [], True
-    for key in sorted(ref.keys() & cand.keys()):
-        task, algo, mode = key
-        lines += [f"### {algo} on {task} ({mode})", "",
+    common = sorted(ref.keys() & cand.keys())
+    if not common:
+        raise ImssrError(f"no (task, algo, mode) evaluated in both {ref_root} and {cand_root}")
+    lines, ok = [], True
+    for key in sorted(ref.keys() - cand.keys()):
+        lines.append(f"- {key[1]} on {key[0]} ({key[2]}): evaluated in {ref_name} only")
+        ok = False
+    for key in common:
+        task, label, mode = key
+        lines += ["", f"### {label} on {task} ({mode})", "",
                   f"| agent step | {ref_name} seeds | {ref_name} mean [min, max] | {name} seeds | {name} mean | "
                   f"difference / {ref_name} seed sd | inside the {ref_name} spread |",
                   "| --- | --- | --- | --- | --- | --- | --- |"]
-        for step in sorted(ref[key].keys() & cand[key].keys()):
-            r, c = ref[key][step], cand[key][step]
-            r_mean, c_mean = statistics.fmean(r.values()), statistics.fmean(c.values())
-            lo, hi = min(r.values()), max(r.values())
-            sd = statistics.stdev(r.values()) if len(r) > 1 else float("nan")
+        for step in sorted(ref[key]):
+            r, c = ref[key][step], cand[key].get(step, {})
+            r_mean, lo, hi = statistics.fmean(r.values()), min(r.values()), max(r.values())
+            missing = sorted(r.keys() - c.keys())
+            if missing or len(r) < 2:
+                verdict = (f"**{name} lacks seed {', '.join(map(str, missing))}**" if missing
+                           else f"**no spread: 1 {ref_name} seed**")
+                c_mean = f"{statistics.fmean(c.values()):.1f}" if c else "-"
+                lines.append(f"| {step:,} | {_seeds(r)} | {r_mean:.1f} [{lo:.1f}, {hi:.1f}] | {_seeds(c) or '-'} | "
+                             f"{c_mean} | - | {verdict} |")
+                ok = False
+                continue
+            c_mean = statistics.fmean(c[seed] for seed in r)  # the reference's seeds only
+            sd = statistics.stdev(r.values())
             inside = lo <= c_mean <= hi
-            inside_all &= inside
+            ok &= inside
             z = f"{(c_mean - r_mean) / sd:+.2f}" if sd > 0 else "n/a"
             lines.append(f"| {step:,} | {_seeds(r)} | {r_mean:.1f} [{lo:.1f}, {hi:.1f}] | {_seeds(c)} | "
                          f"{c_mean:.1f} | {z} | {'yes' if inside else '**no**'} |")
-        lines.append("")
-    if not lines:
-        raise ImssrError(f"no (task, algo, mode) evaluated in both {ref_root} and {cand_root}")
-    return "\n".join(lines), inside_all
+    return "\n".join(lines).lstrip("\n"), ok
 
 
 def _seeds(values: dict[int, float]) -> str:
@@ -76,7 +91,7 @@ def main(argv=None) -> int:
         print(f"compare_sweeps: error: {exc}", file=sys.stderr)
         return 2
     print(table)
-    return 0 if inside else 1
+    return 0 if inside else 1  # see the module's docstring
 
 
 if __name__ == "__main__":

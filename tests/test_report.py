@@ -300,3 +300,12 @@ def test_compare_sweeps_table_and_exit_status(tmp_path):
     assert not inside and table.splitlines()[-1].endswith("| 350.0 | +1.50 | **no** |")
     assert compare_sweeps.main([ref, far]) == 1 and compare_sweeps.main([ref, near]) == 0
     assert compare_sweeps.main([ref, str(tmp_path / "missing")]) == 2
+    # A candidate that lacks a seed at a step, or a reference of one seed, does not pass.
+    partial, single = str(tmp_path / "partial"), str(tmp_path / "single")
+    for seed in (1, 2, 3):
+        make_run(partial, "im-curl", seed, [("training", 250, 10.0 * seed)] + ([("training", 500, 200.0)] if seed < 3 else []))
+    make_run(single, "im-curl", 1, [("training", 250, 10.0), ("training", 500, 100.0)])
+    table, inside = compare_sweeps.compare(ref, partial, "fp32", "bf16")
+    assert not inside and table.splitlines()[-1].endswith("| 200.0 | - | **bf16 lacks seed 3** |")
+    table, inside = compare_sweeps.compare(single, near, "fp32", "bf16")
+    assert not inside and table.splitlines()[-1].endswith("| **no spread: 1 fp32 seed** |")

@@ -131,16 +131,30 @@ def test_run_arguments_and_done_marker(tmp_path):
 def test_a_niced_sweep_starts_niced_trainings_across_session_groups():
     """A training runs in a session of its own (so that stopping it signals its process group);
     under autogroup scheduling its nice value would count only inside that session, so the
-    session's group gets the nice value of the sweep that started it."""
-    code = ("import os; from imssr.sweep.runner import start_training; os.nice(7); "
-            "p = start_training(['sleep', '30'], open(os.devnull, 'w'), dict(os.environ)); "
-            "print(os.getsid(p.pid) == p.pid, open('/proc/self/autogroup').read().split()[0] != "
-            "open(f'/proc/{p.pid}/autogroup').read().split()[0], open(f'/proc/{p.pid}/autogroup').read().strip()); "
-            "p.kill()")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True).stdout
-    own_session, own_group, autogroup = out.split(" ", 2)
-    assert (own_session, own_group) == ("True", "True")
-    assert autogroup.strip().endswith("nice 7"), autogroup
+    session's group gets the nice value of the sweep that started it.  Niceness 0 (a plain
+    sweep, whatever its Ray worker's own +15) leaves the group at its default."""
+    code = ("import os; from imssr.sweep.runner import start_training; n = os.nice(7); ps = []\n"
+            "try:\n"
+            "    for niceness in (n, 0):\n"
+            "        ps.append(start_training(['sleep', '30'], open(os.devnull, 'w'), dict(os.environ), niceness))\n"
+            "    groups = [open(f'/proc/{p.pid}/autogroup').read().split() for p in ps]\n"
+            "    print(n, all(os.getsid(p.pid) == p.pid for p in ps), open('/proc/self/autogroup').read().split()[0],\n"
+            "          *(f'{name}:{value}' for name, _, value in groups))\n"
+            "finally:\n"
+            "    for p in ps: p.kill()\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    niceness, own_sessions, parent_group, niced, plain = out.stdout.split()
+    assert own_sessions == "True"
+    assert niced.split(":")[0] != parent_group and niced.split(":")[1] == niceness  # 7 above the test's own
+    assert plain.split(":")[1] == "0"
+
+
+def test_ray_trainings_get_the_sweeps_priority_not_the_workers(tmp_path):
+    from imssr.sweep.launchers import sweep_niceness
+
+    assert sweep_niceness(SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK])) == os.nice(0)
+    cluster = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], address="10.0.0.1:6379")
+    assert sweep_niceness(cluster) is None
 
 
 def test_sweep_file_equals_flags(tmp_path, capsys):

@@ -14,7 +14,7 @@ import shutil
 import socket
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Optional
 
 from imssr.errors import ImssrError
 from imssr.extras import require
@@ -109,7 +109,7 @@ class LocalLauncher(Launcher):
         return min(fits, self.cfg.max_parallel) if self.cfg.max_parallel else fits
 
     def submit(self, attempts: list[Attempt]) -> list[RunAttempt]:
-        return [RunAttempt(a.run_dir, a.steps, a.attempt) for a in attempts]
+        return [RunAttempt(a.run_dir, a.steps, a.attempt, os.nice(0)) for a in attempts]
 
     def wait(self, handles: list[RunAttempt], timeout_s: float) -> list[RunAttempt]:
         return _wait_polling(handles, lambda h: h.poll() is not None, timeout_s)
@@ -140,7 +140,7 @@ class RayLauncher(Launcher):
         return _capacity(self.ray, self.cfg)
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
-        return [self.task.remote(a.run_dir, a.steps, a.attempt) for a in attempts]
+        return [self.task.remote(a.run_dir, a.steps, a.attempt, sweep_niceness(self.cfg)) for a in attempts]
 
     def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
         ready, _ = self.ray.wait(list(handles), num_returns=1, timeout=timeout_s)
@@ -217,9 +217,16 @@ class SlurmLauncher(Launcher):
                 pass
 
 
-def _remote_run(run_dir: str, steps: int, attempt: int) -> dict:
+def _remote_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] = None) -> dict:
     """The Ray task body (module level, so workers import it rather than unpickle code)."""
-    return execute_run(run_dir, steps, attempt)
+    return execute_run(run_dir, steps, attempt, niceness)
+
+
+def sweep_niceness(cfg: SweepConfig) -> Optional[int]:
+    """The priority a private local Ray's trainings get: this sweep's nice value (``nice -n 19
+    imssr sweep``), not its workers' (Ray starts them at +15).  None on a cluster
+    (``--address``): how niced the driver is says nothing about the cluster's nodes."""
+    return None if cfg.address else os.nice(0)
 
 
 def _check_reachable(address: str, timeout_s: float = 5.0) -> None:

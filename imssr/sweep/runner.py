@@ -7,6 +7,7 @@ task) leaves only its last atomic checkpoint behind, from which the next attempt
 from __future__ import annotations
 
 import ctypes
+import errno
 import os
 import signal
 import subprocess
@@ -23,30 +24,49 @@ from imssr.utils import disk_full_as_error
 INTERRUPTED_STATUSES = (INTERRUPTED_EXIT, -signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM)
 
 
-def _child_setup() -> None:  # pragma: no cover - runs in the child between fork and exec
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
     # If the Ray worker that waits on this training is killed (force-cancelled task, Ray
     # shut down), the training must not live on as an orphan holding CPUs.
     ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    # With autogroup scheduling (Linux's default on desktops and many servers), CPU time is
-    # shared between sessions first and nice values count only inside a session.  The training
-    # runs in a session of its own, so `nice -n 19 imssr sweep` would not make it yield to
-    # anything; its new session's autogroup gets the nice value it inherited instead.
-    niceness = os.nice(0)
-    if niceness > 0:
-        try:
-            with open("/proc/self/autogroup", "w") as fh:
-                fh.write(str(niceness))
-        except OSError:  # no autogroup support, or not allowed: plain nice still applies
-            pass
 
 
-def start_training(cmd: list[str], log, env: dict) -> subprocess.Popen:
+def start_training(cmd: list[str], log, env: dict, niceness: Optional[int] = None) -> subprocess.Popen:
     """``cmd`` in a new session (so that :meth:`RunAttempt.stop` can signal its whole process
-    group) writing to ``log``; on Linux it dies with its parent and keeps the parent's nice
-    value across the scheduler's session groups."""
-    preexec = _child_setup if sys.platform.startswith("linux") else None
-    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+    group) writing to ``log``; on Linux it dies with its parent.  ``niceness`` > 0: the training
+    runs at that priority even under autogroup scheduling (:func:`lower_session_priority`)."""
+    preexec = _die_with_parent if sys.platform.startswith("linux") else None
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
                             preexec_fn=preexec, start_new_session=True)
+    if niceness:
+        problem = lower_session_priority(proc.pid, niceness)
+        if problem:
+            log.write(f"imssr sweep: warning: the training runs at normal priority: {problem}\n")
+            log.flush()
+    return proc
+
+
+def lower_session_priority(pid: int, niceness: int, tries: int = 20) -> str:
+    """Give the session of ``pid`` (a training started by :func:`start_training`) the nice value
+    ``niceness``; returns what went wrong, "" when it worked or there is nothing to do.
+
+    With autogroup scheduling (Linux's default on desktops and many servers) CPU time is shared
+    between sessions first and nice values count only inside a session, so a training in a
+    session of its own would ignore ``nice -n 19 imssr sweep``; its session's group gets the
+    value instead.  Without CAP_SYS_ADMIN the kernel takes one such change per 0.1 s on the whole
+    machine (EBUSY otherwise): parallel starts wait their turn."""
+    path = f"/proc/{pid}/autogroup"
+    if not os.path.exists(path):
+        return ""  # no autogroup scheduling here: the inherited nice value already applies
+    for _ in range(tries):
+        try:
+            with open(path, "w") as fh:
+                fh.write(str(niceness))
+            return ""
+        except OSError as exc:
+            if exc.errno != errno.EBUSY:
+                return f"cannot write {path}: {exc.strerror}"
+            time.sleep(0.11)
+    return f"{path} stayed busy for {tries * 0.11:.1f} s"
 
 
 class RunAttempt:
@@ -56,10 +76,12 @@ class RunAttempt:
     (:meth:`imssr.sweep.grid.Run.resolved_config`): the file is the whole description of the run.
 
     Killing the attempt (:meth:`stop`, or the death of the process that started it) leaves only
-    the run's last atomic checkpoint, from which the next attempt resumes.
+    the run's last atomic checkpoint, from which the next attempt resumes.  ``niceness``: the nice
+    value of the sweep that asked for the run (the process that starts it may have another: Ray
+    workers run at +15), given to the training's session (:func:`lower_session_priority`).
     """
 
-    def __init__(self, run_dir: str, steps: int, attempt: int):
+    def __init__(self, run_dir: str, steps: int, attempt: int, niceness: Optional[int] = None):
         self.run = run = RunDir(run_dir)
         os.makedirs(run_dir, exist_ok=True)
         self.run_dir, self.steps, self.attempt = run_dir, steps, attempt
@@ -88,7 +110,7 @@ class RunAttempt:
             return
         with log:
             self.offset = log.tell()
-            self.proc = start_training(cmd, log, env)
+            self.proc = start_training(cmd, log, env, niceness)
 
     def poll(self) -> Optional[int]:
         """The exit status, or None while the training runs."""
@@ -137,16 +159,17 @@ class RunAttempt:
         return result
 
 
-def execute_run(run_dir: str, steps: int, attempt: int) -> dict:
+def execute_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] = None) -> dict:
     """Train (or resume) the run in ``run_dir`` (its ``config.json``) to ``steps`` agent steps and
     wait for it; return what happened (the body of a Ray task or a SLURM job).
 
     Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
     line when it failed), ``interrupted`` (stopped by a signal: resume it, it did not fail),
     ``diverged`` (a resume would diverge again from the same checkpoint: do not retry),
-    ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.
+    ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``: as
+    in :class:`RunAttempt`.
     """
-    attempt_ = RunAttempt(run_dir, steps, attempt)
+    attempt_ = RunAttempt(run_dir, steps, attempt, niceness)
     try:
         if attempt_.proc is not None:
             attempt_.proc.wait()
