@@ -30,18 +30,26 @@ def fast(algo="curl", **train):
     return cfg
 
 
-def test_divergence_stops_in_one_line_and_keeps_the_last_good_checkpoint(tmp_path):
-    out = str(tmp_path / "run")
-    t = Trainer(fast(), out)
+def critic_poisoned_at_step_25(t: Trainer, stop: bool = False) -> Trainer:
+    """``t`` whose critic weights turn NaN just before the update of agent step 25 (after the
+    checkpoint at the end of episode 1, agent step 20); ``stop``: a SIGTERM arrives in that step."""
     update = t.agent.update
 
     def poisoned(replay, step):
-        if step == 25:  # after the checkpoint at the end of episode 1 (agent step 20)
+        if step == 25:
             with torch.no_grad():
                 next(t.agent.nets.critic.parameters()).fill_(float("nan"))
+            if stop:
+                t.stop.signal_name = "SIGTERM"  # as StopRequest's handler records it
         return update(replay, step)
 
     t.agent.update = poisoned
+    return t
+
+
+def test_divergence_stops_in_one_line_and_keeps_the_last_good_checkpoint(tmp_path):
+    out = str(tmp_path / "run")
+    t = critic_poisoned_at_step_25(Trainer(fast(), out))
     try:
         # The action of step 26 is NaN (checked on the host before the simulator sees it); the
         # message names the first non-finite loss of the episode so far.
@@ -63,17 +71,7 @@ def test_a_stop_right_after_a_diverged_update_saves_nothing(tmp_path):
     """A stop request in the agent step whose update diverged, before any action is NaN: the
     checkpoint the stop would write is refused, the run's last checkpoint stays the good one."""
     out = str(tmp_path / "run")
-    t = Trainer(fast(), out)
-    update = t.agent.update
-
-    def poisoned(replay, step):
-        if step == 25:
-            with torch.no_grad():
-                next(t.agent.nets.critic.parameters()).fill_(float("nan"))
-            t.stop.signal_name = "SIGTERM"  # as StopRequest's handler records it
-        return update(replay, step)
-
-    t.agent.update = poisoned
+    t = critic_poisoned_at_step_25(Trainer(fast(), out), stop=True)
     try:
         with pytest.raises(DivergedError, match=r"^diverged at agent step 26: critic loss nan$"):
             t.train()
