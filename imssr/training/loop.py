@@ -541,17 +541,20 @@ class Trainer:
         """Before a checkpoint in the middle of ``episode``: its metrics so far, which are
         otherwise checked only at its end, so that no checkpoint holds an agent whose update
         diverged (one host sync per such checkpoint)."""
-        if episode is not None:
-            bad = first_non_finite({k: float(v) for k, v in episode.sums.items()}, episode.sums,
-                                   self._metric_names())
-            if bad:
-                raise DivergedError(bad)
+        bad = self._first_non_finite_metric(episode)
+        if bad:
+            raise DivergedError(bad)
+
+    def _first_non_finite_metric(self, episode: Optional[Episode]) -> Optional[str]:
+        """``"critic loss nan"`` for the open ``episode``'s first non-finite training metric so
+        far (one host sync), None when all are finite or there is no episode."""
+        sums = {} if episode is None else episode.sums
+        return first_non_finite({k: float(v) for k, v in sums.items()}, sums, self._metric_names())
 
     def _divergence(self, exc: NonFiniteError, episode: Optional[Episode]) -> str:
         """What diverged: the first non-finite training metric of the open ``episode`` (one host
         sync, only now), else what ``exc`` found (the action, the intrinsic signal)."""
-        sums = {} if episode is None else episode.sums
-        return first_non_finite({k: float(v) for k, v in sums.items()}, sums, self._metric_names()) or str(exc)
+        return self._first_non_finite_metric(episode) or str(exc)
 
     def _metric_names(self) -> dict[str, str]:
         """How a divergence names the metrics that are not named by their key."""
