@@ -53,9 +53,9 @@ def lower_session_priority(pid: int, niceness: int, tries: int = 20) -> str:
     between sessions first and nice values count only inside a session, so a training in a
     session of its own would ignore ``nice -n 19 imssr sweep``; its session's group gets the
     value instead.  Without CAP_SYS_ADMIN the kernel takes one such change per 0.1 s on the whole
-    machine (EBUSY otherwise): parallel starts wait their turn."""
+    machine (EAGAIN otherwise): parallel starts wait their turn."""
     path = f"/proc/{pid}/autogroup"
-    if not os.path.exists(path):
+    if not (os.path.exists(path) and autogroup_scheduling()):
         return ""  # no autogroup scheduling here: the inherited nice value already applies
     for _ in range(tries):
         try:
@@ -63,10 +63,19 @@ def lower_session_priority(pid: int, niceness: int, tries: int = 20) -> str:
                 fh.write(str(niceness))
             return ""
         except OSError as exc:
-            if exc.errno != errno.EBUSY:
+            if exc.errno not in (errno.EAGAIN, errno.EBUSY):
                 return f"cannot write {path}: {exc.strerror}"
             time.sleep(0.11)
     return f"{path} stayed busy for {tries * 0.11:.1f} s"
+
+
+def autogroup_scheduling() -> bool:
+    """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``)."""
+    try:
+        with open("/proc/sys/kernel/sched_autogroup_enabled") as fh:
+            return fh.read().strip() == "1"
+    except OSError:
+        return False
 
 
 class RunAttempt:
