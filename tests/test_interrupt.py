@@ -2,6 +2,7 @@
 exactly the uninterrupted one (on CPU), and the sweep resumes such runs instead of failing them."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -132,3 +133,29 @@ def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_p
     assert RunDir(run_dir).status() == "finished"
     assert without_timing(read_csv(os.path.join(run_dir, "eval.csv"))) == \
         without_timing(read_csv(os.path.join(reference, "eval.csv")))
+
+
+def test_sigterm_to_a_ray_sweep_stops_its_trainings_with_checkpoints(tmp_path):
+    """`kill` of the sweep (a batch scheduler's stop) on the default launcher: ray.init installs
+    a SIGTERM handler of its own (a stack dump and an exit at once), and a Ray task blocked in a
+    wait for its training never sees a cancel.  The training must be stopped as a signal to
+    `imssr train` stops it (a checkpoint where it is; resuming it is tested above), the status
+    file must say interrupted, and the sweep must exit 130."""
+    sets = [a for i, a in enumerate(TRAIN) if i and TRAIN[i - 1] == "--set"]
+    root = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "imssr", "sweep", "--no-progress", "--algos", "curl", "--tasks",
+           "cartpole_swingup_sparse", "--seeds", "3", "--steps", "375", "--root", str(root),
+           *[a for kv in sets for a in ("--set", kv)]]
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run_dir = os.path.join(str(root), "cartpole_swingup_sparse", "curl", "seed_3")
+    _after_first_episode(proc, run_dir)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == INTERRUPTED_EXIT, out + err
+    assert "SIGTERM received" not in err  # Ray's crash handler did not take the signal
+    with open(os.path.join(str(root), "sweep_status.json")) as fh:
+        assert [r["state"] for r in json.load(fh)["runs"]] == ["interrupted"]
+    assert RunDir(run_dir).status() == "interrupted" and RunDir(run_dir).has_checkpoint()
+    with open(os.path.join(run_dir, "sweep.log")) as fh:
+        assert STOPPED.search(fh.read())

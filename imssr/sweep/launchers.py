@@ -19,7 +19,7 @@ from typing import Any, Optional
 from imssr.errors import ImssrError
 from imssr.extras import require
 from imssr.sweep.grid import SweepConfig
-from imssr.sweep.runner import RunAttempt, execute_run
+from imssr.sweep.runner import STOP_GRACE_S, RunAttempt, execute_run
 
 # The local Ray started for a sweep only passes small results around: a small object
 # store keeps its start-up memory low on small machines.
@@ -153,8 +153,17 @@ class RayLauncher(Launcher):
             text = str(exc).strip().splitlines()
             return {"ok": False, "error": f"Ray task failed: {text[0] if text else type(exc).__name__}"}
 
+    def stop(self, handles: list[Any]) -> None:
+        # A cancel raises KeyboardInterrupt inside the task, whose execute_run then stops its
+        # training as RunAttempt.stop does (SIGTERM: a checkpoint where it is); wait for that
+        # before ray.shutdown kills the workers.
+        for handle in handles:
+            self.ray.cancel(handle, force=False)
+        if handles:
+            self.ray.wait(list(handles), num_returns=len(handles), timeout=STOP_GRACE_S + 15)
+
     def shutdown(self) -> None:
-        # Running trainings die with their workers.
+        # Trainings still running die with their workers.
         if self.ray is not None:
             self.ray.shutdown()
 

@@ -21,6 +21,8 @@ from imssr.utils import disk_full_as_error
 
 # Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
 # second signal (or one before its handlers were in place) ended it; it resumes either way.
+STOP_GRACE_S = 30
+"""Seconds a stopped training has to finish its agent step and checkpoint before SIGKILL."""
 INTERRUPTED_STATUSES = (INTERRUPTED_EXIT, -signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM)
 
 
@@ -126,11 +128,11 @@ class RunAttempt:
         return None if self.proc is None else self.proc.poll()
 
     def stop(self) -> None:
-        """SIGTERM the training (its process group), SIGKILL after 30 s."""
+        """SIGTERM the training (its process group), SIGKILL after :data:`STOP_GRACE_S`."""
         if self.proc is not None and self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGTERM)
             try:
-                self.proc.wait(timeout=30)
+                self.proc.wait(timeout=STOP_GRACE_S)
             except subprocess.TimeoutExpired:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait()
@@ -180,8 +182,10 @@ def execute_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] 
     """
     attempt_ = RunAttempt(run_dir, steps, attempt, niceness)
     try:
-        if attempt_.proc is not None:
-            attempt_.proc.wait()
+        # In steps: a Ray cancel interrupts the main thread between bytecodes, which a
+        # blocking wait for the child never returns to.
+        while attempt_.proc is not None and attempt_.proc.poll() is None:
+            time.sleep(0.5)
     finally:
         attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
     return attempt_.finish()

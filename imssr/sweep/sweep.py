@@ -243,6 +243,9 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     previous = _sigterm_as_interrupt()
     try:
         launcher.start()
+        # Again: ray.init installs a SIGTERM handler of its own (a stack dump and an exit that
+        # skips the trainings' stop and the status file).
+        _sigterm_as_interrupt()
         parallel = launcher.capacity()
         ui = _Progress(statuses, progress)
         while todo or inflight:
