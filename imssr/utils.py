@@ -179,14 +179,83 @@ def busy_cores(before: tuple[int, int], after: tuple[int, int], ncpu: int) -> fl
     return 0.0 if total <= 0 else ncpu * (1.0 - idle / total)
 
 
+YIELDING_NICE = 10
+"""Nice levels below this process's at which another process no longer contends with it: at 10
+levels the scheduler weighs it ~1/10 (at 19, ~1/70), so this process's threads get a core as
+soon as they want one (a ``nice -n 19 imssr sweep`` beside ``imssr demo``)."""
+
+
+def autogroup_scheduling() -> bool:
+    """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``): CPU time
+    is then shared between sessions first, and a nice value counts only inside its session."""
+    try:
+        with open("/proc/sys/kernel/sched_autogroup_enabled") as fh:
+            return fh.read().strip() == "1"
+    except OSError:
+        return False
+
+
+def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
+    """(name, nice) of the autogroup of process ``pid`` from ``/proc/PID/autogroup``; None when
+    it has none (the boot-time group, whose file is empty) or the file cannot be read."""
+    try:
+        with open(f"/proc/{pid}/autogroup") as fh:
+            name, _, nice = fh.read().split()
+        return name, int(nice)
+    except (OSError, ValueError):
+        return None
+
+
+def yields_to(task_nice: int, group: Optional[tuple[str, int]], own_nice: int,
+              own_group: Optional[tuple[str, int]]) -> bool:
+    """Whether a process of nice value ``task_nice`` in autogroup ``group`` yields the CPU to one
+    of ``own_nice`` in ``own_group`` (groups None without autogroup scheduling or outside an
+    autogroup): inside one autogroup the tasks' nice values compare; across groups each group
+    competes as one, at its group's nice value (a task outside any group at its own)."""
+    if group is not None and own_group is not None and group[0] == own_group[0]:
+        return task_nice - own_nice >= YIELDING_NICE
+    theirs = group[1] if group is not None else task_nice
+    ours = own_group[1] if own_group is not None else own_nice
+    return theirs - ours >= YIELDING_NICE
+
+
+def yielding_cpu_jiffies() -> dict[int, int]:
+    """CPU time so far (user + system clock ticks, all threads) of each process that yields to
+    this one (:func:`yields_to`), by PID; empty where ``/proc`` is not Linux's."""
+    groups = autogroup_scheduling()
+    own_group = autogroup() if groups else None
+    own_nice, out = os.nice(0), {}
+    try:
+        entries = [e.name for e in os.scandir("/proc") if e.name.isdigit()]
+    except OSError:
+        return out
+    for pid in entries:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rpartition(")")[2].split()  # from field 3 (state) on
+            utime, stime, nice = int(fields[11]), int(fields[12]), int(fields[16])
+        except (OSError, ValueError, IndexError):
+            continue  # ended, or not readable
+        if yields_to(nice, autogroup(pid) if groups else None, own_nice, own_group):
+            out[int(pid)] = utime + stime
+    return out
+
+
 def busy_cores_now(interval_s: float = 0.2) -> Optional[float]:
-    """Cores that other processes keep busy now (this process sleeps while it looks), or None."""
-    before = _cpu_times()
+    """Cores that other processes keep busy now (this process sleeps while it looks), or None.
+    Processes that yield to this one (:func:`yields_to`) are not counted."""
+    before, yielding_before = _cpu_times(), yielding_cpu_jiffies()
     if before is None:
         return None
     time.sleep(interval_s)
-    after = _cpu_times()
-    return None if after is None else busy_cores(before, after, os.cpu_count() or 1)
+    after, yielding_after = _cpu_times(), yielding_cpu_jiffies()
+    if after is None:
+        return None
+    ncpu = os.cpu_count() or 1
+    yielded = sum(max(0, t - yielding_before[pid]) for pid, t in yielding_after.items() if pid in yielding_before)
+    total = after[1] - before[1]
+    niced = 0.0 if total <= 0 else ncpu * yielded / total
+    return max(0.0, busy_cores(before, after, ncpu) - niced)
 
 
 def contention_warning(threads: int, load: float | None = None, cores: int | None = None) -> str | None:

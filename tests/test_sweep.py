@@ -13,7 +13,8 @@ from conftest import train_stopped_at
 from imssr.cli import main
 from imssr.rundir import DONE_FILE, SWEEP_LOG, RunDir
 from imssr.sweep.grid import SweepConfig, expand, load_sweep_file, parse_seeds
-from imssr.sweep.runner import autogroup_scheduling, execute_run
+from imssr.sweep.runner import execute_run
+from imssr.utils import autogroup, autogroup_scheduling
 from imssr.sweep.sweep import plan_runs, settle, write_status
 from imssr.training.logger import read_csv
 
@@ -128,11 +129,6 @@ def test_run_arguments_and_done_marker(tmp_path):
     assert not files.is_done(375)
 
 
-def _autogroup_line(pid="self") -> list[str]:
-    with open(f"/proc/{pid}/autogroup") as fh:
-        return fh.read().split()  # "/autogroup-ID nice N"; empty in the boot-time (root) group
-
-
 AUTOGROUP_SCRIPT = """
 import os, sys
 from imssr.sweep.runner import start_training
@@ -173,7 +169,7 @@ def test_a_niced_sweep_starts_niced_trainings_across_session_groups(caps, tmp_pa
     niceness, own_sessions, *groups = out.stdout.split()
     assert own_sessions == "True"
     (first, n1), (second, n2), (plain, n0) = (g.split(":") for g in groups)
-    parent = _autogroup_line()
+    parent = autogroup()  # None in the boot-time group
     assert len({first, second, plain}) == 3 and not (parent and parent[0] in {first, second, plain})
     assert n1 == n2 == niceness, log.read_text()  # 7 above the test's own; else the warning says why
     assert n0 == "0"

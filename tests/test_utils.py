@@ -1,9 +1,13 @@
 """Small shared helpers: atomic files and the thread-contention warning."""
 import os
+import sys
+import time
 
 import pytest
 
-from imssr.utils import atomic_path, atomic_write_csv, atomic_write_text, busy_cores, busy_cores_now, contention_warning
+from imssr.sweep.runner import start_training
+from imssr.utils import (atomic_path, atomic_write_csv, atomic_write_text, busy_cores, busy_cores_now, contention_warning,
+                         yielding_cpu_jiffies, yields_to)
 
 
 def test_atomic_write_replaces_whole_file(tmp_path):
@@ -57,3 +61,36 @@ def test_busy_cores_reads_the_share_of_non_idle_time():
 def test_busy_cores_now_is_a_share_of_the_machine():
     now = busy_cores_now(0.05)
     assert now is not None and 0.0 <= now <= (os.cpu_count() or 1) + 1e-9
+
+
+@pytest.mark.parametrize("task_nice, group, own_nice, own_group, yields", [
+    (19, None, 0, None, True),                               # no autogroups: task nice values compare
+    (5, None, 0, None, False),
+    (19, ("/autogroup-2", 0), 0, ("/autogroup-1", 0), False),  # `nice -n 19` in another session: it does not yield
+    (0, ("/autogroup-2", 19), 0, ("/autogroup-1", 0), True),   # a session niced by a sweep
+    (19, ("/autogroup-1", 0), 0, ("/autogroup-1", 0), True),   # the same session: task nice values compare
+    (19, ("/autogroup-2", 19), 10, ("/autogroup-1", 10), False),  # 9 levels below a niced caller
+    (15, None, 0, ("/autogroup-1", 0), True),                # a task of the boot-time group against a session
+])
+def test_which_processes_yield_to_this_one(task_nice, group, own_nice, own_group, yields):
+    assert yields_to(task_nice, group, own_nice, own_group) == yields
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="Linux /proc only")
+def test_a_niced_sweeps_training_is_not_contention_a_plain_job_is():
+    """A busy process started as a `nice -n 19 imssr sweep` starts its trainings (task and
+    session niced) is counted as yielding; a busy process at normal priority is not."""
+    spin = [sys.executable, "-c", "while True: pass"]
+    with open(os.devnull, "w") as log:
+        niced = start_training(["nice", "-n", "19", *spin], log, dict(os.environ), niceness=19)
+        plain = start_training(spin, log, dict(os.environ), niceness=None)
+    try:
+        first = yielding_cpu_jiffies()
+        time.sleep(0.5)
+        second = yielding_cpu_jiffies()
+        assert niced.pid in first and plain.pid not in first and os.getpid() not in first
+        assert second[niced.pid] >= first[niced.pid]
+    finally:
+        for proc in (niced, plain):
+            proc.kill()
+            proc.wait()

@@ -17,7 +17,7 @@ from typing import Optional
 
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.rundir import DIVERGED, FAILED, INTERRUPTED, RunDir
-from imssr.utils import disk_full_as_error
+from imssr.utils import autogroup_scheduling, disk_full_as_error
 
 # Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
 # second signal (or one before its handlers were in place) ended it; it resumes either way.
@@ -69,15 +69,6 @@ def lower_session_priority(pid: int, niceness: int, tries: int = 20) -> str:
                 return f"cannot write {path}: {exc.strerror}"
             time.sleep(0.11)
     return f"{path} stayed busy for {tries * 0.11:.1f} s"
-
-
-def autogroup_scheduling() -> bool:
-    """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``)."""
-    try:
-        with open("/proc/sys/kernel/sched_autogroup_enabled") as fh:
-            return fh.read().strip() == "1"
-    except OSError:
-        return False
 
 
 class RunAttempt:
