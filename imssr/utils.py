@@ -206,56 +206,110 @@ def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
         return None
 
 
-def yields_to(task_nice: int, group: Optional[tuple[str, int]], own_nice: int,
-              own_group: Optional[tuple[str, int]]) -> bool:
-    """Whether a process of nice value ``task_nice`` in autogroup ``group`` yields the CPU to one
-    of ``own_nice`` in ``own_group`` (groups None without autogroup scheduling or outside an
-    autogroup): inside one autogroup the tasks' nice values compare; across groups each group
-    competes as one, at its group's nice value (a task outside any group at its own)."""
+def cpu_cgroup(pid: int | str = "self") -> Optional[str]:
+    """The cgroup whose CPU share process ``pid`` runs under (``/proc/PID/cgroup``): the path of
+    the v1 ``cpu`` hierarchy, or the v2 path when the root enables the ``cpu`` controller for
+    its children; "/" when no cgroup controls its CPU; None when unreadable (not Linux)."""
+    try:
+        with open(f"/proc/{pid}/cgroup") as fh:
+            lines = [line.rstrip("\n").split(":", 2) for line in fh if line.count(":") >= 2]
+    except OSError:
+        return None
+    for _, controllers, path in lines:
+        if "cpu" in controllers.split(","):
+            return path
+    for hierarchy, controllers, path in lines:
+        if hierarchy == "0" and not controllers:  # cgroup v2
+            try:
+                with open("/sys/fs/cgroup/cgroup.subtree_control") as fh:
+                    return path if "cpu" in fh.read().split() else "/"
+            except OSError:
+                return path
+    return "/"
+
+
+def scheduling_group(pid: int | str = "self") -> Optional[tuple[str, Optional[int]]]:
+    """What process ``pid`` competes for the CPU inside of, with its nice value where one applies:
+    its autogroup ``(name, nice)`` under autogroup scheduling, which applies only to tasks of the
+    root CPU cgroup; ``("cgroup:PATH", None)`` in a CPU cgroup (which competes by its cgroup
+    weight, not by a nice value); None when it competes as a task on its own.  A cgroup
+    namespace can hide a container's cgroup behind "/": then its tasks are taken for the root's."""
+    group = cpu_cgroup(pid)
+    if group not in (None, "/"):
+        return f"cgroup:{group}", None
+    if group == "/" and autogroup_scheduling():
+        return autogroup(pid)
+    return None
+
+
+def yields_to(task_nice: int, group: Optional[tuple[str, Optional[int]]], own_nice: int,
+              own_group: Optional[tuple[str, Optional[int]]]) -> bool:
+    """Whether a process of nice value ``task_nice`` in scheduling group ``group`` yields the CPU
+    to one of ``own_nice`` in ``own_group`` (:func:`scheduling_group`): inside one group the
+    tasks' nice values compare; across groups each group competes as one, at its group's nice
+    value (a task outside any group at its own); across CPU cgroups the weights decide, which
+    this does not read: such a process is taken to contend."""
     if group is not None and own_group is not None and group[0] == own_group[0]:
         return task_nice - own_nice >= YIELDING_NICE
     theirs = group[1] if group is not None else task_nice
     ours = own_group[1] if own_group is not None else own_nice
-    return theirs - ours >= YIELDING_NICE
+    return theirs is not None and ours is not None and theirs - ours >= YIELDING_NICE
+
+
+def _proc_stat(pid: int | str) -> Optional[tuple[int, int]]:
+    """(user + system clock ticks of all its threads, nice value) of process ``pid``."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rpartition(")")[2].split()  # after the name: from field 3 (state) on
+        return int(fields[11]) + int(fields[12]), int(fields[16])  # fields 14, 15 and 19
+    except (OSError, ValueError, IndexError):
+        return None  # ended, not readable, or not Linux's /proc
 
 
 def yielding_cpu_jiffies() -> dict[int, int]:
     """CPU time so far (user + system clock ticks, all threads) of each process that yields to
     this one (:func:`yields_to`), by PID; empty where ``/proc`` is not Linux's."""
-    groups = autogroup_scheduling()
-    own_group = autogroup() if groups else None
-    own_nice, out = os.nice(0), {}
+    own_group, own_nice, out = scheduling_group(), os.nice(0), {}
     try:
-        entries = [e.name for e in os.scandir("/proc") if e.name.isdigit()]
+        pids = [int(e.name) for e in os.scandir("/proc") if e.name.isdigit()]
     except OSError:
         return out
-    for pid in entries:
-        try:
-            with open(f"/proc/{pid}/stat") as fh:
-                fields = fh.read().rpartition(")")[2].split()  # from field 3 (state) on
-            utime, stime, nice = int(fields[11]), int(fields[12]), int(fields[16])
-        except (OSError, ValueError, IndexError):
-            continue  # ended, or not readable
-        if yields_to(nice, autogroup(pid) if groups else None, own_nice, own_group):
-            out[int(pid)] = utime + stime
+    for pid in pids:
+        stat = _proc_stat(pid)
+        if stat is not None and pid != os.getpid() and yields_to(stat[1], scheduling_group(pid), own_nice, own_group):
+            out[pid] = stat[0]
     return out
 
 
+def others_busy_cores(before: tuple[int, int], after: tuple[int, int], ncpu: int,
+                      left_out_before: dict[int, int], left_out_after: dict[int, int]) -> float:
+    """:func:`busy_cores` less the CPU time that the processes in both ``left_out_*`` readings
+    (PID -> clock ticks so far) took between them."""
+    total = after[1] - before[1]
+    if total <= 0:
+        return 0.0
+    left_out = sum(max(0, ticks - left_out_before[pid]) for pid, ticks in left_out_after.items()
+                   if pid in left_out_before)
+    return max(0.0, busy_cores(before, after, ncpu) - ncpu * left_out / total)
+
+
 def busy_cores_now(interval_s: float = 0.2) -> Optional[float]:
-    """Cores that other processes keep busy now (this process sleeps while it looks), or None.
-    Processes that yield to this one (:func:`yields_to`) are not counted."""
-    before, yielding_before = _cpu_times(), yielding_cpu_jiffies()
+    """Cores that other processes keep busy now, or None.  Neither this process (which reads
+    ``/proc`` and sleeps while it looks) nor those that yield to it (:func:`yields_to`) count."""
+    own_before = _proc_stat("self")
+    before = _cpu_times()
     if before is None:
         return None
+    left_before = yielding_cpu_jiffies()
     time.sleep(interval_s)
-    after, yielding_after = _cpu_times(), yielding_cpu_jiffies()
+    left_after = yielding_cpu_jiffies()
+    after = _cpu_times()
+    own_after = _proc_stat("self")
     if after is None:
         return None
-    ncpu = os.cpu_count() or 1
-    yielded = sum(max(0, t - yielding_before[pid]) for pid, t in yielding_after.items() if pid in yielding_before)
-    total = after[1] - before[1]
-    niced = 0.0 if total <= 0 else ncpu * yielded / total
-    return max(0.0, busy_cores(before, after, ncpu) - niced)
+    if own_before is not None and own_after is not None:
+        left_before[os.getpid()], left_after[os.getpid()] = own_before[0], own_after[0]
+    return others_busy_cores(before, after, os.cpu_count() or 1, left_before, left_after)
 
 
 def contention_warning(threads: int, load: float | None = None, cores: int | None = None) -> str | None:

@@ -21,7 +21,8 @@ from imssr.training.logger import read_csv
 from imssr.errors import INTERRUPTED_EXIT
 from imssr.sweep.grid import SweepConfig
 from imssr.sweep.runner import execute_run
-from imssr.sweep.sweep import plan_runs, settle
+from imssr.sweep.launchers import LocalLauncher
+from imssr.sweep.sweep import _run_sweep, plan_runs, settle
 from imssr.rundir.lock import LOCK_FILE
 
 # Tiny curl on cartpole: 3 episodes of 125 agent steps, updates from agent step 100, no
@@ -159,3 +160,41 @@ def test_sigterm_to_a_ray_sweep_stops_its_trainings_with_checkpoints(tmp_path):
     assert RunDir(run_dir).status() == "interrupted" and RunDir(run_dir).has_checkpoint()
     with open(os.path.join(run_dir, "sweep.log")) as fh:
         assert STOPPED.search(fh.read())
+
+
+class _SignalledLauncher(LocalLauncher):
+    """The local launcher, with a signal that arrives where Ray's handlers act: during start
+    (ray.init's handler exits with the signal's number) or as a second one while stopping."""
+
+    def __init__(self, cfg, at):
+        super().__init__(cfg)
+        self.at, self.handles = at, []
+
+    def start(self):
+        if self.at == "start":
+            raise SystemExit(signal.SIGTERM)
+
+    def submit(self, attempts):
+        handles = super().submit(attempts)
+        self.handles += handles
+        if self.at == "stop":
+            _after_first_episode(handles[0].proc, attempts[0].run_dir)
+            raise KeyboardInterrupt  # the first signal
+        return handles
+
+    def stop(self, handles):
+        raise KeyboardInterrupt  # a second signal while the trainings stop
+
+
+@pytest.mark.parametrize("at", ["start", "stop"])
+def test_a_signal_where_ray_acts_still_leaves_an_interrupted_status(tmp_path, at):
+    cfg, st = _sweep_run(tmp_path)
+    launcher = _SignalledLauncher(cfg.validate(), at)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            _run_sweep(cfg, launcher, progress=False, poll_s=0.1)
+    finally:
+        for handle in launcher.handles:
+            handle.stop()
+    with open(os.path.join(cfg.root, "sweep_status.json")) as fh:
+        assert [r["state"] for r in json.load(fh)["runs"]] == ["queued" if at == "start" else "interrupted"]

@@ -7,7 +7,8 @@ import pytest
 
 from imssr.sweep.runner import start_training
 from imssr.utils import (atomic_path, atomic_write_csv, atomic_write_text, busy_cores, busy_cores_now, contention_warning,
-                         yielding_cpu_jiffies, yields_to)
+                         YIELDING_NICE, cpu_cgroup, others_busy_cores, scheduling_group, yielding_cpu_jiffies,
+                         yields_to)
 
 
 def test_atomic_write_replaces_whole_file(tmp_path):
@@ -71,12 +72,30 @@ def test_busy_cores_now_is_a_share_of_the_machine():
     (19, ("/autogroup-1", 0), 0, ("/autogroup-1", 0), True),   # the same session: task nice values compare
     (19, ("/autogroup-2", 19), 10, ("/autogroup-1", 10), False),  # 9 levels below a niced caller
     (15, None, 0, ("/autogroup-1", 0), True),                # a task of the boot-time group against a session
+    (19, ("cgroup:/user.slice/b", None), 0, ("cgroup:/user.slice/a", None), False),  # cgroup weights decide
+    (19, ("cgroup:/a", None), 0, ("cgroup:/a", None), True),  # inside one cgroup, nice values compare
+    (0, ("/autogroup-2", 19), 0, ("cgroup:/a", None), False),
 ])
 def test_which_processes_yield_to_this_one(task_nice, group, own_nice, own_group, yields):
     assert yields_to(task_nice, group, own_nice, own_group) == yields
 
 
+def test_time_of_processes_left_out_is_not_busy():
+    # 2 CPUs, 200 ticks elapsed, 40 idle: 1.6 cores busy, of which 100 ticks (1 core) by PID 7
+    left = others_busy_cores((1000, 4000), (1040, 4200), 2, {7: 500, 8: 10}, {7: 600, 9: 50})
+    assert left == pytest.approx(0.6)  # PID 8 ended and PID 9 started inside the look: not left out
+    assert others_busy_cores((1000, 4000), (1000, 4200), 2, {7: 0}, {7: 400}) == 0.0  # never below 0
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="Linux /proc only")
+def test_this_process_competes_in_a_known_way():
+    group = scheduling_group()
+    assert cpu_cgroup().startswith("/")
+    assert group is None or group[0].startswith(("/autogroup-", "cgroup:/"))
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="Linux /proc only")
+@pytest.mark.skipif(os.nice(0) > 19 - YIELDING_NICE, reason="a process cannot be niced 10 levels below this one")
 def test_a_niced_sweeps_training_is_not_contention_a_plain_job_is():
     """A busy process started as a `nice -n 19 imssr sweep` starts its trainings (task and
     session niced) is counted as yielding; a busy process at normal priority is not."""

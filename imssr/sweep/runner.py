@@ -9,6 +9,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from typing import Optional
 
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.rundir import DIVERGED, FAILED, INTERRUPTED, RunDir
-from imssr.utils import autogroup_scheduling, disk_full_as_error
+from imssr.utils import disk_full_as_error, scheduling_group
 
 # Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
 # second signal (or one before its handlers were in place) ended it; it resumes either way.
@@ -40,26 +41,38 @@ def start_training(cmd: list[str], log, env: dict, niceness: Optional[int] = Non
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
                             preexec_fn=preexec, start_new_session=True)
     if niceness:
-        problem = lower_session_priority(proc.pid, niceness)
+        try:
+            problem = lower_session_priority(proc.pid, niceness)
+        except BaseException:  # interrupted (a cancelled Ray task) before the caller holds proc
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            raise
         if problem:
             log.write(f"imssr sweep: warning: the training runs at normal priority: {problem}\n")
             log.flush()
     return proc
 
 
-def lower_session_priority(pid: int, niceness: int, tries: int = 20) -> str:
+AUTOGROUP_WAIT_S = 30.0
+"""How long :func:`lower_session_priority` waits out the kernel's rate limit."""
+
+
+def lower_session_priority(pid: int, niceness: int, wait_s: float = AUTOGROUP_WAIT_S) -> str:
     """Give the session of ``pid`` (a training started by :func:`start_training`) the nice value
     ``niceness``; returns what went wrong, "" when it worked or there is nothing to do.
 
-    With autogroup scheduling (Linux's default on desktops and many servers) CPU time is shared
-    between sessions first and nice values count only inside a session, so a training in a
-    session of its own would ignore ``nice -n 19 imssr sweep``; its session's group gets the
-    value instead.  Without CAP_SYS_ADMIN the kernel takes one such change per 0.1 s on the whole
-    machine (EAGAIN otherwise): parallel starts wait their turn."""
+    With autogroup scheduling (Linux's default on desktops and many servers, for tasks outside
+    CPU cgroups) CPU time is shared between sessions first and nice values count only inside a
+    session, so a training in a session of its own would ignore ``nice -n 19 imssr sweep``; its
+    session's group gets the value instead.  Without CAP_SYS_ADMIN the kernel takes one such
+    change per 0.1 s on the whole machine (EAGAIN otherwise): parallel starts, of this sweep or
+    another, take turns (jittered, so that they do not retry in step)."""
     path = f"/proc/{pid}/autogroup"
-    if not (os.path.exists(path) and autogroup_scheduling()):
-        return ""  # no autogroup scheduling here: the inherited nice value already applies
-    for _ in range(tries):
+    group = scheduling_group(pid)
+    if group is None or group[1] is None:
+        return ""  # no autogroup applies: the inherited nice value already does
+    deadline = time.monotonic() + wait_s
+    while True:
         try:
             with open(path, "w") as fh:
                 fh.write(str(niceness))
@@ -67,8 +80,9 @@ def lower_session_priority(pid: int, niceness: int, tries: int = 20) -> str:
         except OSError as exc:
             if exc.errno not in (errno.EAGAIN, errno.EBUSY):
                 return f"cannot write {path}: {exc.strerror}"
-            time.sleep(0.11)
-    return f"{path} stayed busy for {tries * 0.11:.1f} s"
+            if time.monotonic() >= deadline:
+                return f"{path} stayed busy for {wait_s:.0f} s (the kernel takes one change per 0.1 s)"
+            time.sleep(random.uniform(0.1, 0.2))
 
 
 class RunAttempt:
@@ -171,14 +185,16 @@ def execute_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] 
     ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``: as
     in :class:`RunAttempt`.
     """
-    attempt_ = RunAttempt(run_dir, steps, attempt, niceness)
+    attempt_ = None
     try:
+        attempt_ = RunAttempt(run_dir, steps, attempt, niceness)
         # In steps: a Ray cancel interrupts the main thread between bytecodes, which a
         # blocking wait for the child never returns to.
         while attempt_.proc is not None and attempt_.proc.poll() is None:
             time.sleep(0.5)
     finally:
-        attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
+        if attempt_ is not None:
+            attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
     return attempt_.finish()
 
 

@@ -242,7 +242,12 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     inflight: dict = {}
     previous = _sigterm_as_interrupt()
     try:
-        launcher.start()
+        try:
+            launcher.start()
+        except SystemExit as exc:  # SIGTERM during ray.init, whose handler exits with the signal's number
+            if exc.code != signal.SIGTERM:
+                raise
+            raise KeyboardInterrupt from None
         # Again: ray.init installs a SIGTERM handler of its own (a stack dump and an exit that
         # skips the trainings' stop and the status file).
         _sigterm_as_interrupt()
@@ -270,12 +275,17 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
             ui.refresh()
     except KeyboardInterrupt:
         # Running trainings get SIGTERM and checkpoint where they are, so re-running the sweep
-        # resumes them.
-        launcher.stop(list(inflight))
-        for st in statuses:
-            if st.state == "running":
-                st.state = "interrupted"
-        write_status(cfg, statuses, started)
+        # resumes them.  A second signal while they do ends the wait: they are then stopped at
+        # once (a second SIGTERM, as for `imssr train`), keeping their last checkpoint.
+        try:
+            launcher.stop(list(inflight))
+        except KeyboardInterrupt:
+            pass
+        finally:
+            for st in statuses:
+                if st.state == "running":
+                    st.state = "interrupted"
+            write_status(cfg, statuses, started)
         raise
     finally:
         if ui is not None:
