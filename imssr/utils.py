@@ -9,7 +9,7 @@ import random
 import re
 import secrets
 import time
-from typing import Iterable, Iterator, Optional
+from typing import Callable, Iterable, Iterator, Optional
 
 import numpy as np
 import torch
@@ -206,38 +206,59 @@ def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
         return None
 
 
-def cpu_cgroup(pid: int | str = "self") -> Optional[str]:
-    """The cgroup whose CPU share process ``pid`` runs under (``/proc/PID/cgroup``): the path of
-    the v1 ``cpu`` hierarchy, or the v2 path when the root enables the ``cpu`` controller for
-    its children; "/" when no cgroup controls its CPU; None when unreadable (not Linux)."""
+def _read(path: str) -> Optional[str]:
+    """A small /proc or /sys file's text (bytes that are not UTF-8 replaced), or None."""
     try:
-        with open(f"/proc/{pid}/cgroup") as fh:
-            lines = [line.rstrip("\n").split(":", 2) for line in fh if line.count(":") >= 2]
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            return fh.read()
     except OSError:
         return None
+
+
+def _v2_has_cpu(path: str) -> Optional[bool]:
+    """Whether the cgroup v2 group at ``path`` has the cpu controller (None: unknown)."""
+    text = _read(f"/sys/fs/cgroup{path.rstrip('/')}/cgroup.controllers")
+    return None if text is None else "cpu" in text.split()
+
+
+def parse_cpu_cgroup(text: str, has_cpu: Callable[[str], Optional[bool]] = _v2_has_cpu) -> str:
+    """The cgroup whose CPU share a process runs under, from its ``/proc/PID/cgroup`` text: the
+    path in the v1 ``cpu`` hierarchy; else, under cgroup v2, the deepest group of its path that
+    has the ``cpu`` controller (``has_cpu(path)``; a group without it shares its parent's);
+    "/" when none does or it cannot be told (the kernel's root group)."""
+    lines = [line.split(":", 2) for line in text.splitlines() if line.count(":") >= 2]
     for _, controllers, path in lines:
         if "cpu" in controllers.split(","):
             return path
     for hierarchy, controllers, path in lines:
-        if hierarchy == "0" and not controllers:  # cgroup v2
-            try:
-                with open("/sys/fs/cgroup/cgroup.subtree_control") as fh:
-                    return path if "cpu" in fh.read().split() else "/"
-            except OSError:
-                return path
+        if hierarchy == "0" and not controllers:
+            parts = [p for p in path.split("/") if p]
+            for depth in range(len(parts), 0, -1):
+                group = "/" + "/".join(parts[:depth])
+                if has_cpu(group):
+                    return group
     return "/"
 
 
-def scheduling_group(pid: int | str = "self") -> Optional[tuple[str, Optional[int]]]:
+def cpu_cgroup(pid: int | str = "self") -> Optional[str]:
+    """:func:`parse_cpu_cgroup` of process ``pid``; None when ``/proc/PID/cgroup`` cannot be read
+    (not Linux, or the process ended)."""
+    text = _read(f"/proc/{pid}/cgroup")
+    return None if text is None else parse_cpu_cgroup(text)
+
+
+def scheduling_group(pid: int | str = "self", autogroups: Optional[bool] = None
+                     ) -> Optional[tuple[str, Optional[int]]]:
     """What process ``pid`` competes for the CPU inside of, with its nice value where one applies:
-    its autogroup ``(name, nice)`` under autogroup scheduling, which applies only to tasks of the
-    root CPU cgroup; ``("cgroup:PATH", None)`` in a CPU cgroup (which competes by its cgroup
-    weight, not by a nice value); None when it competes as a task on its own.  A cgroup
-    namespace can hide a container's cgroup behind "/": then its tasks are taken for the root's."""
+    its autogroup ``(name, nice)`` under autogroup scheduling (``autogroups``; None: read it),
+    which applies only to tasks of the root CPU cgroup; ``("cgroup:PATH", None)`` in a CPU
+    cgroup (which competes by its cgroup weight, not by a nice value); None when it competes as
+    a task on its own.  A cgroup namespace can hide a container's cgroup behind "/": then its
+    tasks are taken for the root's."""
     group = cpu_cgroup(pid)
     if group not in (None, "/"):
         return f"cgroup:{group}", None
-    if group == "/" and autogroup_scheduling():
+    if group == "/" and (autogroup_scheduling() if autogroups is None else autogroups):
         return autogroup(pid)
     return None
 
@@ -258,27 +279,31 @@ def yields_to(task_nice: int, group: Optional[tuple[str, Optional[int]]], own_ni
 
 def _proc_stat(pid: int | str) -> Optional[tuple[int, int]]:
     """(user + system clock ticks of all its threads, nice value) of process ``pid``."""
+    text = _read(f"/proc/{pid}/stat")
     try:
-        with open(f"/proc/{pid}/stat") as fh:
-            fields = fh.read().rpartition(")")[2].split()  # after the name: from field 3 (state) on
+        fields = text.rpartition(")")[2].split()  # after the name: from field 3 (state) on
         return int(fields[11]) + int(fields[12]), int(fields[16])  # fields 14, 15 and 19
-    except (OSError, ValueError, IndexError):
+    except (AttributeError, ValueError, IndexError):
         return None  # ended, not readable, or not Linux's /proc
 
 
-def yielding_cpu_jiffies() -> dict[int, int]:
-    """CPU time so far (user + system clock ticks, all threads) of each process that yields to
-    this one (:func:`yields_to`), by PID; empty where ``/proc`` is not Linux's."""
-    own_group, own_nice, out = scheduling_group(), os.nice(0), {}
+def _all_proc_stats() -> dict[int, tuple[int, int]]:
+    """:func:`_proc_stat` of every process, by PID; empty where ``/proc`` is not Linux's."""
     try:
         pids = [int(e.name) for e in os.scandir("/proc") if e.name.isdigit()]
     except OSError:
-        return out
-    for pid in pids:
-        stat = _proc_stat(pid)
-        if stat is not None and pid != os.getpid() and yields_to(stat[1], scheduling_group(pid), own_nice, own_group):
-            out[pid] = stat[0]
-    return out
+        return {}
+    stats = {pid: _proc_stat(pid) for pid in pids}
+    return {pid: stat for pid, stat in stats.items() if stat is not None}
+
+
+def yielding_pids(nice_by_pid: dict[int, int]) -> set[int]:
+    """The processes among ``nice_by_pid`` (PID -> its nice value) that yield to this one
+    (:func:`yields_to`); the system-wide settings are read once."""
+    autogroups = autogroup_scheduling()
+    own_group, own_nice = scheduling_group(autogroups=autogroups), os.nice(0)
+    return {pid for pid, nice in nice_by_pid.items()
+            if pid != os.getpid() and yields_to(nice, scheduling_group(pid, autogroups), own_nice, own_group)}
 
 
 def others_busy_cores(before: tuple[int, int], after: tuple[int, int], ncpu: int,
@@ -295,18 +320,24 @@ def others_busy_cores(before: tuple[int, int], after: tuple[int, int], ncpu: int
 
 def busy_cores_now(interval_s: float = 0.2) -> Optional[float]:
     """Cores that other processes keep busy now, or None.  Neither this process (which reads
-    ``/proc`` and sleeps while it looks) nor those that yield to it (:func:`yields_to`) count."""
+    ``/proc`` and sleeps while it looks) nor those that yield to it (:func:`yields_to`) count;
+    only the processes that ran during the look are placed in their scheduling groups."""
     own_before = _proc_stat("self")
     before = _cpu_times()
     if before is None:
         return None
-    left_before = yielding_cpu_jiffies()
+    stats_before = _all_proc_stats()
     time.sleep(interval_s)
-    left_after = yielding_cpu_jiffies()
+    stats_after = _all_proc_stats()
     after = _cpu_times()
     own_after = _proc_stat("self")
     if after is None:
         return None
+    ran = {pid: stat[1] for pid, stat in stats_after.items()
+           if pid in stats_before and stat[0] > stats_before[pid][0]}
+    left_out = yielding_pids(ran)
+    left_before = {pid: stats_before[pid][0] for pid in left_out}
+    left_after = {pid: stats_after[pid][0] for pid in left_out}
     if own_before is not None and own_after is not None:
         left_before[os.getpid()], left_after[os.getpid()] = own_before[0], own_after[0]
     return others_busy_cores(before, after, os.cpu_count() or 1, left_before, left_after)
@@ -332,7 +363,10 @@ def contention_warning(threads: int, load: float | None = None, cores: int | Non
         except OSError:  # not available on this platform
             return None
         if load + threads > cores + 0.5:  # only then is the 0.2 s look worth taking
-            now = busy_cores_now()
+            try:
+                now = busy_cores_now()
+            except (OSError, ValueError):  # an unexpected /proc: the load average decides
+                now = None
             if now is not None:
                 load = min(load, now)
     if load + threads <= cores + 0.5:

@@ -178,8 +178,7 @@ class _SignalledLauncher(LocalLauncher):
         handles = super().submit(attempts)
         self.handles += handles
         if self.at == "stop":
-            _after_first_episode(handles[0].proc, attempts[0].run_dir)
-            raise KeyboardInterrupt  # the first signal
+            raise KeyboardInterrupt  # the first signal, with a training in flight
         return handles
 
     def stop(self, handles):

@@ -43,13 +43,13 @@ def start_training(cmd: list[str], log, env: dict, niceness: Optional[int] = Non
     if niceness:
         try:
             problem = lower_session_priority(proc.pid, niceness)
+            if problem:
+                log.write(f"imssr sweep: warning: the training runs at normal priority: {problem}\n")
+                log.flush()
         except BaseException:  # interrupted (a cancelled Ray task) before the caller holds proc
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
             raise
-        if problem:
-            log.write(f"imssr sweep: warning: the training runs at normal priority: {problem}\n")
-            log.flush()
     return proc
 
 
