@@ -114,6 +114,23 @@ def held_by_another_process(directory):
         child.wait()
 
 
+def test_local_holder_names_only_a_live_holder_on_this_machine(tmp_path):
+    """What a local Ray sweep signals when it stops: the process that holds a run's lock now."""
+    from imssr.rundir.lock import local_holder
+
+    out = tmp_path / "run"
+    out.mkdir()
+    assert local_holder(str(out)) is None  # no lock file
+    with held_by_another_process(out) as child:
+        assert local_holder(str(out)) == child.pid
+        child.kill()
+        child.wait()
+    assert (out / LOCK_FILE).exists() and local_holder(str(out)) is None  # left by a dead process
+    with held_by_another_process(out) as child:
+        (out / LOCK_FILE).write_text(f"{child.pid} another-host\n")  # a run on a shared file system
+        assert local_holder(str(out)) is None
+
+
 def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_taken_over(tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()

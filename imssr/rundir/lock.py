@@ -143,13 +143,40 @@ def _missing_dirs(directory: str) -> list[str]:
     return missing[::-1]
 
 
-def _owner(fd: int) -> str:
-    """"PID n" (and "on HOST" when another machine holds it) from the lock file."""
+def _read_owner(fd: int) -> tuple[Optional[int], str]:
+    """The PID and host the lock file names; (None, "") before its owner wrote them."""
     try:
         text = os.pread(fd, 200, 0).decode(errors="replace").split()
     except OSError:
         text = []
     if not text or not text[0].isdigit():
+        return None, ""
+    return int(text[0]), text[1] if len(text) > 1 else ""
+
+
+def _owner(fd: int) -> str:
+    """"PID n" (and "on HOST" when another machine holds it) from the lock file."""
+    pid, host = _read_owner(fd)
+    if pid is None:
         return "another process"  # it has the lock but has not written its PID yet
-    host = text[1] if len(text) > 1 else ""
-    return f"PID {text[0]}" + (f" on {host}" if host and host != socket.gethostname() else "")
+    return f"PID {pid}" + (f" on {host}" if host and host != socket.gethostname() else "")
+
+
+def local_holder(directory: str) -> Optional[int]:
+    """The PID of the process on this machine that holds ``directory``'s lock now; None when
+    no process holds it, one on another machine does, or its owner has not written its PID."""
+    try:
+        fd = os.open(os.path.join(directory, LOCK_FILE), os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                return None
+            pid, host = _read_owner(fd)  # held: the PID cannot be a recycled one
+            return pid if host == socket.gethostname() else None
+        return None  # nobody holds it
+    finally:
+        os.close(fd)

@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import shutil
+import signal
 import socket
 import time
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from typing import Any, Optional
 
 from imssr.errors import ImssrError
 from imssr.extras import require
+from imssr.rundir.lock import local_holder
 from imssr.sweep.grid import SweepConfig
 from imssr.sweep.runner import STOP_GRACE_S, RunAttempt, execute_run
 
@@ -127,6 +129,8 @@ class RayLauncher(Launcher):
 
     def __init__(self, cfg: SweepConfig):
         self.cfg, self.ray, self.task = cfg, None, None
+        self.run_dirs: dict[Any, str] = {}
+        """The run directory of each submitted task (:meth:`stop` signals its training)."""
 
     def check(self) -> None:
         require("ray", "sweep")
@@ -140,10 +144,14 @@ class RayLauncher(Launcher):
         return _capacity(self.ray, self.cfg)
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
-        return [self.task.remote(a.run_dir, a.steps, a.attempt, sweep_niceness(self.cfg)) for a in attempts]
+        handles = [self.task.remote(a.run_dir, a.steps, a.attempt, sweep_niceness(self.cfg)) for a in attempts]
+        self.run_dirs.update(zip(handles, (a.run_dir for a in attempts)))
+        return handles
 
     def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
         ready, _ = self.ray.wait(list(handles), num_returns=1, timeout=timeout_s)
+        for handle in ready:
+            self.run_dirs.pop(handle, None)
         return ready
 
     def result(self, handle: Any) -> dict:
@@ -154,11 +162,24 @@ class RayLauncher(Launcher):
             return {"ok": False, "error": f"Ray task failed: {text[0] if text else type(exc).__name__}"}
 
     def stop(self, handles: list[Any]) -> None:
-        # A cancel raises KeyboardInterrupt inside the task, whose execute_run then stops its
-        # training as RunAttempt.stop does (SIGTERM: a checkpoint where it is); wait for that
-        # before ray.shutdown kills the workers.
+        # Each training gets one SIGTERM and checkpoints where it is; wait for that before
+        # ray.shutdown kills the workers and their children.  On a private local Ray the
+        # trainings run here, and a training that holds its run's lock is signalled directly:
+        # its task then returns as the training exits.  A cancel (which raises
+        # KeyboardInterrupt inside the task, whose execute_run then stops the training as
+        # RunAttempt.stop does) is best effort: in a loaded test suite it once did not reach
+        # the task within the wait below, so it serves only where the training is not ours to
+        # signal (a cluster) or has not taken its lock yet.  Never both for one training: a
+        # second SIGTERM stops it at once, without its checkpoint.
         for handle in handles:
-            self.ray.cancel(handle, force=False)
+            pid = None if self.cfg.address else local_holder(self.run_dirs.get(handle, ""))
+            if pid is None:
+                self.ray.cancel(handle, force=False)
+                continue
+            try:
+                os.killpg(pid, signal.SIGTERM)  # a training leads its own session
+            except ProcessLookupError:
+                pass
         if handles:
             self.ray.wait(list(handles), num_returns=len(handles), timeout=STOP_GRACE_S + 15)
 
