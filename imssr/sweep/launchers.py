@@ -167,19 +167,20 @@ class RayLauncher(Launcher):
         # trainings run here, and a training that holds its run's lock is signalled directly:
         # its task then returns as the training exits.  A cancel (which raises
         # KeyboardInterrupt inside the task, whose execute_run then stops the training as
-        # RunAttempt.stop does) is best effort: in a loaded test suite it once did not reach
-        # the task within the wait below, so it serves only where the training is not ours to
-        # signal (a cluster) or has not taken its lock yet.  Never both for one training: a
-        # second SIGTERM stops it at once, without its checkpoint.
+        # RunAttempt.stop does) is best effort: on a loaded machine it can miss the wait below,
+        # so it serves only where the training is not ours to signal (a cluster) or has not
+        # taken its lock yet.  Never both for one training: a second SIGTERM stops it at once,
+        # without its checkpoint.
         for handle in handles:
-            pid = None if self.cfg.address else local_holder(self.run_dirs.get(handle, ""))
+            run_dir = None if self.cfg.address else self.run_dirs.get(handle)
+            pid = local_holder(run_dir) if run_dir else None
             if pid is None:
                 self.ray.cancel(handle, force=False)
                 continue
             try:
                 os.killpg(pid, signal.SIGTERM)  # a training leads its own session
-            except ProcessLookupError:
-                pass
+            except ProcessLookupError:  # it ended meanwhile, or leads no group: the task decides
+                self.ray.cancel(handle, force=False)
         if handles:
             self.ray.wait(list(handles), num_returns=len(handles), timeout=STOP_GRACE_S + 15)
 
