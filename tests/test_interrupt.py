@@ -144,9 +144,8 @@ def test_sigterm_to_a_ray_sweep_stops_its_trainings_with_checkpoints(tmp_path):
     file must say interrupted, and the sweep must exit 130."""
     sets = [a for i, a in enumerate(TRAIN) if i and TRAIN[i - 1] == "--set"]
     root = tmp_path / "sweep"
-    # A budget far beyond the first episode: the stop passes through Ray's cancel and the task's
-    # wait before it reaches the training, seconds on a loaded machine, and a tiny run must not
-    # finish its budget in the meantime.
+    # A budget far beyond the first episode: a stop that never reaches the training must not
+    # pass because the tiny run finished its budget in the meantime.
     cmd = [sys.executable, "-m", "imssr", "sweep", "--no-progress", "--algos", "curl", "--tasks",
            "cartpole_swingup_sparse", "--seeds", "3", "--steps", "5000", "--root", str(root),
            *[a for kv in sets for a in ("--set", kv)]]

@@ -36,8 +36,6 @@ every file they read is replaced atomically.
 from __future__ import annotations
 
 import contextlib
-import errno
-import fcntl
 import glob
 import json
 import os
@@ -50,7 +48,7 @@ from imssr.errors import DivergedError, ImssrError
 from imssr.jsonio import dumps
 from imssr.replay.buffer import frames_path
 from imssr.rundir.checkpoint import CheckpointDamaged, copy_checkpoint, load_checkpoint, write_checkpoint
-from imssr.rundir.lock import LOCK_FILE, DirectoryLock
+from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
 from imssr.utils import atomic_write_text, read_csv
 
 CONFIG_FILE = "config.json"
@@ -290,17 +288,7 @@ class RunDir:
 
     def in_use(self) -> bool:
         """Whether a process holds the run's lock now (a training runs in it)."""
-        try:
-            fd = os.open(self.lock_path, os.O_RDONLY | os.O_CLOEXEC)
-        except OSError:
-            return False
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError as exc:
-            return exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
-        finally:
-            os.close(fd)
-        return False
+        return held_by(self.path) is not None
 
     # -- config --------------------------------------------------------------------------
     def has_config(self) -> bool:

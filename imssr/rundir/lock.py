@@ -162,21 +162,25 @@ def _owner(fd: int) -> str:
     return f"PID {pid}" + (f" on {host}" if host and host != socket.gethostname() else "")
 
 
-def local_holder(directory: str) -> Optional[int]:
-    """The PID of the process on this machine that holds ``directory``'s lock now; None when
-    no process holds it, one on another machine does, or its owner has not written its PID."""
+def held_by(directory: str) -> Optional[tuple[Optional[int], str]]:
+    """Whether a process holds ``directory``'s lock now (a shared lock tried for an instant):
+    None when none does, else the PID and host its lock file names (PID None before its owner
+    wrote it).  Held, the PID cannot be a recycled one."""
     try:
         fd = os.open(os.path.join(directory, LOCK_FILE), os.O_RDONLY | os.O_CLOEXEC)
     except OSError:
         return None
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                return None
-            pid, host = _read_owner(fd)  # held: the PID cannot be a recycled one
-            return pid if host == socket.gethostname() else None
-        return None  # nobody holds it
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        return _read_owner(fd) if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES) else None
     finally:
         os.close(fd)
+    return None
+
+
+def local_holder(directory: str) -> Optional[int]:
+    """The PID of the process on this machine that holds ``directory``'s lock now; None when
+    no process holds it, one on another machine does, or its owner has not written its PID."""
+    owner = held_by(directory)
+    return owner[0] if owner is not None and owner[1] == socket.gethostname() else None
