@@ -294,6 +294,15 @@ def add_sweep_parsers(sub) -> None:
                     help="the paper's numbers (default ../shared/spec/paper_results.csv from the repository)")
     rp.add_argument("--reps", type=_positive_int, default=2000, help="bootstrap replicates for the CIs")
 
+    ex = sub.add_parser("export", help="copy the config and CSV logs of a sweep's finished runs "
+                        "(no checkpoints, no replay) to a tree that imssr report reads and git can keep",
+                        description="Each finished run under ROOT goes to DEST/<precision>/<task>/<algo>/seed_<n> "
+                        "(config.json, eval.csv, eval_episodes.csv, train.csv, and evaluate*.csv when present). "
+                        "Running and interrupted runs are skipped; files already there with the same bytes are "
+                        "left alone, so exporting again after each finished run copies each run once.")
+    ex.add_argument("root", metavar="ROOT", help="sweep directory (runs below it, any depth)")
+    ex.add_argument("dest", metavar="DEST", help="export directory (created if missing)")
+
 
 def _sweep_config(args):
     if args.steps is not None and args.frames is not None:
@@ -349,6 +358,19 @@ def cmd_report(args) -> int:
     out = args.out or os.path.join(args.root, "report")
     for path, text in write_report(args.root, out, paper_results=args.paper_results, reps=args.reps):
         print(f"{text}: {path}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from imssr.report.export import export_runs
+
+    _check_out(args.dest, "DEST")
+    exported = export_runs(args.root, args.dest)
+    for item in exported:
+        print(f"{item.state}: {os.path.join(args.dest, os.path.relpath(item.dest, os.path.abspath(args.dest)))}")
+    copied = sum(item.state in ("new", "updated") for item in exported)
+    print(f"imssr: {copied} run(s) copied, {sum(item.state == 'unchanged' for item in exported)} unchanged, "
+          f"{sum(item.state.startswith('skipped') for item in exported)} skipped")
     return 0
 
 
@@ -472,7 +494,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     handlers = {"train": cmd_train, "demo": lambda a: cmd_train(a, demo=True),
                 "evaluate": cmd_evaluate, "analyze": cmd_analyze, "tasks": cmd_tasks, "algos": cmd_algos,
                 "config": cmd_config, "plot": cmd_plot, "modes": cmd_modes,
-                "sweep": cmd_sweep, "report": cmd_report}
+                "sweep": cmd_sweep, "report": cmd_report, "export": cmd_export}
     try:
         return handlers[args.command](args)
     except ImssrError as exc:

@@ -16,14 +16,15 @@ from imssr.training.logger import EVAL_COLUMNS, read_csv
 TASK = "cartpole_swingup_sparse"  # action repeat 8: agent step s is frame 8 * s
 
 
-def make_run(root, algo, seed, evals, task=TASK, steps=1000, beta0=None):
+def make_run(root, algo, seed, evals, task=TASK, steps=1000, beta0=None, precision="fp32"):
     """A run directory as `imssr train` leaves it: config.json and eval.csv rows (mode, agent step,
     return); T = ``steps`` agent steps."""
-    parts = [task, algo] + ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
+    parts = ([] if precision == "fp32" else [precision]) + [task, algo] + \
+        ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
     run = os.path.join(root, *parts)
     os.makedirs(run)
     cfg = make_config(algo, task)
-    cfg.train.steps, cfg.train.seed = steps, seed
+    cfg.train.steps, cfg.train.seed, cfg.agent.precision = steps, seed, precision
     if beta0 is not None:
         cfg.intrinsic.beta0 = beta0
     with open(os.path.join(run, "config.json"), "w") as fh:
@@ -80,8 +81,8 @@ def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
     assert float(t["color_hard", "im-curl", "1.0"]["mean"]) == 3.0
     assert t["color_hard", "curl", "1.0"]["seeds"] == "0"
     md = open(os.path.join(out, "report.md")).read()
-    assert "| `cartpole_swingup_sparse` | curl | **20.0** ± 8.2 |  | 200.0 ± 81.6 |  | 200.0 ± 81.6 | 744.2 ± 23.8 | 3/3 |" in md
-    assert "| im-curl | 0.0 ± 0.0 |  | **500.0** ± 81.6 |  | **500.0** ± 81.6 | 744.8 ± 54.2 | 3/3 |" in md
+    assert "| `cartpole_swingup_sparse` | curl | **20.0** ± 8.2 |  | 200.0 ± 81.6 |  | 200.0 ± 81.6 | 744.2 ± 23.8 | 1: 100.0, 2: 200.0, 3: 300.0 | 3/3 |" in md
+    assert "| im-curl | 0.0 ± 0.0 |  | **500.0** ± 81.6 |  | **500.0** ± 81.6 | 744.8 ± 54.2 | 1: 400.0, 2: 500.0, 3: 600.0 | 3/3 |" in md
     assert "### `training` (T = 1,000 agent steps)" in md and md.index("### `training`") < md.index("### `color_hard`")
     assert f"| `{TASK}` | 8 | 200 steps (1,600 frames) | 500 steps (4,000 frames) | 1,000 steps (8,000 frames) |" in md
     # The paper's T is 500,000 agent steps; this sweep's points are other steps, and the note says so.
@@ -89,10 +90,10 @@ def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
            "steps); this sweep's T is 1,000 agent steps" in md
     # Every evaluation, one row each.
     rows = read_csv(os.path.join(out, "evaluations.csv"))
-    assert list(rows[0]) == ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0"]
+    assert list(rows[0]) == ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0", "precision"]
     assert len(rows) == 3 * 4 + 3 * 8
     assert {"algo": "curl", "task": TASK, "mode": "training", "seed": "2", "step": "500", "frame": "4000",
-            "return": "200", "beta0": ""} in rows
+            "return": "200", "beta0": "", "precision": "fp32"} in rows
     assert os.path.getsize(os.path.join(out, "curves.png")) > 5000
     assert not os.path.exists(os.path.join(out, "beta0.png"))
 
@@ -309,3 +310,45 @@ def test_compare_sweeps_table_and_exit_status(tmp_path):
     assert not inside and table.splitlines()[-1].endswith("| 200.0 | - | **bf16 lacks seed 3** |")
     table, inside = compare_sweeps.compare(single, near, "fp32", "bf16")
     assert not inside and table.splitlines()[-1].endswith("| **no spread: 1 fp32 seed** |")
+
+
+def test_bf16_runs_are_rows_of_their_own_beside_fp32(tmp_path, paper_csv):
+    """The same algo and seeds at two precisions: two rows, two curves, IQMs and a probability of
+    improvement within each precision, each seed's return listed."""
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for precision, offset in (("fp32", 0), ("bf16", 50)):
+        for seed, ret in zip((1, 2, 3), (100, 200, 300)):
+            make_run(root, "curl", seed, curve(0, 0, ret + offset), precision=precision)
+            make_run(root, "im-curl", seed, curve(0, 0, ret + offset + 300), precision=precision)
+    write_report(root, out, paper_results=paper_csv, reps=100)
+    t = table(out)
+    assert float(t["training", "curl", "1.0"]["mean"]) == 200.0
+    assert float(t["training", "curl bf16", "1.0"]["mean"]) == 250.0
+    assert (t["training", "curl", "1.0"]["seeds"], t["training", "curl bf16", "1.0"]["seeds"]) == ("3", "3")
+    assert (t["training", "curl", "1.0"]["precision"], t["training", "curl bf16", "1.0"]["precision"]) == ("fp32", "bf16")
+    assert t["training", "curl bf16", "1.0"]["per_seed"] == "1:150.0;2:250.0;3:350.0"
+    # The published number is the algo's, beside either precision.
+    assert t["training", "curl bf16", "1.0"]["paper_mean"] == "744.2"
+    labels = [r["label"] for r in read_csv(os.path.join(out, "table.csv")) if r["fraction"] == "1.0"]
+    assert labels == ["curl", "im-curl", "curl bf16", "im-curl bf16"]
+    agg = {(r["fraction"], r["metric"], r["label"]): r for r in read_csv(os.path.join(out, "aggregates.csv"))}
+    assert float(agg["1.0", "IQM", "curl bf16"]["point"]) == pytest.approx(0.25)
+    assert ("1.0", "P(X > Y)", "im-curl bf16 > curl bf16") in agg and ("1.0", "P(X > Y)", "im-curl > curl") in agg
+    assert not any("im-curl bf16 > curl" == k[2] for k in agg)
+    md = open(os.path.join(out, "report.md")).read()
+    assert "| curl bf16 | **0.0** ± 0.0 |  | **0.0** ± 0.0 |  | 250.0 ± 81.6 | 744.2 ± 23.8 | 1: 150.0, 2: 250.0, 3: 350.0 | 3/3 |" in md
+    assert {r["precision"] for r in read_csv(os.path.join(out, "evaluations.csv"))} == {"fp32", "bf16"}
+
+
+def test_a_planned_bf16_run_that_has_not_started_counts_in_its_own_row(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, curve(0, 0, 100), precision="bf16")
+    plan = {"sweep": {"overrides": ["agent.batch_size=8", "agent.precision=bf16"]},
+            "runs": [{"algo": "curl", "task": TASK, "seed": s, "beta0": None, "steps": 1000,
+                      "dir": os.path.join("bf16", TASK, "curl", f"seed_{s}")} for s in (1, 2)]}
+    with open(os.path.join(root, "sweep.json"), "w") as fh:
+        json.dump(plan, fh)
+    write_report(root, out, paper_results=paper_csv, reps=50)
+    t = table(out)
+    assert (t["training", "curl bf16", "1.0"]["seeds"], t["training", "curl bf16", "1.0"]["expected_seeds"]) == ("1", "2")
+    assert ("training", "curl", "1.0") not in t

@@ -15,6 +15,7 @@ import numpy as np
 
 from imssr.extras import require
 from imssr.presets import ALGOS
+from imssr.report.results import group_label
 from imssr.report.tables import FRACTIONS, Row, mode_order
 from imssr.utils import atomic_write_csv
 
@@ -111,12 +112,13 @@ def _estimates(scores: dict, func, reps: int, seed: int):
 
 
 def _base_label(label: str, by_label: dict, algos) -> Optional[str]:
-    """The base algo's label for a label whose algo has an intrinsic reward (else None)."""
-    algo = by_label[label][0].algo
-    spec = algos.get(algo)
+    """The base algo's label, at the same precision, for a label whose algo has an intrinsic
+    reward (else None)."""
+    row = by_label[label][0]
+    spec = algos.get(row.algo)
     if spec is None or not spec.intrinsic_enabled:
         return None
-    return spec.base
+    return group_label(spec.base, None, row.precision)
 
 
 def markdown(aggregates: list[Aggregate]) -> str:

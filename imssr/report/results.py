@@ -23,7 +23,7 @@ from imssr.sweep.sweep import status_of
 from imssr.training.logger import read_csv
 from imssr.utils import atomic_write_csv
 
-EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0"]
+EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0", "precision"]
 
 
 @dataclass
@@ -44,6 +44,8 @@ class RunResult:
     """Environment frames per agent step."""
     dir: str
     """Run directory."""
+    precision: str = "fp32"
+    """``agent.precision`` of the run: a bf16 run is its own group, never a seed of the fp32 one."""
     evals: list[tuple[str, int, int, float]] = field(default_factory=list)
     """``(mode, step, frame, return_mean)`` of every evaluation, in file order."""
     failure: Optional[str] = None
@@ -56,13 +58,16 @@ class RunResult:
 
     @property
     def label(self) -> str:
-        """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep."""
-        return group_label(self.algo, self.beta0)
+        """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep and
+        the precision when it is not the paper's fp32."""
+        return group_label(self.algo, self.beta0, self.precision)
 
 
-def group_label(algo: str, beta0: Optional[float]) -> str:
-    """The algo, plus beta_0 for a point of a beta sweep."""
-    return algo if beta0 is None else f"{algo} beta0={beta_label(beta0)}"
+def group_label(algo: str, beta0: Optional[float], precision: str = "fp32") -> str:
+    """The algo, plus beta_0 for a point of a beta sweep, plus the precision unless fp32
+    (``"im-curl beta0=0.01 bf16"``)."""
+    label = algo if beta0 is None else f"{algo} beta0={beta_label(beta0)}"
+    return label if precision == "fp32" else f"{label} {precision}"
 
 
 @dataclass
@@ -76,12 +81,14 @@ class PlannedRun:
     steps: int
     """Budget in agent steps."""
     dir: str
+    precision: str = "fp32"
+    """``agent.precision`` the sweep sets for its runs."""
     failure: Optional[str] = None
     """The last error when ``sweep_status.json`` lists the run as failed."""
 
     @property
     def label(self) -> str:
-        return group_label(self.algo, self.beta0)
+        return group_label(self.algo, self.beta0, self.precision)
 
 
 @dataclass
@@ -174,7 +181,8 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
         return None
     repeat = cfg.env.action_repeat
-    run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir)
+    run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
+                    precision=cfg.agent.precision)
     path = run_files.eval_log
     rows = read_csv(path)
     if rows and not _ends_with_newline(path):
@@ -209,17 +217,29 @@ def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
     try:
         with open(path) as fh:
             plan = json.load(fh)
+        precision = _planned_precision(plan["sweep"].get("overrides") or [])
         return [PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), int(r["steps"]),
-                           os.path.join(root, r["dir"])) for r in plan["runs"]]
+                           os.path.join(root, r["dir"]), precision) for r in plan["runs"]]
     except (OSError, ValueError, KeyError, TypeError, ImssrError) as exc:
         notes.append(f"{SWEEP_PLAN}: unreadable ({exc}); expected seeds come from the runs found")
         return []
 
 
+def _planned_precision(overrides: list) -> str:
+    """The precision a sweep's ``--set`` lines give its runs (the last one wins, as in
+    ``imssr train``); the presets' fp32 otherwise."""
+    precision = "fp32"
+    for item in overrides:
+        key, sep, value = str(item).partition("=")
+        if sep and key.strip() == "agent.precision":
+            precision = value.strip()
+    return precision
+
+
 def write_evaluations(results: SweepResults, path: str) -> str:
-    """Every evaluation of every run: ``algo,task,mode,seed,step,frame,return,beta0``."""
-    rows = sorted((r.algo, r.task, mode, r.seed, step, frame, ret, "" if r.beta0 is None else beta_label(r.beta0))
-                  for r in results.runs for mode, step, frame, ret in r.evals)
+    """Every evaluation of every run: ``algo,task,mode,seed,step,frame,return,beta0,precision``."""
+    rows = sorted((r.algo, r.task, mode, r.seed, step, frame, ret, "" if r.beta0 is None else beta_label(r.beta0),
+                   r.precision) for r in results.runs for mode, step, frame, ret in r.evals)
     return atomic_write_csv(path, EVALUATIONS_COLUMNS,
-                            ([algo, task, mode, seed, step, frame, f"{ret:.6g}", beta]
-                             for algo, task, mode, seed, step, frame, ret, beta in rows))
+                            ([algo, task, mode, seed, step, frame, f"{ret:.6g}", beta, precision]
+                             for algo, task, mode, seed, step, frame, ret, beta, precision in rows))

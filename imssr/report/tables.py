@@ -29,7 +29,8 @@ from imssr.utils import atomic_write_csv
 
 FRACTIONS = (0.2, 0.5, 1.0)
 TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",
-                 "seeds", "expected_seeds", "failed_seeds", "best", "paper_mean", "paper_std"]
+                 "seeds", "expected_seeds", "failed_seeds", "best", "paper_mean", "paper_std", "precision",
+                 "per_seed"]
 
 
 @dataclass
@@ -76,6 +77,8 @@ class Row:
     algo: str
     beta0: Optional[float]
     cells: list[Cell]
+    precision: str = "fp32"
+    """``agent.precision`` of the row's runs (fp32 and bf16 runs are separate rows)."""
 
 
 def point_step(fraction: float, budget: int) -> int:
@@ -108,11 +111,13 @@ def mode_order(modes) -> list[str]:
 
 
 def label_order(results: SweepResults) -> list[str]:
-    """Algos in registry order (curl, im-curl, ...), beta sweeps by increasing beta_0."""
+    """fp32 before other precisions; within each, algos in registry order (curl, im-curl, ...),
+    beta sweeps by increasing beta_0."""
     rank = {name: i for i, name in enumerate(ALGOS)}
-    keys = {(r.label, r.algo, r.beta0) for r in results.runs} | \
-           {(p.label, p.algo, p.beta0) for p in results.planned}
-    ordered = sorted(keys, key=lambda k: (rank.get(k[1], len(rank)), k[1], -1.0 if k[2] is None else k[2]))
+    keys = {(r.label, r.algo, r.beta0, r.precision) for r in results.runs} | \
+           {(p.label, p.algo, p.beta0, p.precision) for p in results.planned}
+    ordered = sorted(keys, key=lambda k: (k[3] != "fp32", k[3], rank.get(k[1], len(rank)), k[1],
+                                          -1.0 if k[2] is None else k[2]))
     return [k[0] for k in ordered]
 
 
@@ -134,7 +139,7 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
                 if not runs and not any(p.task == task and p.label == label for p in results.planned):
                     continue
                 first = runs[0] if runs else next(p for p in results.planned if p.label == label)
-                algo, beta0 = first.algo, first.beta0
+                algo, beta0, precision = first.algo, first.beta0, first.precision
                 want = expected.get(label, set())
                 cells = []
                 for fraction in FRACTIONS:
@@ -167,7 +172,7 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
                     if paper is not None and beta0 is None and algo in ALGOS:
                         cell.paper = paper.get((task, mode, fraction, ALGOS[algo].paper_name))
                     cells.append(cell)
-                rows.append(Row(mode, task, label, algo, beta0, cells))
+                rows.append(Row(mode, task, label, algo, beta0, cells, precision))
     _mark_best(rows)
     return rows, notes
 
@@ -231,6 +236,11 @@ def cell_text(cell: Cell) -> str:
     return text if cell.n >= cell.expected and not failed else f"{text} ({cell.n}/{cell.expected}{failed})"
 
 
+def per_seed_text(cell: Cell, sep: str = ", ") -> str:
+    """Each seed's return at the point, in seed order: ``"1: 512.3, 2: 601.0"``."""
+    return sep.join(f"{seed}: {cell.values[seed]:.1f}" for seed in sorted(cell.values))
+
+
 def point_text(step: int, frame: Optional[int]) -> str:
     """``"100,000 steps (800,000 frames)"``."""
     return f"{step:,} steps ({'frames vary' if frame is None else f'{frame:,} frames'})"
@@ -259,7 +269,7 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
             header.append(f"{fraction:.1f}T")
             if with_paper:
                 header.append(f"paper {fraction:.1f}T")
-        header.append("seeds")
+        header += [f"per seed at {FRACTIONS[-1]:.1f}T", "seeds"]
         budgets = sorted({results.budget(r.task) for r in mode_rows})
         out.append(f"### `{mode}` (T = {', '.join(f'{b:,}' for b in budgets)} agent steps)\n")
         out.append("| " + " | ".join(header) + " |")
@@ -274,6 +284,7 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
                 if with_paper:
                     cols.append(_fmt(*cell.paper) if cell.paper else "")
             final = row.cells[-1]
+            cols.append(per_seed_text(final))
             cols.append(f"{final.n}/{final.expected}" + (f", {len(final.failed)} failed" if final.failed else ""))
             out.append("| " + " | ".join(cols) + " |")
         out.append("")
@@ -289,6 +300,7 @@ def write_table_csv(rows: list[Row], path: str) -> str:
                        "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.step,
                        "" if cell.frame is None else cell.frame,
                        "" if not cell.n else f"{cell.mean:.6g}", "" if not cell.n else f"{cell.std:.6g}",
-                       cell.n, cell.expected, len(cell.failed), int(cell.best), *paper]
+                       cell.n, cell.expected, len(cell.failed), int(cell.best), *paper, row.precision,
+                       per_seed_text(cell, sep=";").replace(": ", ":")]
 
     return atomic_write_csv(path, TABLE_COLUMNS, lines())

@@ -33,7 +33,8 @@ class SweepConfig:
     """One sweep: the grid and how its runs are dispatched."""
 
     root: str = "runs/sweep"
-    """Directory that holds every run of the sweep, ``sweep.json`` and ``sweep_status.json``."""
+    """Directory that holds every run of the sweep, ``sweep.json`` and ``sweep_status.json``; in a
+    sweep file a leading ``~`` is the home directory, as on the command line."""
     algos: list[str] = field(default_factory=list)
     """Algorithms (``imssr algos``)."""
     tasks: list[str] = field(default_factory=list)
@@ -311,7 +312,8 @@ def _coerce(key: str, value: Any) -> Any:
     if key in ("root", "address", "launcher", "slurm_partition", "logger"):
         if not isinstance(value, str):
             raise ImssrError(f"sweep file: {key!r} must be a string")
-        return value
+        # A committed sweep file can keep its runs outside the repository ("~/imssr-runs/...").
+        return os.path.expanduser(value) if key == "root" else value
     kind = {"steps": int, "frames": int, "retries": int, "max_parallel": int,
             "cpus_per_run": float, "gpus_per_run": float, "slurm_time": int, "slurm_gpus_per_task": int,
             "slurm_array_parallelism": int}[key]

@@ -1,0 +1,98 @@
+"""``imssr export``: the results of a sweep's finished runs, small enough for version control.
+
+A run directory holds gigabytes that only training needs (checkpoints, the replay file) and a
+few hundred kilobytes that a report needs: ``config.json`` and the CSV logs.  ``export_runs``
+copies the latter of every *finished* run under a sweep root into
+
+    DEST/<precision>/<task>/<algo>/seed_<n>            (a beta_0 sweep: .../<algo>/beta0_<b>/seed_<n>)
+
+a tree that ``imssr report DEST`` reads as it reads the sweep itself, with fp32 and bf16 runs as
+separate rows.  Running or interrupted runs are left out: their logs would change under the copy,
+and a report of them belongs to the live sweep.  Copying again is idempotent: a file already
+there with the same bytes is left alone, so a loop that exports after every finished run writes
+each run once.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from imssr.errors import ImssrError
+from imssr.report.results import collect
+from imssr.rundir import (CONFIG_FILE, EVAL_EPISODES_LOG, EVAL_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG,
+                          FINISHED, TRAIN_LOG, RunDir, run_path)
+from imssr.sweep.grid import beta_label
+from imssr.utils import atomic_path
+
+RESULT_FILES = (CONFIG_FILE, EVAL_LOG, EVAL_EPISODES_LOG, TRAIN_LOG, EVALUATE_LOG, EVALUATE_EPISODES_LOG)
+"""What a run keeps in an export: its config and every CSV log (``evaluate*.csv`` when
+``imssr evaluate`` wrote them); no checkpoint, replay, TensorBoard or video file."""
+
+REQUIRED_FILES = (CONFIG_FILE, EVAL_LOG, TRAIN_LOG)
+"""A finished run without one of these is damaged and is not exported."""
+
+
+@dataclass
+class Exported:
+    """One run of an export."""
+
+    source: str
+    """The run directory in the sweep."""
+    dest: str
+    """Its directory in the export."""
+    state: str
+    """``new`` (first copy), ``updated`` (some file changed, e.g. a longer budget), ``unchanged``,
+    or why it was skipped: ``skipped (running)``, ``skipped (interrupted)``, ..."""
+
+
+def export_runs(root: str, dest: str) -> list[Exported]:
+    """Copy the result files of every finished run under ``root`` to ``dest`` (module docstring)."""
+    results = collect(root)
+    dest = os.path.abspath(dest)
+    if _inside(dest, results.root):
+        raise ImssrError(f"the export directory {dest} is inside the sweep {results.root}: pick one outside it")
+    out = []
+    for run in sorted(results.runs, key=lambda r: r.dir):
+        beta = None if run.beta0 is None else beta_label(run.beta0)
+        target = run_path(os.path.join(dest, run.precision), run.task, run.algo, run.seed, beta)
+        state = RunDir(run.dir).status()
+        if state != FINISHED:
+            out.append(Exported(run.dir, target, f"skipped ({state})"))
+            continue
+        missing = [f for f in REQUIRED_FILES if not os.path.isfile(os.path.join(run.dir, f))]
+        if missing:
+            out.append(Exported(run.dir, target, f"skipped (finished but without {', '.join(missing)})"))
+            continue
+        out.append(Exported(run.dir, target, _copy_run(run.dir, target)))
+    return out
+
+
+def _copy_run(source: str, target: str) -> str:
+    new = not os.path.isdir(target)
+    os.makedirs(target, exist_ok=True)
+    changed = False
+    for name in RESULT_FILES:
+        src = os.path.join(source, name)
+        if not os.path.isfile(src):
+            continue
+        with open(src, "rb") as fh:
+            data = fh.read()
+        dst = os.path.join(target, name)
+        if os.path.islink(dst):
+            raise ImssrError(f"{dst} is a symbolic link; the export writes only regular files")
+        if os.path.isfile(dst):
+            with open(dst, "rb") as fh:
+                if fh.read() == data:
+                    continue
+        changed = True
+        with atomic_path(dst, needed=len(data)) as tmp:
+            with open(tmp, "wb") as fh:
+                fh.write(data)
+        with open(dst, "rb") as fh:
+            if fh.read() != data:
+                raise ImssrError(f"{dst} does not read back as written")
+    return "new" if new else "updated" if changed else "unchanged"
+
+
+def _inside(path: str, root: str) -> bool:
+    return os.path.commonpath([os.path.realpath(path), os.path.realpath(root)]) == os.path.realpath(root)

@@ -1,0 +1,139 @@
+"""imssr export: finished runs' configs and CSV logs copied to a committable tree, which
+imssr report reads alone (no checkpoint, no replay, no sweep files)."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+from conftest import tiny_config, train_run
+from imssr.report.export import RESULT_FILES, export_runs
+from imssr.report.report import write_report
+from imssr.rundir import run_path
+from imssr.sweep.grid import load_sweep_file
+from imssr.training.logger import read_csv
+
+TASK = "cartpole_swingup_sparse"
+
+
+def _tiny(algo, seed, precision="fp32"):
+    cfg = tiny_config(algo, TASK, seed=seed, steps=80, seed_steps=60, eval_every_steps=40,
+                      checkpoint_every_steps=40, torch_threads=1)
+    cfg.agent.precision = precision
+    return cfg
+
+
+def _train_finished(cfg, out):
+    """Train as ``imssr train`` does, recording how the run ended (status.json)."""
+    from imssr.training import Trainer
+
+    trainer = Trainer(cfg, str(out))
+    try:
+        with trainer.run_dir.recording(lambda: trainer.step):
+            trainer.train()
+    finally:
+        trainer.close()
+
+
+def test_export_copies_finished_runs_only_and_report_reads_the_copy(tmp_path):
+    root, dest = tmp_path / "sweep", tmp_path / "committed"
+    finished = {("fp32", "curl", 1), ("fp32", "im-curl", 1), ("bf16", "curl", 1)}
+    for precision, algo, seed in sorted(finished):
+        _train_finished(_tiny(algo, seed, precision), run_path(str(root / precision), TASK, algo, seed))
+    interrupted = run_path(str(root / "fp32"), TASK, "curl", 2)
+    train_run(_tiny("curl", 2), interrupted, stop_at=70)
+
+    exported = export_runs(str(root), str(dest))
+    states = {os.path.relpath(e.dest, dest): e.state for e in exported}
+    assert states == {os.path.join("fp32", TASK, "curl", "seed_1"): "new",
+                      os.path.join("fp32", TASK, "im-curl", "seed_1"): "new",
+                      os.path.join("bf16", TASK, "curl", "seed_1"): "new",
+                      os.path.join("fp32", TASK, "curl", "seed_2"): "skipped (interrupted)"}
+    copied = {os.path.relpath(os.path.join(d, f), dest) for d, _, files in os.walk(dest) for f in files}
+    expected = {os.path.join(p, TASK, a, f"seed_{s}", name) for p, a, s in finished
+                for name in ("config.json", "eval.csv", "eval_episodes.csv", "train.csv")}
+    assert copied == expected  # no checkpoints, replay, tb/, status files, nor the interrupted run
+    source = run_path(str(root / "bf16"), TASK, "curl", 1)
+    for name in ("config.json", "eval.csv", "train.csv"):
+        with open(os.path.join(source, name), "rb") as a, \
+                open(os.path.join(dest, "bf16", TASK, "curl", "seed_1", name), "rb") as b:
+            assert a.read() == b.read()
+    # Exporting again copies nothing.
+    assert {e.state for e in export_runs(str(root), str(dest))} == {"unchanged", "skipped (interrupted)"}
+
+    shutil.rmtree(root)  # the report needs only the committed tree
+    out = tmp_path / "report"
+    write_report(str(dest), str(out), reps=50)
+    rows = {(r["label"], r["fraction"]): r for r in read_csv(str(out / "table.csv"))}
+    assert {label for label, _ in rows} == {"curl", "im-curl", "curl bf16"}
+    for label in ("curl", "im-curl", "curl bf16"):
+        assert rows[label, "1.0"]["seeds"] == "1" and rows[label, "1.0"]["step"] == "80"
+        assert rows[label, "1.0"]["per_seed"].startswith("1:")
+    assert rows["curl bf16", "1.0"]["precision"] == "bf16"
+    assert os.path.getsize(out / "curves.png") > 5000
+
+
+def test_export_refuses_a_destination_inside_the_sweep_and_a_missing_root(tmp_path):
+    root = tmp_path / "sweep"
+    _train_finished(_tiny("curl", 1), run_path(str(root), TASK, "curl", 1))
+    for args, message in (([str(root), str(root / "export")], "is inside the sweep"),
+                          ([str(tmp_path / "none"), str(tmp_path / "x")], "sweep directory not found")):
+        proc = subprocess.run([sys.executable, "-m", "imssr", "export", *args], capture_output=True, text=True)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and message in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "imssr", "export", str(root), str(tmp_path / "x")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "imssr: 1 run(s) copied, 0 unchanged, 0 skipped"
+
+
+def test_result_files_are_the_run_directory_names():
+    assert set(RESULT_FILES) >= {"config.json", "eval.csv", "eval_episodes.csv", "train.csv"}
+
+
+def test_a_sweep_file_root_may_start_at_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    path = tmp_path / "sweep.json"
+    path.write_text(json.dumps({"root": "~/imssr-runs/x", "algos": ["curl"], "tasks": [TASK]}))
+    assert load_sweep_file(str(path)).root == str(tmp_path / "imssr-runs" / "x")
+
+
+def test_the_committed_dmc100k_sweeps_differ_only_in_precision_and_root():
+    here = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "dmc100k_cartpole_swingup")
+    with open(os.path.join(here, "sweep.json")) as fh:
+        fp32 = json.load(fh)
+    with open(os.path.join(here, "sweep_bf16.json")) as fh:
+        bf16 = json.load(fh)
+    assert bf16["set"] == fp32["set"] + ["agent.precision=bf16"]
+    assert {k: v for k, v in bf16.items() if k not in ("set", "root")} == \
+           {k: v for k, v in fp32.items() if k not in ("set", "root")}
+    assert fp32["root"].startswith("~/") and bf16["root"].startswith("~/") and fp32["root"] != bf16["root"]
+
+
+def test_keep_results_commits_each_finished_run_once_and_stops_with_the_sweep(tmp_path):
+    from imssr.presets import make_config
+    from imssr.rundir import RunDir
+
+    repo, root = tmp_path / "repo", tmp_path / "store"
+    run = run_path(str(root), TASK, "curl", 1)
+    os.makedirs(run)
+    cfg = make_config("curl", TASK)
+    cfg.train.seed = 1
+    with open(os.path.join(run, "config.json"), "w") as fh:
+        fh.write(cfg.to_json())
+    for name in ("eval.csv", "train.csv"):
+        with open(os.path.join(run, name), "w") as fh:
+            fh.write("frame,step,mode,return_mean\n8,1,training,1.0\n")
+    RunDir(run).write_status("finished", 1)
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    subprocess.run(["git", "-C", str(repo), "commit", "-q", "--allow-empty", "-m", "start"], check=True)
+    (repo / "other.txt").write_text("work in progress\n")
+    script = os.path.join(os.path.dirname(__file__), "..", "scripts", "keep_results.py")
+    for _ in range(2):  # no sweep holds the store: one export, then exit
+        proc = subprocess.run([sys.executable, script, str(root), "runs", "--every", "0"], cwd=repo,
+                              capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+    log = subprocess.run(["git", "-C", str(repo), "log", "--format=%s", "--name-only"], capture_output=True,
+                         text=True, check=True).stdout
+    assert log.count("results: ") == 1 and f"runs/fp32/{TASK}/curl/seed_1/eval.csv" in log
+    assert "other.txt" not in log  # only the export is committed
