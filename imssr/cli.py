@@ -5,11 +5,12 @@ Argument parsing and dispatch only: each command calls one function of the packa
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Iterator, NoReturn, Optional
 
 from imssr.analysis import AnalysisOptions, analyze_run
 from imssr.config import MAX_SEED, SEED_RULE, field_docs, logger_fields
@@ -53,6 +54,14 @@ _positive_int = _number(int, 1, "a positive integer")
 _nonneg_int = _number(int, 0, "an integer >= 0")
 _nonneg_float = _number(float, 0.0, "a number >= 0")
 _seed = _number(int, 0, f"a seed, {SEED_RULE}", MAX_SEED)
+
+
+class _Parser(argparse.ArgumentParser):
+    """A bad argument is one ``imssr: error:`` line, as every other bad value is, not argparse's
+    usage block (subcommands' parsers are of this class too)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"imssr: error: {message} (see {self.prog} --help)\n")
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -124,8 +133,8 @@ own (``--frames``, ``--batch-size``, ``--beta0``) are written out in :func:`buil
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="imssr", description="IM-SSR: self-supervised losses as "
-                                "intrinsic rewards for pixel-based SAC on DeepMind Control.")
+    p = _Parser(prog="imssr", description="IM-SSR: self-supervised losses as "
+                "intrinsic rewards for pixel-based SAC on DeepMind Control.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def add_run_options(t: argparse.ArgumentParser, demo: bool = False) -> None:
@@ -488,7 +497,60 @@ def cmd_plot(args) -> int:
     return 0
 
 
+class _DropOnClosedPipe:
+    """A text stream (stdout, stderr) whose output is dropped once nobody reads it: a training
+    piped into ``head -1`` goes on to its checkpoint instead of failing on a closed pipe."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self.stream.write(text)
+        except BrokenPipeError:
+            self._drop()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self.stream.flush()
+        except BrokenPipeError:
+            self._drop()
+
+    def _drop(self) -> None:
+        # The descriptor goes to /dev/null: what the stream still buffers, every later write
+        # and the interpreter's last flush at exit go nowhere instead of failing again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, self.stream.fileno())
+        finally:
+            os.close(devnull)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.stream, name)
+
+
+@contextlib.contextmanager
+def _output_to_closed_pipes_dropped() -> Iterator[None]:
+    """stdout and stderr as :class:`_DropOnClosedPipe` inside the block."""
+    saved = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _DropOnClosedPipe(sys.stdout), _DropOnClosedPipe(sys.stderr)
+    try:
+        yield
+    finally:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:
+            sys.stdout, sys.stderr = saved
+
+
 def main(argv: Optional[list[str]] = None) -> int:
+    with _output_to_closed_pipes_dropped():
+        return _main(argv)
+
+
+def _main(argv: Optional[list[str]]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"train": cmd_train, "demo": lambda a: cmd_train(a, demo=True),

@@ -11,6 +11,7 @@ T = 500,000 agent steps (Table III, "Number of training steps"), which is
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import json
@@ -483,9 +484,11 @@ TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: 
 
 def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunConfig:
     """``cfg`` with the (nested) ``data`` merged on by OmegaConf; ``raw`` maps an override's
-    dotted key to its text, for errors that quote what was typed."""
+    dotted key to its text, for errors that quote what was typed.  Text is taken as it is
+    (:func:`_set_aside_text`)."""
+    base, data, texts = _set_aside_text(cfg, data, raw)
     try:
-        merged = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(cfg), data))
+        merged = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(base), data))
     except ConfigKeyError as exc:  # also ConfigAttributeError
         section, _, name = str(exc.full_key).partition(".")
         if not name:
@@ -501,10 +504,59 @@ def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunCon
         if key in raw:
             raise ImssrError(f"{key} expects {_expected(key)}, got {raw[key]!r}") from None
         raise ImssrError(f"{key} must be a {FIELD_TYPES.get(key, str).__name__}, got {value!r}") from None
+    for key, text in texts.items():
+        _set(merged, key, text)
     for key, text in raw.items():
         if FIELD_TYPES[key] is float and not _is_finite(_get(merged, key)):
             raise ImssrError(f"{key} expects a finite number, got {text!r}")
     return merged
+
+
+def _set_aside_text(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]
+                    ) -> tuple[RunConfig, dict[str, Any], dict[str, str]]:
+    """``cfg`` and ``data`` with the text of their string fields taken out, and that text by
+    dotted key, to be put back after the merge.
+
+    Config values are data: OmegaConf reads ``${...}`` in a value as an interpolation (``${oc.env:
+    NAME}`` would copy an environment variable, a secret, into config.json and the checkpoint) and
+    ``???`` as "missing".  A string field needs no conversion, so its text never reaches OmegaConf
+    and stays as written; such text in a field of another type is refused."""
+    texts: dict[str, str] = {}
+    base = copy.deepcopy(cfg)
+    for key, kind in FIELD_TYPES.items():
+        value = _get(cfg, key)
+        if isinstance(value, str) and kind is str:
+            texts[key] = value
+            _set(base, key, "")
+        elif isinstance(value, str) and _interpolated(value):
+            raise ImssrError(f"{key} expects {_expected(key)}, got {value!r}")
+    rest: dict[str, Any] = {}
+    for name, value in data.items():
+        if name in SECTIONS and isinstance(value, dict):
+            rest[name] = {}
+            for field_name, item in value.items():
+                if _text_of(f"{name}.{field_name}", item, raw, texts):
+                    rest[name][field_name] = item
+        elif _text_of(name, value, raw, texts):
+            rest[name] = value
+    return base, rest, texts
+
+
+def _text_of(key: str, value: Any, raw: dict[str, str], texts: dict[str, str]) -> bool:
+    """Whether ``value`` of ``key`` goes to OmegaConf; the text of a string field goes into
+    ``texts`` instead.  Text that OmegaConf would interpret is refused for other fields."""
+    kind = FIELD_TYPES.get(key)
+    if isinstance(value, str) and kind is str:
+        texts[key] = value
+        return False
+    if isinstance(value, str) and kind is not None and _interpolated(value):
+        raise ImssrError(f"{key} expects {_expected(key)}, got {raw.get(key, value)!r}")
+    return True
+
+
+def _interpolated(text: str) -> bool:
+    """Whether OmegaConf would read ``text`` as something other than itself."""
+    return "${" in text or text == "???"
 
 
 def _expected(key: str) -> str:
@@ -525,6 +577,11 @@ def _overflowing(data: dict[str, Any]) -> str:
 def _get(cfg: RunConfig, key: str) -> Any:
     section, _, name = key.rpartition(".")
     return getattr(getattr(cfg, section) if section else cfg, name)
+
+
+def _set(cfg: RunConfig, key: str, value: Any) -> None:
+    section, _, name = key.rpartition(".")
+    setattr(getattr(cfg, section) if section else cfg, name, value)
 
 
 def _check_types(cfg: RunConfig) -> None:

@@ -9,7 +9,7 @@ import random
 import re
 import secrets
 import time
-from typing import Callable, Iterable, Iterator, Optional
+from typing import Callable, Iterable, Iterator, Optional, TextIO
 
 import numpy as np
 import torch
@@ -77,9 +77,10 @@ def mount_point(path: str) -> str:
 
 
 def no_space_message(path: str, needed: Optional[int] = None, quota: bool = False) -> str:
-    """One line: "no space left on DEVICE while writing PATH (N MB needed)"."""
+    """One line: "no space left on DEVICE while writing PATH (N MB needed)"; ``path`` is the file
+    written, or the directory written into (TensorBoard's ``tb/``, which may be a mount of its own)."""
     try:
-        device = mount_point(os.path.dirname(os.path.abspath(path)))
+        device = mount_point(path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path)))
     except OSError:  # pragma: no cover - the directory vanished meanwhile
         device = "its device"
     what = "no space left (disk quota exceeded)" if quota else "no space left"
@@ -107,6 +108,25 @@ def atomic_write_text(path: str, text: str) -> None:
     with atomic_path(path, needed=len(text.encode())) as tmp:
         with open(tmp, "w") as fh:
             fh.write(text)
+
+
+def open_own(path: str, flags: int) -> int:
+    """``os.open(path, flags | O_NOFOLLOW | O_CLOEXEC, 0o666)`` (the umask decides the mode of a
+    new file).  A symbolic link there is refused in one line: a run directory's files are its
+    own, and writing through a link planted in a shared directory would write into (or
+    truncate) a file outside the run."""
+    try:
+        return os.open(path, flags | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ImssrError(f"{path} is a symbolic link; imssr writes only to a file of its own there "
+                             "(remove the link)") from None
+        raise
+
+
+def open_append(path: str, newline: Optional[str] = None) -> TextIO:
+    """``path`` opened for appending text (created if missing); a link is refused (:func:`open_own`)."""
+    return os.fdopen(open_own(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "a", newline=newline)
 
 
 def read_csv(path: str) -> list[dict]:

@@ -1,7 +1,9 @@
 """Shared fixtures: tiny configurations that exercise the real code paths quickly."""
 from __future__ import annotations
 
+import errno
 import os
+import subprocess
 
 import numpy as np
 import pytest
@@ -112,3 +114,42 @@ def assert_same_nets(a, b) -> None:
 @pytest.fixture
 def tiny_cfg():
     return tiny_config
+
+
+@pytest.fixture
+def tiny_fs(tmp_path):
+    """A small tmpfs (needs root): ``mount(size, at=None, inodes=None)`` mounts one of ``size``
+    (and at most ``inodes`` files and folders, its root included) at the empty or new folder
+    ``at`` (default: a new folder under ``tmp_path``) and returns its mount point."""
+    mounted = []
+
+    def mount(size, at=None, inodes=None):
+        point = str(at or tmp_path / f"fs{len(mounted)}")
+        os.makedirs(point, exist_ok=True)
+        options = f"size={size}" + (f",nr_inodes={inodes}" if inodes else "")
+        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", point],
+                              capture_output=True, text=True)
+        if proc.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.strip()}")
+        mounted.append(point)
+        return point
+
+    yield mount
+    for point in reversed(mounted):
+        subprocess.run(["umount", "-l", point], check=False)
+
+
+def fill_fs(directory, leave=0):
+    """Fill the file system of ``directory`` up to ``leave`` free bytes; return the filler."""
+    path = os.path.join(directory, "filler")
+    st = os.statvfs(directory)
+    with open(path, "wb") as fh:
+        try:
+            fh.write(bytes(max(0, st.f_bavail * st.f_frsize - leave)))
+            fh.flush()
+            while not leave:
+                fh.write(bytes(1 << 16))
+                fh.flush()
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+    return path

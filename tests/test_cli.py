@@ -182,3 +182,45 @@ def test_every_option_of_every_subcommand_says_its_default():
         command.format_help()  # renders (no stray % in a help text)
     assert not missing, missing
     assert "(default: 10)" in sub.choices["evaluate"].format_help()
+
+
+def test_a_closed_stdout_drops_the_progress_not_the_training(tmp_path):
+    """`imssr train ... | head -1`: the reader is gone before the first line; the run trains to
+    its budget and checkpoints, and nothing about the pipe reaches stderr."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "imssr", "train", "--algo", "curl", "--task",
+                             "cartpole_swingup_sparse", "--out", str(out), *TINY, "--steps", "10", "--seed-steps", "5"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=600) == 0, err
+    assert "Broken pipe" not in err and "Traceback" not in err and "Exception ignored" not in err, err
+    assert (out / "checkpoints" / "latest.pt").exists()
+    assert '"state": "finished"' in (out / "status.json").read_text()
+
+
+def test_a_seed_phase_as_long_as_the_budget_warns_that_the_agent_never_learns(tmp_path, capsys):
+    from conftest import tiny_config
+    from imssr.training import Trainer
+
+    for seed_steps, warned in ((10, True), (9, False)):
+        t = Trainer(tiny_config("curl", steps=10, seed_steps=seed_steps), str(tmp_path / f"run{seed_steps}"))
+        t.close()
+        lines = [line for line in capsys.readouterr().out.splitlines() if "never updated" in line]
+        assert lines == (["imssr: warning: the seed phase (--seed-steps) acts at random until agent step 10 "
+                          "and the budget (--steps) ends at 10: the agent is never updated"] if warned else [])
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "--seed", "-1"], "argument --seed: expected an integer >= 0, got '-1'"),
+    (["train", "--steps", "0"], "argument --steps: expected a positive integer, got '0'"),
+    (["evaluate"], "the following arguments are required: --run"),
+])
+def test_bad_arguments_are_one_line_not_the_usage(args, message, capsys):
+    from imssr.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(args)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"imssr: error: {message} (see imssr {args[0]} --help)"]

@@ -1,5 +1,6 @@
 """Presets follow the paper; overrides and validation give one-line errors."""
 import csv
+import json
 import os
 
 import pytest
@@ -336,3 +337,43 @@ def test_the_plug_in_registries_name_what_the_config_does():
     assert list(AUX_TASKS) == list(BASES) and list(INTRINSIC_SIGNALS) == list(SIGNALS)
     with pytest.raises(ImssrError, match="^intrinsic.source must be one of ssl, rnd, re3$"):
         apply_overrides(make_config("curl", "walker_walk"), ["intrinsic.source=icm"]).validate()
+
+
+SECRET = "s3cr3t-t0ken"
+
+
+def test_config_values_are_data_never_interpolated(tmp_path, monkeypatch, capsys):
+    """`${oc.env:NAME}` (OmegaConf's interpolation) in --set or a JSON --config stays the text it
+    is: no environment variable's value (a secret) reaches config.json, the checkpoint or an
+    error, and a resolver that does not exist or an unset variable is no traceback."""
+    from imssr.cli import main
+    from imssr.presets import run_config
+    from imssr.training import Trainer
+
+    monkeypatch.setenv("SECRET_TOKEN", SECRET)
+    monkeypatch.delenv("IMSSR_UNSET_VARIABLE", raising=False)
+    texts = ["${oc.env:SECRET_TOKEN}", "${env:SECRET_TOKEN}", "${oc.env:IMSSR_UNSET_VARIABLE}", "???", "a\\${b}"]
+    for text in texts:
+        cfg = run_config("curl", "walker_walk", overrides=[f"train.wandb_group={text}"])
+        assert cfg.train.wandb_group == text
+        assert RunConfig.from_dict(json.loads(cfg.to_json())) == cfg  # as config.json and resume read it
+    partial = tmp_path / "partial.json"
+    partial.write_text(json.dumps({"algo": "curl", "env": {"task": "cartpole_swingup_sparse"},
+                                   "train": {"wandb_group": texts[0], "steps": 10, "seed_steps": 5}}))
+    cfg = run_config(config_file=str(partial))
+    assert cfg.train.wandb_group == texts[0]
+    t = Trainer(cfg, str(tmp_path / "run"))
+    t.close()
+    written = (tmp_path / "run" / "config.json").read_text()
+    assert texts[0] in written and SECRET not in written
+    # A field of another type refuses the text, quoting it as typed.
+    for argv in (["--set", "train.steps=${oc.env:SECRET_TOKEN}"], ["--set", "train.steps=${env:X}"],
+                 ["--set", "train.steps=???"]):
+        assert main(["train", "--algo", "curl", "--task", "walker_walk", "--out", str(tmp_path / "x"), *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"imssr: error: train.steps expects an integer, got {argv[1].split('=', 1)[1]!r}"], err
+    partial.write_text(json.dumps({"algo": "curl", "env": {"task": "walker_walk"},
+                                   "train": {"seed": "${oc.env:SECRET_TOKEN}"}}))
+    assert main(["train", "--config", str(partial), "--out", str(tmp_path / "y")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["imssr: error: train.seed expects an integer, got '${oc.env:SECRET_TOKEN}'"], err

@@ -1,8 +1,10 @@
 """Files someone else wrote (a shared file system): a checkpoint or replay file that would run
-code when unpickled is refused in one line, and the code never runs."""
+code when unpickled is refused in one line, and the code never runs; a file that is no
+checkpoint or no log is one line; a link planted in a run directory is not written through."""
 from __future__ import annotations
 
 import os
+import re
 
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ import torch
 
 from conftest import tiny_config
 from imssr.cli import main
+from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError
 from imssr.rundir import RunDir
@@ -84,3 +87,75 @@ def test_a_replay_file_with_pickled_objects_is_refused(tmp_path):
     with pytest.raises(ReplayFileError, match=r"^corrupt replay buffer file .*Object arrays cannot be loaded"):
         FrameReplayBuffer(10, (3, 8, 8), 1).load(path)
     assert not marker.exists()
+
+
+# -- files that are not what their names say ------------------------------------------------
+
+@pytest.mark.parametrize("content", [b"hello world\n", None])
+def test_a_file_that_is_no_checkpoint_is_one_line(run, tmp_path, capsys, content):
+    """Text, or /etc/passwd, given as a checkpoint: torch's reader of files that are no zip
+    archive would fail with a KeyError or IndexError."""
+    path = str(tmp_path / "latest.pt")
+    if content is None:
+        path = "/etc/passwd"
+    else:
+        with open(path, "wb") as fh:
+            fh.write(content)
+    with pytest.raises(ImssrError, match=rf"^{path} is not an imssr checkpoint \(not a torch checkpoint file\)$"):
+        load_checkpoint(path)
+    assert main(["evaluate", "--run", run, "--checkpoint", path, "--episodes", "1"]) == 2
+    assert _one_error_line(capsys.readouterr().err) == \
+        f"imssr: error: {path} is not an imssr checkpoint (not a torch checkpoint file)"
+
+
+def test_text_in_latest_falls_back_to_the_newest_valid_step_file(tmp_path):
+    run = RunDir(str(tmp_path / "run"))
+    run.save_checkpoint({"step": 5, "replay_file": None}, keep=2)
+    run.save_checkpoint({"step": 9, "replay_file": None}, keep=2)
+    with open(run.latest, "w") as fh:
+        fh.write("hello world\n")
+    state, path, note = run.usable_checkpoint()
+    assert (state["step"], path) == (9, run.numbered(9))
+    assert note == ("latest.pt is damaged (not an imssr checkpoint); resuming from step-000000009.pt "
+                    "at agent step 9")
+
+
+@pytest.mark.parametrize("rows", [
+    "frame,step,mode,return_mean,return_std\n1000,125,training,5.0,1.0\n2000,250\n",  # a short row
+    "frame,step,mode,return_mean,return_std\n1000,abc,training,5.0,1.0\n",  # not a number
+    "frame,step\n1000,125\n",  # columns missing
+])
+def test_plot_of_a_malformed_eval_csv_is_one_line(run, capsys, rows):
+    with open(RunDir(run).eval_log, "w") as fh:
+        fh.write(rows)
+    assert main(["plot", "--run", run]) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line.startswith(f"imssr: error: row ") and f"of {RunDir(run).eval_log} is not an evaluation row" in line
+
+
+# -- links planted in a run directory --------------------------------------------------------
+
+def test_writes_in_a_run_directory_refuse_to_follow_a_link(tmp_path):
+    """A CSV log, `imssr evaluate`'s log, the sweep's log and the run's lock file: a symbolic link
+    in their place (to someone's file outside the run) is refused in one line, and the file it
+    points to is untouched."""
+    from imssr.sweep.runner import execute_run
+    from imssr.training.logger import CSVLog, append_locked
+
+    outside = tmp_path / "outside.csv"
+    outside.write_text("precious\n")
+    run = RunDir(str(tmp_path / "run"))
+    os.makedirs(run.path)
+    for path in (run.train_log, run.evaluate_log, run.sweep_log, run.lock_path):
+        os.symlink(outside, path)
+    message = r"^{} is a symbolic link; imssr writes only to a file of its own there \(remove the link\)$"
+    with pytest.raises(ImssrError, match=message.format(run.train_log)):
+        CSVLog(run.train_log, ["frame"]).write({"frame": 1})
+    with pytest.raises(ImssrError, match=message.format(run.evaluate_log)):
+        append_locked(run.evaluate_log, ["frame"], [{"frame": 1}])
+    result = execute_run(run.path, 10, 1)
+    assert not result["ok"] and result["returncode"] is None
+    assert re.match(message.format(run.sweep_log), result["error"])
+    with pytest.raises(ImssrError, match=message.format(run.lock_path)):
+        run.open()
+    assert outside.read_text() == "precious\n"

@@ -157,3 +157,40 @@ def test_killed_slurm_driver_rerun_skips_finished_runs(tmp_path):
     assert (runs[1]["action"], runs[1]["attempts"], runs[1]["state"]) == ("done", 0, "done")
     assert runs[2]["state"] == "done" and runs[2]["final_step"] == 125
     assert len(attempts_in_log(first.dir)) == 1  # never started again
+
+
+def test_a_run_whose_sweep_log_cannot_be_written_fails_in_one_line_and_the_sweep_goes_on(tmp_path, tiny_fs):
+    """Each run's directory is a file system with room for its config.json and no file more: the
+    attempt starts no training (its log cannot be created), the sweep says so in one line per
+    run, marks both failed and ends."""
+    root = str(tmp_path / "sweep")
+    cfg = SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1, 2])
+    runs = expand(cfg)
+    for run in runs:
+        tiny_fs("1m", at=run.dir, inodes=2)  # the folder itself and config.json
+    cmd = [sys.executable, "-m", "imssr", "sweep", "--no-progress", "--launcher", "local", "--retries", "0",
+           "--root", root, "--algos", "curl", "--tasks", TASK, "--seeds", "1,2", "--steps", "10",
+           *[a for o in TINY for a in ("--set", o)]]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1, proc.stdout + proc.stderr  # runs failed
+    assert "Traceback" not in proc.stderr
+    failed = [line for line in proc.stdout.splitlines() if line.startswith("FAILED")]
+    assert len(failed) == 2, proc.stdout
+    for run, line in zip(runs, sorted(failed)):
+        assert f"no space left on {run.dir} while writing {run.dir}/{SWEEP_LOG}" in line, line
+    assert [r["state"] for r in status(root)["runs"]] == ["failed", "failed"]
+
+
+def test_every_launcher_fails_an_attempt_whose_sweep_log_cannot_be_written(tmp_path):
+    """A folder where the log goes: no process starts, the attempt fails in one line (the body of
+    a Ray task and a SLURM job alike), and the local launcher's wait sees it ended."""
+    from imssr.sweep.launchers import LocalLauncher
+    from imssr.sweep.runner import RunAttempt, execute_run
+
+    run_dir = str(tmp_path / "run")
+    os.makedirs(os.path.join(run_dir, SWEEP_LOG))
+    result = execute_run(run_dir, 10, 1)
+    assert not result["ok"] and result["returncode"] is None
+    assert result["error"] == f"cannot write {run_dir}/{SWEEP_LOG}: Is a directory"
+    attempt = RunAttempt(run_dir, 10, 1)
+    assert LocalLauncher(SweepConfig(launcher="local")).wait([attempt], timeout_s=0.5) == [attempt]

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_same_nets, filled_buffer, tiny_config, train_run, without_timing
+from conftest import assert_same_nets, fill_fs, filled_buffer, tiny_config, train_run, without_timing
 from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
@@ -375,47 +375,11 @@ def test_replay_write_on_a_full_disk(tmp_path, monkeypatch, error):
     FrameReplayBuffer(100, (3, 8, 8), 1).load(path)  # the old files are whole
 
 
-@pytest.fixture
-def tiny_fs(tmp_path):
-    """A small tmpfs (needs root); ``mount(size)`` returns its mount point."""
-    mounted = []
-
-    def mount(size):
-        point = tmp_path / f"fs{len(mounted)}"
-        point.mkdir()
-        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(point)],
-                              capture_output=True, text=True)
-        if proc.returncode != 0:
-            pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.strip()}")
-        mounted.append(point)
-        return str(point)
-
-    yield mount
-    for point in mounted:
-        subprocess.run(["umount", "-l", str(point)], check=False)
-
-
-def _fill(directory, leave=0):
-    """Fill the file system of ``directory`` up to ``leave`` free bytes; return the filler."""
-    path = os.path.join(directory, "filler")
-    st = os.statvfs(directory)
-    with open(path, "wb") as fh:
-        try:
-            fh.write(bytes(max(0, st.f_bavail * st.f_frsize - leave)))
-            fh.flush()
-            while not leave:
-                fh.write(bytes(1 << 16))
-                fh.flush()
-        except OSError as exc:
-            assert exc.errno == errno.ENOSPC
-    return path
-
-
 def test_a_run_on_a_full_file_system_stops_in_one_line_and_resumes(stopped, full, tiny_fs):
     mnt = tiny_fs("64m")
     run = os.path.join(mnt, "run")
     shutil.copytree(stopped, run)
-    filler = _fill(mnt, leave=1_000_000)  # room for logs, not for the next replay buffer
+    filler = fill_fs(mnt, leave=1_000_000)  # room for logs, not for the next replay buffer
     t = Trainer(_cfg(), run, resume=True)
     try:
         with pytest.raises(ImssrError) as err:
@@ -446,7 +410,7 @@ def test_every_writer_reports_a_full_file_system(tiny_fs):
         atomic_write_csv(os.path.join(mnt, "table.csv"), ["a"], [["x" * 1000]] * 3000)
     buf = filled_buffer(60, capacity=100, size=100)  # 1.8 MB of frames
     log = CSVLog(os.path.join(run, "train.csv"), ["frame", "note"])
-    _fill(mnt)
+    fill_fs(mnt)
     with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing .*replay\.npz\.frames\.npy"):
         buf.save(os.path.join(run, "replay.npz"))
     with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/train.csv$"):
@@ -487,21 +451,65 @@ def test_a_runs_files_are_not_private(stopped):
 
 
 def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
-    """TensorBoard's writer thread and the sweep's log append each give the one disk-full line."""
+    """TensorBoard's writer thread and the sweep's log append each give the one disk-full line:
+    a warning that turns TensorBoard off (the CSV logs go on), and the attempt's error."""
     from imssr.sweep.runner import execute_run
 
     mnt = tiny_fs("1m")
     run = os.path.join(mnt, "run")
     log = Logger(run, tensorboard=True)
-    _fill(mnt)
-    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/tb$"):
-        for frame in range(100_000):  # queued events reach the disk at a flush
-            log.log_train({"frame": frame, "step": frame, "episode_return": 1.0})
-            if frame % 100 == 0:
-                log.tb.flush()
-    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/tb$"):
-        log.close()
-    assert "Traceback" not in capfd.readouterr().err  # nor the writer thread's
+    fill_fs(mnt)
+    for frame in range(100_000):  # queued events reach the disk at a flush
+        log.log_train({"frame": frame, "step": frame, "episode_return": 1.0})
+        if log.tb is None:
+            break
+        if frame % 100 == 0:
+            log.tb.flush()
+    out, err = capfd.readouterr()
+    assert out == (f"imssr: warning: no space left on {mnt} while writing {run}/tb: TensorBoard stops here "
+                   "(train.csv and eval.csv keep every row)\n")
+    log.close()
+    assert "Traceback" not in err  # nor the writer thread's
     result = execute_run(os.path.join(mnt, "sweep-run"), 10, 1)
     assert not result["ok"] and result["returncode"] is None
     assert re.fullmatch(rf"no space left on {mnt} while writing {mnt}/sweep-run/sweep.log", result["error"])
+
+
+def test_a_full_tensorboard_disk_at_the_start_is_one_line_and_keeps_the_status(run, tiny_fs, capsys):
+    """tb/ on a file system of its own, full: the resume stops in one line that names that file
+    system and tb/, before training, and the record of how the run last ended stays."""
+    RunDir(run).write_status("interrupted", 250)
+    mnt = tiny_fs("64k", at=RunDir(run).tb_dir)
+    fill_fs(mnt)
+    assert main(["train", "--out", run, "--resume", "--no-progress", "--logger", "csv,tensorboard"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"imssr: error: no space left on {mnt} while writing {mnt}"], err
+    assert RunDir(run).read_status()["state"] == "interrupted"
+    assert load_checkpoint(RunDir(run).latest)["step"] == 250
+
+
+def test_a_full_tensorboard_disk_during_the_run_keeps_a_finished_run_finished(run, tiny_fs, capsys):
+    """tb/ (a file system of its own) fills while the run trains: one warning line that names it,
+    TensorBoard stops, and the run reaches its budget, finished."""
+    cfg = _cfg()
+    cfg.train.tensorboard = True
+    mnt = tiny_fs("1m", at=RunDir(run).tb_dir)
+    t = Trainer(cfg, run, resume=True)
+    try:
+        # The new event file's first page (tmpfs allocates 4 KiB pages) nearly full, then no free
+        # page: the run's first events need one.
+        (events,) = [os.path.join(mnt, name) for name in os.listdir(mnt)]
+        while os.path.getsize(events) < 4096 - 200:
+            t.logger.tb.add_scalar("padding", 0.0)
+            t.logger.tb.flush()
+        fill_fs(mnt)
+        with RunDir(run).recording(lambda: t.step):
+            t.train()
+    finally:
+        t.close()
+    assert RunDir(run).read_status()["state"] == "finished"
+    assert load_checkpoint(RunDir(run).latest)["step"] == 375
+    warnings = [line for line in capsys.readouterr().out.splitlines() if "TensorBoard" in line]
+    assert warnings == [f"imssr: warning: no space left on {mnt} while writing {mnt}: TensorBoard stops here "
+                        "(train.csv and eval.csv keep every row)"], warnings
+    assert [int(r["step"]) for r in read_csv(RunDir(run).train_log)] == [125, 250, 375]

@@ -124,10 +124,19 @@ def test_status_transitions(tmp_path):
         assert run.status() == ending and run.read_status()["step"] == 5
     with pytest.raises(ValueError):
         run.write_status("running")
-    # A training that starts drops the record of the last one.
+    # Taking the run keeps the record of the last training; one that starts drops it.
     run.write_status("failed", step=5)
     run.open().release()
-    assert run.read_status() is None and run.status() == "interrupted"
+    assert run.status() == "failed"
+    lock = run.open()
+    try:
+        with run.recording(lambda: 5):
+            assert run.read_status() is None
+    finally:
+        lock.release()
+    assert run.read_status()["state"] == "finished"
+    os.unlink(run.status_path)
+    assert run.status() == "interrupted"
     # A sweep's done marker: finished (with a budget), whatever a torn record says.
     (tmp_path / "run" / STATUS_FILE).write_text('{"state": "fail')
     run.write_done(250, 250, attempt=1, resumed=False)

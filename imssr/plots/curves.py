@@ -27,10 +27,10 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
         cfg = run.read_config()
         title = f"{cfg.algo} on {cfg.env.task} (seed {cfg.train.seed})"
         action_repeat = cfg.env.action_repeat
+    curves = _curves(rows, run.eval_log)
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
-    for mode in sorted({r["mode"] for r in rows}):
-        pts = sorted((int(float(r["step"])), float(r["return_mean"]), float(r["return_std"]))
-                     for r in rows if r["mode"] == mode)
+    for mode in sorted(curves):
+        pts = sorted(curves[mode])
         x = [p[0] for p in pts]
         m = [p[1] for p in pts]
         s = [p[2] for p in pts]
@@ -56,3 +56,21 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return out_path
+
+
+def _curves(rows: list[dict], path: str) -> dict[str, list[tuple[int, float, float]]]:
+    """``(agent step, return mean, return std)`` of each scene's evaluations in ``eval.csv``'s
+    ``rows``; a row that does not hold them is a one-line error that names it (rows count from 1
+    after the header of ``path``)."""
+    curves: dict[str, list[tuple[int, float, float]]] = {}
+    for number, r in enumerate(rows, start=1):
+        try:
+            mode = r["mode"]
+            point = (int(float(r["step"])), float(r["return_mean"]), float(r["return_std"]))
+            if not isinstance(mode, str):
+                raise TypeError(mode)
+        except (KeyError, TypeError, ValueError, OverflowError):
+            raise ImssrError(f"row {number} of {path} is not an evaluation row (numbers in step, return_mean "
+                             "and return_std, and a mode)") from None
+        curves.setdefault(mode, []).append(point)
+    return curves

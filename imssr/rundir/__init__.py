@@ -275,16 +275,8 @@ class RunDir:
 
     def open(self) -> DirectoryLock:
         """Take the run for writing: its exclusive lock (created if missing; a second writer fails
-        at once with "RUN is in use by PID n"); the record of how an earlier training ended is
-        dropped, since this one now runs.  Release the returned lock when done."""
-        lock = DirectoryLock(self.path).acquire()
-        try:
-            if os.path.exists(self.status_path):
-                os.unlink(self.status_path)
-        except BaseException:
-            lock.release()
-            raise
-        return lock
+        at once with "RUN is in use by PID n").  Release the returned lock when done."""
+        return DirectoryLock(self.path).acquire()
 
     def in_use(self) -> bool:
         """Whether a process holds the run's lock now (a training runs in it)."""
@@ -486,9 +478,13 @@ class RunDir:
         """Record how the training run inside the block ends (:meth:`write_status`): ``finished``,
         ``interrupted`` (``interrupted`` exceptions and KeyboardInterrupt), ``diverged``
         (:class:`~imssr.errors.DivergedError`) or ``failed``, at agent step ``step()``.  Use it
-        while the run is locked.  A record that cannot be written (a full disk) is left out: the
-        error that stopped the training is the one to show, and the status then follows from
-        the run's files."""
+        while the run is locked.  The record of how an earlier training ended is dropped as the
+        block starts, since this one now runs; a start that fails before (a full disk, a config
+        that does not match the checkpoint) keeps it, as the run is still what it recorded.  A
+        record that cannot be written (a full disk) is left out: the error that stopped the
+        training is the one to show, and the status then follows from the run's files."""
+        if os.path.exists(self.status_path):
+            os.unlink(self.status_path)
         try:
             yield
         except BaseException as exc:

@@ -113,6 +113,10 @@ def load_checkpoint(path: str) -> dict[str, Any]:
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
+    except Exception:  # noqa: BLE001 - torch's reader of a file that is no zip archive (a text file,
+        # /etc/passwd) fails on whatever it trips over first: KeyError, IndexError, ...
+        raise CheckpointDamaged(f"{path} is not an imssr checkpoint (not a torch checkpoint file)", path,
+                                "not an imssr checkpoint") from None
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
         raise CheckpointDamaged(f"{path} is not an imssr checkpoint of format {FORMAT_VERSION}", path,
                                 "not an imssr checkpoint")

@@ -21,7 +21,7 @@ import time
 from typing import Optional
 
 from imssr.errors import ImssrError
-from imssr.utils import disk_full_as_error
+from imssr.utils import disk_full_as_error, open_own
 
 LOCK_FILE = ".imssr.lock"
 
@@ -48,7 +48,7 @@ class DirectoryLock:
         try:
             for _ in range(100):
                 with disk_full_as_error(self.path):
-                    fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+                    fd = open_own(self.path, os.O_RDWR | os.O_CREAT)
                 try:
                     _flock_exclusive(fd)
                 except OSError as exc:

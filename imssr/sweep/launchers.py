@@ -114,7 +114,7 @@ class LocalLauncher(Launcher):
         return [RunAttempt(a.run_dir, a.steps, a.attempt, os.nice(0)) for a in attempts]
 
     def wait(self, handles: list[RunAttempt], timeout_s: float) -> list[RunAttempt]:
-        return _wait_polling(handles, lambda h: h.poll() is not None, timeout_s)
+        return _wait_polling(handles, lambda h: h.ended, timeout_s)
 
     def result(self, handle: RunAttempt) -> dict:
         return handle.finish()

@@ -18,7 +18,7 @@ from typing import Optional
 
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.rundir import DIVERGED, FAILED, INTERRUPTED, RunDir
-from imssr.utils import disk_full_as_error, scheduling_group
+from imssr.utils import disk_full_as_error, open_append, scheduling_group
 
 # Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
 # second signal (or one before its handlers were in place) ended it; it resumes either way.
@@ -121,16 +121,20 @@ class RunAttempt:
                   f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
         try:
             log = _open_log(self.log_path, header)
-        except ImssrError as exc:  # a full disk: the attempt fails in one line, nothing started
+        except ImssrError as exc:  # a full disk, a link: the attempt fails in one line, nothing started
             self.error = str(exc)
+            return
+        except OSError as exc:  # a directory in its place, no permission
+            self.error = f"cannot write {self.log_path}: {exc.strerror or exc}"
             return
         with log:
             self.offset = log.tell()
             self.proc = start_training(cmd, log, env, niceness)
 
-    def poll(self) -> Optional[int]:
-        """The exit status, or None while the training runs."""
-        return None if self.proc is None else self.proc.poll()
+    @property
+    def ended(self) -> bool:
+        """Whether there is nothing left to wait for: the training exited, or never started."""
+        return self.proc is None or self.proc.poll() is not None
 
     def stop(self) -> None:
         """SIGTERM the training (its process group), SIGKILL after :data:`STOP_GRACE_S`."""
@@ -190,7 +194,7 @@ def execute_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] 
         attempt_ = RunAttempt(run_dir, steps, attempt, niceness)
         # In steps: a Ray cancel interrupts the main thread between bytecodes, which a
         # blocking wait for the child never returns to.
-        while attempt_.proc is not None and attempt_.proc.poll() is None:
+        while not attempt_.ended:
             time.sleep(0.5)
     finally:
         if attempt_ is not None:
@@ -201,7 +205,7 @@ def execute_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] 
 def _open_log(path: str, header: str):
     """``path`` opened for appending, ``header`` written; a full disk is one ImssrError line."""
     with disk_full_as_error(path):
-        log = open(path, "a")
+        log = open_append(path)
         try:
             log.write(header)
             log.flush()

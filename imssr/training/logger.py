@@ -13,13 +13,14 @@ import math
 import os
 import shutil
 import threading
-from typing import Iterable, Optional
+from typing import Any, Callable, Iterable, Optional
 
 import numpy as np
 
+from imssr.errors import ImssrError
 from imssr.plots.media import save_video
 from imssr.rundir import RunDir
-from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full, read_csv
+from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full, open_append, read_csv
 
 VIDEO_FPS = 25.0
 """Frames per second of evaluation videos (one frame per agent step), as ``imssr evaluate --video``."""
@@ -42,7 +43,7 @@ class CSVLog:
 
     def write(self, row: dict) -> None:
         # A line cut short by a full disk is dropped on resume (truncate_after).
-        with disk_full_as_error(self.path), open(self.path, "a", newline="") as fh:
+        with disk_full_as_error(self.path), open_append(self.path, newline="") as fh:
             csv.DictWriter(fh, self.columns, extrasaction="ignore").writerow(
                 {k: _fmt(row.get(k)) for k in self.columns})
             fh.flush()
@@ -98,7 +99,7 @@ def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
     """Append ``rows`` to a CSV file that several processes may append to at once (two ``imssr
     evaluate`` of one run): under an exclusive ``flock`` of the file, so the rows of one call stay
     together, with the header first when the file is new."""
-    with disk_full_as_error(path), open(path, "a", newline="") as fh:
+    with disk_full_as_error(path), open_append(path, newline="") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
         if fh.seek(0, os.SEEK_END) == 0:
             fh.write(",".join(columns) + "\n")
@@ -141,7 +142,8 @@ class Logger:
                 _quiet_tensorboard_disk_full()
                 self.tb_dir = run.tb_dir
                 # purge_step drops events newer than the checkpoint on resume.
-                self.tb = SummaryWriter(run.tb_dir, purge_step=None if resume_frame is None else resume_frame + 1)
+                with disk_full_as_error(run.tb_dir):
+                    self.tb = SummaryWriter(run.tb_dir, purge_step=None if resume_frame is None else resume_frame + 1)
 
     def rewrite_eval(self, history: list[dict]) -> None:
         """Rewrite the evaluation CSVs from a checkpoint's history (``row`` + ``returns``)."""
@@ -166,7 +168,7 @@ class Logger:
         if self.tb is not None and self._tensorboard_takes_video():
             # (N, T, C, H, W) uint8, one video.
             clip = np.moveaxis(np.stack(frames), -1, 1)[None]
-            self.tb.add_video(f"eval/{mode}/video", clip, global_step=frame, fps=VIDEO_FPS)
+            self._to_tensorboard(lambda tb: tb.add_video(f"eval/{mode}/video", clip, global_step=frame, fps=VIDEO_FPS))
         if self.wandb is not None:
             self.wandb.log_video(f"media/{mode}_video", path, frame, step)
         return path
@@ -198,34 +200,54 @@ class Logger:
         values = {f"{prefix}/{k}": float(v) for k, v in row.items()
                   if k not in skip and v is not None and not isinstance(v, str)}
         frame = int(row["frame"])
-        if self.tb is not None:
-            # TensorBoard writes in a thread of its own; a full disk there comes back here (the
-            # next add or flush re-raises it) and becomes the one-line error.
-            with disk_full_as_error(self.tb_dir):
-                for key, value in values.items():
-                    self.tb.add_scalar(key, value, global_step=frame)
+
+        def add(tb) -> None:
+            for key, value in values.items():
+                tb.add_scalar(key, value, global_step=frame)
+
+        self._to_tensorboard(add)
         if self.wandb is not None:
             self.wandb.log(values, frame, int(row["step"]))
 
+    def _to_tensorboard(self, write: Callable[[Any], Any]) -> None:
+        """``write(writer)`` to TensorBoard, if on.  TensorBoard writes in a thread of its own; a
+        full disk there comes back here (the next add or flush re-raises it) and turns TensorBoard
+        off with one warning line: the run is recorded in its CSV logs and checkpoints, which
+        TensorBoard only shows, so its view is not worth the run (a full disk under the
+        checkpoints still stops the run, at its next checkpoint)."""
+        if self.tb is None:
+            return
+        try:
+            with disk_full_as_error(self.tb_dir):
+                write(self.tb)
+        except ImssrError as exc:
+            self.tb = None  # its writer thread has ended on the error
+            print(f"imssr: warning: {exc}: TensorBoard stops here (train.csv and eval.csv keep every row)",
+                  flush=True)
+
     def close(self) -> None:
+        """Flush and close TensorBoard (:meth:`_to_tensorboard` on a full disk) and W&B."""
         try:
             if self.tb is not None:
-                tb, self.tb = self.tb, None
-                with disk_full_as_error(self.tb_dir):
-                    try:
-                        tb.flush()
-                    finally:
-                        tb.close()
+                self._to_tensorboard(_flush_and_close)
+                self.tb = None
         finally:
             if self.wandb is not None:
                 self.wandb.finish()
+
+
+def _flush_and_close(tb) -> None:
+    try:
+        tb.flush()
+    finally:
+        tb.close()
 
 
 def _quiet_tensorboard_disk_full() -> None:
     """Keep the traceback of TensorBoard's writer thread off stderr when the disk is full.
 
     The thread stores the error, which the next ``add_scalar`` / ``flush`` re-raises in the
-    training thread (and :class:`Logger` reports in one line), and then raises it again to end
+    training thread (and :class:`Logger` turns into one warning line), and then raises it again to end
     itself, which Python prints as "Exception in thread ...".  Other errors print as usual."""
     previous = threading.excepthook
     if getattr(previous, "imssr_tensorboard", False):

@@ -186,6 +186,9 @@ class Trainer:
             self.logger.rewrite_eval(self.state.eval_history)
             print(f"imssr: resuming from agent step {self.step:,} (frame {self.frame:,}) of "
                   f"{cfg.train.steps:,}", flush=True)
+        warning = no_update_warning(self.state.learning_starts, cfg.total_steps)
+        if warning:
+            print(warning, flush=True)
 
     def _set_threads(self, ckpt: Optional[dict]) -> None:
         """Apply ``train.torch_threads``; warn when the threads would contend with busy cores, and
@@ -590,6 +593,16 @@ def thread_warning(saved: Optional[int], now: int, device) -> Optional[str]:
     return (f"imssr: warning: this run was trained with {saved} torch thread(s) and resumes with {now}: "
             "it stays valid but is no longer bit-identical to an uninterrupted run "
             f"(--set train.torch_threads={saved} keeps it exact)")
+
+
+def no_update_warning(learning_starts: int, total: int) -> Optional[str]:
+    """A one-line warning when the agent would never be updated: its seed phase of random actions
+    (``train.seed_steps``; after a refill, until ``learning_starts``) lasts the whole budget of
+    ``total`` agent steps.  A warning, not an error: a random policy's returns are a baseline."""
+    if learning_starts < total:
+        return None
+    return (f"imssr: warning: the seed phase (--seed-steps) acts at random until agent step {learning_starts:,} "
+            f"and the budget (--steps) ends at {total:,}: the agent is never updated")
 
 
 def first_non_finite(values: dict, keys, names: Optional[dict[str, str]] = None) -> Optional[str]:
