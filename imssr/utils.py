@@ -4,6 +4,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import errno
+import io
 import os
 import random
 import re
@@ -129,12 +130,17 @@ def open_append(path: str, newline: Optional[str] = None) -> TextIO:
     return os.fdopen(open_own(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "a", newline=newline)
 
 
-def read_csv(path: str) -> list[dict]:
-    """The rows of a CSV file with a header, as dicts (none if the file does not exist)."""
+def read_csv(path: str, complete_only: bool = False) -> list[dict]:
+    """The rows of a CSV file with a header, as dicts (none if the file does not exist).
+    ``complete_only``: leave out a last row without its line end, which a killed writer cut
+    short (``...,training,2.`` of ``2.5`` would read as a number)."""
     if not os.path.exists(path):
         return []
     with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
+        text = fh.read()
+    if complete_only and text and not text.endswith("\n"):
+        text = text[:text.rfind("\n") + 1]
+    return list(csv.DictReader(io.StringIO(text, newline="")))
 
 
 def atomic_write_csv(path: str, header: list[str], rows: Iterable[list]) -> str:

@@ -133,6 +133,15 @@ def test_plot_of_a_malformed_eval_csv_is_one_line(run, capsys, rows):
     assert line.startswith(f"imssr: error: row ") and f"of {RunDir(run).eval_log} is not an evaluation row" in line
 
 
+def test_plot_leaves_out_a_last_row_cut_short_by_a_killed_writer(run, capsys):
+    """A training killed mid-write leaves "...,training,2." of 2.5: the plot, like the report,
+    draws the complete rows only."""
+    with open(RunDir(run).eval_log, "w") as fh:
+        fh.write("frame,step,mode,return_mean,return_std\n1000,125,training,5.0,1.0\n2000,250,training,2.")
+    assert main(["plot", "--run", run]) == 0
+    assert os.path.getsize(RunDir(run).learning_curve_path) > 0
+
+
 # -- links planted in a run directory --------------------------------------------------------
 
 def test_writes_in_a_run_directory_refuse_to_follow_a_link(tmp_path):

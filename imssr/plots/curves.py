@@ -17,7 +17,7 @@ def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
     import matplotlib.pyplot as plt
 
     run = RunDir(run_dir)
-    rows = read_csv(run.eval_log)
+    rows = read_csv(run.eval_log, complete_only=True)
     if not rows:
         raise ImssrError(f"no evaluations in {run.eval_log}")
     out_path = out_path or run.learning_curve_path

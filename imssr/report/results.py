@@ -184,9 +184,7 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
                     precision=cfg.agent.precision)
     path = run_files.eval_log
-    rows = read_csv(path)
-    if rows and not _ends_with_newline(path):
-        rows = rows[:-1]  # a row cut short by a killed writer ("...,training,2." of 2.5)
+    rows = read_csv(path, complete_only=True)
     for row in rows:
         try:
             frame = int(float(row["frame"]))
@@ -199,15 +197,6 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     if not run.evals:
         notes.append(f"{rel}: no evaluations yet")
     return run
-
-
-def _ends_with_newline(path: str) -> bool:
-    with open(path, "rb") as fh:
-        fh.seek(0, os.SEEK_END)
-        if fh.tell() == 0:
-            return True
-        fh.seek(-1, os.SEEK_END)
-        return fh.read(1) == b"\n"
 
 
 def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
