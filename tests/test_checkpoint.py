@@ -132,9 +132,16 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
     assert [int(r["frame"]) for r in read_csv(tmp_path / "eval.csv")] == [1000, 3000]
 
 
-def test_fresh_run_replaces_logs_of_a_run_that_never_checkpointed(tmp_path):
+def test_a_fresh_run_refuses_the_logs_of_a_run_that_never_checkpointed(tmp_path):
     (tmp_path / "train.csv").write_text("frame,step\n5000,625\n")
     (tmp_path / "eval.csv").write_text("frame,step\n5000,625\n")
+    with pytest.raises(ImssrError, match=r"holds part of a run \(train.csv, eval.csv\) but no checkpoint to "
+                                         r"resume from; choose another --out") as caught:
+        Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
+    assert "--resume" not in str(caught.value)
+    assert (tmp_path / "train.csv").read_text() == "frame,step\n5000,625\n"
+    # What a sweep's fresh attempt does first: the run starts again from agent step 0.
+    assert RunDir(str(tmp_path)).discard_unresumable() == ["train.csv", "eval.csv"]
     t = Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
     try:
         t.train()
@@ -142,6 +149,19 @@ def test_fresh_run_replaces_logs_of_a_run_that_never_checkpointed(tmp_path):
         t.close()
     assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
     assert [r["frame"] for r in read_csv(tmp_path / "eval.csv")] == ["1000"]
+
+
+def test_a_fresh_run_starts_over_logs_without_rows_and_a_config_alone(tmp_path):
+    """A training stopped before its first row, or a run a sweep described but never started."""
+    (tmp_path / "train.csv").write_text("frame,step\n")
+    RunDir(str(tmp_path)).write_config(tiny_config("curl", steps=125))
+    assert RunDir(str(tmp_path)).run_parts() == []
+    t = Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
+    try:
+        t.train()
+    finally:
+        t.close()
+    assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
 
 
 def test_agent_state_from_another_device_type_loads(full_run):

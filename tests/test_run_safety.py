@@ -201,6 +201,40 @@ def test_a_refused_run_releases_its_directory(tmp_path):
 
 # -- damaged files -------------------------------------------------------------------------
 
+def _snapshot(directory):
+    """Every file under ``directory`` with its bytes."""
+    files = {}
+    for root, _, names in os.walk(directory):
+        for name in names:
+            path = os.path.join(root, name)
+            with open(path, "rb") as fh:
+                files[os.path.relpath(path, directory)] = fh.read()
+    return files
+
+
+@pytest.mark.parametrize("missing", ["latest.pt", "every checkpoint"])
+def test_a_fresh_start_refuses_any_part_of_a_run_and_deletes_nothing(run, missing, capsys):
+    """A fresh `imssr train --out RUN` on a run whose latest.pt is gone: one line, nothing deleted."""
+    os.unlink(_ckpt(run, "latest.pt"))
+    if missing == "every checkpoint":
+        for name in os.listdir(os.path.join(run, "checkpoints")):
+            os.unlink(_ckpt(run, name))
+    RunDir(run).write_status("finished", step=250)
+    before = _snapshot(run)
+    args = ["train", "--algo", "curl", "--task", TASK, "--steps", "375", "--no-progress", "--out", run]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith(f"imssr: error: {run} already holds ")
+    if missing == "latest.pt":
+        assert "step-000000250.pt" in err and "pass --resume to continue it" in err
+    else:
+        assert "train.csv" in err and "no checkpoint to resume from" in err and "--resume" not in err
+    after = _snapshot(run)
+    after.pop(LOCK_FILE, None), before.pop(LOCK_FILE, None)
+    assert after == before
+    assert RunDir(run).status() == "finished"
+
+
 def test_numbered_checkpoints_are_real_copies(stopped):
     latest, numbered = RunDir(stopped).latest, _ckpt(stopped, "step-000000250.pt")
     assert os.stat(latest).st_nlink == 1 and os.stat(numbered).st_nlink == 1

@@ -123,8 +123,7 @@ class Trainer:
                  stop: Optional[StopRequest] = None):
         if os.path.exists(out_dir) and not os.path.isdir(out_dir):
             raise ImssrError(f"--out {out_dir} is a file, not a directory")
-        # A second process on the same directory fails here, before the Logger of a fresh
-        # run deletes the first one's logs and tb/.
+        # A second process on the same directory fails here, before anything is checked or written.
         self.run_dir = RunDir(out_dir)
         self._lock = self.run_dir.open()
         self.refill_buffer = refill_buffer
@@ -162,9 +161,8 @@ class Trainer:
                 raise ImssrError(f"the run in {out_dir} is already at agent step {ckpt['step']:,}, past the "
                                  f"budget of {cfg.train.steps:,} steps asked for; resume with --steps "
                                  f"{ckpt['step']} or more")
-        elif self.run_dir.has_run():
-            raise ImssrError(f"{out_dir} already holds a run; pass --resume to continue it "
-                             "or choose another --out")
+        else:
+            self.run_dir.refuse_fresh_start()
         self._set_threads(ckpt)
         seed_everything(cfg.train.seed)
         e = cfg.env
@@ -179,6 +177,7 @@ class Trainer:
         os.makedirs(out_dir, exist_ok=True)
         if ckpt is not None:
             self._restore(ckpt)
+        self.run_dir.clear_status()
         self.run_dir.write_config(cfg)
         self.logger = self._open_logger(resumed=ckpt is not None)
         if ckpt is not None:
