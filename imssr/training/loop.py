@@ -129,6 +129,10 @@ class Trainer:
         self.refill_buffer = refill_buffer
         self.stop = stop or StopRequest()  # uninstalled: never set
         self._resume_episode: Optional[dict] = None  # the episode a stop left open, to rebuild
+        self._resume_burst: Optional[dict] = None  # the burst a stop left unfinished, to go on with
+        # The evaluation state from before the off-schedule evaluation at the end of the budget:
+        # a checkpoint holds it so that a larger budget goes on as if that evaluation never ran.
+        self._before_final: Optional[dict] = None
         self._saved_step = -1  # the agent step of this process's last checkpoint
         self._replay_file: Optional[str] = None  # the replay file that latest.pt names
         self.resumed_from: Optional[str] = None
@@ -286,14 +290,35 @@ class Trainer:
             if saved.get(mode) is not None:  # a scene added on resume starts from its seed
                 env.set_rng_state(saved[mode])
         set_rng_states(ckpt["global_rng"])
+        self._restore_before_final(ckpt.get("before_final_eval"))
         refill = self._load_replay(ckpt)
         if ckpt.get("episode_state") is not None and not refill:
-            # Stopped mid-episode: train() rebuilds the open episode before it continues.
+            # Stopped (or out of budget) mid-episode: train() rebuilds the open episode first.
             self._resume_episode = ckpt["episode_state"]
+            self._resume_burst = ckpt.get("burst_state")
+        if not self._fallback:
+            self._saved_step = self.step  # latest.pt holds this step already
         if refill:
             self.state.learning_starts = self.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
             print(f"imssr: warning: {refill}; refilling it with random "
                   f"actions until agent step {self.state.learning_starts} (the resume is not exact)", flush=True)
+
+    def _restore_before_final(self, before: Optional[dict]) -> None:
+        """A checkpoint taken where the budget ran out after an evaluation off the schedule (the
+        final one): with a larger budget now, the run goes on as if that evaluation never ran
+        (its rows dropped, the evaluation envs' generators as before it), as a run given the
+        larger budget from the start does; with the same budget it is kept for a later one."""
+        if before is None:
+            return
+        if self.cfg.total_steps <= self.step:
+            self._before_final = before
+            return
+        s = self.state
+        del s.eval_history[before["evaluations"]:]
+        s.last_eval_step = before["last_eval_step"]
+        for mode, env in self.eval_envs.items():
+            if mode in before["eval_env_rngs"]:
+                env.set_rng_state(before["eval_env_rngs"][mode])
 
     def _load_replay(self, ckpt: dict) -> Optional[str]:
         """Load the replay buffer checkpoint ``ckpt`` names; returns why it must be refilled
@@ -318,14 +343,15 @@ class Trainer:
                 self._replay_file = ckpt["replay_file"]
         return refill
 
-    def save(self, episode: Optional[Episode] = None) -> None:
-        """Checkpoint now (``episode``: the open episode, when stopping in its middle).  A save
-        that fails (a full disk) leaves the previous checkpoint as it was and removes the replay
-        files it wrote, which no checkpoint names."""
+    def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
+        """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
+        the burst of updates a stop interrupted, :meth:`_stop_in_burst`).  A save that fails (a
+        full disk) leaves the previous checkpoint as it was and removes the replay files it
+        wrote, which no checkpoint names."""
         latest = self.run_dir.latest
         before = _identity(latest)
         try:
-            self._save(episode)
+            self._save(episode, burst)
         except ImssrError:
             replay_file = self.run_dir.replay_name(self.step)
             if (self.cfg.train.save_buffer and replay_file != self._replay_file
@@ -351,7 +377,7 @@ class Trainer:
                              "random state differs from the saved one")
         return episode, obs
 
-    def _save(self, episode: Optional[Episode] = None) -> None:
+    def _save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         replay_file = None
         if self.cfg.train.save_buffer:
             replay_file = self.run_dir.replay_name(self.step)
@@ -364,6 +390,7 @@ class Trainer:
             # A resume with another thread count is valid but not bit-identical (thread_warning).
             "torch_threads": torch.get_num_threads(),
             "episode_state": None if episode is None else episode.state_dict(self.action_dim),
+            "burst_state": burst, "before_final_eval": self._before_final,
         }
         self.run_dir.save_checkpoint(state, keep=self.cfg.train.keep_checkpoints)
 
@@ -454,17 +481,27 @@ class Trainer:
         s = self.state
         if s.step < s.learning_starts:
             return s.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+        if self._resume_burst is not None:
+            # Stopped inside the burst: its action was drawn before the stop; the updates go on.
+            burst, self._resume_burst = self._resume_burst, None
+            action = burst["action"].numpy()
+            self._learn(episode, action, done=int(burst["updates_done"]))
+            return action
         action = self.agent.act(obs, deterministic=False)
         if not np.isfinite(action).all():  # a few host values: no device sync
             raise DivergedError(f"action {non_finite_text(action)}")
-        self._learn(episode)
+        self._learn(episode, action)
         return action
 
-    def _learn(self, episode: Episode) -> None:
+    def _learn(self, episode: Episode, action: np.ndarray, done: int = 0) -> None:
         """One update, or the burst of ``train.burst_updates`` once, when the first seed phase
-        ends (not after a refill); the episode sums their metrics."""
+        ends (not after a refill), from its update ``done`` on; the episode sums their metrics.
+        A stop request inside the burst does not wait for its end (:meth:`_stop_in_burst`)."""
         t, step = self.cfg.train, self.state.step
-        for _ in range(max(1, t.burst_updates) if step == t.seed_steps else 1):
+        updates = max(1, t.burst_updates) if step == t.seed_steps else 1
+        for update in range(done, updates):
+            if update > done and self.stop.signal_name is not None:
+                self._stop_in_burst(episode, action, update)
             episode.add_metrics(self.agent.update(self.replay, step))
 
     def _env_step(self, action: np.ndarray, episode: Episode) -> tuple[np.ndarray, bool]:
@@ -503,8 +540,16 @@ class Trainer:
         step was just evaluated."""
         s = self.state
         if s.step >= self.cfg.total_steps and s.last_eval_step != s.step:
-            rows = self.run_eval()
+            rows = self._final_evaluation()
             progress.say(f"final eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+
+    def _final_evaluation(self) -> list[dict]:
+        """The evaluation where the budget runs out, off the schedule (:meth:`run_eval`); what it
+        is about to change is kept for the checkpoint (:meth:`_restore_before_final`)."""
+        s = self.state
+        self._before_final = {"eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
+                              "evaluations": len(s.eval_history), "last_eval_step": s.last_eval_step}
+        return self.run_eval()
 
     def _checkpoint_if_due(self) -> None:
         """At an episode end: a checkpoint when the schedule says so, and at the last one."""
@@ -522,17 +567,31 @@ class Trainer:
         if self._saved_step != self.step:
             self._raise_if_diverged(episode)
             self.save(episode)
-        raise TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; "
-                                  f"continue with: imssr train --out {self.out_dir} --resume")
+        raise self._interrupted()
+
+    def _stop_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
+        """On a stop request inside the burst of updates, after ``done`` of them: a checkpoint
+        of where it is (the open ``episode``, the step's ``action``, drawn before the burst, and
+        the count), from which a resume does the rest of the burst and then takes the action,
+        then :class:`TrainingInterrupted`."""
+        self._raise_if_diverged(episode)
+        self.save(episode, burst={"updates_done": done, "action": torch.from_numpy(action.astype(np.float32))})
+        raise self._interrupted()
+
+    def _interrupted(self) -> TrainingInterrupted:
+        return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; "
+                                   f"continue with: imssr train --out {self.out_dir} --resume")
 
     def _finish(self, episode: Optional[Episode]) -> None:
         """The budget is spent: when it ended mid-episode, evaluate (unless this agent step was)
-        and checkpoint what there is; the learning curve goes to W&B."""
+        and checkpoint with the open episode, which a larger budget continues exactly (unless
+        this step is checkpointed already); the learning curve goes to W&B."""
         if episode is not None:
             self._raise_if_diverged(episode)
             if self.state.last_eval_step != self.step:
-                self.run_eval()
-            self.save()
+                self._final_evaluation()
+            if self._saved_step != self.step:
+                self.save(episode)
         if self.logger.wants_media:
             self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
 
