@@ -24,7 +24,7 @@ from imssr._gl import gl_renderer, software_rendering_warning
 from imssr.config import RunConfig
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
-from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
+from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
 from imssr.replay import make_replay_buffer, replay_placement
@@ -61,15 +61,19 @@ class StopRequest:
     """SIGTERM / SIGINT as a request to stop after the current agent step (SLURM sends SIGTERM
     on preemption and at the time limit, some seconds before SIGKILL).
 
-    The first signal is recorded in :attr:`signal_name` and the default handlers come back, so
-    a second signal ends the process at once: SIGTERM kills it, SIGINT raises
-    ``KeyboardInterrupt``.  Checkpoint writes are atomic, so neither damages the last
-    checkpoint.  Handlers are installed only on the main thread (Python's rule)."""
+    The first signal is recorded in :attr:`signal_name`; a second one stops at once.  With
+    ``out_dir`` (the command line, which trains that run directory) the second signal ends the
+    process there with :data:`~imssr.errors.INTERRUPTED_EXIT` and one line, even in the middle
+    of a checkpoint write: the write is atomic, so the last checkpoint stays whole, and the line
+    names ``--resume`` only when there is a checkpoint to continue from.  Without ``out_dir``
+    (the Python API) the default handlers come back: SIGTERM kills the process, SIGINT raises
+    ``KeyboardInterrupt``.  Handlers are installed only on the main thread (Python's rule)."""
 
     SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
-    def __init__(self):
+    def __init__(self, out_dir: Optional[str] = None):
         self.signal_name: Optional[str] = None
+        self.out_dir = out_dir
         self._previous: dict = {}
 
     def install(self) -> "StopRequest":
@@ -84,9 +88,26 @@ class StopRequest:
         os.write(2, f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
                     "(a second signal stops at once)\n".encode())
         for sig in self.SIGNALS:  # the next signal acts at once
-            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+            if self.out_dir is not None:
+                signal.signal(sig, self._exit_at_once)
+            else:
+                signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+
+    def _exit_at_once(self, signum, frame) -> None:
+        """The second signal on the command line: one line and the exit, with no exception that
+        could surface in a write (torch's "unexpected pos"), a ``finally`` or an exit handler."""
+        name = signal.Signals(signum).name
+        if RunDir(self.out_dir).has_checkpoint():
+            text = (f"stopped at once, keeping the last checkpoint; continue with: "
+                    f"imssr train --out {self.out_dir} --resume")
+        else:
+            text = "stopped at once, before the run's first checkpoint: nothing to resume"
+        os.write(2, f"imssr: {name} again: {text}\n".encode())
+        os._exit(INTERRUPTED_EXIT)
 
     def uninstall(self) -> None:
+        if self.signal_name is not None and self.out_dir is not None:
+            return  # the process is stopping: a further signal still exits at once, quietly
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
         self._previous.clear()
@@ -436,7 +457,8 @@ class Trainer:
         """
         cfg, s, total = self.cfg, self.state, self.cfg.total_steps
         progress = Progress(total, s.step, s.frame, f"{cfg.algo} {cfg.env.task} s{cfg.train.seed}",
-                            bar=cfg.train.progress, every_s=self.progress_every_s)
+                            bar=cfg.train.progress, every_s=self.progress_every_s,
+                            learning_starts=s.learning_starts)
         episode, obs = self._reopen_episode()
         try:
             while s.step < total:
