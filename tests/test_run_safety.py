@@ -213,15 +213,17 @@ def _snapshot(directory):
 
 
 @pytest.mark.parametrize("missing", ["latest.pt", "every checkpoint"])
-def test_a_fresh_start_refuses_any_part_of_a_run_and_deletes_nothing(run, missing, capsys):
+def test_a_fresh_start_refuses_any_part_of_a_run_and_deletes_nothing(run, missing, tmp_path, capsys):
     """A fresh `imssr train --out RUN` on a run whose latest.pt is gone: one line, nothing deleted."""
+    config = str(tmp_path / "config.json")
+    shutil.copy(RunDir(run).config_path, config)
     os.unlink(_ckpt(run, "latest.pt"))
     if missing == "every checkpoint":
         for name in os.listdir(os.path.join(run, "checkpoints")):
             os.unlink(_ckpt(run, name))
     RunDir(run).write_status("finished", step=250)
     before = _snapshot(run)
-    args = ["train", "--algo", "curl", "--task", TASK, "--steps", "375", "--no-progress", "--out", run]
+    args = ["train", "--config", config, "--steps", "1", "--out", run]
     assert main(args) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and err.startswith(f"imssr: error: {run} already holds ")
