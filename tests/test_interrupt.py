@@ -179,7 +179,7 @@ def test_a_burst_of_ctrl_c_ends_in_one_line_and_130(tmp_path):
     assert load_checkpoint(RunDir(str(out)).latest)["step"] >= 125
 
 
-def _sweep_run(tmp_path, *overrides):def _sweep_run(tmp_path, *overrides):
+def _sweep_run(tmp_path, *overrides):
     """A one-run sweep of the tiny training above: (config, its RunStatus)."""
     sets = [TRAIN[i + 1] for i, a in enumerate(TRAIN) if a == "--set"]
     cfg = SweepConfig(root=str(tmp_path / "sweep"), algos=["curl"], tasks=["cartpole_swingup_sparse"],

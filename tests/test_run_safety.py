@@ -134,7 +134,7 @@ def test_local_holder_names_only_a_live_holder_on_this_machine(tmp_path):
 def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_taken_over(tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()
-    # Logs of a run that never checkpointed: a fresh run would delete them.
+    # Logs of a run that never checkpointed: the refused writer must leave them.
     (out / "train.csv").write_text("frame,step\n1000,125\n")
     (out / "tb").mkdir()
     (out / "tb" / "events").write_text("x")
@@ -147,6 +147,9 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_taken_over(tmp_path,
         assert code == 2 and err.count("\n") == 1 and f"{out} is in use by PID {child.pid}" in err
         child.kill()
     assert (out / "train.csv").read_text() == "frame,step\n1000,125\n" and (out / "tb" / "events").exists()
+    # A log with a row is part of a run, which a fresh start refuses (tested on its own below);
+    # here the lock is what matters.
+    (out / "train.csv").unlink()
     # kill -9 left the lock file behind; the kernel dropped the lock with the process.
     assert (out / LOCK_FILE).exists()
     t = Trainer(_cfg(), str(out))
