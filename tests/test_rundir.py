@@ -124,9 +124,14 @@ def test_status_transitions(tmp_path):
         assert run.status() == ending and run.read_status()["step"] == 5
     with pytest.raises(ValueError):
         run.write_status("running")
-    # A training that starts drops the record of the last one.
+    # A training that only takes the lock (and is refused) keeps the record of the last one;
+    # one that starts drops it.
     run.write_status("failed", step=5)
     run.open().release()
+    assert run.status() == "failed"
+    lock = run.open()
+    run.clear_status()
+    lock.release()
     assert run.read_status() is None and run.status() == "interrupted"
     # A sweep's done marker: finished (with a budget), whatever a torn record says.
     (tmp_path / "run" / STATUS_FILE).write_text('{"state": "fail')
