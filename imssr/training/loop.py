@@ -5,8 +5,9 @@ frames, ``step`` counts agent steps (``frame = step * action_repeat``).  The bud
 and checkpoint intervals and the beta schedule count agent steps, as the authors' code does;
 every log carries both counters.
 Checkpoints are taken at episode ends, where the next thing the loop does is a reset from the
-saved task RNG, so ``--resume`` reproduces the uninterrupted run; a stop request checkpoints
-the open episode too (:class:`~imssr.training.state.Episode`), which a resume steps through again.
+saved task RNG, so ``--resume`` reproduces the uninterrupted run; a stop request, and a budget
+that runs out inside an episode, checkpoint the open episode too
+(:class:`~imssr.training.state.Episode`), which a resume steps through again.
 """
 from __future__ import annotations
 
