@@ -181,7 +181,7 @@ class RunDir:
 
     @property
     def training_logs(self) -> tuple[str, str, str]:
-        """The CSV logs a training writes (and a fresh start removes)."""
+        """The CSV logs a training writes."""
         return self.train_log, self.eval_log, self.eval_episodes_log
 
     def log(self, name: str) -> str:
