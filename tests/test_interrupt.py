@@ -156,6 +156,41 @@ def test_a_second_signal_during_a_checkpoint_write_exits_130_in_one_line(tmp_pat
     assert run.status() == ("interrupted" if write == 2 else "new")
 
 
+# `imssr train` that sends itself SIGTERM at the agent's update number UPDATE (the real handler
+# takes it, wherever the burst is).
+SIGTERM_AT_AN_UPDATE = """
+import os, signal, sys
+from imssr.agents.sac import SACAgent
+from imssr.cli import main
+
+UPDATE, update = int(sys.argv[1]), SACAgent.update
+
+def signalled(self, replay, step):
+    if self.updates == UPDATE:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return update(self, replay, step)
+
+SACAgent.update = signalled
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_sigterm_inside_the_burst_of_updates_stops_there(tmp_path):
+    """The burst of 400 updates at agent step 100 stops at its update 11 (the stop is checked
+    before each update), not at its end; that such a checkpoint resumes exactly is
+    tests/test_checkpoint.py's."""
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    args = [*TRAIN, "--set", "train.burst_updates=400", "--out", str(out)]
+    proc = subprocess.run([sys.executable, "-c", SIGTERM_AT_AN_UPDATE, "10", *args], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == INTERRUPTED_EXIT, proc.stderr
+    last = [line for line in proc.stderr.splitlines() if line.strip()][-1]
+    assert last == f"imssr: stopped at agent step 100 by SIGTERM; continue with: imssr train --out {out} --resume"
+    state = load_checkpoint(RunDir(str(out)).latest)
+    assert state["agent"]["updates"] == 11 and state["burst_state"]["updates_done"] == 11
+
+
 AGAIN = re.compile(r"imssr: (SIGTERM|SIGINT) again: stopped at once, keeping the last checkpoint; "
                    r"continue with: imssr train --out (\S+) --resume")
 
