@@ -338,10 +338,11 @@ def test_the_burst_runs_once_when_the_first_seed_phase_ends(trainer):
     trainer.cfg.train.burst_updates = 3
     trainer.agent.update = _Calls({"critic_loss": torch.tensor(0.5)})
     ep = Episode(env_rng={})
+    action = np.zeros(1, np.float32)
     trainer.state.step = trainer.cfg.train.seed_steps
-    trainer._learn(ep)
+    trainer._learn(ep, action)
     trainer.state.step += 1
-    trainer._learn(ep)
+    trainer._learn(ep, action)
     assert len(trainer.agent.update.calls) == 4 and ep.counts == {"critic_loss": 4}
 
 
