@@ -30,8 +30,8 @@ from imssr.training.evaluate import evaluate_run
 
 EXIT_STATUS_TEXT = (f"Exit status: 0 done; 2 error (one line on stderr); {INTERRUPTED_EXIT} interrupted: "
                     "SIGTERM or SIGINT (Ctrl-C) stops after the current agent step, writes a checkpoint "
-                    "and says how to continue (--resume); a second signal exits at once, keeping the "
-                    "last checkpoint.")
+                    "and says how to continue (--resume); a second signal exits at once (130), keeping "
+                    "the last checkpoint.")
 
 
 def _number(kind, minimum, label, maximum=None):
@@ -410,7 +410,7 @@ def cmd_train(args, demo: bool = False) -> int:
     cfg = _run_config(args, demo)
     out = args.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)
     # From here on SIGTERM / SIGINT stop the run after the current agent step, with a checkpoint.
-    stop = StopRequest().install()
+    stop = StopRequest(out).install()
     try:
         return _train(cfg, out, args, refill, demo, stop)
     finally:

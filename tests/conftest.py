@@ -111,6 +111,22 @@ def assert_same_nets(a, b) -> None:
         assert torch.equal(v, w), k
 
 
+def assert_same_tensors(a, b, path: str = "") -> int:
+    """Two checkpoint states (nested dicts and lists) hold the same keys, bit-for-bit equal
+    tensors and equal other values; returns how many tensors were compared."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), path
+        return 1
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), path
+        return sum(assert_same_tensors(a[k], b[k], f"{path}.{k}") for k in a)
+    if isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b), path
+        return sum(assert_same_tensors(x, y, f"{path}[{i}]") for i, (x, y) in enumerate(zip(a, b)))
+    assert a == b, path
+    return 0
+
+
 @pytest.fixture
 def tiny_cfg():
     return tiny_config

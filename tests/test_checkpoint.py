@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config, train_run, train_stopped_at, without_timing
+from conftest import assert_same_tensors, tiny_config, train_run, train_stopped_at, without_timing
 from imssr.errors import ImssrError
 from imssr.training import Trainer
+from imssr.training.loop import TrainingInterrupted
 from imssr.rundir import RunDir
 from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
@@ -46,6 +47,71 @@ def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
     assert torch.equal(a["aux"]["module"]["W"], b["aux"]["module"]["W"])
     for name in ("train.csv", "eval.csv", "eval_episodes.csv"):
         assert _strip(read_csv(full_dir / name)) == _strip(read_csv(tmp_path / name)), name
+
+
+def _short(steps, **train):
+    # Episodes of 125 agent steps; learning from agent step 60, an evaluation every 125.
+    return tiny_config("im-curl", steps=steps, seed_steps=60, eval_every_steps=125,
+                       checkpoint_every_steps=0, **train)
+
+
+def _assert_same_runs(a_dir, b_dir):
+    """Two runs' final checkpoints hold the same tensors (agent, optimisers, generators, replay
+    state) and counters, and their logs the same rows."""
+    a, b = (load_checkpoint(RunDir(str(d)).latest) for d in (a_dir, b_dir))
+    for key in ("agent", "replay_state", "global_rng", "env_rng", "eval_env_rngs", "action_rng", "step", "frame",
+                "episode", "eval_history"):
+        if key == "eval_history":
+            a[key], b[key] = ([dict(item, row=_strip([item["row"]])[0]) for item in x[key]] for x in (a, b))
+        assert_same_tensors(a[key], b[key], key)
+    for name in ("train.csv", "eval.csv", "eval_episodes.csv"):
+        assert _strip(read_csv(a_dir / name)) == _strip(read_csv(b_dir / name)), name
+
+
+def test_extending_a_run_whose_budget_ended_mid_episode_is_exact(tmp_path):
+    """`--steps 140`, then `--resume --steps 160`, equals `--steps 160`: the final checkpoint
+    holds the open episode, and the final evaluation at agent step 140 (off the schedule) is
+    one that a run with the larger budget never made."""
+    direct, extended = tmp_path / "direct", tmp_path / "extended"
+    train_run(_short(160), direct)
+    train_run(_short(140), extended)
+    assert [r["step"] for r in read_csv(extended / "eval.csv")] == ["125", "140"]
+    state = load_checkpoint(RunDir(str(extended)).latest)
+    assert state["step"] == 140 and state["episode_state"] is not None
+    again = train_run(_short(140), extended, resume=True)  # the same budget: nothing to do
+    assert again.step == 140 and load_checkpoint(RunDir(str(extended)).latest)["step"] == 140
+    train_run(_short(160), extended, resume=True)
+    _assert_same_runs(direct, extended)
+
+
+def test_a_stop_inside_the_burst_of_updates_resumes_exactly(tmp_path):
+    """A stop request during the seed phase's burst checkpoints the burst where it is; the
+    resume does the rest of it, takes the action drawn before it, and ends as a run never stopped."""
+
+    class StopInBurst:
+        """A stop request that arrives once the agent has made ``updates`` updates."""
+
+        def __init__(self, trainer, updates):
+            self.trainer, self.updates = trainer, updates
+
+        @property
+        def signal_name(self):
+            return "SIGTERM" if self.trainer.agent.updates >= self.updates else None
+
+    direct, stopped = tmp_path / "direct", tmp_path / "stopped"
+    train_run(_short(130, burst_updates=40), direct)
+    t = Trainer(_short(130, burst_updates=40), str(stopped))
+    try:
+        t.stop = StopInBurst(t, 15)
+        with pytest.raises(TrainingInterrupted, match="^stopped at agent step 60 by SIGTERM;"):
+            t.train()
+    finally:
+        t.close()
+    state = load_checkpoint(RunDir(str(stopped)).latest)
+    assert state["step"] == 60 and state["agent"]["updates"] == 15
+    assert state["burst_state"]["updates_done"] == 15 and state["episode_state"] is not None
+    train_run(_short(130, burst_updates=40), stopped, resume=True)
+    _assert_same_runs(direct, stopped)
 
 
 def test_checkpoint_contents_and_round_trip(full_run):
@@ -132,9 +198,16 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
     assert [int(r["frame"]) for r in read_csv(tmp_path / "eval.csv")] == [1000, 3000]
 
 
-def test_fresh_run_replaces_logs_of_a_run_that_never_checkpointed(tmp_path):
+def test_a_fresh_run_refuses_the_logs_of_a_run_that_never_checkpointed(tmp_path):
     (tmp_path / "train.csv").write_text("frame,step\n5000,625\n")
     (tmp_path / "eval.csv").write_text("frame,step\n5000,625\n")
+    with pytest.raises(ImssrError, match=r"holds part of a run \(train.csv, eval.csv\) but no checkpoint to "
+                                         r"resume from; choose another --out") as caught:
+        Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
+    assert "--resume" not in str(caught.value)
+    assert (tmp_path / "train.csv").read_text() == "frame,step\n5000,625\n"
+    # What a sweep's fresh attempt does first: the run starts again from agent step 0.
+    assert RunDir(str(tmp_path)).discard_unresumable() == ["train.csv", "eval.csv"]
     t = Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
     try:
         t.train()
@@ -142,6 +215,19 @@ def test_fresh_run_replaces_logs_of_a_run_that_never_checkpointed(tmp_path):
         t.close()
     assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
     assert [r["frame"] for r in read_csv(tmp_path / "eval.csv")] == ["1000"]
+
+
+def test_a_fresh_run_starts_over_logs_without_rows_and_a_config_alone(tmp_path):
+    """A training stopped before its first row, or a run a sweep described but never started."""
+    (tmp_path / "train.csv").write_text("frame,step\n")
+    RunDir(str(tmp_path)).write_config(tiny_config("curl", steps=125))
+    assert RunDir(str(tmp_path)).run_parts() == []
+    t = Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
+    try:
+        t.train()
+    finally:
+        t.close()
+    assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
 
 
 def test_agent_state_from_another_device_type_loads(full_run):

@@ -100,6 +100,120 @@ def test_a_second_signal_stops_at_once_and_keeps_the_last_checkpoint(tmp_path):
     assert load_checkpoint(RunDir(str(out)).latest)["step"] >= 125
 
 
+# `imssr train` whose checkpoint write number WRITE (1: the first) gets two SIGINTs from the
+# process itself in the middle of torch.save: the stop request, then the second signal.  Where
+# an outside Ctrl-C lands is chance; these land inside the write every time.
+SIGNALS_IN_A_WRITE = """
+import os, signal, sys
+import imssr.rundir.checkpoint as checkpoint
+from imssr.cli import main
+
+WRITE = int(sys.argv[1])
+
+class SignalledWriter(checkpoint.HashingWriter):
+    writes = 0
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        SignalledWriter.writes += 1
+        self.written = 0
+
+    def write(self, data):
+        n = super().write(data)
+        self.written += len(data)
+        if SignalledWriter.writes == WRITE and self.written > 4096:
+            SignalledWriter.writes += 1  # once
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+        return n
+
+checkpoint.HashingWriter = SignalledWriter
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("write", [1, 2])
+def test_a_second_signal_during_a_checkpoint_write_exits_130_in_one_line(tmp_path, write):
+    """Write 1 is the run's first checkpoint (agent step 125): nothing to resume, and the line
+    says so; write 2 (agent step 250) leaves the checkpoint of step 125 whole."""
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    args = [*TRAIN, "--steps", "300", "--set", "train.checkpoint_every_steps=125", "--out", str(out)]
+    proc = subprocess.run([sys.executable, "-c", SIGNALS_IN_A_WRITE, str(write), *args], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == INTERRUPTED_EXIT, proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert lines[-2].startswith("imssr: SIGINT: stopping after this agent step"), proc.stderr
+    run = RunDir(str(out))
+    if write == 1:
+        assert lines[-1] == "imssr: SIGINT again: stopped at once, before the run's first checkpoint: nothing to resume"
+        assert not run.has_checkpoint()
+    else:
+        assert lines[-1] == ("imssr: SIGINT again: stopped at once, keeping the last checkpoint; continue with: "
+                             f"imssr train --out {out} --resume")
+        assert load_checkpoint(run.latest)["step"] == 125
+    assert run.status() == ("interrupted" if write == 2 else "new")
+
+
+# `imssr train` that sends itself SIGTERM at the agent's update number UPDATE (the real handler
+# takes it, wherever the burst is).
+SIGTERM_AT_AN_UPDATE = """
+import os, signal, sys
+from imssr.agents.sac import SACAgent
+from imssr.cli import main
+
+UPDATE, update = int(sys.argv[1]), SACAgent.update
+
+def signalled(self, replay, step):
+    if self.updates == UPDATE:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return update(self, replay, step)
+
+SACAgent.update = signalled
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_sigterm_inside_the_burst_of_updates_stops_there(tmp_path):
+    """The burst of 400 updates at agent step 100 stops at its update 11 (the stop is checked
+    before each update), not at its end; that such a checkpoint resumes exactly is
+    tests/test_checkpoint.py's."""
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    args = [*TRAIN, "--set", "train.burst_updates=400", "--out", str(out)]
+    proc = subprocess.run([sys.executable, "-c", SIGTERM_AT_AN_UPDATE, "10", *args], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == INTERRUPTED_EXIT, proc.stderr
+    last = [line for line in proc.stderr.splitlines() if line.strip()][-1]
+    assert last == f"imssr: stopped at agent step 100 by SIGTERM; continue with: imssr train --out {out} --resume"
+    state = load_checkpoint(RunDir(str(out)).latest)
+    assert state["agent"]["updates"] == 11 and state["burst_state"]["updates_done"] == 11
+
+
+AGAIN = re.compile(r"imssr: (SIGTERM|SIGINT) again: stopped at once, keeping the last checkpoint; "
+                   r"continue with: imssr train --out (\S+) --resume")
+
+
+def test_a_burst_of_ctrl_c_ends_in_one_line_and_130(tmp_path):
+    """Many SIGINTs at once, wherever they land (an update, a checkpoint write, the exit): status
+    130, one closing line, no traceback, a whole checkpoint."""
+    out = tmp_path / "run"
+    proc = _start(out, "--set", "train.checkpoint_every_steps=125")
+    _after_first_episode(proc, out)
+    while not os.path.exists(RunDir(str(out)).latest):  # the checkpoint of the first episode
+        assert proc.poll() is None, proc.communicate()
+        os.sched_yield()
+    for _ in range(20):
+        proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == INTERRUPTED_EXIT, err
+    assert "Traceback" not in err and "Exception ignored" not in err, err
+    last = [line for line in err.splitlines() if line.strip()][-1]
+    assert STOPPED.fullmatch(last) or AGAIN.fullmatch(last), err
+    assert load_checkpoint(RunDir(str(out)).latest)["step"] >= 125
+
+
 def _sweep_run(tmp_path, *overrides):
     """A one-run sweep of the tiny training above: (config, its RunStatus)."""
     sets = [TRAIN[i + 1] for i, a in enumerate(TRAIN) if a == "--set"]

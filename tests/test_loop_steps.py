@@ -16,7 +16,7 @@ from imssr.training import Trainer
 from imssr.rundir import RunDir
 from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.loop import TrainingInterrupted, first_non_finite
-from imssr.training.progress import Progress, eval_summary, progress_line
+from imssr.training.progress import Eta, Progress, eval_summary, progress_line
 from imssr.training.state import Episode, RunState
 
 # The checkpoint keys of the loop's state: their names and meaning are the checkpoint format.
@@ -121,9 +121,11 @@ def test_progress_prints_a_line_when_due_where_no_bar_shows(capsys):
     p.say("eval step 6 frame 48: return 1.0 ± 0.0")
     p.close()
     out = capsys.readouterr().out.splitlines()
-    assert re.fullmatch(r"imssr: agent step 5/10 \(50\.0%\), [\d,]+ frames/s, ETA \d+:\d\d:\d\d, "
+    assert re.fullmatch(r"imssr: agent step 5/10 \(50\.0%\), [\d,]+ frames/s, ETA after agent step 6, "
                         r"last episode return none yet", out[0]), out
-    assert out[1].endswith("last episode return 12.2") and out[2] == "eval step 6 frame 48: return 1.0 ± 0.0"
+    assert re.fullmatch(r"imssr: agent step 6/10 \(60\.0%\), [\d,]+ frames/s, ETA \d+:\d\d:\d\d, "
+                        r"last episode return 12.2", out[1]), out
+    assert out[2] == "eval step 6 frame 48: return 1.0 ± 0.0"
 
 
 def test_progress_waits_every_s_between_lines(capsys):
@@ -134,10 +136,40 @@ def test_progress_waits_every_s_between_lines(capsys):
     assert capsys.readouterr().out == ""
 
 
+def test_the_eta_comes_from_the_updates_not_the_seed_phase():
+    """A run of 12,500 agent steps, updates from agent step 1,000: the seed phase runs at 100
+    steps/s, the burst at agent step 1,000 takes 60 s, the updates run at 4 steps/s."""
+    now = [0.0]
+    eta = Eta(total=12_500, learning_starts=1000, clock=lambda: now[0])
+    for step in range(1, 1001):  # the seed phase
+        now[0] += 0.01
+        eta.update(step)
+        assert eta.seconds(step) is None and eta.text(step) == "after agent step 1,002"
+    now[0] += 60.0 + 0.25  # agent step 1,001: the burst and the first update
+    eta.update(1001)
+    assert eta.text(1001) == "after agent step 1,002"
+    for step in range(1002, 1102):
+        now[0] += 0.25
+        eta.update(step)
+    # 100 agent steps in 25 s since agent step 1,001: the 11,399 left take 2,849.75 s.  The
+    # whole run's rate (1,101 steps in 95 s) would have said 0:16:24.
+    assert eta.seconds(1101) == pytest.approx(11_399 * 0.25) and eta.text(1101) == "0:47:30"
+    assert eta.text(12_500) == "0:00:00"
+
+
+def test_a_resumed_run_estimates_from_its_own_first_step():
+    now = [100.0]
+    eta = Eta(total=300, learning_starts=60, clock=lambda: now[0])
+    eta.update(201)  # a resume at agent step 200
+    assert eta.text(201) == "after agent step 202"
+    now[0] += 3.0
+    eta.update(202)
+    assert eta.seconds(202) == pytest.approx(98 * 3.0)
+
+
 def test_progress_line_and_eval_summary_texts():
-    assert progress_line(1200, 500_000, 3100, 100, 10.0, 12.5) == (
+    assert progress_line(1200, 500_000, 3100, 10.0, "13:51:20", 12.5) == (
         "imssr: agent step 1,200/500,000 (0.2%), 310 frames/s, ETA 13:51:20, last episode return 12.5")
-    assert "ETA unknown" in progress_line(0, 10, 0, 0, 0.0, None)
     one = [{"mode": "train", "return_mean": 12.5, "return_std": 3.0}]
     assert eval_summary(one) == "12.5 ± 3.0"
     two = one + [{"mode": "color_hard", "return_mean": 1.0, "return_std": 0.5}]
@@ -306,10 +338,11 @@ def test_the_burst_runs_once_when_the_first_seed_phase_ends(trainer):
     trainer.cfg.train.burst_updates = 3
     trainer.agent.update = _Calls({"critic_loss": torch.tensor(0.5)})
     ep = Episode(env_rng={})
+    action = np.zeros(1, np.float32)
     trainer.state.step = trainer.cfg.train.seed_steps
-    trainer._learn(ep)
+    trainer._learn(ep, action)
     trainer.state.step += 1
-    trainer._learn(ep)
+    trainer._learn(ep, action)
     assert len(trainer.agent.update.calls) == 4 and ep.counts == {"critic_loss": 4}
 
 

@@ -179,9 +179,11 @@ def test_progress_lines_when_stdout_is_not_a_terminal(tmp_path, capsys):
         t.close()
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("imssr: agent step")]
     assert len(lines) == 22, lines
-    pattern = (r"imssr: agent step \d+/22 \(\d+\.\d%\), [\d,]+ frames/s, ETA \d+:\d\d:\d\d, "
+    pattern = (r"imssr: agent step \d+/22 \(\d+\.\d%\), [\d,]+ frames/s, ETA (\d+:\d\d:\d\d|after agent step 22), "
                r"last episode return (none yet|-?\d+\.\d)")
     assert all(re.fullmatch(pattern, line) for line in lines), lines
+    # No estimate from the seed phase's rate: it comes once the updates have a rate.
+    assert all("ETA after agent step 22," in line for line in lines[:21]), lines
     assert lines[-1].split("last episode return ")[1] != "none yet"  # after the first episode
 
 

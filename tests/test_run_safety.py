@@ -134,7 +134,7 @@ def test_local_holder_names_only_a_live_holder_on_this_machine(tmp_path):
 def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_taken_over(tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()
-    # Logs of a run that never checkpointed: a fresh run would delete them.
+    # Logs of a run that never checkpointed: the refused writer must leave them.
     (out / "train.csv").write_text("frame,step\n1000,125\n")
     (out / "tb").mkdir()
     (out / "tb" / "events").write_text("x")
@@ -147,6 +147,9 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_is_taken_over(tmp_path,
         assert code == 2 and err.count("\n") == 1 and f"{out} is in use by PID {child.pid}" in err
         child.kill()
     assert (out / "train.csv").read_text() == "frame,step\n1000,125\n" and (out / "tb" / "events").exists()
+    # A log with a row is part of a run, which a fresh start refuses (tested on its own below);
+    # here the lock is what matters.
+    (out / "train.csv").unlink()
     # kill -9 left the lock file behind; the kernel dropped the lock with the process.
     assert (out / LOCK_FILE).exists()
     t = Trainer(_cfg(), str(out))
@@ -200,6 +203,42 @@ def test_a_refused_run_releases_its_directory(tmp_path):
 
 
 # -- damaged files -------------------------------------------------------------------------
+
+def _snapshot(directory):
+    """Every file under ``directory`` with its bytes."""
+    files = {}
+    for root, _, names in os.walk(directory):
+        for name in names:
+            path = os.path.join(root, name)
+            with open(path, "rb") as fh:
+                files[os.path.relpath(path, directory)] = fh.read()
+    return files
+
+
+@pytest.mark.parametrize("missing", ["latest.pt", "every checkpoint"])
+def test_a_fresh_start_refuses_any_part_of_a_run_and_deletes_nothing(run, missing, tmp_path, capsys):
+    """A fresh `imssr train --out RUN` on a run whose latest.pt is gone: one line, nothing deleted."""
+    config = str(tmp_path / "config.json")
+    shutil.copy(RunDir(run).config_path, config)
+    os.unlink(_ckpt(run, "latest.pt"))
+    if missing == "every checkpoint":
+        for name in os.listdir(os.path.join(run, "checkpoints")):
+            os.unlink(_ckpt(run, name))
+    RunDir(run).write_status("finished", step=250)
+    before = _snapshot(run)
+    args = ["train", "--config", config, "--steps", "1", "--out", run]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith(f"imssr: error: {run} already holds ")
+    if missing == "latest.pt":
+        assert "step-000000250.pt" in err and "pass --resume to continue it" in err
+    else:
+        assert "train.csv" in err and "no checkpoint to resume from" in err and "--resume" not in err
+    after = _snapshot(run)
+    after.pop(LOCK_FILE, None), before.pop(LOCK_FILE, None)
+    assert after == before
+    assert RunDir(run).status() == "finished"
+
 
 def test_numbered_checkpoints_are_real_copies(stopped):
     latest, numbered = RunDir(stopped).latest, _ckpt(stopped, "step-000000250.pt")

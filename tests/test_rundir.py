@@ -101,7 +101,7 @@ def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):
         run.checkpoint("250")
     # latest.pt missing: a retained checkpoint still counts as something to resume.
     os.unlink(run.latest)
-    assert run.has_checkpoint() and not run.has_run()
+    assert run.has_checkpoint() and not run.has_latest()
     assert run.usable_checkpoint()[2].startswith("latest.pt is missing; resuming from step-000000125.pt")
     _damage(run.numbered(125))
     with pytest.raises(ImssrError, match="is missing, and no retained step-\\*.pt checkpoint in .* is valid"):

@@ -39,6 +39,7 @@ import contextlib
 import glob
 import json
 import os
+import shutil
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Optional
@@ -180,7 +181,7 @@ class RunDir:
 
     @property
     def training_logs(self) -> tuple[str, str, str]:
-        """The CSV logs a training writes (and a fresh start removes)."""
+        """The CSV logs a training writes."""
         return self.train_log, self.eval_log, self.eval_episodes_log
 
     def log(self, name: str) -> str:
@@ -296,15 +297,68 @@ class RunDir:
         """The run's config (a one-line error when it is missing or invalid)."""
         return load_config(self.config_path)
 
+    # -- what the directory holds ------------------------------------------------------------
+    def run_parts(self) -> list[str]:
+        """The parts of a run the directory holds, as names relative to it: any checkpoint or
+        replay file, a log with a row, and what training, evaluation and analysis wrote beside
+        them.  A directory with any of them is a run, which a fresh training must not replace.
+
+        Not parts: ``config.json`` alone (a run described but not started, as a sweep writes it
+        before the first attempt), the lock, ``status.json``, ``sweep.log``, the temporary files
+        of a killed write, and logs with no row (a training that stopped before its first
+        episode or evaluation ended)."""
+        parts = []
+        if os.path.isdir(self.checkpoint_dir):
+            for pattern in (LATEST_CHECKPOINT, CHECKPOINT_GLOB, REPLAY_GLOB):
+                parts += sorted(os.path.join(CHECKPOINT_DIR, os.path.basename(p))
+                                for p in glob.glob(os.path.join(self.checkpoint_dir, pattern)))
+        for name in (TRAIN_LOG, EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG, EVALUATE_EPISODES_LOG):
+            if _has_rows(self.file(name)):
+                parts.append(name)
+        for name in (VIDEOS_DIR, ANALYSIS_DIR, MONTAGE_FILE, LEARNING_CURVE_FILE, EPISODE_GIF, DONE_FILE):
+            path = self.file(name)
+            if os.path.isfile(path) or (os.path.isdir(path) and os.listdir(path)):
+                parts.append(name)
+        return parts
+
+    def refuse_fresh_start(self) -> None:
+        """A one-line error when the directory holds any part of a run (:meth:`run_parts`): a
+        fresh training there would mix with it or replace it.  The error names ``--resume`` when
+        there is a checkpoint to continue from, and what is there when there is none."""
+        parts = self.run_parts()
+        if not parts:
+            return
+        shown = ", ".join(parts[:3]) + (", ..." if len(parts) > 3 else "")
+        if self.has_checkpoint():
+            raise ImssrError(f"{self.path} already holds a run ({shown}); pass --resume to continue it "
+                             "or choose another --out")
+        raise ImssrError(f"{self.path} already holds part of a run ({shown}) but no checkpoint to resume "
+                         "from; choose another --out, or remove those files to start again there")
+
+    def discard_unresumable(self) -> list[str]:
+        """Remove what a run that has no checkpoint left (its logs, videos), so that it can start
+        again from agent step 0 (a sweep's fresh attempt after one that failed early); returns the
+        names removed.  A run with a checkpoint is left as it is: it resumes."""
+        if self.has_checkpoint():
+            return []
+        parts = self.run_parts()
+        for name in parts + [TB_DIR]:
+            path = self.file(name)
+            if os.path.isdir(path):
+                shutil.rmtree(path)
+            elif os.path.exists(path):
+                os.unlink(path)
+        return parts
+
     # -- checkpoints ---------------------------------------------------------------------
-    def has_run(self) -> bool:
-        """Whether a training has checkpointed here (``latest.pt`` exists)."""
+    def has_latest(self) -> bool:
+        """Whether ``latest.pt`` exists."""
         return os.path.exists(self.latest)
 
     def has_checkpoint(self) -> bool:
         """Something ``imssr train --resume`` continues from: ``latest.pt`` or a retained
         ``step-*.pt`` (the resume falls back to those when ``latest.pt`` is missing or damaged)."""
-        return self.has_run() or bool(self.numbered_checkpoints())
+        return self.has_latest() or bool(self.numbered_checkpoints())
 
     def numbered_checkpoints(self) -> list[str]:
         """The retained ``step-*.pt`` files, oldest first."""
@@ -538,6 +592,16 @@ def _read_json(path: str) -> Optional[dict]:
     except (OSError, ValueError):
         return None
     return data if isinstance(data, dict) else None
+
+
+def _has_rows(path: str) -> bool:
+    """Whether the CSV file ``path`` holds a row below its header."""
+    try:
+        with open(path, "rb") as fh:
+            fh.readline()
+            return bool(fh.readline().strip())
+    except OSError:
+        return False
 
 
 def _last_values(path: str, columns: tuple[str, ...]) -> tuple[int, ...]:

@@ -117,6 +117,14 @@ class RunAttempt:
         self.start = time.time()
         self.proc: Optional[subprocess.Popen] = None
         self.error = ""
+        if not self.resumed:
+            # An earlier attempt that failed before its first checkpoint left logs that nothing
+            # continues; `imssr train` refuses to start over them, so the sweep clears them.
+            try:
+                run.discard_unresumable()
+            except OSError as exc:
+                self.error = f"cannot clear {run_dir} for a fresh attempt: {exc.strerror or exc}"
+                return
         header = (f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
                   f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
         try:

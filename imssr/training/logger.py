@@ -11,7 +11,6 @@ import csv
 import fcntl
 import math
 import os
-import shutil
 import threading
 from typing import Any, Callable, Iterable, Optional
 
@@ -120,11 +119,11 @@ class Logger:
         self.out_dir, self.wandb = out_dir, wandb
         self.run = run = RunDir(out_dir)
         if resume_frame is None:
-            # A fresh run: logs left by a run killed before its first checkpoint are stale.
+            # A fresh run starts only where no log holds a row (RunDir.refuse_fresh_start): the
+            # header-only logs of a training stopped before its first row get this run's header.
             for path in run.training_logs:
                 if os.path.exists(path):
                     os.unlink(path)
-            shutil.rmtree(run.tb_dir, ignore_errors=True)
         self.train = CSVLog(run.train_log, TRAIN_COLUMNS)
         self.eval = CSVLog(run.eval_log, EVAL_COLUMNS)
         self.eval_episodes = CSVLog(run.eval_episodes_log, EVAL_EPISODE_COLUMNS)

@@ -5,8 +5,9 @@ frames, ``step`` counts agent steps (``frame = step * action_repeat``).  The bud
 and checkpoint intervals and the beta schedule count agent steps, as the authors' code does;
 every log carries both counters.
 Checkpoints are taken at episode ends, where the next thing the loop does is a reset from the
-saved task RNG, so ``--resume`` reproduces the uninterrupted run; a stop request checkpoints
-the open episode too (:class:`~imssr.training.state.Episode`), which a resume steps through again.
+saved task RNG, so ``--resume`` reproduces the uninterrupted run; a stop request, and a budget
+that runs out inside an episode, checkpoint the open episode too
+(:class:`~imssr.training.state.Episode`), which a resume steps through again.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from imssr._gl import gl_renderer, software_rendering_warning
 from imssr.config import RunConfig
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
-from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
+from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
 from imssr.replay import make_replay_buffer, replay_placement
@@ -61,15 +62,19 @@ class StopRequest:
     """SIGTERM / SIGINT as a request to stop after the current agent step (SLURM sends SIGTERM
     on preemption and at the time limit, some seconds before SIGKILL).
 
-    The first signal is recorded in :attr:`signal_name` and the default handlers come back, so
-    a second signal ends the process at once: SIGTERM kills it, SIGINT raises
-    ``KeyboardInterrupt``.  Checkpoint writes are atomic, so neither damages the last
-    checkpoint.  Handlers are installed only on the main thread (Python's rule)."""
+    The first signal is recorded in :attr:`signal_name`; a second one stops at once.  With
+    ``out_dir`` (the command line, which trains that run directory) the second signal ends the
+    process there with :data:`~imssr.errors.INTERRUPTED_EXIT` and one line, even in the middle
+    of a checkpoint write: the write is atomic, so the last checkpoint stays whole, and the line
+    names ``--resume`` only when there is a checkpoint to continue from.  Without ``out_dir``
+    (the Python API) the default handlers come back: SIGTERM kills the process, SIGINT raises
+    ``KeyboardInterrupt``.  Handlers are installed only on the main thread (Python's rule)."""
 
     SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
-    def __init__(self):
+    def __init__(self, out_dir: Optional[str] = None):
         self.signal_name: Optional[str] = None
+        self.out_dir = out_dir
         self._previous: dict = {}
 
     def install(self) -> "StopRequest":
@@ -84,9 +89,26 @@ class StopRequest:
         os.write(2, f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
                     "(a second signal stops at once)\n".encode())
         for sig in self.SIGNALS:  # the next signal acts at once
-            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+            if self.out_dir is not None:
+                signal.signal(sig, self._exit_at_once)
+            else:
+                signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+
+    def _exit_at_once(self, signum, frame) -> None:
+        """The second signal on the command line: one line and the exit, with no exception that
+        could surface in a write (torch's "unexpected pos"), a ``finally`` or an exit handler."""
+        name = signal.Signals(signum).name
+        if RunDir(self.out_dir).has_checkpoint():
+            text = (f"stopped at once, keeping the last checkpoint; continue with: "
+                    f"imssr train --out {self.out_dir} --resume")
+        else:
+            text = "stopped at once, before the run's first checkpoint: nothing to resume"
+        os.write(2, f"imssr: {name} again: {text}\n".encode())
+        os._exit(INTERRUPTED_EXIT)
 
     def uninstall(self) -> None:
+        if self.signal_name is not None and self.out_dir is not None:
+            return  # the process is stopping: a further signal still exits at once, quietly
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
         self._previous.clear()
@@ -123,13 +145,16 @@ class Trainer:
                  stop: Optional[StopRequest] = None):
         if os.path.exists(out_dir) and not os.path.isdir(out_dir):
             raise ImssrError(f"--out {out_dir} is a file, not a directory")
-        # A second process on the same directory fails here, before the Logger of a fresh
-        # run deletes the first one's logs and tb/.
+        # A second process on the same directory fails here, before anything is checked or written.
         self.run_dir = RunDir(out_dir)
         self._lock = self.run_dir.open()
         self.refill_buffer = refill_buffer
         self.stop = stop or StopRequest()  # uninstalled: never set
         self._resume_episode: Optional[dict] = None  # the episode a stop left open, to rebuild
+        self._resume_burst: Optional[dict] = None  # the burst a stop left unfinished, to go on with
+        # The evaluation state from before the off-schedule evaluation at the end of the budget:
+        # a checkpoint holds it so that a larger budget goes on as if that evaluation never ran.
+        self._before_final: Optional[dict] = None
         self._saved_step = -1  # the agent step of this process's last checkpoint
         self._replay_file: Optional[str] = None  # the replay file that latest.pt names
         self.resumed_from: Optional[str] = None
@@ -162,9 +187,8 @@ class Trainer:
                 raise ImssrError(f"the run in {out_dir} is already at agent step {ckpt['step']:,}, past the "
                                  f"budget of {cfg.train.steps:,} steps asked for; resume with --steps "
                                  f"{ckpt['step']} or more")
-        elif self.run_dir.has_run():
-            raise ImssrError(f"{out_dir} already holds a run; pass --resume to continue it "
-                             "or choose another --out")
+        else:
+            self.run_dir.refuse_fresh_start()
         self._set_threads(ckpt)
         seed_everything(cfg.train.seed)
         e = cfg.env
@@ -290,14 +314,35 @@ class Trainer:
             if saved.get(mode) is not None:  # a scene added on resume starts from its seed
                 env.set_rng_state(saved[mode])
         set_rng_states(ckpt["global_rng"])
+        self._restore_before_final(ckpt.get("before_final_eval"))
         refill = self._load_replay(ckpt)
         if ckpt.get("episode_state") is not None and not refill:
-            # Stopped mid-episode: train() rebuilds the open episode before it continues.
+            # Stopped (or out of budget) mid-episode: train() rebuilds the open episode first.
             self._resume_episode = ckpt["episode_state"]
+            self._resume_burst = ckpt.get("burst_state")
+        if not self._fallback:
+            self._saved_step = self.step  # latest.pt holds this step already
         if refill:
             self.state.learning_starts = self.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
             print(f"imssr: warning: {refill}; refilling it with random "
                   f"actions until agent step {self.state.learning_starts} (the resume is not exact)", flush=True)
+
+    def _restore_before_final(self, before: Optional[dict]) -> None:
+        """A checkpoint taken where the budget ran out after an evaluation off the schedule (the
+        final one): with a larger budget now, the run goes on as if that evaluation never ran
+        (its rows dropped, the evaluation envs' generators as before it), as a run given the
+        larger budget from the start does; with the same budget it is kept for a later one."""
+        if before is None:
+            return
+        if self.cfg.total_steps <= self.step:
+            self._before_final = before
+            return
+        s = self.state
+        del s.eval_history[before["evaluations"]:]
+        s.last_eval_step = before["last_eval_step"]
+        for mode, env in self.eval_envs.items():
+            if mode in before["eval_env_rngs"]:
+                env.set_rng_state(before["eval_env_rngs"][mode])
 
     def _load_replay(self, ckpt: dict) -> Optional[str]:
         """Load the replay buffer checkpoint ``ckpt`` names; returns why it must be refilled
@@ -322,14 +367,15 @@ class Trainer:
                 self._replay_file = ckpt["replay_file"]
         return refill
 
-    def save(self, episode: Optional[Episode] = None) -> None:
-        """Checkpoint now (``episode``: the open episode, when stopping in its middle).  A save
-        that fails (a full disk) leaves the previous checkpoint as it was and removes the replay
-        files it wrote, which no checkpoint names."""
+    def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
+        """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
+        the burst of updates a stop interrupted, :meth:`_stop_in_burst`).  A save that fails (a
+        full disk) leaves the previous checkpoint as it was and removes the replay files it
+        wrote, which no checkpoint names."""
         latest = self.run_dir.latest
         before = _identity(latest)
         try:
-            self._save(episode)
+            self._save(episode, burst)
         except ImssrError:
             replay_file = self.run_dir.replay_name(self.step)
             if (self.cfg.train.save_buffer and replay_file != self._replay_file
@@ -355,7 +401,7 @@ class Trainer:
                              "random state differs from the saved one")
         return episode, obs
 
-    def _save(self, episode: Optional[Episode] = None) -> None:
+    def _save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         replay_file = None
         if self.cfg.train.save_buffer:
             replay_file = self.run_dir.replay_name(self.step)
@@ -368,6 +414,7 @@ class Trainer:
             # A resume with another thread count is valid but not bit-identical (thread_warning).
             "torch_threads": torch.get_num_threads(),
             "episode_state": None if episode is None else episode.state_dict(self.action_dim),
+            "burst_state": burst, "before_final_eval": self._before_final,
         }
         self.run_dir.save_checkpoint(state, keep=self.cfg.train.keep_checkpoints)
 
@@ -413,7 +460,8 @@ class Trainer:
         """
         cfg, s, total = self.cfg, self.state, self.cfg.total_steps
         progress = Progress(total, s.step, s.frame, f"{cfg.algo} {cfg.env.task} s{cfg.train.seed}",
-                            bar=cfg.train.progress, every_s=self.progress_every_s)
+                            bar=cfg.train.progress, every_s=self.progress_every_s,
+                            learning_starts=s.learning_starts)
         episode, obs = self._reopen_episode()
         try:
             while s.step < total:
@@ -458,17 +506,27 @@ class Trainer:
         s = self.state
         if s.step < s.learning_starts:
             return s.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+        if self._resume_burst is not None:
+            # Stopped inside the burst: its action was drawn before the stop; the updates go on.
+            burst, self._resume_burst = self._resume_burst, None
+            action = burst["action"].numpy()
+            self._learn(episode, action, done=int(burst["updates_done"]))
+            return action
         action = self.agent.act(obs, deterministic=False)
         if not np.isfinite(action).all():  # a few host values: no device sync
             raise DivergedError(f"action {non_finite_text(action)}")
-        self._learn(episode)
+        self._learn(episode, action)
         return action
 
-    def _learn(self, episode: Episode) -> None:
+    def _learn(self, episode: Episode, action: np.ndarray, done: int = 0) -> None:
         """One update, or the burst of ``train.burst_updates`` once, when the first seed phase
-        ends (not after a refill); the episode sums their metrics."""
+        ends (not after a refill), from its update ``done`` on; the episode sums their metrics.
+        A stop request inside the burst does not wait for its end (:meth:`_stop_in_burst`)."""
         t, step = self.cfg.train, self.state.step
-        for _ in range(max(1, t.burst_updates) if step == t.seed_steps else 1):
+        updates = max(1, t.burst_updates) if step == t.seed_steps else 1
+        for update in range(done, updates):
+            if update > done and self.stop.signal_name is not None:
+                self._stop_in_burst(episode, action, update)
             episode.add_metrics(self.agent.update(self.replay, step))
 
     def _env_step(self, action: np.ndarray, episode: Episode) -> tuple[np.ndarray, bool]:
@@ -507,8 +565,16 @@ class Trainer:
         step was just evaluated."""
         s = self.state
         if s.step >= self.cfg.total_steps and s.last_eval_step != s.step:
-            rows = self.run_eval()
+            rows = self._final_evaluation()
             progress.say(f"final eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+
+    def _final_evaluation(self) -> list[dict]:
+        """The evaluation where the budget runs out, off the schedule (:meth:`run_eval`); what it
+        is about to change is kept for the checkpoint (:meth:`_restore_before_final`)."""
+        s = self.state
+        self._before_final = {"eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
+                              "evaluations": len(s.eval_history), "last_eval_step": s.last_eval_step}
+        return self.run_eval()
 
     def _checkpoint_if_due(self) -> None:
         """At an episode end: a checkpoint when the schedule says so, and at the last one."""
@@ -526,17 +592,31 @@ class Trainer:
         if self._saved_step != self.step:
             self._raise_if_diverged(episode)
             self.save(episode)
-        raise TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; "
-                                  f"continue with: imssr train --out {self.out_dir} --resume")
+        raise self._interrupted()
+
+    def _stop_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
+        """On a stop request inside the burst of updates, after ``done`` of them: a checkpoint
+        of where it is (the open ``episode``, the step's ``action``, drawn before the burst, and
+        the count), from which a resume does the rest of the burst and then takes the action,
+        then :class:`TrainingInterrupted`."""
+        self._raise_if_diverged(episode)
+        self.save(episode, burst={"updates_done": done, "action": torch.from_numpy(action.astype(np.float32))})
+        raise self._interrupted()
+
+    def _interrupted(self) -> TrainingInterrupted:
+        return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; "
+                                   f"continue with: imssr train --out {self.out_dir} --resume")
 
     def _finish(self, episode: Optional[Episode]) -> None:
         """The budget is spent: when it ended mid-episode, evaluate (unless this agent step was)
-        and checkpoint what there is; the learning curve goes to W&B."""
+        and checkpoint with the open episode, which a larger budget continues exactly (unless
+        this step is checkpointed already); the learning curve goes to W&B."""
         if episode is not None:
             self._raise_if_diverged(episode)
             if self.state.last_eval_step != self.step:
-                self.run_eval()
-            self.save()
+                self._final_evaluation()
+            if self._saved_step != self.step:
+                self.save(episode)
         if self.logger.wants_media:
             self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
 

@@ -4,13 +4,65 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Optional
+from typing import Callable, Optional
 
 from tqdm import tqdm
 
 PROGRESS_EVERY_S = 60.0
 """Seconds of wall time between progress lines when stdout is not a terminal (a SLURM or nohup
 log): agent step, frames per second, ETA and the last episode's return."""
+
+
+class Eta:
+    """The time left until agent step ``total``, from the rate of the phase that remains.
+
+    The seed phase (random actions, no updates) runs many times faster than the updates after
+    it, so its rate says nothing about the rest of a run: until updates run there is no
+    estimate, and :meth:`text` says after which agent step there will be one.  The rate is
+    measured from the first agent step done after ``learning_starts``, which also leaves out
+    the one-off burst of updates there; evaluations and checkpoints count into it, as they
+    recur.  ``clock`` gives seconds (``time.monotonic``; a test injects its own values).
+    """
+
+    def __init__(self, total: int, learning_starts: int, clock: Callable[[], float] = time.monotonic):
+        self.total, self.learning_starts, self.clock = total, learning_starts, clock
+        self.since: Optional[tuple[float, int]] = None
+        """``(time, agent step)`` the rate is measured from; None until an agent step past
+        ``learning_starts`` is done."""
+
+    def update(self, step: int) -> None:
+        """Agent step ``step`` is done."""
+        if self.since is None and step > self.learning_starts:
+            self.since = (self.clock(), step)
+
+    def seconds(self, step: int) -> Optional[float]:
+        """Seconds left at agent step ``step``; None while there is no rate of updates yet."""
+        if self.since is None or step <= self.since[1]:
+            return None
+        started, first = self.since
+        return max(self.total - step, 0) * (self.clock() - started) / (step - first)
+
+    def text(self, step: int) -> str:
+        """``3:12:40``, or ``after agent step 1,002`` while there is no estimate yet."""
+        if step >= self.total:
+            return _hms(0)
+        left = self.seconds(step)
+        if left is not None:
+            return _hms(left)
+        first = self.since[1] if self.since is not None else self.learning_starts + 1
+        return f"after agent step {first + 1:,}"
+
+
+class _Bar(tqdm):
+    """tqdm with the :class:`Eta` estimate (:attr:`eta`) in place of its own, which comes from
+    the recent rate, the seed phase's while it lasts."""
+
+    FORMAT = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, ETA {eta}, {rate_fmt}{postfix}]"
+    eta = ""
+
+    @property
+    def format_dict(self):
+        return dict(super().format_dict, eta=self.eta)
 
 
 class Progress:
@@ -23,26 +75,32 @@ class Progress:
         desc: the bar's label.
         bar: show a progress bar (``train.progress``; tqdm shows none when stderr is no terminal).
         every_s: seconds between progress lines when there is no bar and stdout is no terminal.
+        learning_starts: the agent step from which the agent updates (:class:`Eta`).
     """
 
     def __init__(self, total: int, step: int, frame: int, desc: str, bar: bool = True,
-                 every_s: float = PROGRESS_EVERY_S):
+                 every_s: float = PROGRESS_EVERY_S, learning_starts: int = 0):
         self.total, self.every_s = total, every_s
-        self.bar = tqdm(total=total, initial=min(step, total), unit="step", disable=None if bar else True,
-                        dynamic_ncols=True, desc=desc)
+        self.eta = Eta(total, learning_starts)
+        self.bar = _Bar(total=total, initial=min(step, total), unit="step", disable=None if bar else True,
+                        dynamic_ncols=True, desc=desc, bar_format=_Bar.FORMAT)
+        self.bar.eta = self.eta.text(step)
         # A line every every_s seconds where no progress bar shows (a log file).
         self.lines = self.bar.disable and not _isatty(sys.stdout)
-        self.started, self.start_step, self.start_frame = time.monotonic(), step, frame
+        self.started, self.start_frame = time.monotonic(), frame
         self.next_line = self.started + every_s
 
     def step(self, step: int, frame: int, last_return: Optional[float]) -> None:
         """One agent step done, now at ``step`` / ``frame``: the bar moves, or a line is due."""
+        self.eta.update(step)
+        if not self.bar.disable:
+            self.bar.eta = self.eta.text(step)
         self.bar.update(1)
         if self.lines and time.monotonic() >= self.next_line:
             now = time.monotonic()
             self.next_line = now + self.every_s
-            print(progress_line(step, self.total, frame - self.start_frame, step - self.start_step,
-                                now - self.started, last_return), flush=True)
+            print(progress_line(step, self.total, frame - self.start_frame, now - self.started,
+                                self.eta.text(step), last_return), flush=True)
 
     def episode_end(self, episode_return: float, fps: float, frame: int) -> None:
         """The bar shows the episode just finished."""
@@ -59,12 +117,12 @@ class Progress:
         self.bar.close()
 
 
-def progress_line(step: int, total: int, frames: int, steps: int, seconds: float,
+def progress_line(step: int, total: int, frames: int, seconds: float, eta: str,
                   last_return: Optional[float]) -> str:
     """``imssr: agent step 1,200/500,000 (0.2%), 310 frames/s, ETA 3:12:40, last episode return 12.5``:
-    rates over this process's training so far (``frames`` and ``steps`` in ``seconds``)."""
+    the frame rate over this process's training so far (``frames`` in ``seconds``), the
+    estimate ``eta`` (:meth:`Eta.text`)."""
     seconds = max(seconds, 1e-9)
-    eta = "unknown" if steps <= 0 else _hms((total - step) * seconds / steps)
     ret = "none yet" if last_return is None else f"{last_return:.1f}"
     return (f"imssr: agent step {step:,}/{total:,} ({100 * step / max(total, 1):.1f}%), "
             f"{frames / seconds:,.0f} frames/s, ETA {eta}, last episode return {ret}")
