@@ -232,7 +232,8 @@ def main() -> int:
     table = rows(variants, a.total_steps, cuda)
 
     print(f"device: {device_line(device)}; {torch.get_num_threads()} torch threads; "
-          f"TF32 {'on' if cuda and torch.backends.cuda.matmul.allow_tf32 else 'off'}")
+          f"TF32 matmuls {'on' if cuda and torch.backends.cuda.matmul.allow_tf32 else 'off'}, "
+          f"convolutions {'on' if cuda and torch.backends.cudnn.allow_tf32 else 'off'}")
     print(f"task {a.task}, batch {a.batch or 'preset'}, {a.steps} recorded steps after {a.warmup} "
           f"warm-up steps per variant, interleaved ({wall:.0f} s)"
           + (f", overrides: {' '.join(a.overrides)}" if a.overrides else ""))

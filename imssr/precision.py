@@ -100,12 +100,18 @@ def warn_if_bf16_is_slow(device: torch.device, precision: str) -> Optional[str]:
     return line
 
 
-def configure_cuda(device: torch.device, tf32: bool) -> None:
+def configure_cuda(device: torch.device, tf32: str) -> None:
     """On CUDA: cuDNN picks its fastest convolution algorithms for the (fixed) input shapes, and
-    TensorFloat-32 in matmuls and convolutions only when ``tf32`` (``agent.tf32``: it changes
-    numbers; torch's own default would allow it in cuDNN convolutions).  No-op on CPU."""
+    TensorFloat-32 as ``tf32`` (``agent.tf32``) says: ``default`` sets PyTorch's own defaults
+    (TF32 in cuDNN convolutions, not in matmuls), ``true`` allows it in both, ``false`` in
+    neither.  The switches are process-wide, so each agent sets both.  No-op on CPU."""
     if device.type != "cuda":
         return
     torch.backends.cudnn.benchmark = True
-    torch.backends.cuda.matmul.allow_tf32 = tf32
-    torch.backends.cudnn.allow_tf32 = tf32
+    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = tf32_switches(tf32)
+
+
+def tf32_switches(tf32: str) -> tuple[bool, bool]:
+    """``(matmul, cudnn)``: whether matmuls and cuDNN convolutions may use TensorFloat-32 under
+    ``agent.tf32 = tf32``."""
+    return {"default": (False, True), "true": (True, True), "false": (False, False)}[tf32]
