@@ -147,9 +147,10 @@ class AgentConfig:
     authors' GPU runs); ``true``: TF32 in matmuls and convolutions; ``false``: strict float32 in
     both.  No effect on CPU."""
     compile: str = "off"
-    """``torch.compile`` the actor, Q heads and conv trunks with this mode: ``off``, ``default``,
-    ``reduce-overhead`` (CUDA graphs on CUDA) or ``max-autotune``.  The first updates are slow
-    while it compiles; needs a C++ compiler on CPU.  Not measured on a GPU."""
+    """``torch.compile`` the conv trunks' passes, projections, Q heads and the actor's layers
+    with this mode: ``off``, ``default``, ``reduce-overhead`` or ``max-autotune`` (both CUDA
+    graphs on CUDA; each act and update marks a step of them).  The first updates are slow while
+    it compiles; needs a C++ compiler on CPU.  Not measured on a GPU."""
 
 
 @dataclass
