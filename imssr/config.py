@@ -259,6 +259,11 @@ class TrainConfig:
     into pinned memory and copied once), ``cuda`` (a uint8 tensor on the agent's GPU: index, stack
     and crop there), or ``auto`` (the GPU when its free memory holds the frames plus a margin for
     the model, else the host; docs/performance.md "Replay memory").  The same batches either way."""
+    gpu_share: float = 1.0
+    """The fraction of its GPU's memory this run may fill, in (0, 1]: below 1 (a sweep's
+    ``--gpus-per-run``, runs sharing a GPU), ``replay_device=auto`` counts that fraction of the
+    GPU's total memory instead of what is free when the run starts, so that runs started together
+    each keep to their share (frames that do not fit it stay on the host)."""
     tensorboard: bool = True
     """Write TensorBoard event files besides the CSV logs."""
     wandb: bool = False
@@ -389,6 +394,7 @@ class RunConfig:
             (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
             (t.replay_device in REPLAY_DEVICES,
              f"train.replay_device must be one of {', '.join(REPLAY_DEVICES)}, got {t.replay_device!r}"),
+            (0 < t.gpu_share <= 1, f"train.gpu_share must be in (0, 1], got {t.gpu_share}"),
             (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
             (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
