@@ -34,7 +34,8 @@ from imssr.config import AgentConfig, AuxConfig, IntrinsicConfig
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
 from imssr.networks import Actor, ConvTrunk, Critic, Encoder, ema, weight_init
-from imssr.precision import autocast, configure_cuda, full_precision, optimizer_step, warn_if_bf16_is_slow
+from imssr.precision import (autocast, cache_frozen_weights, configure_cuda, full_precision, optimizer_step,
+                             warn_if_bf16_is_slow)
 from imssr.replay import FrameReplayBuffer
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
@@ -121,6 +122,10 @@ class SACAgent:
         step of them (:meth:`mark_step`)."""
         if cfg.compile != "off":
             self._compile(None if cfg.compile == "default" else cfg.compile)
+        elif cfg.precision == "bf16":
+            # Compiled, the casts are in the graphs; eager, the frozen networks' weights would be
+            # cast to bfloat16 again at every call.
+            cache_frozen_weights(*(m for m in (self.nets, self.aux, self.signal) if m is not None))
 
     def _compile(self, mode: Optional[str], backend: str = "inductor") -> None:
         """``torch.compile`` (in place: state dicts keep their keys) what the update and acting
