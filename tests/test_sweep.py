@@ -110,7 +110,8 @@ def test_run_arguments_and_done_marker(tmp_path):
     assert (built.train.device, built.agent.batch_size) == ("cuda", 8)
     # Half a GPU each: the run places its replay frames within half of the GPU's memory.
     assert built.train.gpu_share == 0.5
-    assert expand(replace(cfg, gpus_per_run=1.0))[0].resolved_config(replace(cfg, gpus_per_run=1.0)).train.gpu_share == 1.0
+    whole = replace(cfg, gpus_per_run=1.0)
+    assert expand(whole)[0].resolved_config(whole).train.gpu_share == 1.0
     cfg.overrides.append("train.device=cuda:1")
     assert run.resolved_config(cfg).train.device == "cuda:1"
     # The budget in frames instead: `imssr train --frames` turns it into the task's agent steps.
