@@ -1,18 +1,17 @@
-"""Does ``torch.compile`` pay?  Eager vs compiled critic, same weights, same process.
+"""Does ``agent.compile`` pay?  The agent's own update, eager against compiled, same process.
 
-    python bench/compile_cost.py [--layers 4,11] [--batch 128] [--reps 10] [--threads 2]
-        [--device cpu] [--mode default]
+    python bench/compile_cost.py [--algos curl] [--layers 4,11] [--batch 128] [--reps 10]
+        [--threads 2] [--device cpu] [--mode default] [--size 100] [--crop 84]
 
-For each encoder depth builds the real critic (conv trunk + projection + twin Q
-heads, the paper's sizes) and a ``torch.compile`` copy with the same weights,
-then times, interleaved so that machine noise hits both alike:
-
-* the no-grad trunk pass the Bellman target and the intrinsic reward make;
-* the critic's forward + MSE loss + backward, the update's most expensive call.
-
-Prints the one-off compile time (the first compiled calls), the medians and the
-compiled / eager ratio, and the process's peak RSS.  ``torch.compile`` is adopted
-only if it pays on CPU and GPU alike (docs/performance.md).
+For each algorithm and encoder depth builds two agents of the paper's preset with the same
+seed, one with ``agent.compile=off`` and one with ``agent.compile=MODE`` (what training
+compiles: the conv trunks' passes, projections, Q heads and the actor's layers), each with a
+replay buffer of the same random frames, and times ``agent.update`` (every update of one agent
+step) of both, interleaved so that machine noise hits them alike.  Prints the one-off compile
+time (the compiled agent's first updates), the frames and graphs Dynamo captured, the medians
+and the compiled / eager ratio, and the process's peak RSS.  On CUDA each update ends with a
+synchronisation before the clock is read.  ``--backend eager`` captures the same graphs without
+generating code (a smoke run without a C++ compiler).
 """
 from __future__ import annotations
 
@@ -21,17 +20,39 @@ import resource
 import statistics
 import time
 
+import numpy as np
 import torch
-import torch.nn.functional as F
+import torch._dynamo
+from torch._dynamo.utils import counters
 
-from imssr.networks import ConvTrunk, Critic, Encoder, weight_init
+from imssr.agents import SACAgent
+from imssr.config import apply_overrides
+from imssr.presets import make_config
+from imssr.replay import FrameReplayBuffer
 
 
-def build(layers: int, device: torch.device) -> Critic:
-    trunk = ConvTrunk(9, 84, layers, channels_last=True)
-    critic = Critic(Encoder(trunk, 50), action_dim=1, hidden_dim=1024)
-    critic.apply(weight_init)
-    return critic.to(device)
+def random_buffer(frames: int, size: int, action_dim: int, seed: int = 0) -> FrameReplayBuffer:
+    """A buffer of ``frames`` transitions of random pixels (one channel group per frame)."""
+    rng = np.random.default_rng(seed)
+    buf = FrameReplayBuffer(frames + 1, (3, size, size), action_dim, seed=seed)
+    buf.add_first(rng.integers(0, 256, (3, size, size), dtype=np.uint8))
+    for _ in range(frames):
+        buf.add(rng.uniform(-1, 1, action_dim), float(rng.normal()), 1.0,
+                rng.integers(0, 256, (3, size, size), dtype=np.uint8))
+    return buf
+
+
+def build(algo: str, layers: int, a, compile_mode: str) -> SACAgent:
+    cfg = apply_overrides(make_config(algo, "cartpole_swingup"),
+                          [f"agent.encoder_layers={layers}", f"agent.batch_size={a.batch}",
+                           f"aux.batch_size={a.batch}", f"agent.crop_size={a.crop}",
+                           f"env.image_size={a.size}", "agent.compile=off"]).validate()
+    cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, layers - 1)
+    agent = SACAgent((3 * cfg.env.frame_stack, a.size, a.size), 1, cfg.agent, cfg.aux, cfg.intrinsic,
+                     device=a.device, seed=0)
+    if compile_mode != "off":
+        agent._compile(None if compile_mode == "default" else compile_mode, backend=a.backend)
+    return agent
 
 
 def sync(device: torch.device) -> None:
@@ -39,64 +60,46 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser()
+    p.add_argument("--algos", nargs="+", default=["curl"])
     p.add_argument("--layers", default="4,11")
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--reps", type=int, default=10)
+    p.add_argument("--warmup", type=int, default=3, help="updates before the clock (the first compile)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--mode", default="default", help="torch.compile mode")
-    a = p.parse_args()
+    p.add_argument("--mode", default="default", help="agent.compile mode")
+    p.add_argument("--backend", default="inductor", help="torch.compile backend (eager: a smoke run)")
+    p.add_argument("--size", type=int, default=100, help="frame size")
+    p.add_argument("--crop", type=int, default=84, help="crop size")
+    a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
-    obs = torch.randint(0, 256, (a.batch, 9, 84, 84), dtype=torch.uint8, device=dev)
-    action = torch.rand(a.batch, 1, device=dev) * 2 - 1
-    target = torch.randn(a.batch, 1, device=dev)
-
-    def critic_step(critic: Critic) -> None:
-        q1, q2 = critic(obs, action)
-        (F.mse_loss(q1, target) + F.mse_loss(q2, target)).backward()
-
-    def trunk_pass(trunk) -> None:
-        with torch.no_grad():
-            trunk(obs)
-
     print(f"torch {torch.__version__}, device {dev}, {a.threads} threads, batch {a.batch}, "
-          f"mode {a.mode}")
-    for layers in (int(v) for v in a.layers.split(",")):
-        eager = build(layers, dev)
-        compiled = build(layers, dev)
-        compiled.load_state_dict(eager.state_dict())
-        # One compiled graph for the trunk alone, one for the whole critic (same weights).
-        compiled_trunk = torch.compile(compiled.encoder.trunk, mode=a.mode)
-        compiled_critic = torch.compile(compiled, mode=a.mode)
-        t0 = time.perf_counter()
-        trunk_pass(compiled_trunk)
-        critic_step(compiled_critic)
-        critic_step(compiled_critic)
-        sync(dev)
-        compile_s = time.perf_counter() - t0
-        cases = {"trunk no-grad": (trunk_pass, eager.encoder.trunk, compiled_trunk),
-                 "critic fwd+bwd": (critic_step, eager, compiled_critic)}
-        times = {(c, n): [] for c in cases for n in ("eager", "compiled")}
-        for i in range(a.reps + 2):
-            for case, (fn, eager_net, compiled_net) in cases.items():
-                for name, net in (("eager", eager_net), ("compiled", compiled_net)):
-                    eager.zero_grad(set_to_none=True)
-                    compiled.zero_grad(set_to_none=True)
+          f"agent.compile={a.mode}, backend {a.backend}")
+    for algo in a.algos:
+        for layers in (int(v) for v in a.layers.split(",")):
+            torch._dynamo.reset()
+            counters.clear()
+            agents = {"eager": build(algo, layers, a, "off"), "compiled": build(algo, layers, a, a.mode)}
+            replays = {name: random_buffer(a.batch + 8, a.size, 1) for name in agents}
+            times: dict[str, list[float]] = {name: [] for name in agents}
+            compile_s = 0.0
+            for step in range(a.warmup + a.reps):
+                for name, agent in agents.items():
                     sync(dev)
                     t = time.perf_counter()
-                    fn(net)
+                    agent.update(replays[name], step)
                     sync(dev)
-                    if i >= 2:
-                        times[(case, name)].append(time.perf_counter() - t)
-        print(f"{layers:2d} layers: compile (first calls) {compile_s:.1f} s")
-        for case in cases:
-            e = statistics.median(times[(case, "eager")])
-            c = statistics.median(times[(case, "compiled")])
-            print(f"    {case:15s} eager {e * 1e3:7.1f} ms  compiled {c * 1e3:7.1f} ms  "
-                  f"ratio {c / e:.2f}")
+                    if step >= a.warmup:
+                        times[name].append(time.perf_counter() - t)
+                    elif name == "compiled":
+                        compile_s += time.perf_counter() - t
+            e, c = (statistics.median(times[n]) for n in ("eager", "compiled"))
+            print(f"{algo} {layers:2d} layers: compile (first {a.warmup} updates) {compile_s:.1f} s, "
+                  f"Dynamo frames {counters['frames']['ok']}, graphs {counters['stats']['unique_graphs']}")
+            print(f"    update  eager {e * 1e3:7.1f} ms  compiled {c * 1e3:7.1f} ms  ratio {c / e:.2f}")
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     print(f"peak RSS {rss:.2f} GiB")
 

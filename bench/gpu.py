@@ -20,7 +20,8 @@ baseline of each algorithm's ratios.  ``agent.tf32`` and cuDNN's autotuning are 
 switches, so TF32 is a ``--set agent.tf32=true`` for the whole run, not a variant.
 
 The measurement is ``bench/step_time.py``'s: every variant gets its own environment, replay
-buffer (``--seed-steps`` random-action steps of rendered frames) and agent; then all variants
+buffer (``--seed-steps`` random-action steps of rendered frames, in the store its training
+would use: ``train.replay_device`` resolved, printed) and agent; then all variants
 of all algorithms take one training step each in turn (act, every update of that agent step,
 env step with rendering, replay add), so machine noise and the GPU's clock changes hit them
 alike.  On CUDA each step ends with a synchronisation before the clock is read.  The
@@ -232,7 +233,11 @@ def main() -> int:
     table = rows(variants, a.total_steps, cuda)
 
     print(f"device: {device_line(device)}; {torch.get_num_threads()} torch threads; "
-          f"TF32 {'on' if cuda and torch.backends.cuda.matmul.allow_tf32 else 'off'}")
+          f"TF32 matmuls {'on' if cuda and torch.backends.cuda.matmul.allow_tf32 else 'off'}, "
+          f"convolutions {'on' if cuda and torch.backends.cudnn.allow_tf32 else 'off'}")
+    stores = sorted({f"train.replay_device={v.cfg.train.replay_device}: {v.replay_store}"
+                     for v in variants if isinstance(v, Variant)})
+    print(f"replay store, resolved as training would: {'; '.join(stores) or 'n/a'}")
     print(f"task {a.task}, batch {a.batch or 'preset'}, {a.steps} recorded steps after {a.warmup} "
           f"warm-up steps per variant, interleaved ({wall:.0f} s)"
           + (f", overrides: {' '.join(a.overrides)}" if a.overrides else ""))

@@ -17,7 +17,9 @@ CUDA every step ends with a synchronisation so that queued kernels are counted.
 ``--bf16 ALGO ...`` runs, for each ALGO, its preset at ``agent.precision=fp32`` and at
 ``bf16`` (after any ``--variants``) and prints the ratio bf16 / fp32 of each pair (median and
 mean: SODA's auxiliary update runs every other step), against issue 20's target of 0.6.
-Timings never go in tests.
+Each variant samples from the replay store its training would use on ``--device``
+(``train.replay_device`` resolved as the trainer does, for the preset's replay capacity), and
+each line says which.  Timings never go in tests.
 """
 from __future__ import annotations
 
@@ -38,7 +40,7 @@ import imssr  # noqa: F401  (sets the GL backend)
 from imssr.config import apply_overrides
 from imssr.envs import make_env
 from imssr.presets import make_config
-from imssr.replay import FrameReplayBuffer
+from imssr.replay import FrameReplayBuffer, make_replay_buffer, replay_placement
 from imssr.training.loop import build_agent, resolve_device
 
 
@@ -81,9 +83,20 @@ class Runner:
         self.env = api["make_env"](task, seed=0, action_repeat=cfg.env.action_repeat,
                                    shadow_size=cfg.env.shadow_size)
         obs, info = self.env.reset(seed=0)
-        self.replay = api["FrameReplayBuffer"](seed_steps + 2000, info["frame"].shape,
-                                               self.env.action_space.shape[0],
-                                               frame_stack=cfg.env.frame_stack, seed=0)
+        capacity, action_dim = seed_steps + 2000, self.env.action_space.shape[0]
+        if spec.startswith("rev:"):
+            self.replay_store = "host (the revision's FrameReplayBuffer)"
+            self.replay = api["FrameReplayBuffer"](capacity, info["frame"].shape, action_dim,
+                                                   frame_stack=cfg.env.frame_stack, seed=0)
+        else:
+            # The store training would use: train.replay_device resolved for the preset's
+            # capacity, as the trainer resolves it, built at the bench's smaller capacity.
+            frame = info["frame"]
+            placement = replay_placement(cfg.train.replay_device, device,
+                                         cfg.train.replay_capacity * frame.size, cfg.train.gpu_share)
+            self.replay_store = replay_store_text(placement.device)
+            self.replay = make_replay_buffer(placement.device, capacity, frame.shape, action_dim,
+                                             frame_stack=cfg.env.frame_stack, seed=0)
         self.replay.add_first(info["frame"])
         self.obs = obs
         self.rng = np.random.default_rng(0)
@@ -110,6 +123,13 @@ class Runner:
             torch.cuda.synchronize(self.device)
         self.step += 1
         (self.times if record else self.warmup_times).append(time.perf_counter() - t0)
+
+
+def replay_store_text(device: torch.device) -> str:
+    """Which replay store a variant samples from, in words."""
+    if device.type == "cpu":
+        return "host (numpy frames; batches copied to the agent's device)"
+    return f"{device} (tensor frames gathered and cropped there)"
 
 
 def run_interleaved(runners, warmup: int, steps: int) -> None:
@@ -146,7 +166,7 @@ def main() -> None:
     for r in runners:
         med, mean = statistics.median(r.times), statistics.fmean(r.times)
         print(f"{r.spec:45s} median {med:.3f} s/step  mean {mean:.3f}  ratio to {runners[0].spec}: "
-              f"{med / base:.3f}")
+              f"{med / base:.3f}  replay: {r.replay_store}")
     by_spec = {r.spec: r for r in runners}
     if pairs:
         print("bf16 / fp32 of the whole training step, same process (issue 20's target: <= 0.6)")

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import ctypes.util
 import os
+import sys
+from typing import Mapping, MutableMapping, Optional
 
 from imssr.errors import ImssrError
 
@@ -44,11 +46,60 @@ def check_gl() -> None:
         )
     for lib, package in _BACKEND_LIBS[backend]:
         if ctypes.util.find_library(lib) is None:
-            hint = " (or set MUJOCO_GL=osmesa and install libosmesa6)" if backend == "egl" else ""
+            hint = ""
+            if backend == "egl":
+                hint = (f" and {egl_vendor_hint(nvidia_driver_loaded())}"
+                        " (or set MUJOCO_GL=osmesa and install libosmesa6)")
             raise ImssrError(
                 f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
                 f"install the Debian package {package} (apt-get install {package}){hint}"
             )
+
+
+NVIDIA_DRIVER_FILE = "/proc/driver/nvidia/version"
+"""Present while NVIDIA's kernel driver is loaded: the machine renders best with NVIDIA's EGL."""
+
+
+def nvidia_driver_loaded() -> bool:
+    """Whether NVIDIA's kernel driver runs here (its EGL is then the one to render with)."""
+    return os.path.exists(NVIDIA_DRIVER_FILE)
+
+
+def egl_vendor_hint(nvidia: bool) -> str:
+    """The EGL vendor library to install for rendering: NVIDIA's on a machine with its driver
+    (``nvidia``), Mesa's otherwise."""
+    if nvidia:
+        return ("NVIDIA's EGL, from the driver's packages (Ubuntu: libnvidia-gl-<driver version>; "
+                "Debian: libegl-nvidia0), which provides /usr/share/glvnd/egl_vendor.d/10_nvidia.json")
+    return "Mesa's EGL for software rendering (the Debian package libgl1-mesa-dri: apt-get install libgl1-mesa-dri)"
+
+
+def egl_device_id(cuda_index: int, visible_devices: Optional[str]) -> Optional[str]:
+    """``MUJOCO_EGL_DEVICE_ID`` for a run on CUDA device ``cuda_index`` (torch's numbering, within
+    ``CUDA_VISIBLE_DEVICES`` = ``visible_devices``): the GPU's index among all of the machine's,
+    as EGL lists NVIDIA's devices.  None when it cannot be told (a GPU named by UUID or a MIG
+    slice, or an index past the list): EGL then picks as it would."""
+    if not visible_devices or not visible_devices.strip():
+        return str(cuda_index) if visible_devices is None else None
+    entries = [e.strip() for e in visible_devices.split(",")]
+    if cuda_index >= len(entries) or not entries[cuda_index].isdigit():
+        return None
+    return entries[cuda_index]
+
+
+def pin_egl_device(cuda_index: Optional[int], environ: MutableMapping[str, str] = os.environ,
+                   modules: Mapping[str, object] = sys.modules) -> Optional[str]:
+    """Set ``MUJOCO_EGL_DEVICE_ID`` so that MuJoCo renders on the run's GPU (CUDA device
+    ``cuda_index``; None: a CPU run, nothing to do), and return it.  Only under ``MUJOCO_GL=egl``,
+    never over a value the user set, and only before dm_control's EGL renderer is imported (it
+    opens its display then); None when nothing was set."""
+    if (cuda_index is None or environ.get("MUJOCO_GL", "egl") != "egl" or "MUJOCO_EGL_DEVICE_ID" in environ
+            or "dm_control._render.pyopengl.egl_renderer" in modules):
+        return None
+    device_id = egl_device_id(cuda_index, environ.get("CUDA_VISIBLE_DEVICES"))
+    if device_id is not None:
+        environ["MUJOCO_EGL_DEVICE_ID"] = device_id
+    return device_id
 
 
 def gl_renderer(physics) -> str | None:
@@ -70,6 +121,5 @@ def software_rendering_warning(backend: str, renderer: str | None, gpu: bool) ->
     if not gpu or backend != "egl" or renderer is None or "llvmpipe" not in renderer.lower():
         return None
     return (f"imssr: warning: MuJoCo renders with EGL on the CPU ({renderer}) although a CUDA GPU is present: "
-            "install the NVIDIA driver's EGL library (Debian/Ubuntu: libnvidia-gl-<driver version>, which "
-            "provides /usr/share/glvnd/egl_vendor.d/10_nvidia.json) or set "
+            f"install {egl_vendor_hint(True)}, or set "
             "__EGL_VENDOR_LIBRARY_FILENAMES=/usr/share/glvnd/egl_vendor.d/10_nvidia.json")

@@ -142,14 +142,16 @@ class AgentConfig:
     while weights, gradients and Adam's state stay float32; the Bellman target, the InfoNCE
     logits, the per-sample losses behind r_int and their normalisation, LayerNorm, BatchNorm
     and the temperature stay float32 (docs/performance.md, "Mixed precision")."""
-    tf32: bool = False
-    """On CUDA, let matmuls and cuDNN convolutions use TensorFloat-32 (faster on Ampere and
-    later, about 10 mantissa bits instead of 23: numbers change).  False keeps full float32;
-    no effect on CPU."""
+    tf32: str = "default"
+    """TensorFloat-32 on CUDA (about 10 mantissa bits instead of 23; faster on Ampere and later):
+    ``default``: PyTorch's own defaults, TF32 in cuDNN convolutions and full float32 matmuls (the
+    authors' GPU runs); ``true``: TF32 in matmuls and convolutions; ``false``: strict float32 in
+    both.  No effect on CPU."""
     compile: str = "off"
-    """``torch.compile`` the actor, Q heads and conv trunks with this mode: ``off``, ``default``,
-    ``reduce-overhead`` (CUDA graphs on CUDA) or ``max-autotune``.  The first updates are slow
-    while it compiles; needs a C++ compiler on CPU.  Not measured on a GPU."""
+    """``torch.compile`` the conv trunks' passes, projections, Q heads and the actor's layers
+    with this mode: ``off``, ``default``, ``reduce-overhead`` or ``max-autotune`` (both CUDA
+    graphs on CUDA; each act and update marks a step of them).  The first updates are slow while
+    it compiles; needs a C++ compiler on CPU.  Not measured on a GPU."""
 
 
 @dataclass
@@ -258,6 +260,11 @@ class TrainConfig:
     into pinned memory and copied once), ``cuda`` (a uint8 tensor on the agent's GPU: index, stack
     and crop there), or ``auto`` (the GPU when its free memory holds the frames plus a margin for
     the model, else the host; docs/performance.md "Replay memory").  The same batches either way."""
+    gpu_share: float = 1.0
+    """The fraction of its GPU's memory this run may fill, in (0, 1]: below 1 (a sweep's
+    ``--gpus-per-run``, runs sharing a GPU), ``replay_device=auto`` counts that fraction of the
+    GPU's total memory instead of what is free when the run starts, so that runs started together
+    each keep to their share (frames that do not fit it stay on the host)."""
     tensorboard: bool = True
     """Write TensorBoard event files besides the CSV logs."""
     wandb: bool = False
@@ -328,6 +335,10 @@ class RunConfig:
         for key, value in data.items():
             if key in SECTIONS and not isinstance(value, dict):
                 raise ImssrError(f"config section {key!r} must be an object, got {type(value).__name__}")
+        agent = data.get("agent")
+        if isinstance(agent, dict) and isinstance(agent.get("tf32"), bool):
+            # A JSON boolean agent.tf32 reads as the mode of the same name.
+            data = {**data, "agent": {**agent, "tf32": "true" if agent["tf32"] else "false"}}
         return _merged(cls(), data, raw={})
 
     def validate(self) -> "RunConfig":
@@ -367,6 +378,7 @@ class RunConfig:
             (a.update_schedule != "fused" or a.critic_update_every == 1,
              "agent.update_schedule=fused needs agent.critic_update_every=1"),
             (a.precision in PRECISIONS, f"agent.precision must be one of {', '.join(PRECISIONS)}"),
+            (a.tf32 in TF32_MODES, f"agent.tf32 must be one of {', '.join(TF32_MODES)}"),
             (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
             (x.update_every >= 1, "aux.update_every must be >= 1"),
             (i.source in INTRINSIC_SIGNALS, f"intrinsic.source must be one of {', '.join(INTRINSIC_SIGNALS)}"),
@@ -383,6 +395,7 @@ class RunConfig:
             (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
             (t.replay_device in REPLAY_DEVICES,
              f"train.replay_device must be one of {', '.join(REPLAY_DEVICES)}, got {t.replay_device!r}"),
+            (0 < t.gpu_share <= 1, f"train.gpu_share must be in (0, 1], got {t.gpu_share}"),
             (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
             (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
             (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
@@ -429,6 +442,7 @@ class RunConfig:
 
 UPDATE_SCHEDULES = ("sequential", "fused")
 PRECISIONS = ("fp32", "bf16")
+TF32_MODES = ("default", "true", "false")
 COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
 VIDEO_FORMATS = ("gif", "mp4")
 REPLAY_DEVICES = ("cpu", "cuda", "auto")

@@ -13,6 +13,7 @@ import sys
 from typing import ContextManager, Optional
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -49,6 +50,45 @@ class FP32BatchNorm1d(nn.BatchNorm1d):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         with full_precision(x):
             return super().forward(x.float())
+
+
+class FrozenBF16:
+    """The forward of a frozen ``nn.Linear`` or ``nn.Conv2d`` (weights without grad: target
+    networks, RND's random target) that keeps bfloat16 copies of its weight and bias for bf16
+    autocast.  Autocast caches the casts of weights that require grad only, so it would cast
+    these again at every call; the copies are made again only when the weights change (the
+    version counters: an EMA step, a loaded state dict).  The same values as autocast's cast, so
+    the same numbers; outside bf16 autocast, the layer's own forward."""
+
+    def __init__(self, layer: nn.Linear | nn.Conv2d):
+        self.layer = layer
+        self.key: Optional[tuple] = None
+        self.copies: tuple[Optional[torch.Tensor], ...] = ()
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        layer = self.layer
+        device = x.device.type
+        if not torch.is_autocast_enabled(device) or torch.get_autocast_dtype(device) != torch.bfloat16:
+            return type(layer).forward(layer, x)
+        params = (layer.weight, layer.bias)
+        key = tuple(None if p is None else (p.data_ptr(), p._version) for p in params)
+        if key != self.key:
+            self.copies = tuple(None if p is None else p.detach().to(torch.bfloat16) for p in params)
+            self.key = key
+        weight, bias = self.copies
+        if isinstance(layer, nn.Conv2d):
+            return layer._conv_forward(x, weight, bias)
+        return F.linear(x, weight, bias)
+
+
+def cache_frozen_weights(*modules: nn.Module) -> int:
+    """Give every frozen ``nn.Linear`` and ``nn.Conv2d`` (no parameter requires grad) under
+    ``modules`` a :class:`FrozenBF16` forward; returns how many layers."""
+    layers = {id(m): m for module in modules for m in module.modules()
+              if type(m) in (nn.Linear, nn.Conv2d) and not any(p.requires_grad for p in m.parameters())}
+    for layer in layers.values():
+        layer.forward = FrozenBF16(layer)
+    return len(layers)
 
 
 def optimizer_step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> None:
@@ -100,12 +140,18 @@ def warn_if_bf16_is_slow(device: torch.device, precision: str) -> Optional[str]:
     return line
 
 
-def configure_cuda(device: torch.device, tf32: bool) -> None:
+def configure_cuda(device: torch.device, tf32: str) -> None:
     """On CUDA: cuDNN picks its fastest convolution algorithms for the (fixed) input shapes, and
-    TensorFloat-32 in matmuls and convolutions only when ``tf32`` (``agent.tf32``: it changes
-    numbers; torch's own default would allow it in cuDNN convolutions).  No-op on CPU."""
+    TensorFloat-32 as ``tf32`` (``agent.tf32``) says: ``default`` sets PyTorch's own defaults
+    (TF32 in cuDNN convolutions, not in matmuls), ``true`` allows it in both, ``false`` in
+    neither.  The switches are process-wide, so each agent sets both.  No-op on CPU."""
     if device.type != "cuda":
         return
     torch.backends.cudnn.benchmark = True
-    torch.backends.cuda.matmul.allow_tf32 = tf32
-    torch.backends.cudnn.allow_tf32 = tf32
+    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = tf32_switches(tf32)
+
+
+def tf32_switches(tf32: str) -> tuple[bool, bool]:
+    """``(matmul, cudnn)``: whether matmuls and cuDNN convolutions may use TensorFloat-32 under
+    ``agent.tf32 = tf32``."""
+    return {"default": (False, True), "true": (True, True), "false": (False, False)}[tf32]

@@ -83,9 +83,9 @@ class Setting:
 
 RUN = "run setting"
 RUN_FIELDS = ("env.footage_dir", "aux.image_dir", "aux.image_pool_size", "train.save_buffer",
-              "train.keep_checkpoints", "train.device", "train.replay_device", "train.tensorboard", "train.progress",
-              "train.torch_threads", "train.wandb", "train.wandb_project", "train.wandb_group",
-              "train.eval_video_every", "train.eval_video_format")
+              "train.keep_checkpoints", "train.device", "train.replay_device", "train.gpu_share",
+              "train.tensorboard", "train.progress", "train.torch_threads", "train.wandb", "train.wandb_project",
+              "train.wandb_group", "train.eval_video_every", "train.eval_video_format")
 """Fields that say where data comes from or how a run is kept and shown, not what it learns."""
 
 COMMON = (
@@ -122,7 +122,9 @@ COMMON = (
             "critic, actor + temperature, targets, auxiliary task, in that order"),
     Setting("agent.channels_last", True, IMSSR, "memory layout only: the same maths"),
     Setting("agent.precision", "fp32", AUTHORS_LOOP, "every pass in float32"),
-    Setting("agent.tf32", False, AUTHORS_LOOP, "full float32 matmuls and convolutions on CUDA"),
+    Setting("agent.tf32", "default", AUTHORS_LOOP, "PyTorch's defaults, as the authors' GPU runs had: "
+            "TF32 in cuDNN convolutions, full float32 matmuls (CUDA only; "
+            "`false`: strict float32)"),
     Setting("agent.compile", "off", AUTHORS_LOOP, "eager PyTorch"),
     Setting("train.steps", 500_000, TABLE3, "T = 500,000 agent steps ('Number of training "
             "steps'; the authors' train_steps); the paper's text says 'frames'"),

@@ -58,6 +58,9 @@ def test_cpu_smoke_run_prints_one_row_per_algo_and_variant_with_the_baseline_fir
         assert peak == "n/a (cpu)"
     assert "excludes evaluation" in proc.stdout and "excluded from steps/s" in proc.stdout
     assert proc.stdout.splitlines()[0].startswith("device: CPU")
+    # The variants sample from the store training would use here: the host's.
+    assert "replay store, resolved as training would: train.replay_device=auto: host (numpy frames" \
+        in proc.stdout
     with open(out, newline="") as f:
         written = list(csv.DictReader(f))
     assert [[r["algo"], r["precision"], r["compile"], r["steps/s"]] for r in written] == \

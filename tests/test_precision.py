@@ -3,12 +3,13 @@ weights, optimiser state and the numerically sensitive pieces in float32."""
 import numpy as np
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from conftest import filled_buffer
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward
-from imssr.precision import FP32LayerNorm, full_precision, native_bf16, warn_if_bf16_is_slow
+from imssr.precision import FP32LayerNorm, FrozenBF16, full_precision, native_bf16, warn_if_bf16_is_slow
 from imssr.presets import make_config
 from test_no_sync import small_agent
 
@@ -111,3 +112,47 @@ def test_the_slow_bf16_warning_is_printed_once_and_only_without_native_bfloat16(
         assert printed == [lines[0]]
     else:  # native bfloat16, or a machine that cannot tell
         assert lines == [None, None, None] and printed == []
+
+
+class CastCount(TorchDispatchMode):
+    """Counts the dtype casts (``aten._to_copy``) dispatched while active."""
+
+    def __init__(self):
+        super().__init__()
+        self.casts = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.casts += func.overloadpacket is torch.ops.aten._to_copy
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("algo", ["curl", "im-soda"])
+def test_bf16_casts_frozen_weights_once_per_change_with_the_same_numbers(monkeypatch, algo):
+    """The target networks' (and SODA's target's) bf16 copies are made again only after an EMA
+    step: fewer casts per update than autocast alone, and bit for bit the same update."""
+    import imssr.agents.sac as sac
+
+    cache = sac.cache_frozen_weights
+    agents, casts, metrics = {}, {}, {}
+    for cached in (False, True):
+        monkeypatch.setattr(sac, "cache_frozen_weights", cache if cached else lambda *modules: 0)
+        agent = agents[cached] = small_agent(algo, "sequential", precision="bf16")
+        assert any(isinstance(m.__dict__.get("forward"), FrozenBF16) for m in agent.nets.modules()) == cached
+        replay = filled_buffer(60, action_dim=2, size=60)
+        agent.update(replay, 0)
+        with CastCount() as count:
+            for step in range(1, 5):  # two EMA periods (target_update_every = 2)
+                metrics[cached] = agent.update(replay, step)
+        casts[cached] = count.casts
+    # Each frozen conv or linear layer's weight and bias: cast at every call without the cache.
+    assert casts[True] < casts[False] - 8, casts
+    for (k, v), (_, w) in zip(agents[False].nets.state_dict().items(), agents[True].nets.state_dict().items()):
+        assert torch.equal(v, w), k
+    for key, value in metrics[False].items():
+        assert torch.equal(torch.as_tensor(metrics[True][key]), torch.as_tensor(value)), key
+
+
+def test_fp32_agents_keep_the_layers_own_forward():
+    agent = small_agent("im-soda", "sequential")
+    assert not any("forward" in m.__dict__ for m in agent.nets.modules())
+    assert not any("forward" in m.__dict__ for m in agent.aux.modules())

@@ -50,6 +50,34 @@ def test_auto_keeps_the_frames_on_the_host_when_the_gpu_lacks_room():
     assert choose_replay_device("auto", GPU, 3 * GB, free_nbytes=8 * GB).device == GPU
 
 
+def test_runs_sharing_a_gpu_fit_together_whatever_each_sees_free_at_its_start():
+    # Four runs at --gpus-per-run 0.25 on an 80 GB GPU start together: each sees it all free.
+    total = 80 * GB
+    placed = [choose_replay_device("auto", GPU, FRAMES_500K, free_nbytes=total - 1 * GB, share=0.25,
+                                   total_nbytes=total) for _ in range(4)]
+    assert all(p.device == GPU for p in placed)
+    assert 4 * (FRAMES_500K + REPLAY_DEVICE_MARGIN_BYTES) <= total
+    assert placed[0].reason == ("imssr: replay frames on cuda:0 (train.replay_device=auto: 15.0 GB of frames + "
+                                "4.0 GB for the model, 20.0 GB for this run on cuda:0, its share 0.25 of 80.0 GB)")
+    # Five at 0.2: 16 GB each cannot hold 19 GB; every one keeps its frames on the host.
+    fifth = choose_replay_device("auto", GPU, FRAMES_500K, free_nbytes=total, share=0.2, total_nbytes=total)
+    assert fifth.device == CPU and "the GPU lacks room" in fifth.reason
+    # A share never counts memory that is not free (another process holds it).
+    taken = choose_replay_device("auto", GPU, FRAMES_500K, free_nbytes=10 * GB, share=0.5, total_nbytes=total)
+    assert taken.device == CPU and "10.0 GB for this run" in taken.reason
+    # A whole GPU: its free memory, as before.
+    assert choose_replay_device("auto", GPU, FRAMES_500K, 79 * GB, share=1.0, total_nbytes=total) == \
+        choose_replay_device("auto", GPU, FRAMES_500K, 79 * GB)
+
+
+def test_a_gpu_share_is_validated():
+    cfg = make_config("curl", "walker_walk")
+    assert cfg.train.gpu_share == 1.0
+    for bad in ("0", "1.5", "-0.25"):
+        with pytest.raises(ImssrError, match=r"^train.gpu_share must be in \(0, 1\]"):
+            apply_overrides(cfg, [f"train.gpu_share={bad}"]).validate()
+
+
 def test_a_cpu_agent_keeps_its_frames_on_the_host_without_a_word():
     assert choose_replay_device("auto", CPU, FRAMES_500K, free_nbytes=None) == choose_replay_device(
         "cpu", CPU, FRAMES_500K, None)

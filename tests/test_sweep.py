@@ -5,6 +5,7 @@ import os
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 
 import pytest
 import torch
@@ -80,7 +81,8 @@ def test_the_worker_trains_the_config_the_sweep_writes(tmp_path):
 
     flags = {"im-soda": ["--algo", "im-soda", "--task", "finger_spin", "--seed", "4", "--steps", "50", "--beta0",
                          "0.2", "--device", "cuda", "--no-progress", "--set", "train.torch_threads=2",
-                         "--set", "agent.batch_size=8", "--set", "train.eval_episodes=2"],
+                         "--set", "agent.batch_size=8", "--set", "train.eval_episodes=2",
+                         "--set", "train.gpu_share=0.5"],
              "curl+rnd": ["--algo", "curl+rnd", "--task", TASK, "--seed", "1", "--frames", "3001", "--no-progress",
                           "--set", "train.torch_threads=1"]}
     for cfg in [SweepConfig(root=str(tmp_path), algos=["im-soda"], tasks=["finger_spin"], seeds=[4], steps=50,
@@ -106,6 +108,10 @@ def test_run_arguments_and_done_marker(tmp_path):
     built = run.resolved_config(cfg)
     assert (built.algo, built.env.task, built.train.seed, built.train.steps) == ("curl", TASK, 2, 375)
     assert (built.train.device, built.agent.batch_size) == ("cuda", 8)
+    # Half a GPU each: the run places its replay frames within half of the GPU's memory.
+    assert built.train.gpu_share == 0.5
+    whole = replace(cfg, gpus_per_run=1.0)
+    assert expand(whole)[0].resolved_config(whole).train.gpu_share == 1.0
     cfg.overrides.append("train.device=cuda:1")
     assert run.resolved_config(cfg).train.device == "cuda:1"
     # The budget in frames instead: `imssr train --frames` turns it into the task's agent steps.

@@ -34,11 +34,15 @@ from imssr.config import AgentConfig, AuxConfig, IntrinsicConfig
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
 from imssr.networks import Actor, ConvTrunk, Critic, Encoder, ema, weight_init
-from imssr.precision import autocast, configure_cuda, full_precision, optimizer_step, warn_if_bf16_is_slow
+from imssr.precision import (autocast, cache_frozen_weights, configure_cuda, full_precision, optimizer_step,
+                             warn_if_bf16_is_slow)
 from imssr.replay import FrameReplayBuffer
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
 Metrics = dict[str, "torch.Tensor | float"]
+
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
+"""The ``agent.compile`` modes that replay compiled code as CUDA graphs on CUDA."""
 
 
 class SACNetworks(nn.Module):
@@ -113,19 +117,36 @@ class SACAgent:
         self.updates = 0
         warn_if_bf16_is_slow(self.device, cfg.precision)
         configure_cuda(self.device, cfg.tf32)
+        self.cuda_graphs = self.device.type == "cuda" and cfg.compile in CUDA_GRAPH_MODES
+        """Whether compiled code runs as CUDA graphs: :meth:`act` and :meth:`update` each start a
+        step of them (:meth:`mark_step`)."""
         if cfg.compile != "off":
             self._compile(None if cfg.compile == "default" else cfg.compile)
+        elif cfg.precision == "bf16":
+            # Compiled, the casts are in the graphs; eager, the frozen networks' weights would be
+            # cast to bfloat16 again at every call.
+            cache_frozen_weights(*(m for m in (self.nets, self.aux, self.signal) if m is not None))
 
-    def _compile(self, mode: Optional[str]) -> None:
-        """``torch.compile`` (in place: state dicts keep their keys) every module the update and
-        acting call: the trunk's shared layers and head (``encode`` calls them apart), the
-        projections, the Q heads and the actor, online and target."""
+    def _compile(self, mode: Optional[str], backend: str = "inductor") -> None:
+        """``torch.compile`` (in place: state dicts keep their keys) what the update and acting
+        call, online and target: the conv trunks' two passes (:meth:`ConvTrunk.compile`), the
+        projections, the Q heads and the actor's layers (:meth:`Actor.compile`)."""
         n = self.nets
         for encoder in (n.critic.encoder, n.critic_target.encoder):
-            for module in (encoder.trunk.convs, encoder.trunk.head, encoder.projection):
-                module.compile(mode=mode)
+            encoder.trunk.compile(mode=mode, backend=backend)
+            encoder.projection.compile(mode=mode, backend=backend)
         for module in (n.critic.q, n.critic_target.q, n.actor):
-            module.compile(mode=mode)
+            module.compile(mode=mode, backend=backend)
+
+    def mark_step(self) -> None:
+        """Start a new step of CUDA graphs (under :attr:`cuda_graphs`).  An update calls the same
+        compiled module several times without a backward between (the target encoder, the online
+        trunk on o', the actor, the target Q heads), and torch would otherwise start a new step at
+        each such call under ``no_grad``, reusing the memory of outputs still to be read.  Marked,
+        every output lives until the next :meth:`act` or :meth:`update`; what outlives that
+        (metrics) is computed by eager ops from them, never a graph's output itself."""
+        if self.cuda_graphs:
+            torch.compiler.cudagraph_mark_step_begin()
 
     def autocast(self):
         """The context of the agent's forward passes: bfloat16 autocast under
@@ -140,6 +161,7 @@ class SACAgent:
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool) -> np.ndarray:
         """Action in [-1, 1] for one stacked uint8 observation (centre crop)."""
+        self.mark_step()
         x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
         x = center_crop(x, self.cfg.crop_size)
         with self.autocast():
@@ -166,6 +188,7 @@ class SACAgent:
     def update(self, replay: FrameReplayBuffer, step: int) -> Metrics:
         """All updates of one agent step; ``step`` counts agent steps.  Metrics stay on the
         device (the training loop reads them once per episode): no host sync in an update."""
+        self.mark_step()
         batch = self.to_batch(replay.sample_batch(self.cfg.batch_size, self.device))
         with self.autocast():
             if self.cfg.update_schedule == "fused":
@@ -227,10 +250,10 @@ class SACAgent:
             features = trunk_net.shared_features(obs)
         with torch.no_grad():
             next_trunk = trunk_net(batch.next_obs) if next_features is None \
-                else trunk_net.head(next_features.detach()).flatten(1)
+                else trunk_net.head_features(next_features.detach())
             next_latent = self.nets.critic_target.encoder(batch.next_obs)
         enc = Encoding(view_weights=tuple(w for _, w in views), features=features,
-                       trunk=trunk_net.head(features).flatten(1),  # = trunk_net(obs)
+                       trunk=trunk_net.head_features(features),  # = trunk_net(obs)
                        next_trunk=next_trunk, next_latent=next_latent, next_features=next_features)
         if with_task_loss:
             enc = replace(enc, aux_loss=self.aux.per_sample_loss(batch, enc))

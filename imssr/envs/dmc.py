@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, Optional
 import gymnasium as gym
 import numpy as np
 
-from imssr._gl import check_gl
+from imssr._gl import check_gl, egl_vendor_hint, nvidia_driver_loaded
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
@@ -92,8 +92,9 @@ class DMCEnv(gym.Env):
         except Exception as exc:  # noqa: BLE001 - GL context failures surface here
             raise ImssrError(
                 f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} "
-                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); software rendering "
-                "needs the Debian package libgl1-mesa-dri (apt-get install libgl1-mesa-dri)"
+                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); install "
+                + (egl_vendor_hint(nvidia_driver_loaded()) if _gl_backend() == "egl" else
+                   "the Debian package libgl1-mesa-dri for software rendering (apt-get install libgl1-mesa-dri)")
             ) from None
 
         # Test scenes; their footage comes from the ``footage_split`` pool (the

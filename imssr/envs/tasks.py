@@ -133,10 +133,12 @@ def get_task(name: str) -> TaskSpec:
     if name in _CUSTOM:
         domain, task, fn = _CUSTOM[name]
         return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT), fn)
-    for domain, task in _suite_tasks():
+    # The static list (tests/test_gym_ids.py keeps it equal to dm_control's): importing
+    # dm_control opens its EGL display, which must wait until the run's GPU is known.
+    for domain, task in SUITE_TASKS:
         if f"{domain}_{task}" == name:
             return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT))
     raise ImssrError(
         f"unknown task {name!r}; paper tasks: {', '.join(PAPER_TASKS)} "
-        f"(`imssr tasks` lists all {len(list_tasks())})"
+        f"(`imssr tasks` lists all {len(static_task_names())})"
     )

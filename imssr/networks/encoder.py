@@ -89,8 +89,20 @@ class ConvTrunk(nn.Module):
         """Output of the shared layers, ``(B, filters, s', s')``, before the RL head."""
         return self.convs(self.prepare(obs))
 
+    def head_features(self, features: torch.Tensor) -> torch.Tensor:
+        """The RL head on :meth:`shared_features`' output, flattened: ``(B, out_dim)``."""
+        return self.head(features).flatten(1)
+
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.head(self.shared_features(obs)).flatten(1)
+        return self.head_features(self.shared_features(obs))
+
+    def compile(self, *args, **kwargs) -> None:
+        """``torch.compile`` the two passes callers make (:meth:`shared_features`, then
+        :meth:`head_features`; :meth:`forward` is both), in place: the state dict keeps its keys.
+        Compiling ``convs`` or ``head`` themselves would capture nothing: Dynamo does not trace
+        the forward of a ``torch.nn`` container called as the compiled frame."""
+        for name in ("shared_features", "head_features"):
+            setattr(self, name, torch.compile(getattr(self, name), *args, **kwargs))
 
 
 class Projection(nn.Module):

@@ -44,9 +44,19 @@ class Actor(nn.Module):
         self.net = mlp(feature_dim, hidden_dim, 2 * action_dim)
         self.log_std_min, self.log_std_max = log_std_min, log_std_max
 
+    def output(self, trunk_features: torch.Tensor) -> torch.Tensor:
+        """The MLP's output on the projected features: ``mu`` and the unsquashed ``log_std``."""
+        return self.net(self.projection(trunk_features))
+
+    def compile(self, *args, **kwargs) -> None:
+        """``torch.compile`` :meth:`output` (the layers), in place: the state dict keeps its keys.
+        The tanh-Gaussian stays eager: its noise comes from a ``torch.Generator``, which Dynamo
+        does not trace (the actor would be cut into three graphs around it)."""
+        self.output = torch.compile(self.output, *args, **kwargs)
+
     def forward(self, trunk_features: torch.Tensor, generator: Optional[torch.Generator] = None,
                 sample: bool = True) -> PolicyOutput:
-        out = self.net(self.projection(trunk_features))
+        out = self.output(trunk_features)
         with full_precision(out):
             # The tanh-Gaussian in float32: log pi subtracts nearly equal terms and
             # log(1 - tanh^2) needs the squashed action's small distance to +-1; the noise is drawn

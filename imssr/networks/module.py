@@ -34,3 +34,7 @@ def ema(online, target, tau: float) -> None:
     if len(online) != len(target):
         raise ValueError(f"EMA over {len(online)} online and {len(target)} target parameters")
     torch._foreach_lerp_([t.data for t in target], [p.data for p in online], tau)
+    # Through ``.data`` the targets' version counters stay as they were: count the change, so
+    # that copies made from the old values (bf16 casts, :class:`imssr.precision.FrozenBF16`) are
+    # known to be stale.  Numbers are untouched.
+    torch.autograd.graph.increment_version(target)

@@ -125,13 +125,18 @@ class ReplayPlacement:
 
 def choose_replay_device(setting: str, agent_device: torch.device, frames_nbytes: int,
                          free_nbytes: Optional[int],
-                         margin_nbytes: int = REPLAY_DEVICE_MARGIN_BYTES) -> ReplayPlacement:
+                         margin_nbytes: int = REPLAY_DEVICE_MARGIN_BYTES,
+                         share: float = 1.0, total_nbytes: Optional[int] = None) -> ReplayPlacement:
     """Where ``train.replay_device = setting`` puts ``frames_nbytes`` of frames for an agent on
-    ``agent_device`` whose device has ``free_nbytes`` free (None: not a CUDA device).
+    ``agent_device`` whose device has ``free_nbytes`` free of ``total_nbytes`` (None: not a CUDA
+    device).
 
     ``cpu``: the host.  ``cuda``: the agent's GPU (the agent must be on one).  ``auto``: the
-    agent's GPU when its free memory holds the frames plus ``margin_nbytes`` for the model
-    (:data:`REPLAY_DEVICE_MARGIN_BYTES`), else the host; a CPU agent keeps them on the host."""
+    agent's GPU when the room it has there holds the frames plus ``margin_nbytes`` for the model
+    (:data:`REPLAY_DEVICE_MARGIN_BYTES`), else the host; a CPU agent keeps them on the host.  The
+    room is the free memory, or with ``share`` < 1 (``train.gpu_share``: runs sharing the GPU)
+    that fraction of the total, at most what is free: the same for runs that start together,
+    whose frames are not allocated yet when each one looks."""
     if setting == "cpu":
         return ReplayPlacement(torch.device("cpu"))
     if setting == "cuda":
@@ -144,27 +149,33 @@ def choose_replay_device(setting: str, agent_device: torch.device, frames_nbytes
     if agent_device.type != "cuda" or free_nbytes is None:
         return ReplayPlacement(torch.device("cpu"))
     need, gb = frames_nbytes + margin_nbytes, 1e9
-    sizes = (f"{frames_nbytes / gb:.1f} GB of frames + {margin_nbytes / gb:.1f} GB for the model, "
-             f"{free_nbytes / gb:.1f} GB free on {agent_device}")
-    if free_nbytes >= need:
+    if share < 1 and total_nbytes is not None:
+        room = min(free_nbytes, int(share * total_nbytes))
+        where = (f"{room / gb:.1f} GB for this run on {agent_device}, its share {share:g} of "
+                 f"{total_nbytes / gb:.1f} GB")
+    else:
+        room, where = free_nbytes, f"{free_nbytes / gb:.1f} GB free on {agent_device}"
+    sizes = f"{frames_nbytes / gb:.1f} GB of frames + {margin_nbytes / gb:.1f} GB for the model, {where}"
+    if room >= need:
         return ReplayPlacement(agent_device, f"imssr: replay frames on {agent_device} "
                                              f"(train.replay_device=auto: {sizes})")
     return ReplayPlacement(torch.device("cpu"), f"imssr: replay frames in host memory, the GPU lacks room "
                                                 f"(train.replay_device=auto: {sizes})")
 
 
-def replay_placement(setting: str, agent_device: torch.device, frames_nbytes: int) -> ReplayPlacement:
-    """:func:`choose_replay_device` with this machine's CUDA state (free memory from
+def replay_placement(setting: str, agent_device: torch.device, frames_nbytes: int,
+                     share: float = 1.0) -> ReplayPlacement:
+    """:func:`choose_replay_device` with this machine's CUDA state (free and total memory from
     ``torch.cuda.mem_get_info``)."""
     if setting == "cuda" and not torch.cuda.is_available():
         raise ImssrError("train.replay_device=cuda requested but CUDA is not available; "
                          "use --set train.replay_device=cpu")
-    free = None
+    free = total = None
     if agent_device.type == "cuda" and setting == "auto":
         if agent_device.index is None:  # name the GPU the message speaks of
             agent_device = torch.device("cuda", torch.cuda.current_device())
-        free = torch.cuda.mem_get_info(agent_device)[0]
-    return choose_replay_device(setting, agent_device, frames_nbytes, free)
+        free, total = torch.cuda.mem_get_info(agent_device)
+    return choose_replay_device(setting, agent_device, frames_nbytes, free, share=share, total_nbytes=total)
 
 
 def make_replay_buffer(device: torch.device, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,

@@ -192,6 +192,9 @@ class Run:
             values["train.steps"] = cfg.steps
         if self.on_gpu(cfg):
             values["train.device"] = "cuda"
+        if 0 < cfg.gpus < 1:
+            # Runs share a GPU: each places its replay frames within its share of the memory.
+            values["train.gpu_share"] = cfg.gpus
         if cfg.logger:
             values.update(logger_fields(cfg.logger))
             if values["train.wandb"]:

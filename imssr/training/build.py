@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from imssr._gl import pin_egl_device
 from imssr.agents import SACAgent
 from imssr.algos import get_algo
 from imssr.config import RunConfig
@@ -11,6 +12,15 @@ from imssr.errors import ImssrError
 
 
 def resolve_device(name: str) -> torch.device:
+    """The torch device of ``train.device``; on CUDA, MuJoCo's EGL renders on the same GPU
+    (:func:`imssr._gl.pin_egl_device`, before any env is made)."""
+    device = _torch_device(name)
+    if device.type == "cuda":
+        pin_egl_device(device.index if device.index is not None else torch.cuda.current_device())
+    return device
+
+
+def _torch_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:

@@ -40,7 +40,7 @@ from imssr.training.state import Episode, RunState
 from imssr.utils import contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
-RESUMABLE_CHANGES = {"train.steps", "train.device", "train.replay_device", "train.progress",
+RESUMABLE_CHANGES = {"train.steps", "train.device", "train.replay_device", "train.gpu_share", "train.progress",
                      "train.tensorboard", "agent.precision", "agent.tf32", "agent.compile",
                      "train.torch_threads", "train.eval_episodes", "train.eval_every_steps",
                      "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer",
@@ -178,7 +178,8 @@ class Trainer:
         self.cfg, self.out_dir = cfg, out_dir
         self.device = resolve_device(cfg.train.device)
         self.replay_placement = replay_placement(cfg.train.replay_device, self.device,
-                                                 cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2)
+                                                 cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2,
+                                                 cfg.train.gpu_share)
         ckpt = None
         if resume:
             ckpt = self._check_resume()
