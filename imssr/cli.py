@@ -373,7 +373,8 @@ def cmd_report(args) -> int:
 def cmd_export(args) -> int:
     from imssr.report.export import export_runs
 
-    _check_out(args.dest, "DEST")
+    if not args.dest.strip():
+        raise ImssrError("DEST is empty; give the export directory")
     exported = export_runs(args.root, args.dest)
     for item in exported:
         print(f"{item.state}: {os.path.join(args.dest, os.path.relpath(item.dest, os.path.abspath(args.dest)))}")

@@ -3,7 +3,9 @@
 A long sweep's run store may not outlive the machine it runs on; version control does. This
 loop runs ``imssr export ROOT DEST`` (config and CSV logs of each finished run, no checkpoints)
 every ``--every`` seconds and commits what changed under DEST, one commit per export that copied
-something, naming its runs. It exits after a last export once no ``imssr sweep`` holds ROOT::
+something, naming its runs. It exits after a last export once the sweep that held ROOT stops
+(or when none has held it within ``--wait-start`` seconds: a sweep started beside it imports
+torch and plans its runs before it takes its root)::
 
     nice -n 19 .venv/bin/imssr sweep --file docs/results/dmc100k_cartpole_swingup/sweep.json &
     .venv/bin/python scripts/keep_results.py ~/imssr-runs/dmc100k_cartpole_swingup \\
@@ -44,14 +46,19 @@ def main(argv=None) -> int:
     p.add_argument("root", help="the sweep's root (its run store)")
     p.add_argument("dest", help="export directory inside this git work tree")
     p.add_argument("--every", type=float, default=300.0, help="seconds between exports (default 300)")
+    p.add_argument("--wait-start", type=float, default=300.0,
+                   help="seconds to wait for a sweep to take ROOT before a last export and exit (default 300)")
     args = p.parse_args(argv)
     root, dest = os.path.expanduser(args.root), args.dest
+    give_up = time.monotonic() + args.wait_start
+    seen = False
     try:
         while True:
             running = held_by(root) is not None
+            seen = seen or running
             if os.path.isdir(root):
                 export_and_commit(root, dest)
-            if not running:
+            if not running and (seen or time.monotonic() >= give_up):
                 return 0
             time.sleep(args.every)
     except ImssrError as exc:

@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 from conftest import tiny_config, train_run
-from imssr.report.export import RESULT_FILES, export_runs
+from imssr.report.export import export_runs
 from imssr.report.report import write_report
 from imssr.rundir import run_path
 from imssr.sweep.grid import load_sweep_file
@@ -87,10 +87,6 @@ def test_export_refuses_a_destination_inside_the_sweep_and_a_missing_root(tmp_pa
     assert proc.stdout.splitlines()[-1] == "imssr: 1 run(s) copied, 0 unchanged, 0 skipped"
 
 
-def test_result_files_are_the_run_directory_names():
-    assert set(RESULT_FILES) >= {"config.json", "eval.csv", "eval_episodes.csv", "train.csv"}
-
-
 def test_a_sweep_file_root_may_start_at_home(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path))
     path = tmp_path / "sweep.json"
@@ -130,10 +126,27 @@ def test_keep_results_commits_each_finished_run_once_and_stops_with_the_sweep(tm
     (repo / "other.txt").write_text("work in progress\n")
     script = os.path.join(os.path.dirname(__file__), "..", "scripts", "keep_results.py")
     for _ in range(2):  # no sweep holds the store: one export, then exit
-        proc = subprocess.run([sys.executable, script, str(root), "runs", "--every", "0"], cwd=repo,
+        proc = subprocess.run([sys.executable, script, str(root), "runs", "--every", "0", "--wait-start", "0"], cwd=repo,
                               capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr
     log = subprocess.run(["git", "-C", str(repo), "log", "--format=%s", "--name-only"], capture_output=True,
                          text=True, check=True).stdout
     assert log.count("results: ") == 1 and f"runs/fp32/{TASK}/curl/seed_1/eval.csv" in log
     assert "other.txt" not in log  # only the export is committed
+
+
+def test_export_refuses_a_log_that_is_a_link_out_of_the_run(tmp_path):
+    root = tmp_path / "sweep"
+    run = run_path(str(root), TASK, "curl", 1)
+    _train_finished(_tiny("curl", 1), run)
+    secret = tmp_path / "secret.txt"
+    secret.write_text("not a result\n")
+    os.unlink(os.path.join(run, "eval_episodes.csv"))
+    os.symlink(secret, os.path.join(run, "eval_episodes.csv"))
+    proc = subprocess.run([sys.executable, "-m", "imssr", "export", str(root), str(tmp_path / "x")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == f"imssr: error: {os.path.join(run, 'eval_episodes.csv')} is a symbolic link; " \
+                                  "the export copies only a run's own files"
+    assert not any("secret" in open(os.path.join(d, f)).read()
+                   for d, _, files in os.walk(tmp_path / "x") for f in files)

@@ -343,8 +343,8 @@ def test_bf16_runs_are_rows_of_their_own_beside_fp32(tmp_path, paper_csv):
 def test_a_planned_bf16_run_that_has_not_started_counts_in_its_own_row(tmp_path, paper_csv):
     root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
     make_run(root, "curl", 1, curve(0, 0, 100), precision="bf16")
-    plan = {"sweep": {"overrides": ["agent.batch_size=8", "agent.precision=bf16"]},
-            "runs": [{"algo": "curl", "task": TASK, "seed": s, "beta0": None, "steps": 1000,
+    plan = {"sweep": {"overrides": ["agent.precision=bf16"]},
+            "runs": [{"algo": "curl", "task": TASK, "seed": s, "beta0": None, "steps": 1000, "precision": "bf16",
                       "dir": os.path.join("bf16", TASK, "curl", f"seed_{s}")} for s in (1, 2)]}
     with open(os.path.join(root, "sweep.json"), "w") as fh:
         json.dump(plan, fh)

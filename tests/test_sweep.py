@@ -308,7 +308,7 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
             done = json.load(fh)
         assert (done["steps"], done["frames"], done["final_step"], done["final_frame"]) == (250, 2000, 250, 2000)
     with open(os.path.join(root, "sweep.json")) as fh:
-        assert {(r["steps"], r["frames"]) for r in json.load(fh)["runs"]} == {(250, 2000)}
+        assert {(r["steps"], r["frames"], r["precision"]) for r in json.load(fh)["runs"]} == {(250, 2000, "fp32")}
     # Resumed, not restarted: the episode logged before the interruption is kept as it was.
     assert read_csv(os.path.join(interrupted.dir, "train.csv"))[0] == first_episode
     assert "(resume)" in open(os.path.join(interrupted.dir, SWEEP_LOG)).read()

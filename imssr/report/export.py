@@ -14,6 +14,7 @@ each run once.
 """
 from __future__ import annotations
 
+import errno
 import os
 from dataclasses import dataclass
 
@@ -73,10 +74,9 @@ def _copy_run(source: str, target: str) -> str:
     changed = False
     for name in RESULT_FILES:
         src = os.path.join(source, name)
-        if not os.path.isfile(src):
+        if not os.path.lexists(src):
             continue
-        with open(src, "rb") as fh:
-            data = fh.read()
+        data = _read_own(src)
         dst = os.path.join(target, name)
         if os.path.islink(dst):
             raise ImssrError(f"{dst} is a symbolic link; the export writes only regular files")
@@ -92,6 +92,19 @@ def _copy_run(source: str, target: str) -> str:
             if fh.read() != data:
                 raise ImssrError(f"{dst} does not read back as written")
     return "new" if new else "updated" if changed else "unchanged"
+
+
+def _read_own(path: str) -> bytes:
+    """The bytes of a run's own file; a symbolic link there (to a file outside the run) is
+    refused, so that nothing from elsewhere lands in a tree meant for version control."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ImssrError(f"{path} is a symbolic link; the export copies only a run's own files") from None
+        raise
+    with os.fdopen(fd, "rb") as fh:
+        return fh.read()
 
 
 def _inside(path: str, root: str) -> bool:

@@ -206,23 +206,12 @@ def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
     try:
         with open(path) as fh:
             plan = json.load(fh)
-        precision = _planned_precision(plan["sweep"].get("overrides") or [])
+        # Plans written before runs carried their precision: the presets' fp32.
         return [PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), int(r["steps"]),
-                           os.path.join(root, r["dir"]), precision) for r in plan["runs"]]
+                           os.path.join(root, r["dir"]), str(r.get("precision", "fp32"))) for r in plan["runs"]]
     except (OSError, ValueError, KeyError, TypeError, ImssrError) as exc:
         notes.append(f"{SWEEP_PLAN}: unreadable ({exc}); expected seeds come from the runs found")
         return []
-
-
-def _planned_precision(overrides: list) -> str:
-    """The precision a sweep's ``--set`` lines give its runs (the last one wins, as in
-    ``imssr train``); the presets' fp32 otherwise."""
-    precision = "fp32"
-    for item in overrides:
-        key, sep, value = str(item).partition("=")
-        if sep and key.strip() == "agent.precision":
-            precision = value.strip()
-    return precision
 
 
 def write_evaluations(results: SweepResults, path: str) -> str:

@@ -226,13 +226,13 @@ def expand(cfg: SweepConfig) -> list[Run]:
     return runs
 
 
-def save_plan(cfg: SweepConfig, runs: list[Run], budgets: dict[str, tuple[int, int]]) -> str:
-    """Write ``ROOT/sweep.json``: the sweep's settings and every run with its budget;
-    ``budgets`` maps a run's directory to its ``(agent steps, frames)``."""
+def save_plan(cfg: SweepConfig, runs: list[Run], resolved: dict[str, dict[str, Any]]) -> str:
+    """Write ``ROOT/sweep.json``: the sweep's settings and every run with what its resolved
+    config says of it; ``resolved`` maps a run's directory to ``steps`` (agent steps),
+    ``frames`` and ``precision``."""
     root = os.path.abspath(cfg.root)
     plan = {"sweep": asdict(cfg),
-            "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), steps=budgets[r.dir][0],
-                          frames=budgets[r.dir][1]) for r in runs]}
+            "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), **resolved[r.dir]) for r in runs]}
     path = os.path.join(root, SWEEP_PLAN)
 
     atomic_write_text(path, dumps(plan, indent=2) + "\n")

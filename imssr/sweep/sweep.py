@@ -219,7 +219,9 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     statuses = plan_runs(cfg)
     root = os.path.abspath(cfg.root)
     os.makedirs(root, exist_ok=True)
-    save_plan(cfg, [s.run for s in statuses], {s.run.dir: (s.steps, s.frames) for s in statuses})
+    save_plan(cfg, [s.run for s in statuses],
+              {s.run.dir: {"steps": s.steps, "frames": s.frames, "precision": s.config.agent.precision}
+               for s in statuses})
     started = time.time()
     status_path = write_status(cfg, statuses, started)
     todo = deque(s for s in statuses if s.state == "queued")
