@@ -99,7 +99,48 @@ def pin_egl_device(cuda_index: Optional[int], environ: MutableMapping[str, str] 
     device_id = egl_device_id(cuda_index, environ.get("CUDA_VISIBLE_DEVICES"))
     if device_id is not None:
         environ["MUJOCO_EGL_DEVICE_ID"] = device_id
+        # In the environment, not in this module: the env workers a run starts inherit it, and
+        # must know as well that the value was imssr's guess and not the user's choice.
+        environ[EGL_PINNED_VARIABLE] = device_id
     return device_id
+
+
+EGL_PINNED_VARIABLE = "IMSSR_PINNED_EGL_DEVICE_ID"
+"""Holds the ``MUJOCO_EGL_DEVICE_ID`` that :func:`pin_egl_device` set (absent when it set none)."""
+
+
+def egl_device_refused(message: str) -> bool:
+    """Whether dm_control's error ``message`` refuses ``MUJOCO_EGL_DEVICE_ID`` (an index past
+    the devices EGL lists)."""
+    return "MUJOCO_EGL_DEVICE_ID" in message
+
+
+def unpin_refused_egl_device(message: str, environ: MutableMapping[str, str] = os.environ) -> Optional[str]:
+    """After dm_control failed with ``message``: when it refused a ``MUJOCO_EGL_DEVICE_ID`` that
+    imssr set, remove it (EGL then picks the first device that works) and return the value it
+    had; None otherwise (the user's own value, or another failure), nothing changed.
+
+    Under cgroup device limits (SLURM's ConstrainDevices, containers) EGL lists only the GPUs
+    the run may use, numbered from 0, so the machine's index of the run's GPU can be past them."""
+    pinned = environ.get(EGL_PINNED_VARIABLE)
+    if not egl_device_refused(message) or pinned is None or environ.get("MUJOCO_EGL_DEVICE_ID") != pinned:
+        return None
+    del environ["MUJOCO_EGL_DEVICE_ID"], environ[EGL_PINNED_VARIABLE]
+    return pinned
+
+
+def egl_device_error(message: str, environ: Mapping[str, str] = os.environ) -> Optional[str]:
+    """The one-line explanation of dm_control's error ``message`` when it refused
+    ``MUJOCO_EGL_DEVICE_ID``, naming who set the value and what to set instead; None for other
+    errors."""
+    if not egl_device_refused(message):
+        return None
+    value = environ.get("MUJOCO_EGL_DEVICE_ID", "")
+    who = ("imssr set it from the run's GPU" if environ.get(EGL_PINNED_VARIABLE) == value
+           else "a value set outside imssr")
+    return (f"MUJOCO_EGL_DEVICE_ID={value} ({who}) is not one of the EGL devices here "
+            f"({message.strip().splitlines()[0]}); EGL numbers only the GPUs a run may use under "
+            "cgroup device limits (SLURM, containers): set MUJOCO_EGL_DEVICE_ID=0, or unset it")
 
 
 def gl_renderer(physics) -> str | None:

@@ -563,6 +563,12 @@ def _text_of(key: str, value: Any, raw: dict[str, str], texts: dict[str, str]) -
     if isinstance(value, str) and kind is str:
         texts[key] = value
         return False
+    if kind is str:
+        # Another value for a string field (``"device": 5``) is converted or refused by
+        # OmegaConf, and the field's rules judge what it became: the base's text must not be
+        # put back over it.
+        texts.pop(key, None)
+        return True
     if isinstance(value, str) and kind is not None and _interpolated(value):
         raise ImssrError(f"{key} expects {_expected(key)}, got {raw.get(key, value)!r}")
     return True

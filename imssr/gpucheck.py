@@ -39,9 +39,12 @@ import torch
 
 from imssr.algos import BASES
 from imssr.config import COMPILE_MODES, RunConfig, apply_overrides
+from imssr.errors import ImssrError
 from imssr.presets import make_config
 
 ROOT = Path(__file__).resolve().parent.parent
+SUBPROCESS_TIMEOUT_S = 600
+"""Longest the CUDA tests or the bench may run: a hung one fails its item and the others go on."""
 CUDA_TEST_FILES = ("tests/test_no_sync.py", "tests/test_replay_store.py")
 """The suite's files with tests that run only on CUDA (selected by ``-k cuda``)."""
 TASK = "cartpole_swingup"
@@ -57,12 +60,17 @@ class Item:
     """One line of the report."""
 
     name: str
+    """What the item checks, the report's first column."""
     ok: Optional[bool] = None
     """True: passed; False: failed; None: skipped."""
     steps_per_s: Optional[float] = None
+    """A training's agent steps per second of its whole training call; None for other items."""
     peak_gib: Optional[float] = None
+    """Peak device memory during the item in GiB (``torch.cuda.max_memory_allocated``); None on a CPU."""
     seconds: float = 0.0
+    """Wall time of the item."""
     note: str = ""
+    """Why it failed or was skipped, or what it found (where the replay was, pytest's summary)."""
     output: str = ""
     """What the item printed, when the report shows it (bench/gpu.py's table)."""
 
@@ -148,8 +156,12 @@ def cuda_tests(device: torch.device, item: Item) -> Item:
         return item
 
     def run() -> str:
-        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
-                               *CUDA_TEST_FILES, "-k", "cuda"], cwd=ROOT, capture_output=True, text=True)
+        try:
+            proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
+                                   *CUDA_TEST_FILES, "-k", "cuda"], cwd=ROOT, capture_output=True, text=True,
+                                  timeout=SUBPROCESS_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"pytest timed out after {SUBPROCESS_TIMEOUT_S} s") from None
         tail = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else proc.stderr.strip()[-200:]
         if proc.returncode != 0:
             raise RuntimeError(f"pytest exited {proc.returncode}: {tail}")
@@ -165,8 +177,11 @@ def bench(device: torch.device, args: str, item: Item) -> Item:
 
     def run() -> str:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-        proc = subprocess.run([sys.executable, str(script), "--device", str(device), *shlex.split(args)],
-                              cwd=ROOT, capture_output=True, text=True, env=env)
+        try:
+            proc = subprocess.run([sys.executable, str(script), "--device", str(device), *shlex.split(args)],
+                                  cwd=ROOT, capture_output=True, text=True, env=env, timeout=SUBPROCESS_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"bench/gpu.py timed out after {SUBPROCESS_TIMEOUT_S} s") from None
         item.output = proc.stdout
         if proc.returncode != 0:
             lines = (proc.stdout + proc.stderr).strip().splitlines()
@@ -175,13 +190,39 @@ def bench(device: torch.device, args: str, item: Item) -> Item:
     return run_item(item, run, device)
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose bad values are :class:`ImssrError` (one line, not the usage block)."""
+
+    def error(self, message: str):
+        raise ImssrError(message)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expects a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expects a positive integer, got {text!r}")
+    return value
+
+
 def main(argv: Optional[list[str]] = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m imssr.gpucheck", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Runs the check; a bad argument or setting is one line ``imssr: error: ...`` and exit 2."""
+    try:
+        return _main(argv)
+    except ImssrError as exc:
+        print(f"imssr: error: {exc}", file=sys.stderr, flush=True)
+        return 2
+
+
+def _main(argv: Optional[list[str]]) -> int:
+    p = _Parser(prog="python -m imssr.gpucheck", description=__doc__,
+                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="gpucheck.md", help="the Markdown report")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--steps", type=int, default=None, help="agent steps of each training (1000; --tiny: 8)")
-    p.add_argument("--compile-steps", type=int, default=None, help="agent steps per compile mode (300; --tiny: 4)")
+    p.add_argument("--steps", type=_positive_int, default=None, help="agent steps of each training (1000; --tiny: 8)")
+    p.add_argument("--compile-steps", type=_positive_int, default=None, help="agent steps per compile mode (300; --tiny: 4)")
     p.add_argument("--bench-args", default=None, help='bench/gpu.py\'s arguments ("--steps 50 --warmup 5")')
     p.add_argument("--tiny", action="store_true", help="tiny networks and budgets: a smoke run")
     p.add_argument("--bases", default=",".join(BASES), help="comma-separated bases to train")
@@ -200,23 +241,27 @@ def main(argv: Optional[list[str]] = None) -> int:
                                                                "aux.")))
         if a.tiny else "--steps 50 --warmup 5")
     skip = {s.strip() for s in a.skip.split(",") if s.strip()}
+    unknown = skip - {"tests", "train", "compile", "bench"}
+    if unknown:
+        raise ImssrError(f"unknown item {sorted(unknown)[0]!r} in --skip; choose from tests, train, compile, bench")
+    # Every training's config is built before the first item runs: a bad --bases or
+    # --compile-modes is refused at once, not after minutes of other items.
+    trainings = [(f"{algo}-{precision}", f"train {algo} {precision}, {steps} steps",
+                  training_config(algo, device, steps, [f"agent.precision={precision}"], a.tiny))
+                 for algo in (a.bases.split(",") if "train" not in skip else ())
+                 for precision in ("fp32", "bf16")]
+    trainings += [(f"compile-{mode}", f"train curl fp32 agent.compile={mode}, {compile_steps} steps",
+                   training_config("curl", device, compile_steps, [f"agent.compile={mode}"], a.tiny))
+                  for mode in (a.compile_modes.split(",") if "compile" not in skip else ())]
     started = time.perf_counter()
     items: list[Item] = []
     with tempfile.TemporaryDirectory(prefix="imssr-gpucheck-") as tmp:
         if "tests" not in skip:
             items.append(cuda_tests(device, Item("CUDA tests (pytest -k cuda)")))
             print(items[-1].row(), flush=True)
-        for algo in a.bases.split(",") if "train" not in skip else ():
-            for precision in ("fp32", "bf16"):
-                cfg = training_config(algo, device, steps, [f"agent.precision={precision}"], a.tiny)
-                item = Item(f"train {algo} {precision}, {steps} steps")
-                items.append(run_item(item, lambda: train(cfg, os.path.join(tmp, f"{algo}-{precision}"), item),
-                                      device))
-                print(items[-1].row(), flush=True)
-        for mode in a.compile_modes.split(",") if "compile" not in skip else ():
-            cfg = training_config("curl", device, compile_steps, [f"agent.compile={mode}"], a.tiny)
-            item = Item(f"train curl fp32 agent.compile={mode}, {compile_steps} steps")
-            items.append(run_item(item, lambda: train(cfg, os.path.join(tmp, f"compile-{mode}"), item), device))
+        for folder, name, cfg in trainings:
+            item = Item(name)
+            items.append(run_item(item, lambda: train(cfg, os.path.join(tmp, folder), item), device))
             print(items[-1].row(), flush=True)
         bench_item = Item(f"bench/gpu.py {bench_args}")
         if "bench" not in skip:

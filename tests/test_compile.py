@@ -8,7 +8,7 @@ import torch._dynamo
 from torch._dynamo.utils import counters
 
 from conftest import filled_buffer
-from imssr.agents.sac import CUDA_GRAPH_MODES
+from imssr.agents.sac import CUDA_GRAPH_MODES, uses_cuda_graphs
 from test_no_sync import small_agent
 
 
@@ -80,3 +80,12 @@ def test_cuda_graph_modes_mark_every_act_and_update(monkeypatch):
     agent.act(torch.zeros(9, 60, 60, dtype=torch.uint8).numpy(), deterministic=True)
     assert len(marks) == 2
     assert CUDA_GRAPH_MODES == ("reduce-overhead", "max-autotune")
+
+
+def test_cuda_graphs_only_on_cuda_in_the_cuda_graph_modes():
+    """The rule the agent's :attr:`cuda_graphs` comes from: CUDA and reduce-overhead or
+    max-autotune; never on a CPU, never in the default mode or eager."""
+    for mode in ("off", "default", "reduce-overhead", "max-autotune"):
+        assert uses_cuda_graphs(torch.device("cpu"), mode) is False
+        for cuda in (torch.device("cuda"), torch.device("cuda:1")):
+            assert uses_cuda_graphs(cuda, mode) is (mode in ("reduce-overhead", "max-autotune"))

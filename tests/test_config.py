@@ -8,7 +8,7 @@ import pytest
 from imssr.config import RunConfig, apply_overrides
 from imssr.errors import ImssrError
 from imssr.envs import PAPER_TASKS
-from imssr.presets import ALGOS, PAPER_BETA0, make_config
+from imssr.presets import ALGOS, PAPER_BETA0, load_partial_config, make_config
 
 SPEC = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "spec", "paper_beta0.csv")
 
@@ -377,3 +377,35 @@ def test_config_values_are_data_never_interpolated(tmp_path, monkeypatch, capsys
     assert main(["train", "--config", str(partial), "--out", str(tmp_path / "y")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["imssr: error: train.seed expects an integer, got '${oc.env:SECRET_TOKEN}'"], err
+
+
+def test_a_non_string_for_a_string_field_is_judged_not_replaced_by_the_base(tmp_path, capsys):
+    """A JSON number or boolean given for a string field (``"device": 5``) is converted as
+    OmegaConf converts it and judged by the field's rules, in a JSON --config as in --set: the
+    preset's text is never put back over it.  A JSON boolean agent.tf32 still reads as its mode."""
+    from imssr.cli import main
+
+    def refused(argv: list[str]) -> list[str]:
+        # A tiny budget: a value let through trains for seconds, not a preset's hours.
+        assert main(["train", *argv, "--steps", "2", "--seed-steps", "1", "--eval-episodes", "1",
+                     "--out", str(tmp_path / "never")]) == 2
+        assert not (tmp_path / "never").exists()
+        return capsys.readouterr().err.strip().splitlines()
+
+    partial = tmp_path / "partial.json"
+    cases = [({"train": {"device": 5}}, "train.device=5", "unknown device '5'; use cpu, cuda, cuda:N or auto"),
+             ({"train": {"replay_device": True}}, None,
+              "train.replay_device must be one of cpu, cuda, auto, got 'True'"),
+             ({"agent": {"tf32": 1}}, "agent.tf32=1", "agent.tf32 must be one of default, true, false")]
+    for data, override, message in cases:
+        partial.write_text(json.dumps({"algo": "curl", "env": {"task": "walker_walk"}, **data}))
+        assert refused(["--config", str(partial)]) == [f"imssr: error: {message}"]
+        if override:
+            assert refused(["--algo", "curl", "--task", "walker_walk", "--set", override]) == [f"imssr: error: {message}"]
+    assert refused(["--algo", "curl", "--task", "walker_walk", "--set", "train.replay_device=true"]) == \
+        ["imssr: error: train.replay_device must be one of cpu, cuda, auto, got 'true'"]
+    section = RunConfig.from_dict({"train": {"device": 5}, "algo": 3})
+    assert (section.train.device, section.algo) == ("5", "3")
+    for flag in (True, False):
+        partial.write_text(json.dumps({"algo": "curl", "env": {"task": "walker_walk"}, "agent": {"tf32": flag}}))
+        assert load_partial_config(str(partial)).validate().agent.tf32 == str(flag).lower()

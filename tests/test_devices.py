@@ -6,7 +6,8 @@ import sys
 import pytest
 import torch
 
-from imssr._gl import egl_device_id, egl_vendor_hint, gl_renderer, pin_egl_device, software_rendering_warning
+from imssr._gl import (EGL_PINNED_VARIABLE, egl_device_error, egl_device_id, egl_vendor_hint, gl_renderer,
+                       pin_egl_device, software_rendering_warning, unpin_refused_egl_device)
 from imssr.config import RunConfig, apply_overrides
 from imssr.envs import make_env
 from imssr.errors import ImssrError
@@ -75,6 +76,29 @@ def test_egl_renders_on_the_runs_gpu():
     for environ in ({"MUJOCO_GL": "osmesa"}, {"MUJOCO_GL": "egl"}):
         assert pin_egl_device(None if environ["MUJOCO_GL"] == "egl" else 0, environ, modules={}) is None
         assert "MUJOCO_EGL_DEVICE_ID" not in environ
+
+
+REFUSED = "MUJOCO_EGL_DEVICE_ID must be an integer between 0 and 0 (inclusive), got 3."
+"""dm_control's error when EGL lists fewer devices than the index (cgroup device limits)."""
+
+
+def test_an_egl_device_imssr_guessed_and_egl_refused_is_dropped():
+    environ = {"MUJOCO_GL": "egl", "CUDA_VISIBLE_DEVICES": "3"}
+    assert pin_egl_device(0, environ, modules={}) == "3" and environ[EGL_PINNED_VARIABLE] == "3"
+    # Another failure leaves the pin alone.
+    assert unpin_refused_egl_device("Cannot initialize a headless EGL display.", environ) is None
+    assert environ["MUJOCO_EGL_DEVICE_ID"] == "3"
+    assert unpin_refused_egl_device(REFUSED, environ) == "3"
+    assert "MUJOCO_EGL_DEVICE_ID" not in environ and EGL_PINNED_VARIABLE not in environ
+    # The user's own value stands, even beside a stale marker, and its error says whose it is.
+    for mine in ({"MUJOCO_EGL_DEVICE_ID": "3"}, {"MUJOCO_EGL_DEVICE_ID": "3", EGL_PINNED_VARIABLE: "1"}):
+        assert unpin_refused_egl_device(REFUSED, mine) is None and mine["MUJOCO_EGL_DEVICE_ID"] == "3"
+        message = egl_device_error(REFUSED, mine)
+        assert message.startswith("MUJOCO_EGL_DEVICE_ID=3 (a value set outside imssr)")
+        assert "set MUJOCO_EGL_DEVICE_ID=0" in message and "\n" not in message
+    ours = {"MUJOCO_EGL_DEVICE_ID": "3", EGL_PINNED_VARIABLE: "3"}
+    assert egl_device_error(REFUSED, ours).startswith("MUJOCO_EGL_DEVICE_ID=3 (imssr set it from the run's GPU)")
+    assert egl_device_error("Cannot initialize a headless EGL display.", ours) is None
 
 
 def test_a_task_name_resolves_before_the_gpu_is_known():

@@ -1,4 +1,8 @@
 """Environment wrapper: shapes, determinism, action repeat, sparse walker, errors."""
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from dm_control import suite
@@ -145,3 +149,19 @@ def test_shadow_map_size_changes_pixels_only_slightly():
     finally:
         for e in envs:
             e.close()
+
+
+@pytest.mark.skipif(os.environ.get("MUJOCO_GL", "egl") != "egl", reason="EGL only")
+def test_an_egl_device_past_egls_list_falls_back_when_imssr_set_it():
+    """dm_control opens its EGL display when imported, so a fresh process: the index imssr set
+    from the run's GPU, past the devices EGL lists here, is dropped and the env renders; the
+    same index set by the user is a one-line error naming the variable."""
+    code = ("from imssr.envs import make_env; import os; e = make_env('cartpole_swingup'); e.reset(); "
+            "print(os.environ.get('MUJOCO_EGL_DEVICE_ID'))")
+    env = {**os.environ, "MUJOCO_GL": "egl", "MUJOCO_EGL_DEVICE_ID": "97"}
+    ours = subprocess.run([sys.executable, "-c", code], env={**env, "IMSSR_PINNED_EGL_DEVICE_ID": "97"},
+                          capture_output=True, text=True, timeout=300)
+    assert ours.returncode == 0 and ours.stdout.strip() == "None", ours.stderr[-2000:]
+    mine = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert mine.returncode != 0
+    assert "MUJOCO_EGL_DEVICE_ID=97 (a value set outside imssr)" in mine.stderr.strip().splitlines()[-1]

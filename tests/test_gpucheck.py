@@ -29,3 +29,33 @@ def test_a_failing_item_is_reported_and_the_others_go_on(tmp_path):
     item = gpucheck.run_item(gpucheck.Item("broken"), lambda: 1 / 0, torch.device("cpu"))
     assert item.ok is False and item.note == "ZeroDivisionError: division by zero"
     assert item.row().startswith("| broken | FAIL |")
+
+
+def test_bad_arguments_are_one_line_errors(tmp_path, capsys):
+    """A bad base, a CUDA device without CUDA or a budget of 0 is refused in one line, exit 2,
+    before any item runs and without a report."""
+    out = tmp_path / "gpucheck.md"
+    cases = [(["--bases", "curl,nope"], "unknown algo 'nope'"),
+             (["--steps", "0"], "argument --steps: expects a positive integer, got '0'"),
+             (["--compile-steps", "x"], "argument --compile-steps: expects a positive integer, got 'x'"),
+             (["--skip", "tset"], "unknown item 'tset' in --skip; choose from tests, train, compile, bench"),
+             (["--bogus"], "unrecognized arguments: --bogus")]
+    if not torch.cuda.is_available():
+        cases.append((["--device", "cuda"], "device 'cuda' requested but CUDA is not available; use --device cpu"))
+    for argv, message in cases:
+        assert gpucheck.main(["--tiny", "--device", "cpu", "--out", str(out), *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"imssr: error: {message}"), (argv, err)
+        assert not out.exists()
+
+
+def test_a_hung_subprocess_fails_its_item(monkeypatch):
+    """The CUDA tests and the bench run under a timeout; running past it fails that item only."""
+    def hang(*args, timeout=None, **kwargs):
+        assert timeout == gpucheck.SUBPROCESS_TIMEOUT_S
+        raise gpucheck.subprocess.TimeoutExpired(args[0], timeout)
+
+    monkeypatch.setattr(gpucheck.subprocess, "run", hang)
+    item = gpucheck.bench(torch.device("cpu"), "--steps 1", gpucheck.Item("bench"))
+    assert item.ok is False
+    assert item.note == f"RuntimeError: bench/gpu.py timed out after {gpucheck.SUBPROCESS_TIMEOUT_S} s"

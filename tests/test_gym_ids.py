@@ -16,6 +16,15 @@ def test_static_task_list_matches_installed_suite():
 
     assert tuple(suite.ALL_TASKS) == SUITE_TASKS
     assert static_task_names() == imssr.list_tasks()
+    suite_names = {f"{d}_{t}" for d, t in suite.ALL_TASKS}
+    assert suite_names <= set(imssr.list_tasks())
+    assert all(imssr.envs.get_task(name).name == name for name in imssr.list_tasks())
+
+
+def test_listing_the_tasks_does_not_import_dm_control():
+    code = "import sys, imssr; imssr.list_tasks(); print('dm_control.suite' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr[-2000:]
 
 
 def test_every_task_has_an_id():

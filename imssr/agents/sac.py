@@ -45,6 +45,12 @@ CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
 """The ``agent.compile`` modes that replay compiled code as CUDA graphs on CUDA."""
 
 
+def uses_cuda_graphs(device: torch.device, mode: str) -> bool:
+    """Whether an agent on ``device`` compiled with ``agent.compile = mode`` runs its compiled
+    code as CUDA graphs: only on CUDA, and only in :data:`CUDA_GRAPH_MODES`."""
+    return device.type == "cuda" and mode in CUDA_GRAPH_MODES
+
+
 class SACNetworks(nn.Module):
     """Critic (owning the conv trunk), its target copy, the actor and log alpha."""
 
@@ -117,7 +123,7 @@ class SACAgent:
         self.updates = 0
         warn_if_bf16_is_slow(self.device, cfg.precision)
         configure_cuda(self.device, cfg.tf32)
-        self.cuda_graphs = self.device.type == "cuda" and cfg.compile in CUDA_GRAPH_MODES
+        self.cuda_graphs = uses_cuda_graphs(self.device, cfg.compile)
         """Whether compiled code runs as CUDA graphs: :meth:`act` and :meth:`update` each start a
         step of them (:meth:`mark_step`)."""
         if cfg.compile != "off":

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, Optional
 import gymnasium as gym
 import numpy as np
 
-from imssr._gl import check_gl, egl_vendor_hint, nvidia_driver_loaded
+from imssr._gl import check_gl, egl_device_error, egl_vendor_hint, nvidia_driver_loaded, unpin_refused_egl_device
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
@@ -67,11 +67,7 @@ class DMCEnv(gym.Env):
         if frame_stack < 1:
             raise ImssrError(f"frame_stack must be >= 1, got {frame_stack}")
         check_gl()
-        try:
-            from dm_control import suite
-            from dm_control.mujoco.engine import Camera
-        except (ImportError, OSError, RuntimeError) as exc:  # GL or mujoco load failure
-            raise ImssrError(f"cannot load dm_control/mujoco: {exc}") from None
+        suite, Camera = _import_dm_control()
 
         self.spec_task = spec
         self.task_name = spec.name
@@ -90,6 +86,9 @@ class DMCEnv(gym.Env):
         try:
             self._camera = Camera(self._env.physics, image_size, image_size, self.camera_id)
         except Exception as exc:  # noqa: BLE001 - GL context failures surface here
+            refused = egl_device_error(str(exc))
+            if refused:
+                raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL=egl: {refused}") from None
             raise ImssrError(
                 f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} "
                 f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); install "
@@ -247,6 +246,23 @@ class DMCEnv(gym.Env):
 
     def _observation(self) -> np.ndarray:
         return np.concatenate(self._frames, axis=0)
+
+
+def _import_dm_control():
+    """dm_control's ``suite`` module and ``Camera`` class.  dm_control opens its EGL display as
+    it is imported; when that refuses the ``MUJOCO_EGL_DEVICE_ID`` imssr guessed for the run's
+    GPU, the import runs again without it (a failed import leaves no module behind)."""
+    for attempt in range(2):
+        try:
+            from dm_control import suite
+            from dm_control.mujoco.engine import Camera
+            return suite, Camera
+        except (ImportError, OSError, RuntimeError) as exc:  # GL or mujoco load failure
+            if attempt == 0 and unpin_refused_egl_device(str(exc)) is not None:
+                continue
+            refused = egl_device_error(str(exc))
+            raise ImssrError(f"cannot load dm_control/mujoco: {refused or exc}") from None
+    raise AssertionError("unreachable")
 
 
 def _gl_backend() -> str:

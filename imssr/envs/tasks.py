@@ -116,16 +116,11 @@ def static_task_names() -> list[str]:
     return sorted({f"{d}_{t}" for d, t in SUITE_TASKS} | set(_CUSTOM))
 
 
-def _suite_tasks() -> list[tuple[str, str]]:
-    from dm_control import suite
-
-    return list(suite.ALL_TASKS)
-
-
 def list_tasks() -> list[str]:
-    """Every task name accepted by :func:`imssr.make_env`, sorted."""
-    names = {f"{d}_{t}" for d, t in _suite_tasks()} | set(_CUSTOM)
-    return sorted(names)
+    """Every task name accepted by :func:`imssr.make_env`, sorted.  From the static list, as
+    :func:`get_task` reads it: importing dm_control opens its EGL display, which must wait until
+    the run's GPU is known."""
+    return static_task_names()
 
 
 def get_task(name: str) -> TaskSpec:
