@@ -9,7 +9,7 @@ import sys
 from conftest import tiny_config, train_run
 from imssr.report.export import RESULT_FILES, export_runs
 from imssr.report.report import write_report
-from imssr.rundir import run_path
+from imssr.rundir import CONFIG_FILE, CSV_LOGS, run_path
 from imssr.sweep.grid import load_sweep_file
 from imssr.training.logger import read_csv
 
@@ -89,6 +89,9 @@ def test_export_refuses_a_destination_inside_the_sweep_and_a_missing_root(tmp_pa
 
 def test_result_files_are_the_run_directory_names():
     assert set(RESULT_FILES) >= {"config.json", "eval.csv", "eval_episodes.csv", "train.csv"}
+    # One list of a run's logs: the export, a fresh start's refusal and the logger read it.
+    assert RESULT_FILES == (CONFIG_FILE, *CSV_LOGS)
+    assert set(CSV_LOGS) == {"train.csv", "eval.csv", "eval_episodes.csv", "evaluate.csv", "evaluate_episodes.csv"}
 
 
 def test_a_sweep_file_root_may_start_at_home(tmp_path, monkeypatch):

@@ -64,6 +64,10 @@ EVALUATE_LOG = "evaluate.csv"
 """``imssr evaluate``'s summary rows, appended."""
 EVALUATE_EPISODES_LOG = "evaluate_episodes.csv"
 """``imssr evaluate``'s episode rows, appended."""
+TRAINING_LOGS = (TRAIN_LOG, EVAL_LOG, EVAL_EPISODES_LOG)
+"""The CSV logs a training writes."""
+CSV_LOGS = TRAINING_LOGS + (EVALUATE_LOG, EVALUATE_EPISODES_LOG)
+"""Every CSV log of a run: training's, then ``imssr evaluate``'s."""
 TB_DIR = "tb"
 """TensorBoard's event files."""
 VIDEOS_DIR = "videos"
@@ -180,9 +184,9 @@ class RunDir:
         return self.file(EVALUATE_EPISODES_LOG)
 
     @property
-    def training_logs(self) -> tuple[str, str, str]:
-        """The CSV logs a training writes."""
-        return self.train_log, self.eval_log, self.eval_episodes_log
+    def training_logs(self) -> tuple[str, ...]:
+        """The CSV logs a training writes (:data:`TRAINING_LOGS`)."""
+        return tuple(self.file(name) for name in TRAINING_LOGS)
 
     def log(self, name: str) -> str:
         """The CSV log ``RUN/<name>.csv`` (``train``, ``eval``, ``evaluate``, ...)."""
@@ -312,7 +316,7 @@ class RunDir:
             for pattern in (LATEST_CHECKPOINT, CHECKPOINT_GLOB, REPLAY_GLOB):
                 parts += sorted(os.path.join(CHECKPOINT_DIR, os.path.basename(p))
                                 for p in glob.glob(os.path.join(self.checkpoint_dir, pattern)))
-        for name in (TRAIN_LOG, EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG, EVALUATE_EPISODES_LOG):
+        for name in CSV_LOGS:
             if _has_rows(self.file(name)):
                 parts.append(name)
         for name in (VIDEOS_DIR, ANALYSIS_DIR, MONTAGE_FILE, LEARNING_CURVE_FILE, EPISODE_GIF, DONE_FILE):
