@@ -84,6 +84,20 @@ def test_extending_a_run_whose_budget_ended_mid_episode_is_exact(tmp_path):
     _assert_same_runs(direct, extended)
 
 
+def test_a_run_stopped_mid_episode_and_resumed_to_that_step_checkpoints_its_final_evaluation(tmp_path):
+    """Stopped at agent step 140 (mid-episode, checkpointed), resumed with `--steps 140`: the
+    final evaluation runs, and the checkpoint holds it as a `--steps 140` run's does."""
+    direct, stopped = tmp_path / "direct", tmp_path / "stopped"
+    train_run(_short(140), direct)
+    train_run(_short(160), stopped, stop_at=140)
+    assert [r["step"] for r in read_csv(stopped / "eval.csv")] == ["125"]
+    train_run(_short(140), stopped, resume=True)
+    state = load_checkpoint(RunDir(str(stopped)).latest)
+    assert [item["row"]["step"] for item in state["eval_history"]] == [125, 140]
+    assert state["before_final_eval"] is not None
+    _assert_same_runs(direct, stopped)
+
+
 def test_a_stop_inside_the_burst_of_updates_resumes_exactly(tmp_path):
     """A stop request during the seed phase's burst checkpoints the burst where it is; the
     resume does the rest of it, takes the action drawn before it, and ends as a run never stopped."""

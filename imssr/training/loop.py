@@ -611,12 +611,14 @@ class Trainer:
     def _finish(self, episode: Optional[Episode]) -> None:
         """The budget is spent: when it ended mid-episode, evaluate (unless this agent step was)
         and checkpoint with the open episode, which a larger budget continues exactly (unless
-        this step is checkpointed already); the learning curve goes to W&B."""
+        this step is checkpointed already and the evaluation did not just change it: a run
+        stopped here and resumed to this budget evaluates now); the learning curve goes to W&B."""
         if episode is not None:
             self._raise_if_diverged(episode)
-            if self.state.last_eval_step != self.step:
+            evaluated = self.state.last_eval_step != self.step
+            if evaluated:
                 self._final_evaluation()
-            if self._saved_step != self.step:
+            if evaluated or self._saved_step != self.step:
                 self.save(episode)
         if self.logger.wants_media:
             self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
