@@ -86,8 +86,8 @@ class StopRequest:
     def _handle(self, signum, frame) -> None:
         self.signal_name = signal.Signals(signum).name
         # os.write, not print: a signal handler may run inside a print to the same stream.
-        os.write(2, f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
-                    "(a second signal stops at once)\n".encode())
+        _say(f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
+             "(a second signal stops at once)\n")
         for sig in self.SIGNALS:  # the next signal acts at once
             if self.out_dir is not None:
                 signal.signal(sig, self._exit_at_once)
@@ -102,16 +102,27 @@ class StopRequest:
             text = (f"stopped at once, keeping the last checkpoint; continue with: "
                     f"imssr train --out {self.out_dir} --resume")
         else:
-            text = "stopped at once, before the run's first checkpoint: nothing to resume"
-        os.write(2, f"imssr: {name} again: {text}\n".encode())
+            # The directory holds the logs of the run so far, so the same command is refused.
+            text = (f"stopped at once, before the run's first checkpoint: nothing to resume; choose "
+                    f"another --out or remove {self.out_dir}")
+        _say(f"imssr: {name} again: {text}\n")
         os._exit(INTERRUPTED_EXIT)
 
     def uninstall(self) -> None:
-        if self.signal_name is not None and self.out_dir is not None:
-            return  # the process is stopping: a further signal still exits at once, quietly
+        """The handlers from before :meth:`install` come back (the caller's, when ``imssr.cli.main``
+        runs in a process of its own): the training, and any checkpoint write, is over."""
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
         self._previous.clear()
+
+
+def _say(text: str) -> None:
+    """``text`` to stderr from a signal handler; lost when stderr is gone (a closed pipe): the
+    stop goes on without its line."""
+    try:
+        os.write(2, text.encode())
+    except OSError:
+        pass
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
