@@ -1,5 +1,6 @@
 """Checkpoints: round trip, exact resume after a kill, corrupt and mismatched files."""
 import os
+import zipfile
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ from imssr.errors import ImssrError
 from imssr.training import Trainer
 from imssr.training.loop import TrainingInterrupted
 from imssr.rundir import RunDir
-from imssr.rundir.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.training.state import StepSchedule
 
@@ -155,13 +156,36 @@ def test_corrupt_checkpoint_gives_clear_error(tmp_path):
     path = tmp_path / "checkpoints" / "latest.pt"
     path.parent.mkdir()
     path.write_bytes(b"\x00garbage")
-    with pytest.raises(ImssrError, match="corrupt checkpoint"):
+    with pytest.raises(ImssrError, match=r"not an imssr checkpoint \(not a torch checkpoint file\)"):
         load_checkpoint(str(path))
-    with pytest.raises(ImssrError, match="corrupt checkpoint"):
+    with pytest.raises(ImssrError, match="not an imssr checkpoint"):
         Trainer(_cfg(), str(tmp_path), resume=True)
     torch.save({"something": 1}, str(path))
-    with pytest.raises(ImssrError, match="not an imssr checkpoint"):
+    whole = path.read_bytes()
+    with pytest.raises(ImssrError, match="not an imssr checkpoint of format"):
         load_checkpoint(str(path))
+    path.write_bytes(whole[:len(whole) // 2])
+    with pytest.raises(CheckpointDamaged, match=r"^corrupt checkpoint .*: cut short"):
+        load_checkpoint(str(path))
+    with zipfile.ZipFile(path, "w") as archive:  # a zip archive whose pickle is text
+        archive.writestr("archive/data.pkl", b"hello world")
+        archive.writestr("archive/version", "3\n")
+    with pytest.raises(CheckpointDamaged, match=r"^corrupt checkpoint .*: KeyError: 101$"):
+        load_checkpoint(str(path))
+
+
+def test_a_failure_that_is_not_the_files_is_not_called_a_damaged_checkpoint(tmp_path, monkeypatch):
+    """Out of memory (or a bug) while loading must not read as a damaged file, which a resume
+    would quietly skip for an older checkpoint."""
+    run = RunDir(str(tmp_path))
+    run.save_checkpoint({"step": 5, "replay_file": None}, keep=1)
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(torch, "load", out_of_memory)
+    with pytest.raises(MemoryError):
+        run.usable_checkpoint()
 
 
 def test_mismatched_checkpoint_gives_clear_error(full_run):
