@@ -352,6 +352,8 @@ class RunDir:
         Nothing that only a checkpoint can make is removed: a finished run (``done.json``, or
         ``status.json`` "finished") whose checkpoints are gone, and a directory with
         ``evaluate.csv``, ``analysis/`` and the like, are a one-line error and stay as they are."""
+        if self.has_checkpoint() or not (self.run_parts() or os.path.isdir(self.tb_dir)):
+            return []  # nothing to clear, no lock to take (a full disk then fails at the attempt's log)
         with DirectoryLock(self.path):
             if self.has_checkpoint():
                 return []
