@@ -548,7 +548,11 @@ def _output_to_closed_pipes_dropped() -> Iterator[None]:
 
 def main(argv: Optional[list[str]] = None) -> int:
     with _output_to_closed_pipes_dropped():
-        return _main(argv)
+        try:
+            return _main(argv)
+        except KeyboardInterrupt:
+            # A Ctrl-C after `imssr train` gave Python's handler back, while it says how it ended.
+            return INTERRUPTED_EXIT
 
 
 def _main(argv: Optional[list[str]]) -> int:

@@ -1,5 +1,6 @@
 """Checkpoints: round trip, exact resume after a kill, corrupt and mismatched files."""
 import os
+import zipfile
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ from imssr.errors import ImssrError
 from imssr.training import Trainer
 from imssr.training.loop import TrainingInterrupted
 from imssr.rundir import RunDir
-from imssr.rundir.checkpoint import load_checkpoint
+from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.training.state import StepSchedule
 
@@ -84,6 +85,20 @@ def test_extending_a_run_whose_budget_ended_mid_episode_is_exact(tmp_path):
     _assert_same_runs(direct, extended)
 
 
+def test_a_run_stopped_mid_episode_and_resumed_to_that_step_checkpoints_its_final_evaluation(tmp_path):
+    """Stopped at agent step 140 (mid-episode, checkpointed), resumed with `--steps 140`: the
+    final evaluation runs, and the checkpoint holds it as a `--steps 140` run's does."""
+    direct, stopped = tmp_path / "direct", tmp_path / "stopped"
+    train_run(_short(140), direct)
+    train_run(_short(160), stopped, stop_at=140)
+    assert [r["step"] for r in read_csv(stopped / "eval.csv")] == ["125"]
+    train_run(_short(140), stopped, resume=True)
+    state = load_checkpoint(RunDir(str(stopped)).latest)
+    assert [item["row"]["step"] for item in state["eval_history"]] == [125, 140]
+    assert state["before_final_eval"] is not None
+    _assert_same_runs(direct, stopped)
+
+
 def test_a_stop_inside_the_burst_of_updates_resumes_exactly(tmp_path):
     """A stop request during the seed phase's burst checkpoints the burst where it is; the
     resume does the rest of it, takes the action drawn before it, and ends as a run never stopped."""
@@ -141,13 +156,36 @@ def test_corrupt_checkpoint_gives_clear_error(tmp_path):
     path = tmp_path / "checkpoints" / "latest.pt"
     path.parent.mkdir()
     path.write_bytes(b"\x00garbage")
-    with pytest.raises(ImssrError, match="corrupt checkpoint"):
+    with pytest.raises(ImssrError, match=r"not an imssr checkpoint \(not a torch checkpoint file\)"):
         load_checkpoint(str(path))
-    with pytest.raises(ImssrError, match="corrupt checkpoint"):
+    with pytest.raises(ImssrError, match="not an imssr checkpoint"):
         Trainer(_cfg(), str(tmp_path), resume=True)
     torch.save({"something": 1}, str(path))
-    with pytest.raises(ImssrError, match="not an imssr checkpoint"):
+    whole = path.read_bytes()
+    with pytest.raises(ImssrError, match="not an imssr checkpoint of format"):
         load_checkpoint(str(path))
+    path.write_bytes(whole[:len(whole) // 2])
+    with pytest.raises(CheckpointDamaged, match=r"^corrupt checkpoint .*: cut short"):
+        load_checkpoint(str(path))
+    with zipfile.ZipFile(path, "w") as archive:  # a zip archive whose pickle is text
+        archive.writestr("archive/data.pkl", b"hello world")
+        archive.writestr("archive/version", "3\n")
+    with pytest.raises(CheckpointDamaged, match=r"^corrupt checkpoint .*: KeyError: 101$"):
+        load_checkpoint(str(path))
+
+
+def test_a_failure_that_is_not_the_files_is_not_called_a_damaged_checkpoint(tmp_path, monkeypatch):
+    """Out of memory (or a bug) while loading must not read as a damaged file, which a resume
+    would quietly skip for an older checkpoint."""
+    run = RunDir(str(tmp_path))
+    run.save_checkpoint({"step": 5, "replay_file": None}, keep=1)
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(torch, "load", out_of_memory)
+    with pytest.raises(MemoryError):
+        run.usable_checkpoint()
 
 
 def test_mismatched_checkpoint_gives_clear_error(full_run):

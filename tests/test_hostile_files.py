@@ -130,7 +130,7 @@ def test_plot_of_a_malformed_eval_csv_is_one_line(run, capsys, rows):
         fh.write(rows)
     assert main(["plot", "--run", run]) == 2
     line = _one_error_line(capsys.readouterr().err)
-    assert line.startswith(f"imssr: error: row ") and f"of {RunDir(run).eval_log} is not an evaluation row" in line
+    assert line.startswith("imssr: error: row ") and f"of {RunDir(run).eval_log} is not an evaluation row" in line
 
 
 def test_plot_leaves_out_a_last_row_cut_short_by_a_killed_writer(run, capsys):

@@ -147,13 +147,54 @@ def test_a_second_signal_during_a_checkpoint_write_exits_130_in_one_line(tmp_pat
     assert lines[-2].startswith("imssr: SIGINT: stopping after this agent step"), proc.stderr
     run = RunDir(str(out))
     if write == 1:
-        assert lines[-1] == "imssr: SIGINT again: stopped at once, before the run's first checkpoint: nothing to resume"
+        assert lines[-1] == ("imssr: SIGINT again: stopped at once, before the run's first checkpoint: nothing to "
+                             f"resume; choose another --out or remove {out}")
         assert not run.has_checkpoint()
     else:
         assert lines[-1] == ("imssr: SIGINT again: stopped at once, keeping the last checkpoint; continue with: "
                              f"imssr train --out {out} --resume")
         assert load_checkpoint(run.latest)["step"] == 125
     assert run.status() == ("interrupted" if write == 2 else "new")
+
+
+def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capfd):
+    """`imssr.cli.main` in a process of the caller's (a notebook): once the training is over, the
+    caller's handlers are back, not the handler that exits the process at once."""
+    from imssr.training.loop import StopRequest
+
+    def mine(signum, frame):
+        pass
+
+    previous = signal.signal(signal.SIGTERM, mine)
+    try:
+        stop = StopRequest(str(tmp_path)).install()
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.signal_name == "SIGTERM"
+        assert signal.getsignal(signal.SIGTERM) == stop._exit_at_once
+        stop.uninstall()
+        assert signal.getsignal(signal.SIGTERM) is mine
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert "stopping after this agent step" in capfd.readouterr().err
+
+
+def test_signal_handlers_survive_a_closed_stderr(tmp_path, monkeypatch):
+    """stderr a closed pipe: the handlers' lines are lost, the stop and the exit still happen."""
+    from imssr.training import loop
+
+    def broken(fd, data):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    exits = []
+    monkeypatch.setattr(loop.os, "write", broken)
+    monkeypatch.setattr(loop.os, "_exit", exits.append)
+    monkeypatch.setattr(loop.signal, "signal", lambda *args: None)  # this process keeps its handlers
+    stop = loop.StopRequest(str(tmp_path))
+    stop._handle(signal.SIGTERM, None)
+    assert stop.signal_name == "SIGTERM"
+    stop._exit_at_once(signal.SIGTERM, None)
+    assert exits == [INTERRUPTED_EXIT]
 
 
 # `imssr train` that sends itself SIGTERM at the agent's update number UPDATE (the real handler

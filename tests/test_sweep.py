@@ -10,7 +10,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from conftest import train_stopped_at
+from conftest import tiny_config, train_stopped_at
 from imssr.cli import main
 from imssr.rundir import DONE_FILE, SWEEP_LOG, RunDir
 from imssr.sweep.grid import SweepConfig, expand, load_sweep_file, parse_seeds
@@ -397,3 +397,67 @@ def test_a_run_with_only_numbered_checkpoints_resumes(tmp_path):
     assert RunDir(st.run.dir).has_checkpoint()
     from imssr.sweep.sweep import plan_runs
     assert plan_runs(cfg)[0].action == "resume"
+
+
+def _finished_without_checkpoint(run_dir: str, done: bool) -> dict[str, bytes]:
+    """A run that finished (done.json from a sweep, or status.json from a training) and whose
+    checkpoints the user deleted; returns its files' bytes."""
+    run = RunDir(run_dir)
+    run.write_config(tiny_config("curl", steps=125))
+    files = {"train.csv": b"frame,step\n1000,125\n", "eval.csv": b"frame,step\n1000,125\n",
+             "evaluate.csv": b"frame,step\n1000,125\n", "analysis/saliency.png": b"png",
+             "videos/eval.mp4": b"mp4"}
+    for name, data in files.items():
+        os.makedirs(os.path.dirname(run.file(name)), exist_ok=True)
+        with open(run.file(name), "wb") as fh:
+            fh.write(data)
+    if done:
+        run.write_done(125, 125, 1, False)
+    else:
+        run.write_status("finished", 125)
+    return {name: open(run.file(name), "rb").read() for name in [*files, "done.json" if done else "status.json"]}
+
+
+@pytest.mark.parametrize("done", [True, False], ids=["done.json", "status"])
+def test_a_fresh_attempt_never_deletes_a_finished_run_without_checkpoint(tmp_path, done):
+    """The budget grew, the checkpoints are gone: the attempt fails in one line and keeps every file."""
+    from imssr.sweep.runner import RunAttempt
+
+    run_dir = str(tmp_path / "run")
+    before = _finished_without_checkpoint(run_dir, done)
+    attempt = RunAttempt(run_dir, 250, 1)
+    assert attempt.proc is None and not attempt.resumed
+    assert attempt.error == (f"{run_dir} holds a finished run without a checkpoint; move it away to train "
+                             "it again")
+    assert {name: open(os.path.join(run_dir, name), "rb").read() for name in before} == before
+    result = attempt.finish()
+    assert not result["ok"] and result["error"] == attempt.error
+    assert RunDir(run_dir).status() == "finished"
+
+
+def test_a_fresh_attempt_keeps_results_only_a_checkpoint_makes_and_a_run_in_use(tmp_path):
+    """evaluate.csv without a checkpoint (deleted) is a run too; a directory another process holds
+    is not cleared under it.  What a training left before its first checkpoint is."""
+    from imssr.sweep.runner import RunAttempt
+
+    run_dir = str(tmp_path / "run")
+    run = RunDir(run_dir)
+    run.write_config(tiny_config("curl", steps=125))
+    for name in ("train.csv", "evaluate.csv"):
+        with open(run.file(name), "w") as fh:
+            fh.write("frame,step\n1000,125\n")
+    attempt = RunAttempt(run_dir, 125, 1)
+    assert attempt.proc is None
+    assert attempt.error == (f"{run_dir} holds results of a run without a checkpoint (evaluate.csv); move it "
+                             "away to train it again")
+    assert os.path.exists(run.train_log) and os.path.exists(run.evaluate_log)
+    os.unlink(run.evaluate_log)
+    lock = run.open()
+    try:
+        attempt = RunAttempt(run_dir, 125, 1)
+        assert attempt.proc is None and f"{run_dir} is in use by PID {os.getpid()}" in attempt.error
+        assert os.path.exists(run.train_log)
+    finally:
+        lock.release()
+    assert run.discard_unresumable() == ["train.csv"]
+    assert not os.path.exists(run.train_log) and run.has_config()

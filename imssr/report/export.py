@@ -20,12 +20,11 @@ from dataclasses import dataclass
 
 from imssr.errors import ImssrError
 from imssr.report.results import collect
-from imssr.rundir import (CONFIG_FILE, EVAL_EPISODES_LOG, EVAL_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG,
-                          FINISHED, TRAIN_LOG, RunDir, run_path)
+from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, TRAIN_LOG, RunDir, run_path
 from imssr.sweep.grid import beta_label
 from imssr.utils import atomic_path
 
-RESULT_FILES = (CONFIG_FILE, EVAL_LOG, EVAL_EPISODES_LOG, TRAIN_LOG, EVALUATE_LOG, EVALUATE_EPISODES_LOG)
+RESULT_FILES = (CONFIG_FILE, *CSV_LOGS)
 """What a run keeps in an export: its config and every CSV log (``evaluate*.csv`` when
 ``imssr evaluate`` wrote them); no checkpoint, replay, TensorBoard or video file."""
 

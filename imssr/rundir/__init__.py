@@ -64,6 +64,10 @@ EVALUATE_LOG = "evaluate.csv"
 """``imssr evaluate``'s summary rows, appended."""
 EVALUATE_EPISODES_LOG = "evaluate_episodes.csv"
 """``imssr evaluate``'s episode rows, appended."""
+TRAINING_LOGS = (TRAIN_LOG, EVAL_LOG, EVAL_EPISODES_LOG)
+"""The CSV logs a training writes."""
+CSV_LOGS = TRAINING_LOGS + (EVALUATE_LOG, EVALUATE_EPISODES_LOG)
+"""Every CSV log of a run: training's, then ``imssr evaluate``'s."""
 TB_DIR = "tb"
 """TensorBoard's event files."""
 VIDEOS_DIR = "videos"
@@ -95,6 +99,9 @@ REPLAY_FILE = "replay-{step:09d}.npz"
 """The replay buffer saved with the checkpoint of agent step ``step`` (its frames beside it,
 :func:`imssr.replay.buffer.frames_path`)."""
 CHECKPOINT_GLOB, REPLAY_GLOB, TEMP_GLOB = "step-*.pt", "replay-*", ".tmp-*"
+EARLY_PARTS = TRAINING_LOGS + (VIDEOS_DIR,)
+"""The parts of a run (:meth:`RunDir.run_parts`) that a training writes before its first
+checkpoint, which :meth:`RunDir.discard_unresumable` may clear (with ``tb/``)."""
 
 # What RunDir.status() answers.
 NEW, RUNNING, INTERRUPTED, FINISHED, FAILED, DIVERGED = "new", "running", "interrupted", "finished", "failed", "diverged"
@@ -180,9 +187,9 @@ class RunDir:
         return self.file(EVALUATE_EPISODES_LOG)
 
     @property
-    def training_logs(self) -> tuple[str, str, str]:
-        """The CSV logs a training writes."""
-        return self.train_log, self.eval_log, self.eval_episodes_log
+    def training_logs(self) -> tuple[str, ...]:
+        """The CSV logs a training writes (:data:`TRAINING_LOGS`)."""
+        return tuple(self.file(name) for name in TRAINING_LOGS)
 
     def log(self, name: str) -> str:
         """The CSV log ``RUN/<name>.csv`` (``train``, ``eval``, ``evaluate``, ...)."""
@@ -312,7 +319,7 @@ class RunDir:
             for pattern in (LATEST_CHECKPOINT, CHECKPOINT_GLOB, REPLAY_GLOB):
                 parts += sorted(os.path.join(CHECKPOINT_DIR, os.path.basename(p))
                                 for p in glob.glob(os.path.join(self.checkpoint_dir, pattern)))
-        for name in (TRAIN_LOG, EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG, EVALUATE_EPISODES_LOG):
+        for name in CSV_LOGS:
             if _has_rows(self.file(name)):
                 parts.append(name)
         for name in (VIDEOS_DIR, ANALYSIS_DIR, MONTAGE_FILE, LEARNING_CURVE_FILE, EPISODE_GIF, DONE_FILE):
@@ -336,19 +343,37 @@ class RunDir:
                          "from; choose another --out, or remove those files to start again there")
 
     def discard_unresumable(self) -> list[str]:
-        """Remove what a run that has no checkpoint left (its logs, videos), so that it can start
-        again from agent step 0 (a sweep's fresh attempt after one that failed early); returns the
-        names removed.  A run with a checkpoint is left as it is: it resumes."""
-        if self.has_checkpoint():
-            return []
-        parts = self.run_parts()
-        for name in parts + [TB_DIR]:
-            path = self.file(name)
-            if os.path.isdir(path):
-                shutil.rmtree(path)
-            elif os.path.exists(path):
-                os.unlink(path)
-        return parts
+        """Clear what a training that failed before its first checkpoint left (its CSV logs,
+        ``videos/``, ``tb/``), so that the run can start again from agent step 0, as a sweep's
+        fresh attempt does; returns the names removed (those of :meth:`run_parts`).  A run with a
+        checkpoint is left as it is: it resumes.  The removal holds the run's lock (a one-line
+        error while a process holds it).
+
+        Nothing that only a checkpoint can make is removed: a finished run (``done.json``, or
+        ``status.json`` "finished") whose checkpoints are gone, and a directory with
+        ``evaluate.csv``, ``analysis/`` and the like, are a one-line error and stay as they are."""
+        if self.has_checkpoint() or not (self.run_parts() or os.path.isdir(self.tb_dir)):
+            return []  # nothing to clear, no lock to take (a full disk then fails at the attempt's log)
+        with DirectoryLock(self.path):
+            if self.has_checkpoint():
+                return []
+            record = self.read_status()
+            if self.read_done() is not None or (record is not None and record["state"] == FINISHED):
+                raise ImssrError(f"{self.path} holds a finished run without a checkpoint; move it away to "
+                                 "train it again")
+            parts = self.run_parts()
+            results = [name for name in parts if name not in EARLY_PARTS]
+            if results:
+                shown = ", ".join(results[:3]) + (", ..." if len(results) > 3 else "")
+                raise ImssrError(f"{self.path} holds results of a run without a checkpoint ({shown}); move it "
+                                 "away to train it again")
+            for name in parts + [TB_DIR]:
+                path = self.file(name)
+                if os.path.isdir(path):
+                    shutil.rmtree(path)
+                elif os.path.exists(path):
+                    os.unlink(path)
+            return parts
 
     # -- checkpoints ---------------------------------------------------------------------
     def has_latest(self) -> bool:

@@ -100,6 +100,14 @@ def load_checkpoint(path: str) -> dict[str, Any]:
                                 f"unreadable: {exc.strerror or exc}") from None
     if intact is False:
         raise CheckpointDamaged(f"checkpoint {path} is damaged (checksum mismatch)", path, "checksum mismatch")
+    if not zipfile.is_zipfile(path):
+        # Checkpoints are zip archives (torch's format); torch reads anything else in its legacy
+        # format, which fails on whatever it trips over first (text, /etc/passwd: KeyError, ...).
+        if _starts_as_zip(path):
+            raise CheckpointDamaged(f"corrupt checkpoint {path}: cut short (its zip directory is missing)", path,
+                                    "unreadable: cut short")
+        raise CheckpointDamaged(f"{path} is not an imssr checkpoint (not a torch checkpoint file)", path,
+                                "not an imssr checkpoint")
     try:
         # Never unpickle arbitrary objects: a checkpoint from a shared file system could run code.
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -113,14 +121,20 @@ def load_checkpoint(path: str) -> dict[str, Any]:
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
-    except Exception:  # noqa: BLE001 - torch's reader of a file that is no zip archive (a text file,
-        # /etc/passwd) fails on whatever it trips over first: KeyError, IndexError, ...
-        raise CheckpointDamaged(f"{path} is not an imssr checkpoint (not a torch checkpoint file)", path,
-                                "not an imssr checkpoint") from None
+    except (KeyError, IndexError, TypeError, AttributeError) as exc:
+        # A zip archive whose pickle is damaged: the unpickler fails where it trips ("KeyError: 101").
+        first = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
         raise CheckpointDamaged(f"{path} is not an imssr checkpoint of format {FORMAT_VERSION}", path,
                                 "not an imssr checkpoint")
     return state
+
+
+def _starts_as_zip(path: str) -> bool:
+    """Whether ``path`` begins as a zip archive does (a checkpoint cut short keeps its start)."""
+    with open(path, "rb") as fh:
+        return fh.read(4) == b"PK\x03\x04"
 
 
 def _foreign_globals(path: str) -> list[str]:

@@ -119,9 +119,13 @@ class RunAttempt:
         self.error = ""
         if not self.resumed:
             # An earlier attempt that failed before its first checkpoint left logs that nothing
-            # continues; `imssr train` refuses to start over them, so the sweep clears them.
+            # continues; `imssr train` refuses to start over them, so the sweep clears them (and
+            # nothing else: a finished run, a training still running there, fail the attempt).
             try:
                 run.discard_unresumable()
+            except ImssrError as exc:
+                self.error = str(exc)
+                return
             except OSError as exc:
                 self.error = f"cannot clear {run_dir} for a fresh attempt: {exc.strerror or exc}"
                 return

@@ -86,8 +86,8 @@ class StopRequest:
     def _handle(self, signum, frame) -> None:
         self.signal_name = signal.Signals(signum).name
         # os.write, not print: a signal handler may run inside a print to the same stream.
-        os.write(2, f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
-                    "(a second signal stops at once)\n".encode())
+        _say(f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
+             "(a second signal stops at once)\n")
         for sig in self.SIGNALS:  # the next signal acts at once
             if self.out_dir is not None:
                 signal.signal(sig, self._exit_at_once)
@@ -102,16 +102,27 @@ class StopRequest:
             text = (f"stopped at once, keeping the last checkpoint; continue with: "
                     f"imssr train --out {self.out_dir} --resume")
         else:
-            text = "stopped at once, before the run's first checkpoint: nothing to resume"
-        os.write(2, f"imssr: {name} again: {text}\n".encode())
+            # The directory holds the logs of the run so far, so the same command is refused.
+            text = (f"stopped at once, before the run's first checkpoint: nothing to resume; choose "
+                    f"another --out or remove {self.out_dir}")
+        _say(f"imssr: {name} again: {text}\n")
         os._exit(INTERRUPTED_EXIT)
 
     def uninstall(self) -> None:
-        if self.signal_name is not None and self.out_dir is not None:
-            return  # the process is stopping: a further signal still exits at once, quietly
+        """The handlers from before :meth:`install` come back (the caller's, when ``imssr.cli.main``
+        runs in a process of its own): the training, and any checkpoint write, is over."""
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
         self._previous.clear()
+
+
+def _say(text: str) -> None:
+    """``text`` to stderr from a signal handler; lost when stderr is gone (a closed pipe): the
+    stop goes on without its line."""
+    try:
+        os.write(2, text.encode())
+    except OSError:
+        pass
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
@@ -611,12 +622,14 @@ class Trainer:
     def _finish(self, episode: Optional[Episode]) -> None:
         """The budget is spent: when it ended mid-episode, evaluate (unless this agent step was)
         and checkpoint with the open episode, which a larger budget continues exactly (unless
-        this step is checkpointed already); the learning curve goes to W&B."""
+        this step is checkpointed already and the evaluation did not just change it: a run
+        stopped here and resumed to this budget evaluates now); the learning curve goes to W&B."""
         if episode is not None:
             self._raise_if_diverged(episode)
-            if self.state.last_eval_step != self.step:
+            evaluated = self.state.last_eval_step != self.step
+            if evaluated:
                 self._final_evaluation()
-            if self._saved_step != self.step:
+            if evaluated or self._saved_step != self.step:
                 self.save(episode)
         if self.logger.wants_media:
             self.logger.log_image("learning_curve", plot_learning_curve(self.out_dir), self.frame, self.step)
