@@ -246,11 +246,7 @@ def test_a_fresh_run_refuses_the_logs_of_a_run_that_never_checkpointed(tmp_path)
     assert (tmp_path / "train.csv").read_text() == "frame,step\n5000,625\n"
     # What a sweep's fresh attempt does first: the run starts again from agent step 0.
     assert RunDir(str(tmp_path)).discard_unresumable() == ["train.csv", "eval.csv"]
-    t = Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
-    try:
-        t.train()
-    finally:
-        t.close()
+    train_run(tiny_config("curl", steps=125, eval_every_steps=0), tmp_path)
     assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
     assert [r["frame"] for r in read_csv(tmp_path / "eval.csv")] == ["1000"]
 
@@ -260,11 +256,7 @@ def test_a_fresh_run_starts_over_logs_without_rows_and_a_config_alone(tmp_path):
     (tmp_path / "train.csv").write_text("frame,step\n")
     RunDir(str(tmp_path)).write_config(tiny_config("curl", steps=125))
     assert RunDir(str(tmp_path)).run_parts() == []
-    t = Trainer(tiny_config("curl", steps=125, eval_every_steps=0), str(tmp_path))
-    try:
-        t.train()
-    finally:
-        t.close()
+    train_run(tiny_config("curl", steps=125, eval_every_steps=0), tmp_path)
     assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
 
 
