@@ -1,0 +1,36 @@
+"""Typed configuration.  Every field documents itself; counters say their unit.
+
+Units: an *agent step* is one action chosen by the agent; it advances the
+simulator by ``action_repeat`` *environment frames*.  Every budget, interval and
+schedule here counts agent steps, as the authors' code does: the paper's
+T = 500,000 agent steps (Table III, "Number of training steps"), which is
+4,000,000 frames at action repeat 8.  Replay capacity counts transitions.
+
+``CONFIG_VERSION`` 2 is the format with budgets in agent steps; imssr 0.1's configs
+(version 1: budgets in frames) are refused in one line (:func:`check_version`).
+
+The modules, each name re-exported here:
+
+- ``schema``: the sections' dataclasses, the limits and allowed values, ``FIELD_TYPES``, ``field_docs``;
+- ``version``: ``CONFIG_VERSION`` and ``check_version``;
+- ``overrides``: values merged onto a config (``apply_overrides``, ``--logger``), through OmegaConf;
+- ``validation``: the rules ``RunConfig.validate`` applies;
+- ``runconfig``: ``RunConfig``, the sections together;
+- ``files``: ``read_config_file`` and ``load_config``.
+"""
+from imssr.config.files import load_config, read_config_file
+from imssr.config.overrides import LOGGERS, TYPE_WORDS, apply_overrides, logger_fields
+from imssr.config.runconfig import RunConfig
+from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
+                                 MAX_SEED, PRECISIONS, REPLAY_DEVICES, SECTIONS, SEED_RULE, TF32_MODES,
+                                 UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig, AuxConfig, EnvConfig,
+                                 IntrinsicConfig, TrainConfig, field_docs, steps_for_frames)
+from imssr.config.version import CONFIG_VERSION, V1_KEYS, check_version
+
+__all__ = [
+    "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES",
+    "IntrinsicConfig", "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED",
+    "PRECISIONS", "REPLAY_DEVICES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TYPE_WORDS",
+    "TrainConfig", "UPDATE_SCHEDULES", "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_version",
+    "field_docs", "load_config", "logger_fields", "read_config_file", "steps_for_frames",
+]

@@ -1,0 +1,139 @@
+"""The rules a run's config must keep: :meth:`RunConfig.validate <imssr.config.RunConfig.validate>`.
+
+Each rule is one line of error naming the field.  The general rules are here; each plug-in's are
+beside the plug-in (``config_rules`` of every auxiliary task and intrinsic signal, and of the
+intrinsic reward).
+"""
+from __future__ import annotations
+
+import os
+from typing import TYPE_CHECKING
+
+from imssr.algos import get_algo
+from imssr.config.overrides import _get, _is_finite, _merged
+from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
+                                 MAX_SEED, PRECISIONS, REPLAY_DEVICES, SEED_RULE, TF32_MODES, UPDATE_SCHEDULES,
+                                 VIDEO_FORMATS)
+from imssr.config.version import CONFIG_VERSION
+from imssr.envs.scenes import get_mode
+from imssr.errors import ImssrError
+from imssr.networks.encoder import conv_output_size
+
+if TYPE_CHECKING:
+    from imssr.config.runconfig import RunConfig
+
+
+def validate_config(cfg: RunConfig) -> None:
+    """Reject bad values of ``cfg`` with one-line errors: the general rules here, each plug-in's
+    beside the plug-in (``config_rules`` of every auxiliary task and intrinsic signal)."""
+    # The plug-ins are torch modules that import imssr.config for their annotations only: loaded
+    # here, the config imports without them.
+    from imssr.auxiliary import AUX_TASKS
+    from imssr.intrinsic import INTRINSIC_SIGNALS, IntrinsicReward
+
+    _check_types(cfg)
+    e, a, x, i, t = cfg.env, cfg.agent, cfg.aux, cfg.intrinsic, cfg.train
+    checks = [
+        (e.action_repeat >= 1, "env.action_repeat must be >= 1"),
+        (e.frame_stack >= 1, "env.frame_stack must be >= 1"),
+        (e.shadow_size >= 1, "env.shadow_size must be >= 1"),
+        (0 < a.crop_size <= e.image_size, "agent.crop_size must be in (0, env.image_size]"),
+        (a.encoder_layers >= 1, "agent.encoder_layers must be >= 1"),
+        (a.encoder_filters >= 1, "agent.encoder_filters must be >= 1"),
+        (0 <= a.encoder_head_layers < a.encoder_layers,
+         "agent.encoder_head_layers must be in [0, agent.encoder_layers)"),
+        (a.crop_size < 3 or conv_output_size(a.crop_size, a.encoder_layers) >= 1,
+         f"agent.encoder_layers={a.encoder_layers} leaves no pixels of a {a.crop_size}px crop"),
+        (a.feature_dim >= 1, "agent.feature_dim must be >= 1"),
+        (a.hidden_dim >= 1, "agent.hidden_dim must be >= 1"),
+        (a.log_std_min < a.log_std_max, "agent.log_std_min must be < agent.log_std_max"),
+        (0.0 < a.critic_tau <= 1.0 and 0.0 < a.encoder_tau <= 1.0, "agent taus must be in (0, 1]"),
+        (min(a.critic_lr, a.actor_lr, a.alpha_lr, x.lr) > 0, "learning rates must be > 0"),
+        (a.init_temperature > 0, "agent.init_temperature must be > 0"),
+        (min(a.actor_update_every, a.critic_update_every, a.target_update_every) >= 1,
+         "agent update intervals must be >= 1"),
+        (x.batch_size >= 2, "aux.batch_size must be >= 2"),
+        (a.batch_size >= 2, "agent.batch_size must be >= 2"),
+        (0.0 <= a.discount <= 1.0, "agent.discount must be in [0, 1]"),
+        (a.update_schedule in UPDATE_SCHEDULES,
+         f"agent.update_schedule must be one of {', '.join(UPDATE_SCHEDULES)}"),
+        (a.update_schedule != "fused" or a.critic_update_every == 1,
+         "agent.update_schedule=fused needs agent.critic_update_every=1"),
+        (a.precision in PRECISIONS, f"agent.precision must be one of {', '.join(PRECISIONS)}"),
+        (a.tf32 in TF32_MODES, f"agent.tf32 must be one of {', '.join(TF32_MODES)}"),
+        (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
+        (x.update_every >= 1, "aux.update_every must be >= 1"),
+        (i.source in INTRINSIC_SIGNALS, f"intrinsic.source must be one of {', '.join(INTRINSIC_SIGNALS)}"),
+        # Each auxiliary task and signal checks its own settings, the intrinsic reward its
+        # normalisation and schedule.
+        *(rule for plugin in (*AUX_TASKS.values(), *INTRINSIC_SIGNALS.values(), IntrinsicReward)
+          for rule in plugin.config_rules(cfg)),
+        (cfg.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION}"),
+        (t.steps >= 1, "train.steps must be >= 1"),
+        (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
+        (t.burst_updates >= 0, "train.burst_updates must be >= 0"),
+        (t.torch_threads >= 0, "train.torch_threads must be >= 0"),
+        (t.keep_checkpoints >= 0, "train.keep_checkpoints must be >= 0"),
+        (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
+        (t.replay_device in REPLAY_DEVICES,
+         f"train.replay_device must be one of {', '.join(REPLAY_DEVICES)}, got {t.replay_device!r}"),
+        (0 < t.gpu_share <= 1, f"train.gpu_share must be in (0, 1], got {t.gpu_share}"),
+        (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
+        (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
+        (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
+        (t.eval_video_every >= 0, "train.eval_video_every must be >= 0"),
+        (t.eval_video_format in VIDEO_FORMATS,
+         f"train.eval_video_format must be one of {', '.join(VIDEO_FORMATS)}"),
+        (bool(t.wandb_project.strip()), "train.wandb_project must not be empty"),
+        (0 <= t.seed <= MAX_SEED, f"train.seed must be {SEED_RULE}, got {t.seed}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise ImssrError(message)
+    _check_upper_bounds(cfg)
+    for mode in [e.mode, *t.eval_mode_list(e.mode)]:
+        get_mode(mode)
+    if e.footage_dir and not os.path.exists(os.path.expanduser(e.footage_dir)):
+        raise ImssrError(f"footage not found: {e.footage_dir} (env.footage_dir / --footage)")
+    algo = get_algo(cfg.algo)
+    if algo.aux != x.name or algo.intrinsic_enabled != i.enabled or \
+            (algo.intrinsic_enabled and algo.intrinsic != i.source):
+        raise ImssrError(f"algo {cfg.algo} means aux.name={algo.aux}, intrinsic.enabled="
+                         f"{str(algo.intrinsic_enabled).lower()}"
+                         + (f", intrinsic.source={algo.intrinsic}" if algo.intrinsic_enabled else "")
+                         + "; choose the algo instead of overriding these")
+
+
+def _check_upper_bounds(cfg: RunConfig) -> None:
+    """Integers bounded from above: the replay buffer by what a process can address, the image
+    by the renderer, every other integer by :data:`MAX_INT` (layer counts are bounded by the
+    crop they must leave pixels of, in :func:`validate_config`)."""
+    e, t = cfg.env, cfg.train
+    frame_bytes = 3 * e.image_size * e.image_size
+    if t.replay_capacity > MAX_ADDRESSABLE_BYTES // frame_bytes:
+        raise ImssrError(f"train.replay_capacity={t.replay_capacity} needs {t.replay_capacity * frame_bytes:.3g} "
+                         f"bytes of {e.image_size}px frames, more than a process can address; "
+                         "lower the replay capacity")
+    if e.image_size > MAX_IMAGE_SIZE:
+        raise ImssrError(f"env.image_size must be at most {MAX_IMAGE_SIZE} (the offscreen framebuffer of "
+                         f"the suite's models is 640x{MAX_IMAGE_SIZE}), got {e.image_size}")
+    for key, kind in FIELD_TYPES.items():
+        if kind is int and key != "train.seed" and _get(cfg, key) > MAX_INT:
+            raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(cfg, key)}")
+
+
+def _check_types(cfg: RunConfig) -> None:
+    """Reject values of the wrong type (e.g. set in code, or from a hand-edited JSON file): a
+    value OmegaConf refuses or would have to convert (``"5"`` for an int, ``1`` for a bool), and
+    NaN or infinity, which pass every comparison check or break them and end a run only later,
+    in a simulator traceback."""
+    for key, kind in FIELD_TYPES.items():
+        value = _get(cfg, key)
+        if kind is float and isinstance(value, (int, float)) and not _is_finite(value):
+            raise ImssrError(f"{key} must be a finite number, got {value!r}")
+    typed = _merged(cfg, {}, raw={})
+    for key, kind in FIELD_TYPES.items():
+        value = _get(cfg, key)
+        if _get(typed, key) != value or isinstance(value, bool) != (kind is bool):
+            raise ImssrError(f"{key} must be a {kind.__name__}, got {value!r}")
+
