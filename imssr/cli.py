@@ -18,7 +18,7 @@ from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
-from imssr.presets import ALGOS, explain, make_config, run_config
+from imssr.presets import ALGOS, make_config, markdown_table, preset_settings, run_config
 from imssr.rundir import run_path
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
@@ -480,6 +480,12 @@ def cmd_algos(_args) -> int:
     for spec in ALGOS.values():
         print(f"{spec.name}\t{spec.description}")
     return 0
+
+
+def explain(algo: str, task: str, network: str = "dmcgb") -> str:
+    """The preset as a Markdown table: field, value, source, note."""
+    return "\n".join([f"# {algo} on {task}: {make_config(algo, task, network).budget_text()}", "",
+                      *markdown_table(preset_settings(algo, task, network))])
 
 
 def cmd_config(args) -> int:

@@ -1,25 +1,20 @@
-"""The paper's settings as named presets per algorithm and task.
+"""The paper's settings, each with its source: the rows every preset is made of.
 
-``make_config(algo, task)`` returns the configuration the authors ran: their
-code (``duchenzhuang/dmc-disentangle``, a fork of DMC-GB) where the paper's
-tables are silent, Table III and Table V where they speak.  Every value has a
-recorded source (:func:`preset_settings`, ``imssr config --explain``,
-docs/provenance.md).  Algorithms are pairs of an auxiliary task
-and an intrinsic signal: every base ``X`` has an ``im-X`` twin (IM-SSR) and
-the exploration peers ``X+rnd`` and ``X+re3``.
+Where each value comes from: the authors' code (``duchenzhuang/dmc-disentangle``, a fork of
+DMC-GB that produced the paper's numbers) where the paper's tables are silent, Table III and
+Table V where they speak.  :func:`preset_settings` gathers the rows of one algorithm on one task
+(docs/provenance.md prints them all, ``imssr config --explain`` one preset's);
+:mod:`imssr.presets.build` makes configs of them.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Sequence
 
-from imssr.algos import ALGOS, BASES, SIGNALS, AlgoSpec, get_algo  # noqa: F401 (re-exported)
-from imssr.config import (RunConfig, apply_overrides, check_version, load_config, read_config_file,
-                          steps_for_frames)
+from imssr.algos import AlgoSpec, get_algo
+from imssr.config import RunConfig
 from imssr.envs.tasks import get_task
 from imssr.errors import ImssrError
-from imssr.rundir import RunDir
 
 
 # Table V: beta_0 per task (../shared/spec/paper_beta0.csv; tests check the copy).
@@ -311,125 +306,19 @@ def preset_settings(algo: str, task: str, network: str = "dmcgb") -> list[Settin
     return list(merged.values())
 
 
-def set_field(cfg: RunConfig, dotted: str, value) -> None:
-    """Set ``section.name`` (or a top-level field) of ``cfg``."""
-    if "." not in dotted:
-        setattr(cfg, dotted, value)
-        return
-    section, name = dotted.split(".", 1)
-    setattr(getattr(cfg, section), name, value)
-
-
-def make_config(algo: str, task: str, network: str = "dmcgb") -> RunConfig:
-    """The configuration the authors ran for ``algo`` on ``task`` (Table III and Table V winning
-    where they speak; :func:`preset_settings` gives every value's source)."""
-    cfg = RunConfig()
-    for row in preset_settings(algo, task, network):
-        set_field(cfg, row.field, row.value)
-    return cfg
-
-
-def load_partial_config(path: str, algo: str | None = None, task: str | None = None,
-                        network: str = "dmcgb") -> RunConfig:
-    """A config file merged onto the preset of its algo and task (``imssr train --config``).
-
-    Every field the file gives wins; every field it leaves out is the preset's
-    (:func:`make_config`), so ``{"algo": "curl", "env": {"task": "walker_walk"}}``
-    is the preset of CURL on walker_walk (action repeat 4), and a complete file (a run's
-    ``config.json``) reads back exactly as it was written.  The file's ``algo`` and
-    ``env.task`` win over ``algo`` and ``task`` (the CLI's ``--algo`` / ``--task``, which
-    must then agree); a config that names neither is an error.
-    """
-    data = read_config_file(path)
-    if not isinstance(data, dict):
-        raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
-    check_version(data, f"config {path}")
-    file_algo = data.get("algo")
-    file_task = data["env"].get("task") if isinstance(data.get("env"), dict) else None
-    # A value of the wrong type is left for the type checks to name.
-    algo = file_algo if isinstance(file_algo, str) else algo
-    task = file_task if isinstance(file_task, str) else task
-    # A preset is chosen only by name: a file that names none would otherwise train a default.
-    if algo is None or task is None:
-        missing = " and ".join(n for n, v in (("algo", algo), ("env.task", task)) if v is None)
-        raise ImssrError(f"config {path} names no {missing}; add it to the file or pass "
-                         f"{' and '.join('--' + n.split('.')[-1] for n, v in (('algo', algo), ('env.task', task)) if v is None)}")
-    merged = make_config(algo, task, network).to_dict()
-    for key, value in data.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key].update(value)
-        else:
-            merged[key] = value
-    return RunConfig.from_dict(merged)
-
-
-def run_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
-               config_file: str | None = None, resume_dir: str | None = None, demo: bool = False,
-               values: Mapping[str, Any] | None = None, frames: int | None = None,
-               batch_size: int | None = None, beta0: float | None = None,
-               overrides: Sequence[str] = ()) -> RunConfig:
-    """The validated config of one run, as ``imssr train`` and every sweep run build it.
-
-    Its base is :func:`base_config`'s.  Then, in order: ``values`` (``section.field`` -> value,
-    the CLI's flags that set one field each), ``frames`` (the budget in frames: ``train.steps``
-    rounded up), ``batch_size`` (the RL batch, and the auxiliary batch of a task that trains on
-    it), ``beta0`` (algos with an intrinsic reward only) and the ``section.field=value``
-    ``overrides`` (``--set``).
-    """
-    cfg = base_config(algo, task, network=network, config_file=config_file, resume_dir=resume_dir, demo=demo)
-    values = dict(values or {})
-    if frames is not None:
-        if values.get("train.steps") is not None:
-            raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
-        cfg.train.steps = steps_for_frames(frames, cfg.env.action_repeat)
-    for dotted, value in values.items():
-        set_field(cfg, dotted, value)
-    if batch_size is not None:
-        cfg.agent.batch_size = batch_size
-        if not cfg.aux.own_batch:
-            cfg.aux.batch_size = batch_size  # the task trains on the RL batch
-    if beta0 is not None:
-        if not cfg.intrinsic.enabled:
-            raise ImssrError(f"--beta0 applies to algorithms with an intrinsic reward, not {cfg.algo}")
-        cfg.intrinsic.beta0 = beta0
-    return apply_overrides(cfg, list(overrides)).validate()
-
-
-def base_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
-                config_file: str | None = None, resume_dir: str | None = None, demo: bool = False) -> RunConfig:
-    """What a run's settings start from, in this order: the file ``config_file`` (a partial one
-    merged onto the preset of its algo and task, :func:`load_partial_config`), the saved
-    ``config.json`` of ``resume_dir``, or the preset of ``algo`` on ``task`` (the demo's with
-    ``demo``).  A given ``algo`` or ``task`` must agree with a loaded file."""
-    if config_file:
-        cfg = load_partial_config(config_file, algo, task)
-    elif resume_dir:
-        saved = RunDir(resume_dir).config_path
-        if not os.path.exists(saved):
-            raise ImssrError(f"nothing to resume: {saved} does not exist")
-        cfg = load_config(saved)
-    else:
-        algo = algo or ("im-curl" if demo else None)
-        task = task or ("cartpole_swingup" if demo else None)
-        if algo is None or task is None:
-            raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
-        get_algo(algo)
-        get_task(task)
-        return (demo_config if demo else make_config)(algo, task, network or "dmcgb")
-    if algo and algo != cfg.algo:
-        raise ImssrError(f"--algo {algo} differs from the run's algo {cfg.algo}")
-    if task and task != cfg.env.task:
-        raise ImssrError(f"--task {task} differs from the run's task {cfg.env.task}")
-    if network:
-        raise ImssrError("--network chooses the preset of a new run; with --resume or --config "
-                         "set agent.final_relu / feature_dim / projection_tanh instead")
-    return cfg
-
-
-def explain(algo: str, task: str, network: str = "dmcgb") -> str:
-    """The preset as a Markdown table: field, value, source, note."""
-    return "\n".join([f"# {algo} on {task}: {make_config(algo, task, network).budget_text()}", "",
-                      *markdown_table(preset_settings(algo, task, network))])
+DEMO = (
+    Setting("agent.batch_size", 64, "demo", "also the auxiliary batch of a task that trains on the RL batch"),
+    Setting("agent.update_schedule", "fused", "demo", "one encoder pass and one backward for critic + "
+            "CURL: 0.8x the sequential step"),
+    Setting("train.steps", 1000, "demo", "8 episodes, 1,000 updates: 6x-29x the untrained return at "
+            "the last evaluation in seeds 0-2 at 2 threads, >= 3x in 5 of 6 seeded runs; 8-13 min on 2 cores"),
+    Setting("train.seed_steps", 250, "demo"),
+    Setting("train.burst_updates", 250, "demo", "as many as seed steps, as in the authors' loop"),
+    Setting("train.eval_every_steps", 250, "demo"),
+    Setting("train.eval_episodes", 5, "demo"),
+    Setting("train.checkpoint_every_steps", 500, "demo"),
+)
+"""The demo's settings over its algorithm's preset (:func:`~imssr.presets.build.demo_config`)."""
 
 
 def markdown_table(rows: Sequence[Setting]) -> list[str]:
@@ -445,40 +334,3 @@ def show_value(value) -> str:
     if isinstance(value, str):
         return value or '""'
     return f"{value:,}" if isinstance(value, int) else repr(value)
-
-
-DEMO = (
-    Setting("agent.batch_size", 64, "demo", "also the auxiliary batch of a task that trains on the RL batch"),
-    Setting("agent.update_schedule", "fused", "demo", "one encoder pass and one backward for critic + "
-            "CURL: 0.8x the sequential step"),
-    Setting("train.steps", 1000, "demo", "8 episodes, 1,000 updates: 6x-29x the untrained return at "
-            "the last evaluation in seeds 0-2 at 2 threads, >= 3x in 5 of 6 seeded runs; 8-13 min on 2 cores"),
-    Setting("train.seed_steps", 250, "demo"),
-    Setting("train.burst_updates", 250, "demo", "as many as seed steps, as in the authors' loop"),
-    Setting("train.eval_every_steps", 250, "demo"),
-    Setting("train.eval_episodes", 5, "demo"),
-    Setting("train.checkpoint_every_steps", 500, "demo"),
-)
-"""The demo's settings over its algorithm's preset (:func:`demo_config`)."""
-
-
-def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup", network: str = "dmcgb") -> RunConfig:
-    """README command 1: a short IM-SSR run whose learning curve rises on 2 CPU cores.
-
-    Chosen by measurement (docs/performance.md, "The demo"): the dense ``cartpole_swingup``
-    (action repeat 8, as in CURL) with the authors' network and optimiser; RL batch 64; the fused
-    update schedule (one encoder pass and one backward for critic + CURL, 0.8x the sequential
-    step: not update-for-update the paper's schedule, docs/architecture.md); a 250-step seed
-    phase followed by a burst of 250 updates (the burst equals the seed phase, as in the
-    authors' loop); 1,000 agent steps (8 episodes, 1,000 updates) with an evaluation of 5
-    episodes every 250 agent steps.  Learning shows from the first evaluation after the burst;
-    past about 1,000 updates a young policy's evaluations swing (and in some seeds fall back),
-    so the demo stops there.  The sparse paper task needs far more.  A demonstration, not a
-    result.
-    """
-    cfg = make_config(algo, task, network)
-    for row in DEMO:
-        set_field(cfg, row.field, row.value)
-    if not cfg.aux.own_batch:
-        cfg.aux.batch_size = cfg.agent.batch_size  # the task trains on the RL batch
-    return cfg
