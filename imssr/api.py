@@ -21,12 +21,12 @@ from imssr.config import RunConfig
 from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
+from imssr.files import read_csv
 from imssr.presets import run_config
 from imssr.rundir import EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir, run_path
 from imssr.seeds import evaluation_seed
 from imssr.training.evaluate import eval_row, evaluate
 from imssr.training.loop import StopRequest, Trainer, TrainingInterrupted
-from imssr.utils import read_csv
 
 CURVES = tuple(name.removesuffix(".csv") for name in (EVAL_LOG, TRAIN_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG,
                                                       EVALUATE_EPISODES_LOG))

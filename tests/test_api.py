@@ -12,8 +12,8 @@ import pytest
 import imssr
 from imssr.api import _typed
 from imssr.errors import ImssrError
+from imssr.files import read_csv
 from imssr.training.evaluate import evaluate_run
-from imssr.utils import read_csv
 
 from conftest import tiny_config, train_run
 

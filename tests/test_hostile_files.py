@@ -13,11 +13,11 @@ import torch
 from conftest import tiny_config
 from imssr.cli import main
 from imssr.errors import ImssrError
+from imssr.files import atomic_write_text
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError
 from imssr.rundir import RunDir
 from imssr.rundir.checkpoint import load_checkpoint
-from imssr.utils import atomic_write_text
 
 
 class Evil:
@@ -71,7 +71,7 @@ def test_a_checkpoint_with_a_class_of_its_own_is_refused(tmp_path):
 
 def test_imssr_checkpoints_hold_only_tensors_and_plain_values(tmp_path):
     """What the trainer saves (numpy RNG states included) needs no allow-listed numpy type."""
-    from imssr.utils import rng_states
+    from imssr.rng import rng_states
 
     run = str(tmp_path / "run")
     RunDir(run).save_checkpoint({"step": 1, "replay_file": None, "global_rng": rng_states()})

@@ -21,6 +21,7 @@ import torch
 from conftest import assert_same_nets, fill_fs, filled_buffer, tiny_config, train_run, without_timing
 from imssr.cli import main
 from imssr.errors import ImssrError
+from imssr.files import atomic_write_csv, atomic_write_text
 from imssr.replay import FrameReplayBuffer
 from imssr.training import Trainer
 from imssr.training.evaluate import evaluate_run
@@ -28,7 +29,6 @@ from imssr.rundir import RunDir
 from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock
 from imssr.training.logger import CSVLog, Logger, read_csv
-from imssr.utils import atomic_write_csv, atomic_write_text
 
 TASK = "cartpole_swingup_sparse"
 NO_SPACE = r"no space left on (?P<device>/\S*) while writing (?P<path>\S+) \(\d+\.\d+ MB needed\)"

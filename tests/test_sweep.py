@@ -12,10 +12,10 @@ import torch
 
 from conftest import tiny_config, train_stopped_at
 from imssr.cli import main
+from imssr.contention import autogroup, autogroup_scheduling
 from imssr.rundir import DONE_FILE, SWEEP_LOG, RunDir
 from imssr.sweep.grid import SweepConfig, expand, load_sweep_file, parse_seeds
 from imssr.sweep.runner import execute_run
-from imssr.utils import autogroup, autogroup_scheduling
 from imssr.sweep.sweep import plan_runs, settle, write_status
 from imssr.training.logger import read_csv
 

@@ -5,8 +5,8 @@ from typing import Sequence
 
 import numpy as np
 
+from imssr.files import atomic_write_csv
 from imssr.plots.media import save_png
-from imssr.utils import atomic_write_csv
 
 
 def spearman_ci(x: np.ndarray, y: np.ndarray, reps: int = 1000, seed: int = 0,

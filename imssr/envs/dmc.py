@@ -28,7 +28,7 @@ from imssr._gl import check_gl, egl_device_error, egl_vendor_hint, nvidia_driver
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
-from imssr.utils import random_state_from_plain, random_state_to_plain
+from imssr.rng import random_state_from_plain, random_state_to_plain
 
 if TYPE_CHECKING:  # the config imports the scene registry of this package
     from imssr.config import EnvConfig

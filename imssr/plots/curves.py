@@ -4,8 +4,8 @@ from __future__ import annotations
 import os
 
 from imssr.errors import ImssrError
+from imssr.files import atomic_path, read_csv
 from imssr.rundir import RunDir
-from imssr.utils import atomic_path, read_csv
 
 
 def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:

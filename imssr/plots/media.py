@@ -8,7 +8,7 @@ import numpy as np
 from imssr.config import VIDEO_FORMATS
 from imssr.envs import MODES, get_task, make_env
 from imssr.errors import ImssrError
-from imssr.utils import atomic_path
+from imssr.files import atomic_path
 
 
 def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> str:

@@ -14,10 +14,10 @@ from typing import Optional
 import numpy as np
 
 from imssr.extras import require
+from imssr.files import atomic_write_csv
 from imssr.presets import ALGOS
 from imssr.report.results import group_label
 from imssr.report.tables import FRACTIONS, Row, mode_order
-from imssr.utils import atomic_write_csv
 
 # The report extra; imported with this module, which only `imssr report` imports.
 rly = require("rliable.library", "report")

@@ -19,10 +19,10 @@ import os
 from dataclasses import dataclass
 
 from imssr.errors import ImssrError
+from imssr.files import atomic_path
 from imssr.report.results import collect
 from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, TRAIN_LOG, RunDir, run_path
 from imssr.sweep.grid import beta_label
-from imssr.utils import atomic_path
 
 RESULT_FILES = (CONFIG_FILE, *CSV_LOGS)
 """What a run keeps in an export: its config and every CSV log (``evaluate*.csv`` when

@@ -6,9 +6,9 @@ from typing import Optional
 
 import numpy as np
 
+from imssr.files import atomic_path
 from imssr.report.results import SweepResults
 from imssr.report.tables import Row, label_order, mode_order
-from imssr.utils import atomic_path
 
 
 def _pyplot():

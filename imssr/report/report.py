@@ -17,9 +17,9 @@ from __future__ import annotations
 import os
 from typing import Optional
 
+from imssr.files import atomic_write_text
 from imssr.report import aggregate, figures, tables
 from imssr.report.results import collect, write_evaluations
-from imssr.utils import atomic_write_text
 
 PAPER_T = 500_000
 """The paper's T in agent steps (Table III, "Number of training steps"): its 0.2T, 0.5T and 1.0T

@@ -17,11 +17,11 @@ from typing import Optional
 
 from imssr.config import steps_for_frames
 from imssr.errors import ImssrError
+from imssr.files import atomic_write_csv
 from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir
 from imssr.sweep.grid import SWEEP_PLAN, beta_label
 from imssr.sweep.sweep import status_of
 from imssr.training.logger import read_csv
-from imssr.utils import atomic_write_csv
 
 EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0", "precision"]
 

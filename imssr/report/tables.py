@@ -23,9 +23,9 @@ from typing import Optional
 
 import numpy as np
 
+from imssr.files import atomic_write_csv
 from imssr.presets import ALGOS
 from imssr.report.results import RunResult, SweepResults
-from imssr.utils import atomic_write_csv
 
 FRACTIONS = (0.2, 0.5, 1.0)
 TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",

@@ -46,11 +46,11 @@ from typing import Any, Callable, Iterator, Optional
 
 from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
+from imssr.files import atomic_write_text, read_csv
 from imssr.jsonio import dumps
 from imssr.replay.buffer import frames_path
 from imssr.rundir.checkpoint import CheckpointDamaged, copy_checkpoint, load_checkpoint, write_checkpoint
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
-from imssr.utils import atomic_write_text, read_csv
 
 CONFIG_FILE = "config.json"
 """The run's resolved config: written before training starts, read by every command on the run."""

@@ -29,8 +29,8 @@ import numpy as np
 import torch
 
 from imssr.errors import ImssrError
+from imssr.files import atomic_path
 from imssr.integrity import HashingWriter, check_zip, seal_zip
-from imssr.utils import atomic_path
 
 FORMAT_VERSION = 1
 

@@ -21,7 +21,7 @@ import time
 from typing import Optional
 
 from imssr.errors import ImssrError
-from imssr.utils import disk_full_as_error, open_own
+from imssr.files import disk_full_as_error, open_own
 
 LOCK_FILE = ".imssr.lock"
 

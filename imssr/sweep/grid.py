@@ -15,10 +15,10 @@ from typing import Any, Optional
 from imssr.config import MAX_SEED, SEED_RULE, RunConfig, logger_fields
 from imssr.envs import get_task
 from imssr.errors import ImssrError
+from imssr.files import atomic_write_text
 from imssr.jsonio import dumps
 from imssr.presets import ALGOS, get_algo, run_config
 from imssr.rundir import RunDir, run_path
-from imssr.utils import atomic_write_text
 
 LAUNCHERS = ("ray", "slurm", "local")
 """What ``imssr sweep --launcher`` takes (:mod:`imssr.sweep.launchers`)."""

@@ -16,9 +16,10 @@ import sys
 import time
 from typing import Optional
 
+from imssr.contention import scheduling_group
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
+from imssr.files import disk_full_as_error, open_append
 from imssr.rundir import DIVERGED, FAILED, INTERRUPTED, RunDir
-from imssr.utils import disk_full_as_error, open_append, scheduling_group
 
 # Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
 # second signal (or one before its handlers were in place) ended it; it resumes either way.

@@ -29,13 +29,13 @@ from tqdm import tqdm
 
 from imssr.config import RunConfig
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
+from imssr.files import atomic_write_text
 from imssr.jsonio import dumps
 from imssr.rundir import SWEEP_LOG, RunDir
 from imssr.sweep.grid import Run, SweepConfig, expand, save_plan
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
 from imssr.rundir.lock import DirectoryLock
 from imssr.training.loop import RESUMABLE_CHANGES
-from imssr.utils import atomic_write_text
 
 STATUS_FILE = "sweep_status.json"
 STATES = ("queued", "running", "done", "failed", "interrupted")

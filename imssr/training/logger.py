@@ -17,9 +17,9 @@ from typing import Any, Callable, Iterable, Optional
 import numpy as np
 
 from imssr.errors import ImssrError
+from imssr.files import atomic_write_text, disk_full_as_error, is_disk_full, open_append, read_csv
 from imssr.plots.media import save_video
 from imssr.rundir import RunDir
-from imssr.utils import atomic_write_text, disk_full_as_error, is_disk_full, open_append, read_csv
 
 VIDEO_FPS = 25.0
 """Frames per second of evaluation videos (one frame per agent step), as ``imssr evaluate --video``."""

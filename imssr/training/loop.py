@@ -23,6 +23,7 @@ import torch
 
 from imssr._gl import gl_renderer, software_rendering_warning
 from imssr.config import RunConfig
+from imssr.contention import contention_warning
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs import env_from_config
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, DivergedError, ImssrError, NonFiniteError
@@ -30,6 +31,7 @@ from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
 from imssr.replay import make_replay_buffer, replay_placement
 from imssr.replay.buffer import ReplayFileError
+from imssr.rng import rng_states, seed_everything, set_rng_states
 from imssr.rundir import RunDir
 from imssr.seeds import TRAINING_EVAL_SEED_OFFSET
 from imssr.training.build import build_agent, resolve_device
@@ -37,7 +39,6 @@ from imssr.training.evaluate import eval_row, evaluate, non_finite_text
 from imssr.training.logger import Logger
 from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
 from imssr.training.state import Episode, RunState
-from imssr.utils import contention_warning, rng_states, seed_everything, set_rng_states
 
 # Settings that may change between a run and its resume.
 RESUMABLE_CHANGES = {"train.steps", "train.device", "train.replay_device", "train.gpu_share", "train.progress",

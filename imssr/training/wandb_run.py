@@ -16,8 +16,8 @@ from typing import Optional
 
 from imssr.config import RunConfig
 from imssr.extras import require
+from imssr.files import atomic_write_text
 from imssr.rundir import RunDir
-from imssr.utils import atomic_write_text
 
 def run_tags(cfg: RunConfig) -> list[str]:
     """The run's W&B tags: algo, task, seed and (algos with an intrinsic reward) beta_0."""

@@ -1,192 +1,23 @@
-"""Small helpers shared across the package: atomic files, seeding, thread contention."""
+"""CPU contention: how many cores other processes keep busy, and which of them yield to this one.
+
+A training warns when its torch threads would contend with busy cores (:func:`contention_warning`):
+torch's intra-op pool spins on every thread, and threads that wait for a core run many times
+slower.  Processes that yield the CPU to this one do not count: those 10 or more nice levels
+below it (:data:`YIELDING_NICE`), taking into account what they compete inside of, an autogroup
+(a session, under Linux's autogroup scheduling) or a CPU cgroup (:func:`scheduling_group`).
+``imssr sweep`` reads the same scheduling groups to give each training's session the sweep's
+nice value (:func:`imssr.sweep.runner.lower_session_priority`).
+
+This module lies at the package's top level, not in :mod:`imssr.sweep`: every training warns
+(``imssr train``, the demo, :mod:`imssr.api`), and the training loop must not import the sweep
+package that runs trainings as subprocesses of its own.  The readings are Linux's ``/proc``:
+elsewhere the 1-minute load average alone decides whether a training warns.
+"""
 from __future__ import annotations
 
-import contextlib
-import csv
-import errno
-import io
 import os
-import random
-import re
-import secrets
 import time
-from typing import Callable, Iterable, Iterator, Optional, TextIO
-
-import numpy as np
-import torch
-
-from imssr.errors import ImssrError
-
-
-@contextlib.contextmanager
-def atomic_path(path: str, needed: Optional[int] = None) -> Iterator[str]:
-    """Yield a temporary path beside ``path``; on success, fsync and rename it over ``path``.
-
-    A reader never sees a half-written file: it sees the old file or the new one.  The
-    temporary file is created with mode ``0o666`` so that the process umask decides the
-    final permissions, as for any file the user creates (``tempfile.mkstemp`` would make
-    every output private, 0600).  A full disk (``ENOSPC``, a quota, a short write) becomes
-    one :func:`no_space_message` line naming ``path`` and ``needed`` bytes (when given);
-    the old file stays in place and the temporary file is removed.
-    """
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    tmp = _create_temp(directory, os.path.basename(path))
-    try:
-        with disk_full_as_error(path, needed):
-            yield tmp
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
-def _create_temp(directory: str, name: str) -> str:
-    """Create an empty ``.tmp-*`` file in ``directory`` (mode 0o666 less the umask)."""
-    for _ in range(100):
-        tmp = os.path.join(directory, f".tmp-{secrets.token_hex(4)}-{name}")
-        try:
-            with disk_full_as_error(os.path.join(directory, name)):
-                fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
-        except FileExistsError:
-            continue
-        os.close(fd)
-        return tmp
-    raise FileExistsError(errno.EEXIST, "no free temporary file name", directory)
-
-
-# numpy's ``tofile`` reports a short write as "N requested and M written", without errno.
-_SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")
-
-
-def is_disk_full(exc: BaseException) -> bool:
-    """``exc`` says the file system is full (or the user's quota is spent)."""
-    return isinstance(exc, OSError) and (exc.errno in (errno.ENOSPC, errno.EDQUOT)
-                                         or bool(_SHORT_WRITE.search(str(exc))))
-
-
-def mount_point(path: str) -> str:
-    """The mount point of the file system that holds ``path`` (or its nearest existing parent)."""
-    path = os.path.realpath(path)
-    while not os.path.exists(path):
-        path = os.path.dirname(path)
-    while not os.path.ismount(path):
-        path = os.path.dirname(path)
-    return path
-
-
-def no_space_message(path: str, needed: Optional[int] = None, quota: bool = False) -> str:
-    """One line: "no space left on DEVICE while writing PATH (N MB needed)"; ``path`` is the file
-    written, or the directory written into (TensorBoard's ``tb/``, which may be a mount of its own)."""
-    try:
-        device = mount_point(path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path)))
-    except OSError:  # pragma: no cover - the directory vanished meanwhile
-        device = "its device"
-    what = "no space left (disk quota exceeded)" if quota else "no space left"
-    size = "" if needed is None else f" ({_mb(needed)} MB needed)"
-    return f"{what} on {device} while writing {path}{size}"
-
-
-def _mb(nbytes: int) -> str:
-    mb = nbytes / 1e6
-    return f"{mb:.1f}" if mb >= 0.1 else f"{max(mb, 0.001):.3f}"
-
-
-@contextlib.contextmanager
-def disk_full_as_error(path: str, needed: Optional[int] = None) -> Iterator[None]:
-    """Turn a full-disk ``OSError`` raised inside the block into an :class:`ImssrError`."""
-    try:
-        yield
-    except OSError as exc:
-        if not is_disk_full(exc):
-            raise
-        raise ImssrError(no_space_message(path, needed, quota=exc.errno == errno.EDQUOT)) from None
-
-
-def atomic_write_text(path: str, text: str) -> None:
-    with atomic_path(path, needed=len(text.encode())) as tmp:
-        with open(tmp, "w") as fh:
-            fh.write(text)
-
-
-def open_own(path: str, flags: int) -> int:
-    """``os.open(path, flags | O_NOFOLLOW | O_CLOEXEC, 0o666)`` (the umask decides the mode of a
-    new file).  A symbolic link there is refused in one line: a run directory's files are its
-    own, and writing through a link planted in a shared directory would write into (or
-    truncate) a file outside the run."""
-    try:
-        return os.open(path, flags | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise ImssrError(f"{path} is a symbolic link; imssr writes only to a file of its own there "
-                             "(remove the link)") from None
-        raise
-
-
-def open_append(path: str, newline: Optional[str] = None) -> TextIO:
-    """``path`` opened for appending text (created if missing); a link is refused (:func:`open_own`)."""
-    return os.fdopen(open_own(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "a", newline=newline)
-
-
-def read_csv(path: str, complete_only: bool = False) -> list[dict]:
-    """The rows of a CSV file with a header, as dicts (none if the file does not exist).
-    ``complete_only``: leave out a last row without its line end, which a killed writer cut
-    short (``...,training,2.`` of ``2.5`` would read as a number)."""
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as fh:
-        text = fh.read()
-    if complete_only and text and not text.endswith("\n"):
-        text = text[:text.rfind("\n") + 1]
-    return list(csv.DictReader(io.StringIO(text, newline="")))
-
-
-def atomic_write_csv(path: str, header: list[str], rows: Iterable[list]) -> str:
-    """Write ``header`` and ``rows`` as CSV atomically; returns ``path``."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(header)
-            writer.writerows(rows)
-    return path
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
-
-
-def rng_states() -> dict:
-    """The global Python, numpy and torch RNG states, in types that ``torch.load(weights_only=True)``
-    reads (plain containers and tensors): a checkpoint then never needs pickled numpy objects."""
-    return {"python": random.getstate(), "numpy": random_state_to_plain(np.random.get_state()),
-            "torch": torch.get_rng_state()}
-
-
-def set_rng_states(states: dict) -> None:
-    random.setstate(states["python"])
-    np.random.set_state(random_state_from_plain(states["numpy"]))
-    torch.set_rng_state(states["torch"])
-
-
-def random_state_to_plain(state: tuple) -> dict:
-    """A ``np.random.RandomState.get_state()`` tuple as a dict of plain values (the MT19937 key
-    as a list of ints), so that a checkpoint holding it loads with ``weights_only=True``."""
-    name, key, pos, has_gauss, gauss = state
-    return {"bit_generator": str(name), "key": [int(k) for k in key], "pos": int(pos),
-            "has_gauss": int(has_gauss), "gauss": float(gauss)}
-
-
-def random_state_from_plain(state) -> tuple:
-    """The ``RandomState.set_state`` tuple of :func:`random_state_to_plain`'s dict; a tuple (as
-    checkpoints of imssr 0.x hold it) passes through."""
-    if not isinstance(state, dict):
-        return state
-    return (state["bit_generator"], np.asarray(state["key"], dtype=np.uint32), state["pos"],
-            state["has_gauss"], state["gauss"])
+from typing import Callable, Optional
 
 
 def _cpu_times() -> Optional[tuple[int, int]]:
