@@ -185,7 +185,7 @@ def test_a_failure_that_is_not_the_files_is_not_called_a_damaged_checkpoint(tmp_
 
     monkeypatch.setattr(torch, "load", out_of_memory)
     with pytest.raises(MemoryError):
-        run.usable_checkpoint()
+        run.checkpoint()
 
 
 def test_mismatched_checkpoint_gives_clear_error(full_run):
