@@ -346,6 +346,12 @@ def test_the_burst_runs_once_when_the_first_seed_phase_ends(trainer):
     assert len(trainer.agent.update.calls) == 4 and ep.counts == {"critic_loss": 4}
 
 
+def test_the_trainer_stays_small():
+    """Trainer holds the loop and its steps; checkpointing, building and the stop request live in
+    modules of their own: at most 250 lines."""
+    assert len(inspect.getsource(Trainer).splitlines()) <= 250
+
+
 def test_the_training_loop_stays_short():
     """Trainer.train reads top to bottom: at most 50 lines besides its docstring."""
     tree = ast.parse(textwrap.dedent(inspect.getsource(Trainer.train)))

@@ -13,7 +13,8 @@ import torch
 
 from conftest import tiny_config
 from imssr.errors import ImssrError
-from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir)
+from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir, RunPath,
+                          parse_run_path, run_path)
 from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 
 
@@ -70,6 +71,16 @@ def test_save_keeps_the_newest_copies_and_only_the_replay_files_latest_names(tmp
     assert os.stat(run.numbered(3)).st_ino != os.stat(run.latest).st_ino
     run.save_checkpoint(_state(4), keep=0)
     assert run.checkpoint_steps() == [2, 3] and not any(n.startswith("replay-") for n in os.listdir(run.checkpoint_dir))
+
+
+def test_parse_run_path_reads_back_run_path():
+    for args in (("/r", "walker_walk", "im-curl", 3, None), ("runs/x", "cartpole_swingup", "curl", 0, "0.05"),
+                 ("", "t", "a", 12, "1e-05")):
+        path = run_path(*args)
+        assert parse_run_path(path) == RunPath(*args)
+    assert parse_run_path(os.path.join("fp32", "t", "a", "seed_1")) == RunPath("fp32", "t", "a", 1, None)
+    for path in ("seed_1", os.path.join("a", "seed_x"), os.path.join("t", "a", "run"), os.path.join("beta0_1", "seed_2")):
+        assert parse_run_path(path) is None, path
 
 
 def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):

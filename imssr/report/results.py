@@ -19,8 +19,7 @@ from imssr.config import steps_for_frames
 from imssr.errors import ImssrError
 from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir, parse_run_path
 from imssr.sweep.grid import SWEEP_PLAN, beta_label, status_of
-from imssr.training.logger import read_csv
-from imssr.utils import atomic_write_csv
+from imssr.utils import atomic_write_csv, read_csv
 
 EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0", "precision"]
 
