@@ -56,7 +56,7 @@ from step_time import Runner, run_interleaved  # noqa: E402
 from imssr.config import COMPILE_MODES, PRECISIONS, apply_overrides  # noqa: E402
 from imssr.errors import ImssrError  # noqa: E402
 from imssr.presets import make_config  # noqa: E402
-from imssr.training.loop import resolve_device  # noqa: E402
+from imssr.training.build import resolve_device  # noqa: E402
 
 DEFAULT_ALGOS = ["curl", "im-curl", "soda", "im-soda", "pad", "svea"]
 DEFAULT_VARIANTS = ["fp32/off", "bf16/off", "fp32/reduce-overhead", "bf16/reduce-overhead"]

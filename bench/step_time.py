@@ -41,7 +41,7 @@ from imssr.config import apply_overrides
 from imssr.envs import make_env
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer, make_replay_buffer, replay_placement
-from imssr.training.loop import build_agent, resolve_device
+from imssr.training.build import build_agent, resolve_device
 
 
 def import_revision(rev: str):
@@ -58,7 +58,7 @@ def import_revision(rev: str):
                      .replace("from imssr import", "from imssr_rev import"))
     sys.path.insert(0, str(dest))
     return {m: importlib.import_module(f"imssr_rev.{m}")
-            for m in ("config", "envs", "presets", "replay", "training.loop")}
+            for m in ("config", "envs", "presets", "replay", "training.build")}
 
 
 class Runner:
@@ -74,7 +74,7 @@ class Runner:
             algo, _, overrides = overrides.partition(":")
             api = {"make_config": rev["presets"].make_config, "apply_overrides": rev["config"].apply_overrides,
                    "make_env": rev["envs"].make_env, "FrameReplayBuffer": rev["replay"].FrameReplayBuffer,
-                   "build_agent": rev["training.loop"].build_agent}
+                   "build_agent": rev["training.build"].build_agent}
         cfg = api["make_config"](algo, task)
         if batch:
             cfg.agent.batch_size = batch

@@ -23,10 +23,13 @@ from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.files import read_csv
 from imssr.presets import run_config
-from imssr.rundir import EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir, run_path
+from imssr.rundir import (EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir,
+                          as_run_dir, run_path)
 from imssr.seeds import evaluation_seed
+from imssr.training.build import load_agent
 from imssr.training.evaluate import eval_row, evaluate
-from imssr.training.loop import StopRequest, Trainer, TrainingInterrupted
+from imssr.training.loop import Trainer
+from imssr.training.stop import StopRequest, TrainingInterrupted
 
 CURVES = tuple(name.removesuffix(".csv") for name in (EVAL_LOG, TRAIN_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG,
                                                       EVALUATE_EPISODES_LOG))
@@ -37,16 +40,17 @@ class Run:
     """A trained run, loaded from its directory: the config, one checkpoint's agent, its logs.
 
     Args:
-        run_dir: the run directory (``config.json``, ``checkpoints/``, the CSV logs).
+        run_dir: the run directory (``config.json``, ``checkpoints/``, the CSV logs): its path or
+            its :class:`~imssr.rundir.RunDir`.
         checkpoint: as ``imssr evaluate --checkpoint``: a checkpoint file, or the agent step of a
             retained ``step-*.pt``; None: the latest that verifies.
         device: torch device of the agent (``auto`` allowed).
     """
 
-    def __init__(self, run_dir: str, checkpoint: Optional[str] = None, device: str = "cpu"):
-        self.dir = run_dir
-        self.run_dir = RunDir(run_dir)
-        loaded = self.run_dir.load_agent(checkpoint, device=device, verb="loading")
+    def __init__(self, run_dir: RunDir | str, checkpoint: Optional[str] = None, device: str = "cpu"):
+        self.run_dir = as_run_dir(run_dir)
+        self.dir = self.run_dir.path
+        loaded = load_agent(self.run_dir, checkpoint, device=device, verb="loading")
         if loaded.note:
             warnings.warn(loaded.note, stacklevel=2)
         self.config: RunConfig = loaded.config
@@ -108,7 +112,7 @@ class Run:
         return pd.read_csv(path) if os.path.exists(path) else pd.DataFrame()
 
 
-def load_run(run_dir: str, checkpoint: Optional[str] = None, device: str = "cpu") -> Run:
+def load_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, device: str = "cpu") -> Run:
     """The trained run in ``run_dir`` (see :class:`Run`)."""
     return Run(run_dir, checkpoint=checkpoint, device=device)
 
@@ -146,21 +150,21 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
     cfg = run_config(None if resume else algo, None if resume else task, demo=demo,
                      resume_dir=out if resume else None, values=values, frames=frames,
                      overrides=list(overrides))
-    out = out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)
+    run = RunDir(out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed))
     stop = StopRequest().install()
     try:
-        trainer = Trainer(cfg, out, resume=resume, stop=stop)
+        trainer = Trainer(cfg, run, resume=resume, stop=stop)
         try:
-            with trainer.run_dir.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
+            with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
                 trainer.train()
         finally:
             trainer.close()
     except TrainingInterrupted:
         raise KeyboardInterrupt(f"stopped at agent step {trainer.step} with a checkpoint; continue with "
-                                f"imssr.train(out={out!r}, resume=True)") from None
+                                f"imssr.train(out={run.path!r}, resume=True)") from None
     finally:
         stop.uninstall()
-    return load_run(out, device=cfg.train.device)
+    return load_run(run, device=cfg.train.device)
 
 
 def _typed(rows: list[dict]) -> list[dict]:

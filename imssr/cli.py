@@ -19,11 +19,11 @@ from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, make_config, markdown_table, preset_settings, run_config
-from imssr.rundir import run_path
+from imssr.rundir import RunDir, run_path
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
-from imssr.training.loop import StopRequest, TrainingInterrupted
+from imssr.training.stop import StopRequest, TrainingInterrupted
 from imssr.training.demo import record_episode, summary
 from imssr.training.evaluate import evaluate_run
 
@@ -409,28 +409,27 @@ def cmd_train(args, demo: bool = False) -> int:
     if refill and not args.resume:
         raise ImssrError("--refill-buffer goes with --resume")
     cfg = _run_config(args, demo)
-    out = args.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)
+    run = RunDir(args.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed))
     # From here on SIGTERM / SIGINT stop the run after the current agent step, with a checkpoint.
-    stop = StopRequest(out).install()
+    stop = StopRequest(run).install()
     try:
-        return _train(cfg, out, args, refill, demo, stop)
+        return _train(cfg, run, args, refill, demo, stop)
     finally:
         stop.uninstall()
 
 
-def _train(cfg, out: str, args, refill: bool, demo: bool, stop: StopRequest) -> int:
-    trainer = Trainer(cfg, out, resume=args.resume, refill_buffer=refill, stop=stop)
-    run = trainer.run_dir
-    print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {out}",
+def _train(cfg, run: RunDir, args, refill: bool, demo: bool, stop: StopRequest) -> int:
+    trainer = Trainer(cfg, run, resume=args.resume, refill_buffer=refill, stop=stop)
+    print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}",
           flush=True)
     started = time.time()
     try:
         with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
             trainer.train()
-        png = plot_learning_curve(out)
+        png = plot_learning_curve(run)
         if demo:
             gif = record_episode(trainer, run.episode_gif_path)
-            print(summary(cfg, out, (time.time() - started) / 60, gif, png), flush=True)
+            print(summary(cfg, run, (time.time() - started) / 60, gif, png), flush=True)
         else:
             print(f"imssr: done; {run.eval_log}, {png}")
     finally:
@@ -439,7 +438,7 @@ def _train(cfg, out: str, args, refill: bool, demo: bool, stop: StopRequest) -> 
 
 
 def cmd_evaluate(args) -> int:
-    evaluate_run(args.run, checkpoint=args.checkpoint, episodes=args.episodes, modes=args.modes,
+    evaluate_run(RunDir(args.run), checkpoint=args.checkpoint, episodes=args.episodes, modes=args.modes,
                  seed=args.seed, device=args.device, video=args.video, montage=args.montage,
                  footage=args.footage)
     return 0
@@ -451,7 +450,7 @@ def cmd_analyze(args) -> int:
     opts = AnalysisOptions(checkpoints=list(args.checkpoint or []), states=args.states, modes=modes, out=args.out,
                            device=args.device, seed=args.seed, neighbors=args.neighbors, top_k=args.top_k,
                            reps=args.reps, source=args.source)
-    res = analyze_run(args.run, opts)
+    res = analyze_run(RunDir(args.run), opts)
     for path in (res.states_csv, res.correlations_csv, res.figure, res.montage):
         print(path)
     return 0
@@ -497,10 +496,9 @@ def cmd_config(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    if not os.path.isdir(args.run):
-        raise ImssrError(f"run directory not found: {args.run}")
+    run = RunDir(args.run).require()
     _check_out(args.out)
-    print(plot_learning_curve(args.run, args.out))
+    print(plot_learning_curve(run, args.out))
     return 0
 
 

@@ -1,4 +1,5 @@
 """Checkpoints: round trip, exact resume after a kill, corrupt and mismatched files."""
+import copy
 import os
 import zipfile
 
@@ -185,7 +186,7 @@ def test_a_failure_that_is_not_the_files_is_not_called_a_damaged_checkpoint(tmp_
 
     monkeypatch.setattr(torch, "load", out_of_memory)
     with pytest.raises(MemoryError):
-        run.usable_checkpoint()
+        run.checkpoint()
 
 
 def test_mismatched_checkpoint_gives_clear_error(full_run):
@@ -302,3 +303,23 @@ def test_step_schedule_saves_itself_under_the_checkpoint_key_and_resumes():
     assert changed.next_step == 280
     off = StepSchedule("ckpt", 0)
     assert off.next_step is None and not off.due(10**9) and off.state_dict() == {"next_ckpt_step": None}
+
+
+def test_one_resume_rule_for_training_and_the_sweep():
+    """RunConfig.resume_conflicts: what a resume may change (budget, device, precision, what it
+    evaluates and logs) and what it may not (anything that shapes the learning), one list for
+    `imssr train --resume` and for the sweep; a setting the saved config lacks is its default."""
+    from imssr.presets import make_config
+
+    cfg = make_config("im-curl", "cartpole_swingup")
+    saved = cfg.to_dict()
+    later = copy.deepcopy(cfg)
+    later.train.steps *= 2
+    later.train.eval_episodes, later.agent.precision, later.train.eval_video_format = 3, "bf16", "mp4"
+    assert later.resume_conflicts(saved) == []
+    later.agent.critic_lr, later.train.seed = 5e-4, 9
+    assert later.resume_conflicts(saved) == ["agent.critic_lr", "train.seed"]
+    del saved["agent"]["critic_lr"]  # a config written before the setting existed: its default
+    assert later.resume_conflicts(saved) == ["agent.critic_lr", "train.seed"]
+    later.agent.critic_lr = type(cfg.agent)().critic_lr
+    assert later.resume_conflicts(saved) == ["train.seed"]

@@ -114,7 +114,7 @@ def test_text_in_latest_falls_back_to_the_newest_valid_step_file(tmp_path):
     run.save_checkpoint({"step": 9, "replay_file": None}, keep=2)
     with open(run.latest, "w") as fh:
         fh.write("hello world\n")
-    state, path, note = run.usable_checkpoint()
+    state, path, note = run.checkpoint()
     assert (state["step"], path) == (9, run.numbered(9))
     assert note == ("latest.pt is damaged (not an imssr checkpoint); resuming from step-000000009.pt "
                     "at agent step 9")

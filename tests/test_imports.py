@@ -96,6 +96,26 @@ def test_the_import_graph_has_no_circle():
     assert not cycle, " -> ".join(cycle)
 
 
+def test_layers_do_not_reach_up(tmp_path):
+    """Imported as they run (package ``__init__`` files included): the run directory knows
+    nothing of training; the sweep starts trainings as processes and loads no trainer; the
+    report reads files and loads neither the trainer nor the sweep's dispatch."""
+    code = textwrap.dedent("""
+        import importlib, sys
+        def loaded_by(name):
+            before = set(sys.modules)
+            importlib.import_module(name)
+            return {m for m in set(sys.modules) - before if m.startswith("imssr.")}
+        print(sorted(loaded_by("imssr.rundir") & {"imssr.training", "imssr.training.loop", "imssr.agents"}))
+        print(sorted(loaded_by("imssr.sweep.sweep") & {"imssr.training", "imssr.training.loop"}))
+        report = loaded_by("imssr.report.report") | loaded_by("imssr.report.export")
+        print(sorted(report & {"imssr.training", "imssr.training.loop", "imssr.sweep.sweep", "imssr.sweep.runner"}))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split("\n")[:3] == ["[]", "[]", "[]"], proc.stdout
+
+
 def test_find_cycle_finds_one():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) == []

@@ -160,14 +160,15 @@ def test_a_second_signal_during_a_checkpoint_write_exits_130_in_one_line(tmp_pat
 def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capfd):
     """`imssr.cli.main` in a process of the caller's (a notebook): once the training is over, the
     caller's handlers are back, not the handler that exits the process at once."""
-    from imssr.training.loop import StopRequest
+    from imssr.rundir import RunDir
+    from imssr.training.stop import StopRequest
 
     def mine(signum, frame):
         pass
 
     previous = signal.signal(signal.SIGTERM, mine)
     try:
-        stop = StopRequest(str(tmp_path)).install()
+        stop = StopRequest(RunDir(str(tmp_path))).install()
         os.kill(os.getpid(), signal.SIGTERM)
         assert stop.signal_name == "SIGTERM"
         assert signal.getsignal(signal.SIGTERM) == stop._exit_at_once
@@ -181,7 +182,8 @@ def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capf
 
 def test_signal_handlers_survive_a_closed_stderr(tmp_path, monkeypatch):
     """stderr a closed pipe: the handlers' lines are lost, the stop and the exit still happen."""
-    from imssr.training import loop
+    from imssr.rundir import RunDir
+    from imssr.training import stop as loop
 
     def broken(fd, data):
         raise BrokenPipeError(32, "Broken pipe")
@@ -190,7 +192,7 @@ def test_signal_handlers_survive_a_closed_stderr(tmp_path, monkeypatch):
     monkeypatch.setattr(loop.os, "write", broken)
     monkeypatch.setattr(loop.os, "_exit", exits.append)
     monkeypatch.setattr(loop.signal, "signal", lambda *args: None)  # this process keeps its handlers
-    stop = loop.StopRequest(str(tmp_path))
+    stop = loop.StopRequest(RunDir(str(tmp_path)))
     stop._handle(signal.SIGTERM, None)
     assert stop.signal_name == "SIGTERM"
     stop._exit_at_once(signal.SIGTERM, None)

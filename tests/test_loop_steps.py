@@ -13,9 +13,9 @@ import torch
 from conftest import StopAtStep, tiny_config
 from imssr.errors import DivergedError, NonFiniteError
 from imssr.training import Trainer
-from imssr.rundir import RunDir
 from imssr.rundir.checkpoint import load_checkpoint
-from imssr.training.loop import TrainingInterrupted, first_non_finite
+from imssr.training.divergence import first_non_finite
+from imssr.training.loop import TrainingInterrupted
 from imssr.training.progress import Eta, Progress, eval_summary, progress_line
 from imssr.training.state import Episode, RunState
 
@@ -266,7 +266,7 @@ def test_stop_if_requested_checkpoints_the_open_episode_and_stops(trainer):
     with pytest.raises(TrainingInterrupted, match=r"^stopped at agent step 40 by SIGTERM; continue with: "
                                                   r"imssr train --out \S+ --resume$"):
         trainer._stop_if_requested(episode)
-    saved = load_checkpoint(RunDir(trainer.out_dir).latest)
+    saved = load_checkpoint(trainer.run_dir.latest)
     assert saved["step"] == 40 and saved["episode_state"]["return"] == 1.0
     assert saved["episode_state"]["actions"].tolist() == [[0.25]]
 
@@ -274,7 +274,7 @@ def test_stop_if_requested_checkpoints_the_open_episode_and_stops(trainer):
 def test_stop_if_requested_does_not_save_twice_nor_past_the_budget(trainer):
     trainer.save, s = _Calls(), trainer.state
     trainer.stop = StopAtStep(trainer, 0)
-    s.step, trainer._saved_step = 125, 125  # an episode end just checkpointed this step
+    s.step, trainer.checkpoints.saved_step = 125, 125  # an episode end just checkpointed this step
     with pytest.raises(TrainingInterrupted):
         trainer._stop_if_requested(None)
     assert trainer.save.calls == []
@@ -312,11 +312,11 @@ class _Progress(_Said):
 def test_a_divergence_names_the_open_episodes_first_non_finite_metric(trainer):
     ep = Episode(env_rng={})
     ep.add_metrics({"critic_loss": torch.tensor(math.inf), "actor_loss": torch.tensor(math.nan)})
-    assert trainer._divergence(NonFiniteError("intrinsic signal nan"), ep) == "critic loss inf"
+    assert trainer.divergence.describe(NonFiniteError("intrinsic signal nan"), ep) == "critic loss inf"
     ep = Episode(env_rng={})
     ep.add_metrics({"critic_loss": torch.tensor(1.0)})
-    assert trainer._divergence(NonFiniteError("intrinsic signal nan"), ep) == "intrinsic signal nan"
-    assert trainer._divergence(DivergedError("action [nan]"), None) == "action [nan]"
+    assert trainer.divergence.describe(NonFiniteError("intrinsic signal nan"), ep) == "intrinsic signal nan"
+    assert trainer.divergence.describe(DivergedError("action [nan]"), None) == "action [nan]"
 
 
 def test_seed_phase_actions_come_from_the_loop_generator_then_the_agent_learns(trainer):
@@ -344,6 +344,12 @@ def test_the_burst_runs_once_when_the_first_seed_phase_ends(trainer):
     trainer.state.step += 1
     trainer._learn(ep, action)
     assert len(trainer.agent.update.calls) == 4 and ep.counts == {"critic_loss": 4}
+
+
+def test_the_trainer_stays_small():
+    """Trainer holds the loop and its steps; checkpointing, building and the stop request live in
+    modules of their own: at most 250 lines."""
+    assert len(inspect.getsource(Trainer).splitlines()) <= 250
 
 
 def test_the_training_loop_stays_short():

@@ -15,7 +15,7 @@ from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer, TensorFrameReplayBuffer, choose_replay_device, replay_placement
 from imssr.replay.device import REPLAY_DEVICE_MARGIN_BYTES
 from imssr.training import Trainer
-from imssr.training import loop
+from imssr.training import build
 from imssr.training.logger import read_csv
 
 CPU, GPU = torch.device("cpu"), torch.device("cuda", 0)
@@ -124,7 +124,7 @@ def _cfg():
     return cfg
 
 
-REAL_MAKE_REPLAY_BUFFER = loop.make_replay_buffer
+REAL_MAKE_REPLAY_BUFFER = build.make_replay_buffer
 
 
 def _use(monkeypatch, store: str) -> None:
@@ -133,7 +133,7 @@ def _use(monkeypatch, store: str) -> None:
     def tensor(device, *args, **kwargs):
         return TensorFrameReplayBuffer(*args, **kwargs, device="cpu")
 
-    monkeypatch.setattr(loop, "make_replay_buffer", REAL_MAKE_REPLAY_BUFFER if store == "host" else tensor)
+    monkeypatch.setattr(build, "make_replay_buffer", REAL_MAKE_REPLAY_BUFFER if store == "host" else tensor)
 
 
 def _train(out, stop_at=None, resume=False, replay_device="auto"):

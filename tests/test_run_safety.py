@@ -496,7 +496,7 @@ def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
 
     mnt = tiny_fs("1m")
     run = os.path.join(mnt, "run")
-    log = Logger(run, tensorboard=True)
+    log = Logger(RunDir(run), tensorboard=True)
     fill_fs(mnt)
     for frame in range(100_000):  # queued events reach the disk at a flush
         log.log_train({"frame": frame, "step": frame, "episode_return": 1.0})

@@ -13,7 +13,8 @@ import torch
 
 from conftest import tiny_config
 from imssr.errors import ImssrError
-from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir)
+from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir, RunPath,
+                          parse_run_path, run_path)
 from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 
 
@@ -72,14 +73,24 @@ def test_save_keeps_the_newest_copies_and_only_the_replay_files_latest_names(tmp
     assert run.checkpoint_steps() == [2, 3] and not any(n.startswith("replay-") for n in os.listdir(run.checkpoint_dir))
 
 
+def test_parse_run_path_reads_back_run_path():
+    for args in (("/r", "walker_walk", "im-curl", 3, None), ("runs/x", "cartpole_swingup", "curl", 0, "0.05"),
+                 ("", "t", "a", 12, "1e-05")):
+        path = run_path(*args)
+        assert parse_run_path(path) == RunPath(*args)
+    assert parse_run_path(os.path.join("fp32", "t", "a", "seed_1")) == RunPath("fp32", "t", "a", 1, None)
+    for path in ("seed_1", os.path.join("a", "seed_x"), os.path.join("t", "a", "run"), os.path.join("beta0_1", "seed_2")):
+        assert parse_run_path(path) is None, path
+
+
 def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):
     run = RunDir(tmp_path)
     with pytest.raises(ImssrError, match="^nothing to resume: .*latest.pt does not exist$"):
-        run.usable_checkpoint()
+        run.checkpoint()
     assert not run.has_checkpoint()
     for step in (125, 250):
         run.save_checkpoint(_state(step), keep=2)
-    state, path, note = run.usable_checkpoint()
+    state, path, note = run.checkpoint()
     assert (state["step"], path, note) == (250, run.latest, None)
     # By step, by file name inside checkpoints/, by path.
     assert run.checkpoint("125")[0]["step"] == 125
@@ -92,20 +103,20 @@ def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):
     # A damaged latest.pt: the newest numbered checkpoint that verifies, with a note.
     _damage(run.latest)
     _damage(run.numbered(250))
-    state, path, note = run.usable_checkpoint()
+    state, path, note = run.checkpoint()
     assert (state["step"], path) == (125, run.numbered(125))
     assert note == "latest.pt is damaged (checksum mismatch); resuming from step-000000125.pt at agent step 125"
-    assert run.checkpoint(verb="evaluating")[1].endswith("evaluating step-000000125.pt at agent step 125")
+    assert run.checkpoint(verb="evaluating").note.endswith("evaluating step-000000125.pt at agent step 125")
     # A named checkpoint is that one, damaged or not.
     with pytest.raises(CheckpointDamaged, match="checksum mismatch"):
         run.checkpoint("250")
     # latest.pt missing: a retained checkpoint still counts as something to resume.
     os.unlink(run.latest)
     assert run.has_checkpoint() and not run.has_latest()
-    assert run.usable_checkpoint()[2].startswith("latest.pt is missing; resuming from step-000000125.pt")
+    assert run.checkpoint().note.startswith("latest.pt is missing; resuming from step-000000125.pt")
     _damage(run.numbered(125))
     with pytest.raises(ImssrError, match="is missing, and no retained step-\\*.pt checkpoint in .* is valid"):
-        run.usable_checkpoint()
+        run.checkpoint()
 
 
 def test_status_transitions(tmp_path):
@@ -174,7 +185,7 @@ def test_progress_comes_from_the_last_complete_rows(tmp_path):
 
 
 def test_load_agent_builds_the_run_at_its_checkpoint_and_refuses_a_mismatch(tmp_path):
-    from imssr.training.build import build_agent
+    from imssr.training.build import build_agent, load_agent
 
     cfg = tiny_config("curl")
     run = RunDir(tmp_path / "run")
@@ -184,7 +195,7 @@ def test_load_agent_builds_the_run_at_its_checkpoint_and_refuses_a_mismatch(tmp_
         for p in trained.nets.parameters():
             p.add_(0.5)
     run.save_checkpoint({"step": 125, "frame": 1000, "agent": trained.state_dict(), "replay_file": None})
-    loaded = run.load_agent(device="cpu")
+    loaded = load_agent(run, device="cpu")
     assert (loaded.step, loaded.frame, loaded.note, loaded.obs_shape) == (125, 1000, None, (9, 100, 100))
     obs = np.random.default_rng(0).integers(0, 255, (9, 100, 100), dtype=np.uint8)
     assert np.array_equal(loaded.agent.act(obs, True), trained.act(obs, True))
@@ -192,9 +203,9 @@ def test_load_agent_builds_the_run_at_its_checkpoint_and_refuses_a_mismatch(tmp_
     cfg.agent.hidden_dim = 64
     run.write_config(cfg)
     with pytest.raises(ImssrError, match="^checkpoint does not match the run's config: "):
-        run.load_agent(device="cpu")
+        load_agent(run, device="cpu")
     with pytest.raises(ImssrError, match="^run directory not found"):
-        RunDir(tmp_path / "none").load_agent()
+        load_agent(RunDir(tmp_path / "none"))
 
 
 def test_recording_says_how_a_training_ended(tmp_path):

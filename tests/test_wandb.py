@@ -11,7 +11,7 @@ import time
 import pytest
 
 from imssr.cli import main
-from imssr.rundir import WANDB_RUN_FILE as RUN_ID_FILE
+from imssr.rundir import WANDB_RUN_FILE as RUN_ID_FILE, RunDir
 from imssr.training.wandb_run import read_run_id
 
 pytest.importorskip("wandb")
@@ -46,14 +46,14 @@ def test_offline_run_across_kill_and_resume(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-    run_id = read_run_id(run_dir)
+    run_id = read_run_id(RunDir(run_dir))
     assert run_id and len(offline_runs(wandb_dir)) == 1
     resumed = subprocess.run([sys.executable, "-m", "imssr", "train", "--resume", "--out", run_dir,
                               "--no-progress"], env=env, capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     assert "resuming from agent step 125" in resumed.stdout
     # The same W&B run: the id kept in the run directory, one offline directory per process.
-    assert read_run_id(run_dir) == run_id
+    assert read_run_id(RunDir(run_dir)) == run_id
     runs = offline_runs(wandb_dir)
     assert len(runs) == 2 and all(r.endswith(f"-{run_id}") for r in runs)
     for r in runs:

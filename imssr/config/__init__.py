@@ -15,12 +15,13 @@ The modules, each name re-exported here:
 - ``version``: ``CONFIG_VERSION`` and ``check_version``;
 - ``overrides``: values merged onto a config (``apply_overrides``, ``--logger``), through OmegaConf;
 - ``validation``: the rules ``RunConfig.validate`` applies;
-- ``runconfig``: ``RunConfig``, the sections together;
+- ``runconfig``: ``RunConfig``, the sections together, and the one rule of what a resume may
+  change (``RESUMABLE_CHANGES``, ``RunConfig.resume_conflicts``);
 - ``files``: ``read_config_file`` and ``load_config``.
 """
 from imssr.config.files import load_config, read_config_file
 from imssr.config.overrides import LOGGERS, TYPE_WORDS, apply_overrides, logger_fields
-from imssr.config.runconfig import RunConfig
+from imssr.config.runconfig import RESUMABLE_CHANGES, RunConfig
 from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
                                  MAX_SEED, PRECISIONS, REPLAY_DEVICES, SECTIONS, SEED_RULE, TF32_MODES,
                                  UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig, AuxConfig, EnvConfig,
@@ -30,7 +31,7 @@ from imssr.config.version import CONFIG_VERSION, V1_KEYS, check_version
 __all__ = [
     "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES",
     "IntrinsicConfig", "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED",
-    "PRECISIONS", "REPLAY_DEVICES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TYPE_WORDS",
+    "PRECISIONS", "REPLAY_DEVICES", "RESUMABLE_CHANGES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TYPE_WORDS",
     "TrainConfig", "UPDATE_SCHEDULES", "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_version",
     "field_docs", "load_config", "logger_fields", "read_config_file", "steps_for_frames",
 ]

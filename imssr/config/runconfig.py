@@ -18,6 +18,17 @@ from imssr.errors import ImssrError
 from imssr.jsonio import dumps
 
 
+RESUMABLE_CHANGES = frozenset({
+    "train.steps", "train.device", "train.replay_device", "train.gpu_share", "train.progress", "train.tensorboard",
+    "agent.precision", "agent.tf32", "agent.compile", "train.torch_threads", "train.eval_episodes",
+    "train.eval_every_steps", "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer",
+    "train.wandb", "train.wandb_project", "train.wandb_group", "train.eval_video_every",
+    "train.eval_video_format"})
+"""The settings a resume may change (:meth:`RunConfig.resume_conflicts`): the budget, where and how
+fast the run computes, and what it evaluates, logs and keeps; every other setting shapes the
+learning and is the run's own."""
+
+
 @dataclass
 class RunConfig:
     algo: str = "im-curl"
@@ -48,6 +59,19 @@ class RunConfig:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    def resume_conflicts(self, saved: dict[str, Any]) -> list[str]:
+        """The settings (dotted names, sorted) in which this config differs from ``saved``, the
+        config a run was made with (a checkpoint's or ``config.json``'s object), outside
+        :data:`RESUMABLE_CHANGES`: empty when this config may resume the run.  ``saved`` is read
+        through this class, so settings added since the run started count as their defaults."""
+        try:
+            before = _flat(RunConfig.from_dict(saved).to_dict())
+        except (ImssrError, TypeError):
+            before = _flat(saved)
+        now = _flat(self.to_dict())
+        return sorted(k for k in before.keys() | now.keys()
+                      if before.get(k) != now.get(k) and k not in RESUMABLE_CHANGES)
+
     def to_json(self) -> str:
         return dumps(self.to_dict(), indent=2, sort_keys=True)
 
@@ -73,3 +97,11 @@ class RunConfig:
         each plug-in's beside the plug-in (``config_rules`` of every auxiliary task and intrinsic signal)."""
         validate_config(self)
         return self
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested dict's leaves under their dotted names."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out

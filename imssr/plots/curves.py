@@ -5,23 +5,24 @@ import os
 
 from imssr.errors import ImssrError
 from imssr.files import atomic_path, read_csv
-from imssr.rundir import RunDir
+from imssr.rundir import RunDir, as_run_dir
 
 
-def plot_learning_curve(run_dir: str, out_path: str | None = None) -> str:
-    """Plot evaluation return (mean ± std over episodes) against agent steps, with environment
-    frames on the top axis when the run's config gives the action repeat."""
+def plot_learning_curve(run_dir: RunDir | str, out_path: str | None = None) -> str:
+    """Plot the run's evaluation return (mean ± std over episodes) against agent steps, with
+    environment frames on the top axis when the run's config gives the action repeat; returns
+    the PNG's path (``out_path``, default ``RUN/learning_curve.png``)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    run = RunDir(run_dir)
+    run = as_run_dir(run_dir)
     rows = read_csv(run.eval_log, complete_only=True)
     if not rows:
         raise ImssrError(f"no evaluations in {run.eval_log}")
     out_path = out_path or run.learning_curve_path
-    title = os.path.basename(os.path.abspath(run_dir))
+    title = os.path.basename(os.path.abspath(run.path))
     action_repeat = None
     if run.has_config():
         cfg = run.read_config()

@@ -11,7 +11,7 @@ from imssr.config import (RunConfig, apply_overrides, check_version, load_config
 from imssr.envs.tasks import get_task
 from imssr.errors import ImssrError
 from imssr.presets.tables import DEMO, preset_settings
-from imssr.rundir import RunDir
+from imssr.rundir import RunDir, as_run_dir
 
 
 def set_field(cfg: RunConfig, dotted: str, value) -> None:
@@ -67,7 +67,7 @@ def load_partial_config(path: str, algo: str | None = None, task: str | None = N
 
 
 def run_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
-               config_file: str | None = None, resume_dir: str | None = None, demo: bool = False,
+               config_file: str | None = None, resume_dir: RunDir | str | None = None, demo: bool = False,
                values: Mapping[str, Any] | None = None, frames: int | None = None,
                batch_size: int | None = None, beta0: float | None = None,
                overrides: Sequence[str] = ()) -> RunConfig:
@@ -99,7 +99,7 @@ def run_config(algo: str | None = None, task: str | None = None, *, network: str
 
 
 def base_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
-                config_file: str | None = None, resume_dir: str | None = None, demo: bool = False) -> RunConfig:
+                config_file: str | None = None, resume_dir: RunDir | str | None = None, demo: bool = False) -> RunConfig:
     """What a run's settings start from, in this order: the file ``config_file`` (a partial one
     merged onto the preset of its algo and task, :func:`load_partial_config`), the saved
     ``config.json`` of ``resume_dir``, or the preset of ``algo`` on ``task`` (the demo's with
@@ -107,7 +107,7 @@ def base_config(algo: str | None = None, task: str | None = None, *, network: st
     if config_file:
         cfg = load_partial_config(config_file, algo, task)
     elif resume_dir:
-        saved = RunDir(resume_dir).config_path
+        saved = as_run_dir(resume_dir).config_path
         if not os.path.exists(saved):
             raise ImssrError(f"nothing to resume: {saved} does not exist")
         cfg = load_config(saved)

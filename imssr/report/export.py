@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from imssr.errors import ImssrError
 from imssr.files import atomic_path
 from imssr.report.results import collect
-from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, TRAIN_LOG, RunDir, run_path
+from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, TRAIN_LOG, run_path
 from imssr.sweep.grid import beta_label
 
 RESULT_FILES = (CONFIG_FILE, *CSV_LOGS)
@@ -55,7 +55,7 @@ def export_runs(root: str, dest: str) -> list[Exported]:
     for run in sorted(results.runs, key=lambda r: r.dir):
         beta = None if run.beta0 is None else beta_label(run.beta0)
         target = run_path(os.path.join(dest, run.precision), run.task, run.algo, run.seed, beta)
-        state = RunDir(run.dir).status()
+        state = run.run_dir.status()
         if state != FINISHED:
             out.append(Exported(run.dir, target, f"skipped ({state})"))
             continue

@@ -17,11 +17,9 @@ from typing import Optional
 
 from imssr.config import steps_for_frames
 from imssr.errors import ImssrError
-from imssr.files import atomic_write_csv
-from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir
-from imssr.sweep.grid import SWEEP_PLAN, beta_label
-from imssr.sweep.sweep import status_of
-from imssr.training.logger import read_csv
+from imssr.files import atomic_write_csv, read_csv
+from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir, parse_run_path
+from imssr.sweep.grid import SWEEP_PLAN, beta_label, status_of
 
 EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0", "precision"]
 
@@ -46,6 +44,8 @@ class RunResult:
     """Run directory."""
     precision: str = "fp32"
     """``agent.precision`` of the run: a bf16 run is its own group, never a seed of the fp32 one."""
+    run_dir: Optional[RunDir] = field(default=None, repr=False, compare=False)
+    """The run directory's files and life (None: a run given by hand, not found on disk)."""
     evals: list[tuple[str, int, int, float]] = field(default_factory=list)
     """``(mode, step, frame, return_mean)`` of every evaluation, in file order."""
     failure: Optional[str] = None
@@ -175,14 +175,14 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     run_files = RunDir(run_dir)
     try:
         cfg = run_files.read_config()
-        beta_level = any(part.startswith("beta0_") for part in rel.split(os.sep))
-        beta0 = float(cfg.intrinsic.beta0) if beta_level else None
+        where = parse_run_path(rel)
+        beta0 = float(cfg.intrinsic.beta0) if where is not None and where.beta0_label is not None else None
     except (ImssrError, OSError, ValueError, KeyError, TypeError) as exc:
         notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
         return None
     repeat = cfg.env.action_repeat
     run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
-                    precision=cfg.agent.precision)
+                    precision=cfg.agent.precision, run_dir=run_files)
     path = run_files.eval_log
     rows = read_csv(path, complete_only=True)
     for row in rows:

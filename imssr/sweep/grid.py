@@ -6,6 +6,7 @@ finds its earlier runs again; ``imssr.sweep.sweep`` decides what each one still 
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -26,6 +27,9 @@ LAUNCHERS = ("ray", "slurm", "local")
 SWEEP_PLAN = "sweep.json"
 """File under ROOT with the expanded grid (the report reads it for T and the expected seeds).
 Each run holds its budget in agent steps (``steps``) and frames (``frames``)."""
+SWEEP_STATUS = "sweep_status.json"
+"""File under ROOT with the state of every run as the last ``imssr sweep`` over it left them
+(:mod:`imssr.sweep.sweep` writes it; the report reads the failures)."""
 
 
 @dataclass
@@ -170,6 +174,11 @@ class Run:
     dir: str
     """Run directory (absolute)."""
 
+    @functools.cached_property
+    def run_dir(self) -> RunDir:
+        """The run directory's files and life."""
+        return RunDir(self.dir)
+
     @property
     def name(self) -> str:
         """Short label for logs and the status file."""
@@ -199,9 +208,8 @@ class Run:
             values.update(logger_fields(cfg.logger))
             if values["train.wandb"]:
                 values["train.wandb_group"] = cfg.wandb_group
-        run = RunDir(self.dir)
-        resume = run.has_checkpoint() and run.has_config()
-        return run_config(self.algo, self.task, resume_dir=self.dir if resume else None, values=values,
+        resume = self.run_dir.has_checkpoint() and self.run_dir.has_config()
+        return run_config(self.algo, self.task, resume_dir=self.run_dir if resume else None, values=values,
                                 frames=cfg.frames if cfg.steps is None else None, beta0=self.beta0,
                                 overrides=cfg.overrides)
 
@@ -337,3 +345,12 @@ def load_sweep_file(path: str) -> SweepConfig:
     except json.JSONDecodeError as exc:
         raise ImssrError(f"sweep file {path} is not valid JSON: {exc}") from None
     return SweepConfig.from_dict(data)
+
+
+def status_of(root: str) -> Optional[dict]:
+    """The last sweep status written under ``root`` (None if there is none)."""
+    try:
+        with open(os.path.join(root, SWEEP_STATUS)) as fh:
+            return json.load(fh)
+    except (OSError, json.JSONDecodeError):
+        return None

@@ -19,7 +19,7 @@ from typing import Optional
 from imssr.contention import scheduling_group
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.files import disk_full_as_error, open_append
-from imssr.rundir import DIVERGED, FAILED, INTERRUPTED, RunDir
+from imssr.rundir import DIVERGED, FAILED, INTERRUPTED, RunDir, as_run_dir
 
 # Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
 # second signal (or one before its handlers were in place) ended it; it resumes either way.
@@ -98,12 +98,12 @@ class RunAttempt:
     workers run at +15), given to the training's session (:func:`lower_session_priority`).
     """
 
-    def __init__(self, run_dir: str, steps: int, attempt: int, niceness: Optional[int] = None):
-        self.run = run = RunDir(run_dir)
-        os.makedirs(run_dir, exist_ok=True)
-        self.run_dir, self.steps, self.attempt = run_dir, steps, attempt
+    def __init__(self, run_dir: RunDir | str, steps: int, attempt: int, niceness: Optional[int] = None):
+        self.run = run = as_run_dir(run_dir)
+        os.makedirs(run.path, exist_ok=True)
+        self.steps, self.attempt = steps, attempt
         self.resumed = run.has_checkpoint()
-        cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run_dir]
+        cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
         if self.resumed:
             cmd.append("--resume")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -128,7 +128,7 @@ class RunAttempt:
                 self.error = str(exc)
                 return
             except OSError as exc:
-                self.error = f"cannot clear {run_dir} for a fresh attempt: {exc.strerror or exc}"
+                self.error = f"cannot clear {run.path} for a fresh attempt: {exc.strerror or exc}"
                 return
         header = (f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
                   f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
@@ -192,7 +192,7 @@ class RunAttempt:
         return result
 
 
-def execute_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] = None) -> dict:
+def execute_run(run_dir: RunDir | str, steps: int, attempt: int, niceness: Optional[int] = None) -> dict:
     """Train (or resume) the run in ``run_dir`` (its ``config.json``) to ``steps`` agent steps and
     wait for it; return what happened (the body of a Ray task or a SLURM job).
 

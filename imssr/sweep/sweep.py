@@ -16,7 +16,6 @@ diverged is not retried (it diverges again from the same checkpoint); one stoppe
 """
 from __future__ import annotations
 
-import json
 import os
 import signal
 import threading
@@ -32,12 +31,10 @@ from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.files import atomic_write_text
 from imssr.jsonio import dumps
 from imssr.rundir import SWEEP_LOG, RunDir
-from imssr.sweep.grid import Run, SweepConfig, expand, save_plan
+from imssr.sweep.grid import SWEEP_STATUS, Run, SweepConfig, expand, save_plan
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
 from imssr.rundir.lock import DirectoryLock
-from imssr.training.loop import RESUMABLE_CHANGES
 
-STATUS_FILE = "sweep_status.json"
 STATES = ("queued", "running", "done", "failed", "interrupted")
 MAX_INTERRUPTIONS = 10
 """Signal-stopped attempts of one run that a sweep resumes at once; past them the run is left
@@ -84,7 +81,7 @@ class RunStatus:
                 "attempts": self.attempts, "errors": self.errors, "interruptions": self.interruptions,
                 "note": self.note, "final_step": self.final_step,
                 "final_frame": self.final_frame,
-                "seconds": round(self.seconds, 1), "log": os.path.relpath(RunDir(self.run.dir).sweep_log, root)}
+                "seconds": round(self.seconds, 1), "log": os.path.relpath(self.run.run_dir.sweep_log, root)}
 
 
 def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
@@ -97,7 +94,7 @@ def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
         # instead of N times on the workers.
         run_cfg = run.resolved_config(cfg)
         status = RunStatus(run, run_cfg.total_steps, run_cfg.total_frames, config=run_cfg)
-        run_dir = RunDir(run.dir)
+        run_dir = run.run_dir
         if run_dir.is_done(status.steps):
             status.state, status.action = "done", "done"
             status.final_step, status.final_frame = run_dir.last_evaluation()
@@ -115,27 +112,19 @@ def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
 
 def config_conflict(run: RunDir, cfg: RunConfig) -> str:
     """Why ``cfg`` cannot resume the run in ``run`` (its ``config.json`` differs in a setting that
-    :data:`imssr.training.loop.RESUMABLE_CHANGES` does not allow to change); empty when it can.
+    a resume may not change: :meth:`RunConfig.resume_conflicts`); empty when it can.
     The sweep then leaves the run's config.json as it is, so that it still describes the run."""
     if not run.has_config():
         return ""
     try:
-        saved = _flat(run.read_config().to_dict())
+        saved = run.read_config()
     except ImssrError as exc:
         return f"its config.json is unreadable ({exc})"
-    now = _flat(cfg.to_dict())
-    diff = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k) and k not in RESUMABLE_CHANGES)
+    diff = cfg.resume_conflicts(saved.to_dict())
     if not diff:
         return ""
     return (f"{run.path} holds a run made with a different config ({', '.join(diff[:5])}"
             f"{', ...' if len(diff) > 5 else ''}); resume it with its own settings or choose another --root")
-
-
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-    return out
 
 
 def write_status(cfg: SweepConfig, statuses: list[RunStatus], started: float, finished: bool = False) -> str:
@@ -143,7 +132,7 @@ def write_status(cfg: SweepConfig, statuses: list[RunStatus], started: float, fi
     counts = {s: sum(st.state == s for st in statuses) for s in STATES}
     data = {"root": root, "started": _iso(started), "updated": _iso(time.time()), "finished": finished,
             "retries": cfg.retries, "counts": counts, "runs": [s.to_dict(root) for s in statuses]}
-    path = os.path.join(root, STATUS_FILE)
+    path = os.path.join(root, SWEEP_STATUS)
     atomic_write_text(path, dumps(data, indent=2) + "\n")
     return path
 
@@ -160,7 +149,7 @@ def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
         lines.append(f"  {os.path.relpath(s.run.dir, os.path.abspath(cfg.root))}\t{s.run.name}, "
                      f"{s.steps:,} agent steps ({s.frames:,} frames)\t[{what}]")
     if statuses:
-        run = RunDir(statuses[0].run.dir)
+        run = statuses[0].run.run_dir
         lines.append(f"each run trains the config the sweep writes to its directory, e.g. "
                      f"imssr train --config {run.config_path} --out {run.path}")
     else:
@@ -183,7 +172,7 @@ class _Progress:
         # different action repeats weigh by their T).
         total = sum(st.steps for st in self.statuses) or 1
         trained = sum(st.steps if st.state == "done" else
-                      min(st.steps, RunDir(st.run.dir).trained_steps()) for st in self.statuses)
+                      min(st.steps, st.run.run_dir.trained_steps()) for st in self.statuses)
         self.bar.n = counts["done"] + counts["failed"]
         self.bar.set_postfix_str(f"queued {counts['queued']} running {counts['running']} done {counts['done']} "
                                  f"failed {counts['failed']} | steps {100 * trained / total:.0f}%", refresh=False)
@@ -228,7 +217,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     for st in todo:
         # The one description of the run its worker trains (written before any attempt, and
         # not again between attempts: the training keeps what it adds, e.g. footage folders).
-        RunDir(st.run.dir).write_config(st.config)
+        st.run.run_dir.write_config(st.config)
     refused = [s for s in statuses if s.state == "failed"]
     for st in refused:
         print(f"imssr: {st.run.name} not started: {st.errors[-1]}", flush=True)
@@ -305,7 +294,7 @@ def settle(st: RunStatus, result: dict, retries: int) -> str:
     st.seconds += result.get("seconds", 0.0)
     st.final_step = result.get("final_step", st.final_step)
     st.final_frame = result.get("final_frame", st.final_frame)
-    log = RunDir(st.run.dir).sweep_log
+    log = st.run.run_dir.sweep_log
     if result["ok"]:
         st.state = "done"
         return (f"done    {st.run.name}: step {st.final_step} (frame {st.final_frame})"
@@ -353,12 +342,3 @@ def summarize(statuses: list[RunStatus]) -> tuple[str, int]:
         return (f"{len(failed)} of {len(statuses)} runs failed after retries ({names}); "
                 f"{done} done; see sweep_status.json and each run's {SWEEP_LOG}"), 1
     return f"all {len(statuses)} runs done", 0
-
-
-def status_of(root: str) -> Optional[dict]:
-    """The last sweep status written under ``root`` (None if there is none)."""
-    try:
-        with open(os.path.join(root, STATUS_FILE)) as fh:
-            return json.load(fh)
-    except (OSError, json.JSONDecodeError):
-        return None

@@ -1,14 +1,26 @@
-"""What a run is made of besides its envs: the torch device and the agent its config describes
-(shared by training and by the evaluation of a saved run)."""
+"""What a run is made of: the torch device and the agent its config describes (shared by
+training and by the evaluation of a saved run), a training's parts at agent step 0
+(:func:`build_training`), and a saved run's agent at one of its checkpoints (:func:`load_agent`)."""
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
 import torch
 
-from imssr._gl import pin_egl_device
+from imssr._gl import gl_renderer, pin_egl_device, software_rendering_warning
 from imssr.agents import SACAgent
 from imssr.algos import get_algo
 from imssr.config import RunConfig
+from imssr.envs import env_from_config
 from imssr.errors import ImssrError
+from imssr.replay import make_replay_buffer
+from imssr.rng import seed_everything
+from imssr.rundir import RunDir
+from imssr.seeds import TRAINING_EVAL_SEED_OFFSET, evaluation_seed
+from imssr.training.state import RunState
 
 
 def resolve_device(name: str) -> torch.device:
@@ -40,6 +52,76 @@ def build_agent(cfg: RunConfig, obs_shape, action_dim: int, device) -> SACAgent:
                     intrinsic_cfg=cfg.intrinsic, device=device, seed=cfg.train.seed)
 
 
+@dataclass
+class TrainingParts:
+    """A training's parts besides its config and run directory: what :func:`build_training`
+    makes at agent step 0 and a checkpoint saves (:class:`~imssr.training.checkpointing.Checkpointer`)."""
+
+    env: Any
+    """The training env (training footage)."""
+    eval_envs: dict[str, Any]
+    """The evaluation env of each scene of ``train.eval_modes`` (test footage), in that order."""
+    agent: SACAgent
+    """The agent."""
+    replay: Any
+    """The replay buffer (:func:`imssr.replay.make_replay_buffer`)."""
+    state: RunState
+    """The loop's counters, schedules and seed-phase generator."""
+
+    def close(self) -> None:
+        """Close the envs."""
+        close_envs(self.env, self.eval_envs)
+
+
+def build_training(cfg: RunConfig, device: torch.device, replay_placement) -> TrainingParts:
+    """The envs, the agent, the replay buffer (where ``replay_placement`` says) and the loop's
+    state of a training at agent step 0, in the order their random draws have always had (the
+    global seed, the envs, the weights, SODA's image pool, then the streams spawned from the seed)."""
+    seed_everything(cfg.train.seed)
+    e = cfg.env
+    # Training footage and evaluation footage come from disjoint pools.
+    env = env_from_config(e, seed=cfg.train.seed, footage_split="train")
+    eval_envs: dict[str, Any] = {}
+    try:
+        for mode in cfg.train.eval_mode_list(e.mode):
+            eval_envs[mode] = env_from_config(e, seed=cfg.train.seed + TRAINING_EVAL_SEED_OFFSET, mode=mode,
+                                              footage_split="test")
+        if torch.cuda.is_available():  # on a GPU machine, MuJoCo's EGL rendering on the CPU (llvmpipe)
+            warning = software_rendering_warning(os.environ.get("MUJOCO_GL", "egl"), gl_renderer(env.physics),
+                                                 gpu=True)
+            if warning:
+                print(warning, flush=True)
+        action_dim = env.action_space.shape[0]
+        agent = build_agent(cfg, env.observation_space.shape, action_dim, device)
+        if agent.aux is not None:
+            # SODA's overlay images: a bad folder fails now, not after the seed phase.
+            agent.aux.load_data(device)
+        # Independent streams for the replay sampler and the seed-phase actions.
+        replay_seq, action_seq = np.random.SeedSequence(cfg.train.seed).spawn(2)
+        if replay_placement.reason:
+            print(replay_placement.reason, flush=True)
+        # Each frame's physics state goes in too (float64 qpos and qvel: 32 bytes for cartpole,
+        # 144 for walker): `imssr analyze` renders it again.
+        replay = make_replay_buffer(replay_placement.device, cfg.train.replay_capacity,
+                                    (3, e.image_size, e.image_size), action_dim, e.frame_stack,
+                                    seed=replay_seq, physics_dim=env.physics_state_dim)
+    except BaseException:
+        close_envs(env, eval_envs)
+        raise
+    t = cfg.train
+    state = RunState.fresh(t.eval_every_steps, t.checkpoint_every_steps, t.seed_steps, action_seq)
+    return TrainingParts(env, eval_envs, agent, replay, state)
+
+
+def close_envs(env, eval_envs: dict) -> None:
+    """Close the training env and the evaluation envs."""
+    try:
+        env.close()
+    finally:
+        for eval_env in eval_envs.values():
+            eval_env.close()
+
+
 def restore_agent(agent: SACAgent, state: dict) -> SACAgent:
     """``agent`` with the networks of the checkpoint ``state`` (a trained run's, to act and be
     evaluated: its random streams stay the agent's own); a checkpoint of another config is one
@@ -49,3 +131,60 @@ def restore_agent(agent: SACAgent, state: dict) -> SACAgent:
     except (RuntimeError, KeyError, ValueError) as exc:
         raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
     return agent
+
+
+@dataclass
+class LoadedAgent:
+    """The agent of a run at one checkpoint (:func:`load_agent`)."""
+
+    agent: SACAgent
+    """The agent with the checkpoint's networks."""
+    config: RunConfig
+    """The run's config."""
+    state: dict
+    """The checkpoint as loaded."""
+    note: Optional[str] = None
+    """Why the checkpoint is not ``latest.pt`` when it fell back to another (None otherwise)."""
+    obs_shape: tuple = ()
+    """The observation shape the agent takes."""
+
+    @property
+    def step(self) -> int:
+        """Agent step of the checkpoint."""
+        return int(self.state["step"])
+
+    @property
+    def frame(self) -> int:
+        """Environment frame of the checkpoint."""
+        return int(self.state["frame"])
+
+
+def load_agent(run: RunDir, checkpoint: Optional[str] = None, device: str = "cpu", env=None,
+               verb: str = "evaluating") -> LoadedAgent:
+    """The agent of the run in ``run`` at ``checkpoint`` (:meth:`RunDir.checkpoint`'s ``spec``;
+    None: the latest that verifies) on ``device`` (``auto`` allowed).  ``env`` is one of the run's
+    envs, whose spaces shape the agent; None builds one for that and closes it.  A checkpoint of
+    another config is a one-line error."""
+    run.require()
+    cfg = run.read_config()
+    ckpt = run.checkpoint(None if checkpoint is None else str(checkpoint), verb=verb)
+    return agent_at(ckpt.state, cfg, device=device, env=env, note=ckpt.note)
+
+
+def agent_at(state: dict[str, Any], cfg: RunConfig, device: str = "cpu", env=None,
+             note: Optional[str] = None) -> LoadedAgent:
+    """The agent of ``cfg`` with the networks of the loaded checkpoint ``state`` (see
+    :func:`load_agent`)."""
+    torch_device = resolve_device(device)
+    own = env is None
+    if own:
+        env = env_from_config(cfg.env, seed=evaluation_seed(cfg.train.seed), mode=cfg.env.mode,
+                              footage_split="test")
+    try:
+        obs_shape = tuple(env.observation_space.shape)
+        action_dim = env.action_space.shape[0]
+    finally:
+        if own:
+            env.close()
+    agent = restore_agent(build_agent(cfg, obs_shape, action_dim, torch_device), state)
+    return LoadedAgent(agent, cfg, state, note, obs_shape)

@@ -29,9 +29,9 @@ def record_episode(trainer, path: str) -> str:
     return save_video(frames, path, fps=fps)
 
 
-def summary(cfg: RunConfig, run_dir: str, minutes: float, gif: str, png: str) -> str:
+def summary(cfg: RunConfig, run: RunDir, minutes: float, gif: str, png: str) -> str:
     """The demo's last line: what the curve shows, where the files are, the paper-scale command."""
-    rows = [r for r in read_csv(RunDir(run_dir).eval_log) if r["mode"] == cfg.env.mode]
+    rows = [r for r in read_csv(run.eval_log) if r["mode"] == cfg.env.mode]
     first, best, last = rows[0], max(rows, key=lambda r: float(r["return_mean"])), rows[-1]
     ret = lambda r: f"{float(r['return_mean']):.0f} at agent step {int(r['step']):,}"  # noqa: E731
     best_text = "" if best is last else f" (best {ret(best)})"

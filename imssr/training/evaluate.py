@@ -2,6 +2,7 @@
 evaluation of a saved run (``imssr evaluate``)."""
 from __future__ import annotations
 
+import time
 from typing import Callable, Optional
 
 import numpy as np
@@ -10,10 +11,11 @@ from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import DivergedError
 from imssr.plots.media import save_montage, save_video
-from imssr.rundir import RunDir
+from imssr.rundir import RunDir, as_run_dir
 from imssr.seeds import evaluation_seed
-from imssr.training.build import resolve_device
-from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, append_locked, episode_rows
+from imssr.training.build import agent_at, resolve_device
+from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, Logger, append_locked, episode_rows
+from imssr.training.state import RunState
 
 
 def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[float]:
@@ -62,7 +64,29 @@ def eval_row(frame: int, step: int, mode: str, returns: list[float]) -> dict:
             "return_max": float(np.max(returns))}
 
 
-def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int = 10,
+def evaluate_in_training(agent, eval_envs: dict, t, state: RunState, logger: Logger) -> list[dict]:
+    """The evaluation of a training at ``state``'s step in every scene of ``eval_envs`` (``t``: the
+    run's ``train`` config): ``t.eval_episodes`` episodes each, one ``eval.csv`` row each, kept in
+    ``state.eval_history``.  At every ``t.eval_video_every``-th evaluation, the first episode of
+    each scene is recorded (the frames the evaluation renders anyway: the returns do not change)."""
+    # This evaluation's number, counted from the history so that a resume keeps the rhythm.
+    number = len({item["row"]["step"] for item in state.eval_history}) + 1
+    record = t.eval_video_every > 0 and number % t.eval_video_every == 0
+    rows = []
+    for mode, env in eval_envs.items():
+        frames: Optional[list] = [] if record else None
+        returns = evaluate(agent, env, t.eval_episodes, record=frames)
+        row = dict(eval_row(state.frame, state.step, mode, returns), wall_time=time.time())
+        logger.log_eval(row, returns)
+        if frames:
+            logger.log_video(mode, frames, state.frame, state.step, t.eval_video_format)
+        state.eval_history.append({"row": row, "returns": returns})
+        rows.append(row)
+    state.last_eval_step = state.step
+    return rows
+
+
+def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episodes: int = 10,
                  modes: Optional[str] = None, seed: Optional[int] = None, device: str = "cpu",
                  video: Optional[str] = None, montage: bool = False, footage: Optional[str] = None,
                  log: Optional[Callable[[str], None]] = None) -> None:
@@ -70,7 +94,8 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
     ``RUN/evaluate.csv`` (one row per scene) and ``RUN/evaluate_episodes.csv`` (one per episode).
 
     Args:
-        run_dir: the run directory (its ``config.json`` and checkpoints).
+        run_dir: the run directory (its ``config.json`` and checkpoints): its path or its
+            :class:`~imssr.rundir.RunDir`.
         checkpoint: a checkpoint file, or the agent step of a retained ``step-*.pt``; None: the
             latest that verifies.
         episodes: episodes per scene.
@@ -84,13 +109,13 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
         log: where progress lines go (default: stdout, flushed).
     """
     log = log or _say
-    run = RunDir(run_dir).require()
+    run = as_run_dir(run_dir).require()
     cfg = run.read_config()
     scenes = ([m.strip() for m in modes.split(",") if m.strip()] if modes
               else cfg.train.eval_mode_list(cfg.env.mode))
     for mode in scenes:
         get_mode(mode)
-    ckpt, note = run.checkpoint(checkpoint)
+    ckpt, _, note = run.checkpoint(checkpoint, verb="evaluating")
     if note:
         log(f"imssr: {note}")
     resolve_device(device)  # a bad device fails before any env is built
@@ -104,7 +129,7 @@ def evaluate_run(run_dir: str, checkpoint: Optional[str] = None, episodes: int =
         frames: Optional[list] = [] if (video or montage) else None
         try:
             if agent is None:
-                agent = run.agent_at(ckpt, cfg, device=device, env=env).agent
+                agent = agent_at(ckpt, cfg, device=device, env=env).agent
             returns = evaluate(agent, env, episodes, record=frames)
         finally:
             env.close()

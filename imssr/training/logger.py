@@ -108,16 +108,15 @@ def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
 
 
 class Logger:
-    """``train.csv``, ``eval.csv``, ``eval_episodes.csv``, TensorBoard and W&B under ``out_dir``.
+    """``train.csv``, ``eval.csv``, ``eval_episodes.csv``, TensorBoard and W&B of the run ``run``.
 
     ``wandb`` is the run's :class:`imssr.training.wandb_run.WandbRun` (None: no W&B); the logger
     finishes it on :meth:`close`.
     """
 
-    def __init__(self, out_dir: str, tensorboard: bool = True, resume_frame: Optional[int] = None,
+    def __init__(self, run: RunDir, tensorboard: bool = True, resume_frame: Optional[int] = None,
                  wandb=None):
-        self.out_dir, self.wandb = out_dir, wandb
-        self.run = run = RunDir(out_dir)
+        self.run, self.wandb = run, wandb
         if resume_frame is None:
             # A fresh run starts only where no log holds a row (RunDir.refuse_fresh_start): the
             # header-only logs of a training stopped before its first row get this run's header.
@@ -259,3 +258,16 @@ def _quiet_tensorboard_disk_full() -> None:
 
     hook.imssr_tensorboard = True
     threading.excepthook = hook
+
+
+def open_logger(run: RunDir, cfg, resume_frame: Optional[int] = None) -> Logger:
+    """The logs of the run ``run`` trained with ``cfg`` (CSV, TensorBoard and W&B as
+    ``cfg.train`` says); a resumed run's (``resume_frame``: its checkpoint's frame) are cut back
+    to its checkpoint and continue its W&B run."""
+    wandb = None
+    if cfg.train.wandb:
+        # Imported here: W&B is an extra, and a run without it must not load it.
+        from imssr.training.wandb_run import WandbRun
+
+        wandb = WandbRun(cfg, run, resume=resume_frame is not None, warn=lambda text: print(text, flush=True))
+    return Logger(run, cfg.train.tensorboard, resume_frame=resume_frame, wandb=wandb)

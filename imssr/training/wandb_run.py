@@ -27,10 +27,10 @@ def run_tags(cfg: RunConfig) -> list[str]:
     return tags
 
 
-def read_run_id(out_dir: str) -> Optional[str]:
-    """The W&B run id kept in ``out_dir`` (None when there is none or it is unreadable)."""
+def read_run_id(run: RunDir) -> Optional[str]:
+    """The W&B run id kept in ``run`` (None when there is none or it is unreadable)."""
     try:
-        with open(RunDir(out_dir).wandb_run_path) as fh:
+        with open(run.wandb_run_path) as fh:
             run_id = json.load(fh).get("id")
     except (OSError, ValueError, AttributeError):
         return None
@@ -42,23 +42,23 @@ class WandbRun:
 
     Args:
         cfg: the run's config (the W&B run's config, project, group and tags).
-        out_dir: the run directory (the run id file; W&B's files go to ``RUN/wandb`` unless
+        run: the run directory (the run id file; W&B's files go to ``RUN/wandb`` unless
             ``WANDB_DIR`` says otherwise).
-        resume: continue the W&B run whose id ``out_dir`` keeps (a new one if it keeps none).
+        resume: continue the W&B run whose id ``run`` keeps (a new one if it keeps none).
         warn: where the one warning line goes.
     """
 
-    def __init__(self, cfg: RunConfig, out_dir: str, resume: bool, warn=print):
+    def __init__(self, cfg: RunConfig, run: RunDir, resume: bool, warn=print):
         # A missing extra is the user's error (they asked for W&B): one line, before training.
         self._wandb = require("wandb", "wandb")
         self._warn, self.run = warn, None
-        run_id = read_run_id(out_dir) if resume else None
+        run_id = read_run_id(run) if resume else None
         if run_id is None:
             # From the OS's entropy: the seeded random streams of the run are left alone.
             run_id = secrets.token_hex(6)
-            atomic_write_text(RunDir(out_dir).wandb_run_path, json.dumps({"id": run_id}) + "\n")
+            atomic_write_text(run.wandb_run_path, json.dumps({"id": run_id}) + "\n")
         self.run_id = run_id
-        directory = os.environ.get("WANDB_DIR") or out_dir
+        directory = os.environ.get("WANDB_DIR") or run.path
         problem = _unwritable(directory)
         if problem:
             self._off(f"its directory {directory} is not writable ({problem})")

@@ -1,0 +1,230 @@
+"""A training's checkpoints: what one holds, how it is written, and how a resume restores it.
+
+A checkpoint holds the config, the agent (networks, optimisers, its generators), the loop's
+:class:`~imssr.training.state.RunState`, the training and evaluation envs' generators, the
+global generators, the replay buffer's file and sampler state, the torch thread count, and,
+when the training stopped in the middle of one, the open episode and the burst of updates a
+stop interrupted.  Its files and their atomic order are :class:`~imssr.rundir.RunDir`'s.
+
+Resuming from one (:func:`resume_point`, :meth:`Checkpointer.restore`) gives the run the
+uninterrupted run would have had: the open episode is stepped through again from its reset
+(:meth:`Checkpointer.reopen_episode`), and only the settings of
+:data:`~imssr.config.RESUMABLE_CHANGES` may differ.
+"""
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+import numpy as np
+import torch
+
+from imssr.config import RunConfig
+from imssr.errors import ImssrError
+from imssr.replay.buffer import ReplayFileError
+from imssr.rng import rng_states, set_rng_states
+from imssr.rundir import Checkpoint, RunDir
+from imssr.training.build import TrainingParts
+from imssr.training.state import Episode
+
+
+def resume_point(run: RunDir, cfg: RunConfig) -> Checkpoint:
+    """The checkpoint a resume of ``run`` with ``cfg`` continues from (:meth:`RunDir.checkpoint`,
+    its fall-back said in one line), refused in one line when ``cfg`` changes a setting a resume
+    may not change or a budget it is already past; nothing is written before."""
+    ckpt = run.checkpoint()
+    if ckpt.note:
+        print(f"imssr: {ckpt.note}", flush=True)
+    diff = cfg.resume_conflicts(ckpt.state["config"])
+    if diff:
+        raise ImssrError(f"checkpoint {ckpt.path} was made with a different config ({', '.join(diff[:5])}"
+                         f"{', ...' if len(diff) > 5 else ''}); resume with the run's own settings")
+    step = ckpt.state["step"]
+    if step > cfg.train.steps:
+        raise ImssrError(f"the run in {run.path} is already at agent step {step:,}, past the budget of "
+                         f"{cfg.train.steps:,} steps asked for; resume with --steps {step} or more")
+    return ckpt
+
+
+class Checkpointer:
+    """Saves the state of one training into its run directory and restores it on resume.
+
+    Args:
+        run: the run directory.
+        cfg: the run's config.
+        parts: the training's parts that a checkpoint holds (the agent, the training env, the
+            evaluation env of each scene, the replay buffer, the loop's state).
+        refill_buffer: on resume, when the saved replay buffer is missing or damaged, start with
+            an empty buffer refilled by random actions (not an exact resume) instead of failing.
+    """
+
+    def __init__(self, run: RunDir, cfg: RunConfig, parts: TrainingParts, refill_buffer: bool = False):
+        self.run, self.cfg, self.refill_buffer = run, cfg, refill_buffer
+        self.agent, self.env, self.eval_envs = parts.agent, parts.env, parts.eval_envs
+        self.replay, self.state = parts.replay, parts.state
+        self.resumed_from: Optional[str] = None
+        """The checkpoint file the training resumed from (None: a fresh start)."""
+        self.saved_step = -1
+        """The agent step of this process's last checkpoint (that of ``latest.pt`` on resume)."""
+        self.replay_file: Optional[str] = None
+        """The replay file that ``latest.pt`` names."""
+        self.before_final: Optional[dict] = None
+        """The evaluation state from before the off-schedule evaluation at the end of the budget:
+        a checkpoint holds it so that a larger budget goes on as if that evaluation never ran."""
+        self._open_episode: Optional[dict] = None
+        self._open_burst: Optional[dict] = None
+
+    # -- resume --------------------------------------------------------------------------
+    def restore(self, ckpt: Checkpoint) -> None:
+        """Continue from ``ckpt`` (:func:`resume_point`): the agent, the loop's state, every
+        generator, the replay buffer (or a refill when there is none) and the episode a stop left
+        open (rebuilt by :meth:`reopen_episode`)."""
+        state, self.resumed_from = ckpt.state, ckpt.path
+        fallback = ckpt.path != self.run.latest
+        try:
+            self.agent.load_state_dict(state["agent"])
+        except (RuntimeError, KeyError, ValueError) as exc:
+            raise ImssrError(f"checkpoint does not match this agent: {str(exc).splitlines()[0]}") from None
+        counters = {k: state[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
+        saved_train = RunConfig.from_dict(state["config"]).train
+        # Intervals may change on resume: keep the saved schedule only when they did not.
+        self.state.load(state, counters, saved_train.eval_every_steps, saved_train.checkpoint_every_steps)
+        self.env.set_rng_state(state["env_rng"])
+        saved = state.get("eval_env_rngs") or {self.cfg.env.mode: state.get("eval_env_rng")}
+        for mode, env in self.eval_envs.items():
+            if saved.get(mode) is not None:  # a scene added on resume starts from its seed
+                env.set_rng_state(saved[mode])
+        set_rng_states(state["global_rng"])
+        self._restore_before_final(state.get("before_final_eval"))
+        refill = self._load_replay(state, fallback)
+        if state.get("episode_state") is not None and not refill:
+            # Stopped (or out of budget) mid-episode: the training rebuilds the open episode first.
+            self._open_episode, self._open_burst = state["episode_state"], state.get("burst_state")
+        if not fallback:
+            self.saved_step = self.state.step  # latest.pt holds this step already
+        if refill:
+            self.state.learning_starts = self.state.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
+            print(f"imssr: warning: {refill}; refilling it with random "
+                  f"actions until agent step {self.state.learning_starts} (the resume is not exact)", flush=True)
+
+    def _restore_before_final(self, before: Optional[dict]) -> None:
+        """A checkpoint taken where the budget ran out after an evaluation off the schedule (the
+        final one): with a larger budget now, the run goes on as if that evaluation never ran
+        (its rows dropped, the evaluation envs' generators as before it), as a run given the
+        larger budget from the start does; with the same budget it is kept for a later one."""
+        if before is None:
+            return
+        if self.cfg.total_steps <= self.state.step:
+            self.before_final = before
+            return
+        s = self.state
+        del s.eval_history[before["evaluations"]:]
+        s.last_eval_step = before["last_eval_step"]
+        for mode, env in self.eval_envs.items():
+            if mode in before["eval_env_rngs"]:
+                env.set_rng_state(before["eval_env_rngs"][mode])
+
+    def _load_replay(self, state: dict, fallback: bool) -> Optional[str]:
+        """Load the replay buffer checkpoint ``state`` names; returns why it must be refilled
+        instead (None when it loaded)."""
+        if not state.get("replay_file"):
+            return "checkpoint holds no replay buffer"
+        path, frames = self.run.replay_files(state["replay_file"])
+        try:
+            self.replay.load(path, state["replay_state"]["rng"])
+        except ReplayFileError as exc:
+            # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
+            if fallback and not (os.path.exists(path) and os.path.exists(frames)):
+                return f"no replay buffer was kept for {os.path.basename(self.resumed_from)}"
+            if self.refill_buffer:
+                return str(exc)
+            raise ImssrError(f"{exc}; `imssr train --resume --refill-buffer` continues with an empty "
+                             "buffer refilled by random actions (not an exact resume)") from None
+        if self.replay.state_dict()["head"] != state["replay_state"]["head"]:
+            raise ImssrError(f"replay buffer {path} does not match the checkpoint")
+        self.replay_file = state["replay_file"]
+        return None
+
+    def reopen_episode(self) -> tuple[Optional[Episode], Optional[np.ndarray]]:
+        """The episode a stop left open and its current observation, the env stepped through it
+        again from its reset ((None, None): none, or already reopened)."""
+        if self._open_episode is None:
+            return None, None
+        episode = Episode.from_state_dict(self._open_episode)
+        self._open_episode = None
+        saved_rng = self.env.get_rng_state()
+        self.env.set_rng_state(episode.env_rng)
+        obs, _ = self.env.reset()
+        for action in episode.actions:
+            obs, *_ = self.env.step(action)
+        if self.env.get_rng_state() != saved_rng:
+            raise ImssrError(f"cannot rebuild the episode open in {self.resumed_from}: the environment's "
+                             "random state differs from the saved one")
+        return episode, obs
+
+    def take_burst(self) -> Optional[dict]:
+        """The burst of updates a stop interrupted (``updates_done``, the step's ``action``), once."""
+        burst, self._open_burst = self._open_burst, None
+        return burst
+
+    # -- save ----------------------------------------------------------------------------
+    def keep_before_final(self) -> None:
+        """Before the off-schedule evaluation where the budget runs out: what it is about to
+        change, for the checkpoint (:meth:`_restore_before_final`)."""
+        s = self.state
+        self.before_final = {"eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
+                             "evaluations": len(s.eval_history), "last_eval_step": s.last_eval_step}
+
+    def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
+        """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
+        the burst of updates a stop interrupted).  A save that fails (a full disk) leaves the
+        previous checkpoint as it was and removes the replay files it wrote, which no checkpoint
+        names."""
+        step, latest = self.state.step, self.run.latest
+        before = _identity(latest)
+        replay_file = self.run.replay_name(step) if self.cfg.train.save_buffer else None
+        try:
+            if replay_file:
+                self.replay.save(self.run.replay_path(replay_file))
+            self.run.save_checkpoint(self._state(replay_file, episode, burst), keep=self.cfg.train.keep_checkpoints)
+        except ImssrError:
+            if replay_file and replay_file != self.replay_file and _identity(latest) == before:
+                for p in self.run.replay_files(replay_file):
+                    if os.path.exists(p):
+                        os.unlink(p)
+            raise
+        self.replay_file, self.saved_step = replay_file, step
+
+    def _state(self, replay_file: Optional[str], episode: Optional[Episode], burst: Optional[dict]) -> dict:
+        """What a checkpoint holds (see the module docstring)."""
+        return {
+            "config": self.cfg.to_dict(), **self.state.state_dict(), "agent": self.agent.state_dict(),
+            "env_rng": self.env.get_rng_state(),
+            "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
+            "global_rng": rng_states(),
+            "replay_file": replay_file, "replay_state": self.replay.state_dict(),
+            # A resume with another thread count is valid but not bit-identical (thread_warning).
+            "torch_threads": torch.get_num_threads(),
+            "episode_state": None if episode is None else episode.state_dict(self.env.action_space.shape[0]),
+            "burst_state": burst, "before_final_eval": self.before_final,
+        }
+
+
+def _identity(path: str) -> Optional[tuple]:
+    """Which file ``path`` is now (None if none): tells whether a save replaced it."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_mtime_ns, st.st_size
+
+
+def thread_warning(saved: Optional[int], now: int, device) -> Optional[str]:
+    """A one-line warning when a CPU run resumes with another torch thread count than it was
+    trained with (None when equal, unknown, or on a GPU): CPU kernels split their reductions
+    by thread, so float sums round differently and the run drifts from the uninterrupted one."""
+    if saved is None or saved == now or torch.device(device).type != "cpu":
+        return None
+    return (f"imssr: warning: this run was trained with {saved} torch thread(s) and resumes with {now}: "
+            "it stays valid but is no longer bit-identical to an uninterrupted run "
+            f"(--set train.torch_threads={saved} keeps it exact)")

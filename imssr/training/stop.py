@@ -1,0 +1,89 @@
+"""Stopping a training on a signal: SIGTERM / SIGINT as a request to stop after the current agent
+step with a checkpoint (:class:`StopRequest`), and the exception a stopped training raises."""
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from typing import Optional
+
+from imssr.errors import INTERRUPTED_EXIT
+from imssr.rundir import RunDir
+
+
+class TrainingInterrupted(Exception):
+    """Training stopped on a signal after checkpointing its last agent step; the message is the
+    line the CLI prints ("stopped at agent step N by SIGTERM; continue with: ...")."""
+
+    @classmethod
+    def at(cls, step: int, signal_name: Optional[str], run: RunDir) -> "TrainingInterrupted":
+        """The training of ``run`` stopped by ``signal_name`` at agent step ``step``."""
+        return cls(f"stopped at agent step {step} by {signal_name}; continue with: "
+                   f"imssr train --out {run.path} --resume")
+
+
+class StopRequest:
+    """SIGTERM / SIGINT as a request to stop after the current agent step (SLURM sends SIGTERM
+    on preemption and at the time limit, some seconds before SIGKILL).
+
+    The first signal is recorded in :attr:`signal_name`; a second one stops at once.  With
+    ``run`` (the command line, which trains that run directory) the second signal ends the
+    process there with :data:`~imssr.errors.INTERRUPTED_EXIT` and one line, even in the middle
+    of a checkpoint write: the write is atomic, so the last checkpoint stays whole, and the line
+    names ``--resume`` only when there is a checkpoint to continue from.  Without ``run``
+    (the Python API) the default handlers come back: SIGTERM kills the process, SIGINT raises
+    ``KeyboardInterrupt``.  Handlers are installed only on the main thread (Python's rule)."""
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self, run: Optional[RunDir] = None):
+        self.signal_name: Optional[str] = None
+        self.run = run
+        self._previous: dict = {}
+
+    def install(self) -> "StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            for signum in self.SIGNALS:
+                self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.signal_name = signal.Signals(signum).name
+        # os.write, not print: a signal handler may run inside a print to the same stream.
+        _say(f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
+             "(a second signal stops at once)\n")
+        for sig in self.SIGNALS:  # the next signal acts at once
+            if self.run is not None:
+                signal.signal(sig, self._exit_at_once)
+            else:
+                signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+
+    def _exit_at_once(self, signum, frame) -> None:
+        """The second signal on the command line: one line and the exit, with no exception that
+        could surface in a write (torch's "unexpected pos"), a ``finally`` or an exit handler."""
+        name = signal.Signals(signum).name
+        if self.run.has_checkpoint():
+            text = (f"stopped at once, keeping the last checkpoint; continue with: "
+                    f"imssr train --out {self.run.path} --resume")
+        else:
+            # The directory holds the logs of the run so far, so the same command is refused.
+            text = (f"stopped at once, before the run's first checkpoint: nothing to resume; choose "
+                    f"another --out or remove {self.run.path}")
+        _say(f"imssr: {name} again: {text}\n")
+        os._exit(INTERRUPTED_EXIT)
+
+    def uninstall(self) -> None:
+        """The handlers from before :meth:`install` come back (the caller's, when ``imssr.cli.main``
+        runs in a process of its own): the training, and any checkpoint write, is over."""
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+
+def _say(text: str) -> None:
+    """``text`` to stderr from a signal handler; lost when stderr is gone (a closed pipe): the
+    stop goes on without its line."""
+    try:
+        os.write(2, text.encode())
+    except OSError:
+        pass
