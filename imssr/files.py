@@ -113,17 +113,21 @@ def atomic_write_text(path: str, text: str) -> None:
             fh.write(text)
 
 
-def open_own(path: str, flags: int) -> int:
+OWN_FILE_RULE = "imssr writes only to a file of its own there (remove the link)"
+"""What :func:`open_own` says of a symbolic link by default (a file opened for writing)."""
+
+
+def open_own(path: str, flags: int, rule: str = OWN_FILE_RULE) -> int:
     """``os.open(path, flags | O_NOFOLLOW | O_CLOEXEC, 0o666)`` (the umask decides the mode of a
-    new file).  A symbolic link there is refused in one line: a run directory's files are its
-    own, and writing through a link planted in a shared directory would write into (or
-    truncate) a file outside the run."""
+    new file).  A symbolic link there is refused in one line, "PATH is a symbolic link; RULE": a
+    run directory's files are its own, and writing through a link planted in a shared directory
+    would write into (or truncate) a file outside the run, as reading through one would carry a
+    file from elsewhere into the run's results."""
     try:
         return os.open(path, flags | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
     except OSError as exc:
         if exc.errno == errno.ELOOP:
-            raise ImssrError(f"{path} is a symbolic link; imssr writes only to a file of its own there "
-                             "(remove the link)") from None
+            raise ImssrError(f"{path} is a symbolic link; {rule}") from None
         raise
 
 

@@ -14,12 +14,11 @@ each run once.
 """
 from __future__ import annotations
 
-import errno
 import os
 from dataclasses import dataclass
 
 from imssr.errors import ImssrError
-from imssr.files import atomic_path
+from imssr.files import atomic_path, open_own
 from imssr.report.results import collect
 from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, TRAIN_LOG, run_path
 from imssr.sweep.grid import beta_label
@@ -96,12 +95,7 @@ def _copy_run(source: str, target: str) -> str:
 def _read_own(path: str) -> bytes:
     """The bytes of a run's own file; a symbolic link there (to a file outside the run) is
     refused, so that nothing from elsewhere lands in a tree meant for version control."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise ImssrError(f"{path} is a symbolic link; the export copies only a run's own files") from None
-        raise
+    fd = open_own(path, os.O_RDONLY, "the export copies only a run's own files")
     with os.fdopen(fd, "rb") as fh:
         return fh.read()
 
