@@ -167,6 +167,9 @@ def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capf
         pass
 
     previous = signal.signal(signal.SIGTERM, mine)
+    # Python's own SIGINT handler, whatever this process inherited (a shell's background job
+    # starts with SIGINT ignored).
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         stop = StopRequest(RunDir(str(tmp_path))).install()
         os.kill(os.getpid(), signal.SIGTERM)
@@ -177,6 +180,7 @@ def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capf
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, previous_int)
     assert "stopping after this agent step" in capfd.readouterr().err
 
 
