@@ -6,6 +6,8 @@ import shutil
 import subprocess
 import sys
 
+import pytest
+
 from conftest import tiny_config, train_run
 from imssr.report.export import export_runs
 from imssr.report.report import write_report
@@ -150,3 +152,18 @@ def test_export_refuses_a_log_that_is_a_link_out_of_the_run(tmp_path):
                                   "the export copies only a run's own files"
     assert not any("secret" in open(os.path.join(d, f)).read()
                    for d, _, files in os.walk(tmp_path / "x") for f in files)
+
+
+def test_git_keeps_the_results_trees_and_ignores_the_top_level_runs():
+    """scripts/keep_results.py commits an export under docs/results/<name>/runs: git must not
+    ignore it, while the top-level runs/ (where the README's commands write) stays ignored."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if shutil.which("git") is None or not os.path.exists(os.path.join(root, ".git")):
+        pytest.skip("not a git checkout")
+
+    def ignored(path):
+        return subprocess.run(["git", "check-ignore", "-q", "--no-index", path], cwd=root).returncode == 0
+
+    assert not ignored("docs/results/dmc100k_cartpole_swingup/runs/fp32/cartpole_swingup/curl/seed_1/eval.csv")
+    assert not ignored("docs/results/any_sweep/runs/bf16/cartpole_swingup/curl/seed_1/config.json")
+    assert ignored("runs/demo/eval.csv")
