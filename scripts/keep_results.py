@@ -41,6 +41,14 @@ def export_and_commit(root: str, dest: str) -> list[str]:
     return copied
 
 
+def refuse_ignored(dest: str) -> None:
+    """Fail at once, not at the first finished run hours later, if git ignores DEST's runs."""
+    probe = os.path.join(dest, "fp32", "task", "algo", "seed_1", "eval.csv")
+    if subprocess.run(["git", "check-ignore", "-q", "--no-index", probe]).returncode == 0:
+        raise ImssrError(f"git ignores {dest} here (see: git check-ignore -v {probe}), so its runs "
+                         "could not be committed; choose another DEST or change .gitignore")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("root", help="the sweep's root (its run store)")
@@ -53,6 +61,7 @@ def main(argv=None) -> int:
     give_up = time.monotonic() + args.wait_start
     seen = False
     try:
+        refuse_ignored(dest)
         while True:
             running = held_by(root) is not None
             seen = seen or running

@@ -137,6 +137,17 @@ def test_keep_results_commits_each_finished_run_once_and_stops_with_the_sweep(tm
     assert "other.txt" not in log  # only the export is committed
 
 
+def test_keep_results_refuses_a_dest_that_git_ignores_before_waiting(tmp_path):
+    repo = tmp_path / "repo"
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    (repo / ".gitignore").write_text("runs/\n")
+    script = os.path.join(os.path.dirname(__file__), "..", "scripts", "keep_results.py")
+    proc = subprocess.run([sys.executable, script, str(tmp_path / "store"), "docs/runs", "--wait-start", "600"],
+                          cwd=repo, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith("keep_results: error: git ignores docs/runs here") and proc.stderr.count("\n") == 1
+
+
 def test_export_refuses_a_log_that_is_a_link_out_of_the_run(tmp_path):
     root = tmp_path / "sweep"
     run = run_path(str(root), TASK, "curl", 1)
