@@ -1,11 +1,15 @@
 """agent.precision: fp32 enters no autocast at all; bf16 runs the passes in bfloat16 and keeps
 weights, optimiser state and the numerically sensitive pieces in float32."""
+import importlib.util
+import os
+
 import numpy as np
 import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from conftest import filled_buffer
+import imssr
+from conftest import filled_buffer, tiny_config, train_run
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward
@@ -156,3 +160,34 @@ def test_fp32_agents_keep_the_layers_own_forward():
     agent = small_agent("im-soda", "sequential")
     assert not any("forward" in m.__dict__ for m in agent.nets.modules())
     assert not any("forward" in m.__dict__ for m in agent.aux.modules())
+
+
+def _script(name):
+    path = os.path.join(os.path.dirname(__file__), os.pardir, "scripts", f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bf16_fidelity_measures_against_fp32_on_the_same_states_and_actions(tmp_path, capsys):
+    """scripts/bf16_fidelity.py on a trained (tiny) run: fp32 against itself is exact (same
+    states, actions, weights); bf16 differs; the CLI prints one block per split and refuses a
+    missing run in one line."""
+    out_dir = tmp_path / "run"
+    train_run(tiny_config("curl", steps=80, eval_every_steps=0, checkpoint_every_steps=80), out_dir)
+    fidelity = _script("bf16_fidelity")
+    run = imssr.load_run(str(out_dir))
+    same = fidelity.measure(run, 6, 4, encoder="fp32", head="fp32")
+    assert same["err_max"] == 0 and same["argmax_agreement"] == 1 and same["grad_sign_same"] == 1
+    assert same["states"] == 6 and same["actions"] == 4 and same["spread_median"] > 0
+    bf16 = fidelity.measure(run, 6, 4)
+    assert bf16["err_max"] > 0 and 0 <= bf16["grad_sign_same"] <= 1
+    assert bf16["q_median"] == same["q_median"]
+
+    assert fidelity.main([str(out_dir), "--states", "4", "--actions", "3", "--split"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("states x 3 actions") == 3 and "encoder fp32, Q heads bf16" in printed
+    assert fidelity.main([str(tmp_path / "missing")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bf16_fidelity: ") and err.count("\n") == 1
