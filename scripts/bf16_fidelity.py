@@ -18,7 +18,9 @@ trains with.  Prints, over states and actions:
 - ``grad cosine``: the cosine between the bf16 and fp32 gradients ``dmin(Q1, Q2)/da`` at the
   policy's mean action (what the actor's loss ascends), and their norms' ratio; ``grad sign``:
   the share of (state, action dimension) pairs where the two gradients push the same way (with one
-  action dimension, as cartpole's, the cosine is +1 or -1).
+  action dimension, as cartpole's, the cosine is +1 or -1), overall and among the pairs where the
+  fp32 gradient's size is in its larger half (a flip where the critic barely prefers a direction
+  matters less than one where it clearly does).
 
 ``--split`` repeats the measures with only the encoder (trunk and projection) under bf16, the Q
 heads in float32, and with only the Q heads under bf16: which part the error comes from.
@@ -87,6 +89,7 @@ def measure(run, n_states: int = 128, n_actions: int = 16, seed: int = 0,
     q32, g32 = q_and_grad(agent, x, actions, "fp32", "fp32")
     q16, g16 = q_and_grad(agent, x, actions, encoder, head)
     err, spread, size = (q16 - q32).abs(), q32.std(dim=1, unbiased=False), q32.abs()
+    big = g32.abs() >= g32.abs().median()  # the larger half of |dQ/da|, over (state, dimension)
     return {
         "states": len(x), "actions": n_actions,
         "q_median": size.median().item(), "q_max": size.max().item(),
@@ -98,6 +101,7 @@ def measure(run, n_states: int = 128, n_actions: int = 16, seed: int = 0,
         "grad_cosine_median": torch.nn.functional.cosine_similarity(g16, g32, dim=-1).median().item(),
         "grad_norm_ratio_median": (g16.norm(dim=-1) / g32.norm(dim=-1).clamp_min(1e-12)).median().item(),
         "grad_sign_same": (torch.sign(g16) == torch.sign(g32)).float().mean().item(),
+        "grad_sign_same_larger_half": (torch.sign(g16) == torch.sign(g32))[big].float().mean().item(),
     }
 
 
@@ -131,7 +135,8 @@ def main(argv=None) -> int:
         print(f"  argmax agreement  {m['argmax_agreement']:.3f} of states")
         print(f"  grad cosine       median {m['grad_cosine_median']:.4f};  "
               f"norm ratio median {m['grad_norm_ratio_median']:.4f}")
-        print(f"  grad sign         the same in {m['grad_sign_same']:.3f} of (state, action dimension) pairs")
+        print(f"  grad sign         the same in {m['grad_sign_same']:.3f} of (state, action dimension) pairs, "
+              f"{m['grad_sign_same_larger_half']:.3f} of those with the larger half of |dQ/da|")
     return 0
 
 if __name__ == "__main__":
