@@ -96,7 +96,7 @@ def test_a_sweep_file_root_may_start_at_home(tmp_path, monkeypatch):
     assert load_sweep_file(str(path)).root == str(tmp_path / "imssr-runs" / "x")
 
 
-def test_the_committed_dmc100k_sweeps_differ_only_in_precision_and_root():
+def test_the_committed_dmc100k_sweeps_differ_only_in_numerics_and_root():
     here = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "dmc100k_cartpole_swingup")
     with open(os.path.join(here, "sweep.json")) as fh:
         fp32 = json.load(fh)
@@ -106,6 +106,16 @@ def test_the_committed_dmc100k_sweeps_differ_only_in_precision_and_root():
     assert {k: v for k, v in bf16.items() if k not in ("set", "root")} == \
            {k: v for k, v in fp32.items() if k not in ("set", "root")}
     assert fp32["root"].startswith("~/") and bf16["root"].startswith("~/") and fp32["root"] != bf16["root"]
+    with open(os.path.join(here, "sweep_bf16_fp32q.json")) as fh:
+        fp32q = json.load(fh)
+    assert fp32q["set"] == bf16["set"] + ["agent.q_heads_fp32=true"]
+    assert {k: v for k, v in fp32q.items() if k not in ("set", "root")} == \
+           {k: v for k, v in bf16.items() if k not in ("set", "root")}
+    assert fp32q["root"].startswith("~/") and fp32q["root"] not in (fp32["root"], bf16["root"])
+    cfg = load_sweep_file(os.path.join(here, "sweep_bf16_fp32q.json"))
+    assert cfg.overrides[-2:] == ["agent.precision=bf16", "agent.q_heads_fp32=true"]
+    from imssr.sweep.sweep import plan_runs
+    assert {s.config.agent.precision_label for s in plan_runs(cfg)} == {"bf16-fp32q"}
 
 
 def test_keep_results_commits_each_finished_run_once_and_stops_with_the_sweep(tmp_path):

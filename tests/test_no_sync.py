@@ -20,12 +20,15 @@ from imssr.algos import ALGOS
 HOST_READS = ("item", "__bool__", "__float__", "__int__", "__index__", "cpu", "numpy", "tolist")
 
 
-def small_agent(algo: str, schedule: str, precision: str = "fp32", device: str = "cpu", **aux) -> SACAgent:
-    """The preset on 60 px frames, 4 thin convolutions, batch 8; ``aux`` sets fields of
-    ``cfg.aux`` (``own_batch``) or ``cfg.intrinsic`` (``form``)."""
+def small_agent(algo: str, schedule: str, precision: str = "fp32", device: str = "cpu",
+                agent_fields: dict | None = None, **aux) -> SACAgent:
+    """The preset on 60 px frames, 4 thin convolutions, batch 8; ``agent_fields`` sets fields of
+    ``cfg.agent``; ``aux`` sets fields of ``cfg.aux`` (``own_batch``) or ``cfg.intrinsic`` (``form``)."""
     cfg = tiny_config(algo)
     cfg.agent.update_schedule = schedule
     cfg.agent.precision = precision
+    for field, value in (agent_fields or {}).items():
+        setattr(cfg.agent, field, value)
     for field, value in aux.items():
         setattr(cfg.intrinsic if field == "form" else cfg.aux, field, value)
     cfg.agent.encoder_layers, cfg.agent.encoder_filters, cfg.agent.crop_size = 4, 8, 52

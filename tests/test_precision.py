@@ -9,7 +9,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import imssr
-from conftest import filled_buffer, tiny_config, train_run
+from conftest import assert_same_tensors, filled_buffer, tiny_config, train_run
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward
@@ -55,6 +55,38 @@ def test_bf16_runs_the_convolutions_in_bfloat16_and_keeps_float32_state(algo, sc
                if t.is_floating_point())
     action = agent.act(replay.sample(1)["obs"][0], deterministic=True)
     assert action.dtype == np.float32 and np.all(np.abs(action) <= 1)
+
+
+@pytest.mark.parametrize("q_heads_fp32", [False, True])
+def test_q_heads_fp32_keeps_the_q_heads_in_float32_under_bf16(q_heads_fp32):
+    """agent.q_heads_fp32 reaches the online and target Q heads: their layers run in float32 while
+    the convolutions stay bfloat16; without it, the heads run in bfloat16 like every layer."""
+    agent = small_agent("im-curl", "sequential", "bf16", agent_fields={"q_heads_fp32": q_heads_fp32})
+    replay = filled_buffer(60, action_dim=2, size=60)
+    seen = {"conv": set(), "q": set(), "target q": set()}
+    layers = {"conv": agent.nets.critic.encoder.trunk.convs[0], "q": agent.nets.critic.q.q1[0],
+              "target q": agent.nets.critic_target.q.q2[-1]}
+    hooks = [layer.register_forward_hook(lambda m, args, out, k=k: seen[k].add(out.dtype))
+             for k, layer in layers.items()]
+    for step in range(3):
+        metrics = agent.update(replay, step)
+    for hook in hooks:
+        hook.remove()
+    heads = torch.float32 if q_heads_fp32 else torch.bfloat16
+    assert seen == {"conv": {torch.bfloat16}, "q": {heads}, "target q": {heads}}
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+
+
+def test_q_heads_fp32_changes_nothing_at_fp32():
+    """At fp32 the setting is a no-op: the same updates, bit for bit."""
+    states = []
+    for q_heads_fp32 in (False, True):
+        agent = small_agent("im-curl", "sequential", agent_fields={"q_heads_fp32": q_heads_fp32})
+        replay = filled_buffer(60, action_dim=2, size=60)
+        for step in range(3):
+            agent.update(replay, step)
+        states.append(agent.nets.state_dict())
+    assert assert_same_tensors(states[0], states[1]) > 0
 
 
 def test_bf16_agrees_with_fp32_to_bfloat16_rounding():

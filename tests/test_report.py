@@ -16,15 +16,16 @@ from imssr.training.logger import EVAL_COLUMNS, read_csv
 TASK = "cartpole_swingup_sparse"  # action repeat 8: agent step s is frame 8 * s
 
 
-def make_run(root, algo, seed, evals, task=TASK, steps=1000, beta0=None, precision="fp32"):
+def make_run(root, algo, seed, evals, task=TASK, steps=1000, beta0=None, precision="fp32", q_heads_fp32=False):
     """A run directory as `imssr train` leaves it: config.json and eval.csv rows (mode, agent step,
     return); T = ``steps`` agent steps."""
-    parts = ([] if precision == "fp32" else [precision]) + [task, algo] + \
+    parts = ([] if precision == "fp32" else [precision + ("-fp32q" if q_heads_fp32 else "")]) + [task, algo] + \
         ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
     run = os.path.join(root, *parts)
     os.makedirs(run)
     cfg = make_config(algo, task)
     cfg.train.steps, cfg.train.seed, cfg.agent.precision = steps, seed, precision
+    cfg.agent.q_heads_fp32 = q_heads_fp32
     if beta0 is not None:
         cfg.intrinsic.beta0 = beta0
     with open(os.path.join(run, "config.json"), "w") as fh:
@@ -338,6 +339,22 @@ def test_bf16_runs_are_rows_of_their_own_beside_fp32(tmp_path, paper_csv):
     md = open(os.path.join(out, "report.md")).read()
     assert "| curl bf16 | **0.0** ± 0.0 |  | **0.0** ± 0.0 |  | 250.0 ± 81.6 | 744.2 ± 23.8 | 1: 150.0, 2: 250.0, 3: 350.0 | 3/3 |" in md
     assert {r["precision"] for r in read_csv(os.path.join(out, "evaluations.csv"))} == {"fp32", "bf16"}
+
+
+def test_bf16_runs_with_fp32_q_heads_are_rows_of_their_own(tmp_path, paper_csv):
+    """agent.q_heads_fp32 changes a bf16 run's numbers: its runs are the ``bf16-fp32q`` row, never
+    seeds of ``bf16``'s; at fp32 the setting does nothing and the runs stay ``fp32``."""
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for seed in (1, 2):
+        make_run(root, "curl", seed, curve(0, 0, 100 * seed), precision="bf16")
+        make_run(root, "curl", seed, curve(0, 0, 100 * seed + 500), precision="bf16", q_heads_fp32=True)
+        make_run(root, "curl", seed, curve(0, 0, 100 * seed + 300), precision="fp32", q_heads_fp32=True)
+    write_report(root, out, paper_results=paper_csv, reps=50)
+    t = table(out)
+    assert float(t["training", "curl bf16", "1.0"]["mean"]) == 150.0
+    assert float(t["training", "curl bf16-fp32q", "1.0"]["mean"]) == 650.0
+    assert float(t["training", "curl", "1.0"]["mean"]) == 450.0
+    assert {r["precision"] for r in read_csv(os.path.join(out, "evaluations.csv"))} == {"fp32", "bf16", "bf16-fp32q"}
 
 
 def test_a_planned_bf16_run_that_has_not_started_counts_in_its_own_row(tmp_path, paper_csv):

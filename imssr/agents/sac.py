@@ -58,7 +58,8 @@ class SACNetworks(nn.Module):
         super().__init__()
         trunk = ConvTrunk(obs_channels, cfg.crop_size, cfg.encoder_layers, cfg.encoder_filters,
                           cfg.encoder_head_layers, cfg.channels_last, cfg.final_relu)
-        self.critic = Critic(Encoder(trunk, cfg.feature_dim, cfg.projection_tanh), action_dim, cfg.hidden_dim)
+        self.critic = Critic(Encoder(trunk, cfg.feature_dim, cfg.projection_tanh), action_dim, cfg.hidden_dim,
+                             q_heads_fp32=cfg.q_heads_fp32)
         self.actor = Actor(trunk.out_dim, cfg.feature_dim, action_dim, cfg.hidden_dim,
                            cfg.log_std_min, cfg.log_std_max, cfg.projection_tanh)
         self.apply(weight_init)

@@ -118,6 +118,11 @@ class AgentConfig:
     while weights, gradients and Adam's state stay float32; the Bellman target, the InfoNCE
     logits, the per-sample losses behind r_int and their normalisation, LayerNorm, BatchNorm
     and the temperature stay float32 (docs/performance.md, "Mixed precision")."""
+    q_heads_fp32: bool = False
+    """Under ``precision = bf16``, run the twin Q heads (the MLPs on ``[z, a]``, online and target)
+    in float32; the encoder stays bfloat16.  One state's Q varies over actions by only a few
+    percent of Q's size, about bfloat16's resolution (``scripts/bf16_fidelity.py --split``).  No
+    effect at ``fp32``."""
     tf32: str = "default"
     """TensorFloat-32 on CUDA (about 10 mantissa bits instead of 23; faster on Ampere and later):
     ``default``: PyTorch's own defaults, TF32 in cuDNN convolutions and full float32 matmuls (the
@@ -128,6 +133,13 @@ class AgentConfig:
     with this mode: ``off``, ``default``, ``reduce-overhead`` or ``max-autotune`` (both CUDA
     graphs on CUDA; each act and update marks a step of them).  The first updates are slow while
     it compiles; needs a C++ compiler on CPU.  Not measured on a GPU."""
+
+    @property
+    def precision_label(self) -> str:
+        """The run's numerics as reports and exports group them: ``precision``, and
+        ``bf16-fp32q`` for bf16 with :attr:`q_heads_fp32` (other numbers, so never a seed of
+        ``bf16``'s row)."""
+        return "bf16-fp32q" if self.precision == "bf16" and self.q_heads_fp32 else self.precision
 
 
 @dataclass

@@ -80,25 +80,33 @@ class Actor(nn.Module):
 
 
 class QHeads(nn.Module):
-    """Two independent Q networks on ``[z, a]``."""
+    """Two independent Q networks on ``[z, a]``; ``fp32``: computed in float32 under any autocast
+    (``agent.q_heads_fp32``)."""
 
-    def __init__(self, feature_dim: int, action_dim: int, hidden_dim: int):
+    def __init__(self, feature_dim: int, action_dim: int, hidden_dim: int, fp32: bool = False):
         super().__init__()
         self.q1 = mlp(feature_dim + action_dim, hidden_dim, 1)
         self.q2 = mlp(feature_dim + action_dim, hidden_dim, 1)
+        self.fp32 = fp32
 
     def forward(self, z: torch.Tensor, action: torch.Tensor):
         za = torch.cat([z, action], dim=-1)
+        if self.fp32:
+            with full_precision(za):
+                # One state's Q varies over actions by a few percent of Q's size, about what
+                # bfloat16's 8 significant bits resolve: the actor's signal would be rounding.
+                za = za.float()
+                return self.q1(za), self.q2(za)
         return self.q1(za), self.q2(za)
 
 
 class Critic(nn.Module):
     """Encoder (trunk + projection) and twin Q heads."""
 
-    def __init__(self, encoder: Encoder, action_dim: int, hidden_dim: int):
+    def __init__(self, encoder: Encoder, action_dim: int, hidden_dim: int, q_heads_fp32: bool = False):
         super().__init__()
         self.encoder = encoder
-        self.q = QHeads(encoder.out_dim, action_dim, hidden_dim)
+        self.q = QHeads(encoder.out_dim, action_dim, hidden_dim, fp32=q_heads_fp32)
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor):
         return self.q(self.encoder(obs), action)

@@ -117,6 +117,7 @@ COMMON = (
             "critic, actor + temperature, targets, auxiliary task, in that order"),
     Setting("agent.channels_last", True, IMSSR, "memory layout only: the same maths"),
     Setting("agent.precision", "fp32", AUTHORS_LOOP, "every pass in float32"),
+    Setting("agent.q_heads_fp32", False, IMSSR, "a bf16 setting: no effect at fp32"),
     Setting("agent.tf32", "default", AUTHORS_LOOP, "PyTorch's defaults, as the authors' GPU runs had: "
             "TF32 in cuDNN convolutions, full float32 matmuls (CUDA only; "
             "`false`: strict float32)"),

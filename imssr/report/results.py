@@ -43,7 +43,8 @@ class RunResult:
     dir: str
     """Run directory."""
     precision: str = "fp32"
-    """``agent.precision`` of the run: a bf16 run is its own group, never a seed of the fp32 one."""
+    """The run's numerics, ``agent.precision_label`` (``fp32``, ``bf16``, ``bf16-fp32q``): a bf16
+    run is its own group, never a seed of the fp32 one."""
     run_dir: Optional[RunDir] = field(default=None, repr=False, compare=False)
     """The run directory's files and life (None: a run given by hand, not found on disk)."""
     evals: list[tuple[str, int, int, float]] = field(default_factory=list)
@@ -82,7 +83,7 @@ class PlannedRun:
     """Budget in agent steps."""
     dir: str
     precision: str = "fp32"
-    """``agent.precision`` the sweep sets for its runs."""
+    """``agent.precision_label`` of the sweep's runs."""
     failure: Optional[str] = None
     """The last error when ``sweep_status.json`` lists the run as failed."""
 
@@ -182,7 +183,7 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         return None
     repeat = cfg.env.action_repeat
     run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
-                    precision=cfg.agent.precision, run_dir=run_files)
+                    precision=cfg.agent.precision_label, run_dir=run_files)
     path = run_files.eval_log
     rows = read_csv(path, complete_only=True)
     for row in rows:

@@ -209,7 +209,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     root = os.path.abspath(cfg.root)
     os.makedirs(root, exist_ok=True)
     save_plan(cfg, [s.run for s in statuses],
-              {s.run.dir: {"steps": s.steps, "frames": s.frames, "precision": s.config.agent.precision}
+              {s.run.dir: {"steps": s.steps, "frames": s.frames, "precision": s.config.agent.precision_label}
                for s in statuses})
     started = time.time()
     status_path = write_status(cfg, statuses, started)
