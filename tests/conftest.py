@@ -22,6 +22,20 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 torch.set_num_threads(TORCH_THREADS)
 
 
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load_script(relpath: str):
+    """A script of the repository (``scripts/compare_sweeps.py``, ``bench/gpu.py``) as a module."""
+    import importlib.util
+
+    name = os.path.splitext(os.path.basename(relpath))[0]
+    spec = importlib.util.spec_from_file_location(name, os.path.join(REPO, relpath))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **train):
     """The paper's preset shrunk: small MLPs and batches, short budgets."""
     cfg = make_config(algo, task)

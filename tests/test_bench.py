@@ -1,7 +1,6 @@
 """bench/gpu.py: its table's structure on a tiny CPU smoke run and its arithmetic (never timings),
 and the one-line error when CUDA is asked for and absent."""
 import csv
-import importlib.util
 import os
 import subprocess
 import sys
@@ -10,6 +9,8 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+
+from conftest import load_script
 
 ROOT = Path(__file__).resolve().parent.parent
 GPU_BENCH = ROOT / "bench" / "gpu.py"
@@ -32,10 +33,7 @@ def table_rows(stdout: str) -> list[list[str]]:
 
 
 def load_gpu_bench():
-    spec = importlib.util.spec_from_file_location("gpu_bench", GPU_BENCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("bench/gpu.py")
 
 
 def test_cpu_smoke_run_prints_one_row_per_algo_and_variant_with_the_baseline_first(tmp_path):

@@ -14,7 +14,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import filled_buffer, tiny_config
+from conftest import filled_buffer, load_script, tiny_config
 from imssr.agents import SACAgent
 from imssr.augmentations import random_crop
 from imssr.config import load_config
@@ -261,12 +261,8 @@ def test_every_base_has_a_preset_on_every_paper_task():
 
 
 def test_docs_provenance_table_is_in_sync():
-    import importlib.util
-
     root = os.path.join(os.path.dirname(__file__), "..")
-    spec = importlib.util.spec_from_file_location("provenance", os.path.join(root, "scripts", "provenance.py"))
-    provenance = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(provenance)
+    provenance = load_script("scripts/provenance.py")
     with open(os.path.join(root, "docs", "provenance.md")) as fh:
         assert fh.read() == provenance.provenance_markdown(), \
             "docs/provenance.md is stale: regenerate it with python scripts/provenance.py > docs/provenance.md"

@@ -1,15 +1,12 @@
 """agent.precision: fp32 enters no autocast at all; bf16 runs the passes in bfloat16 and keeps
 weights, optimiser state and the numerically sensitive pieces in float32."""
-import importlib.util
-import os
-
 import numpy as np
 import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import imssr
-from conftest import assert_same_tensors, filled_buffer, tiny_config, train_run
+from conftest import assert_same_tensors, filled_buffer, load_script, tiny_config, train_run
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward
@@ -194,21 +191,13 @@ def test_fp32_agents_keep_the_layers_own_forward():
     assert not any("forward" in m.__dict__ for m in agent.aux.modules())
 
 
-def _script(name):
-    path = os.path.join(os.path.dirname(__file__), os.pardir, "scripts", f"{name}.py")
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_bf16_fidelity_measures_against_fp32_on_the_same_states_and_actions(tmp_path, capsys):
     """scripts/bf16_fidelity.py on a trained (tiny) run: fp32 against itself is exact (same
     states, actions, weights); bf16 differs; the CLI prints one block per split and refuses a
     missing run in one line."""
     out_dir = tmp_path / "run"
     train_run(tiny_config("curl", steps=80, eval_every_steps=0, checkpoint_every_steps=80), out_dir)
-    fidelity = _script("bf16_fidelity")
+    fidelity = load_script("scripts/bf16_fidelity.py")
     run = imssr.load_run(str(out_dir))
     same = fidelity.measure(run, 6, 4, encoder="fp32", head="fp32")
     assert same["err_max"] == 0 and same["argmax_agreement"] == 1 and same["grad_sign_same"] == 1

@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from conftest import load_script
 from imssr.report.report import write_report
 from imssr.presets import make_config
 from imssr.training.logger import EVAL_COLUMNS, read_csv
@@ -19,15 +20,16 @@ TASK = "cartpole_swingup_sparse"  # action repeat 8: agent step s is frame 8 * s
 def make_run(root, algo, seed, evals, task=TASK, steps=1000, beta0=None, precision="fp32", q_heads_fp32=False):
     """A run directory as `imssr train` leaves it: config.json and eval.csv rows (mode, agent step,
     return); T = ``steps`` agent steps."""
-    parts = ([] if precision == "fp32" else [precision + ("-fp32q" if q_heads_fp32 else "")]) + [task, algo] + \
-        ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
-    run = os.path.join(root, *parts)
-    os.makedirs(run)
     cfg = make_config(algo, task)
     cfg.train.steps, cfg.train.seed, cfg.agent.precision = steps, seed, precision
     cfg.agent.q_heads_fp32 = q_heads_fp32
     if beta0 is not None:
         cfg.intrinsic.beta0 = beta0
+    label = cfg.agent.precision_label
+    parts = ([] if label == "fp32" else [label]) + [task, algo] + \
+        ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
+    run = os.path.join(root, *parts)
+    os.makedirs(run)
     with open(os.path.join(run, "config.json"), "w") as fh:
         fh.write(cfg.to_json())
     with open(os.path.join(run, "eval.csv"), "w", newline="") as fh:
@@ -281,12 +283,7 @@ def test_runs_the_sweep_lists_as_failed_are_reported_as_failed(tmp_path, paper_c
 def test_compare_sweeps_table_and_exit_status(tmp_path):
     """scripts/compare_sweeps.py: the reference's spread at every common step, the candidate's
     mean inside or not, exit 1 when any point leaves the spread."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(__file__), os.pardir, "scripts", "compare_sweeps.py")
-    spec = importlib.util.spec_from_file_location("compare_sweeps", path)
-    compare_sweeps = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(compare_sweeps)
+    compare_sweeps = load_script("scripts/compare_sweeps.py")
     ref, near, far = (str(tmp_path / name) for name in ("ref", "near", "far"))
     for seed, (a, b) in enumerate([(10.0, 100.0), (20.0, 200.0), (30.0, 300.0)], start=1):
         make_run(ref, "im-curl", seed, [("training", 250, a), ("training", 500, b)])

@@ -7,10 +7,10 @@ copies the latter of every *finished* run under a sweep root into
     DEST/<precision>/<task>/<algo>/seed_<n>            (a beta_0 sweep: .../<algo>/beta0_<b>/seed_<n>)
 
 (``<precision>``: ``agent.precision_label``, ``fp32``, ``bf16`` or ``bf16-fp32q``), a tree that
-``imssr report DEST`` reads as it reads the sweep itself, each precision in rows of its own.  Running or interrupted runs are left out: their logs would change under the copy,
-and a report of them belongs to the live sweep.  Copying again is idempotent: a file already
-there with the same bytes is left alone, so a loop that exports after every finished run writes
-each run once.
+``imssr report DEST`` reads as it reads the sweep itself, each precision in rows of its own.
+Running or interrupted runs are left out: their logs would change under the copy, and a report
+of them belongs to the live sweep.  Copying again is idempotent: a file already there with the
+same bytes is left alone, so a loop that exports after every finished run writes each run once.
 """
 from __future__ import annotations
 
