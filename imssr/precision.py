@@ -33,6 +33,12 @@ def full_precision(x: torch.Tensor) -> ContextManager:
     return contextlib.nullcontext()
 
 
+def upcast(x: torch.Tensor) -> torch.Tensor:
+    """``x`` in at least float32: bfloat16 and float16 are cast up, float32 and float64 kept (an
+    agent in float64, as the member-batch equivalence tests run it, stays float64)."""
+    return x if x.dtype in (torch.float32, torch.float64) else x.float()
+
+
 class FP32LayerNorm(nn.LayerNorm):
     """LayerNorm computed in float32 under autocast: its mean and variance over a bfloat16 row
     lose the small differences it exists to rescale (same parameters and state dict as
@@ -40,7 +46,7 @@ class FP32LayerNorm(nn.LayerNorm):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         with full_precision(x):
-            return super().forward(x.float())
+            return super().forward(upcast(x))
 
 
 class FP32BatchNorm1d(nn.BatchNorm1d):
@@ -49,7 +55,7 @@ class FP32BatchNorm1d(nn.BatchNorm1d):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         with full_precision(x):
-            return super().forward(x.float())
+            return super().forward(upcast(x))
 
 
 class FrozenBF16:

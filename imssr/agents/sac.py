@@ -34,7 +34,7 @@ from imssr.config import AgentConfig, AuxConfig, IntrinsicConfig
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
 from imssr.networks import Actor, ConvTrunk, Critic, Encoder, ema, weight_init
-from imssr.precision import (autocast, cache_frozen_weights, configure_cuda, full_precision, optimizer_step,
+from imssr.precision import (autocast, cache_frozen_weights, configure_cuda, full_precision, optimizer_step, upcast,
                              warn_if_bf16_is_slow)
 from imssr.replay import FrameReplayBuffer
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
@@ -49,6 +49,27 @@ def uses_cuda_graphs(device: torch.device, mode: str) -> bool:
     """Whether an agent on ``device`` compiled with ``agent.compile = mode`` runs its compiled
     code as CUDA graphs: only on CUDA, and only in :data:`CUDA_GRAPH_MODES`."""
     return device.type == "cuda" and mode in CUDA_GRAPH_MODES
+
+
+class Eager:
+    """How an agent runs the pieces of its update: as they are, for one agent.
+
+    A batch of member agents (:class:`imssr.agents.batched.AgentBatch`) swaps in its own, which
+    runs each piece once for all members (``torch.func.vmap`` over stacked weights), so that the
+    update's schedule below is written once for both."""
+
+    def call(self, fn, *args):
+        """``fn(*args)``: a piece that computes losses or a batch (random draws included)."""
+        return fn(*args)
+
+    def step(self, loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> None:
+        """Backpropagate ``loss`` and step ``optimizers`` (:func:`~imssr.precision.optimizer_step`)."""
+        optimizer_step(loss, *optimizers)
+
+    def read(self, fn):
+        """``fn()``: a piece that reads or updates weights element by element (soft target
+        updates, the temperature)."""
+        return fn()
 
 
 class SACNetworks(nn.Module):
@@ -122,6 +143,8 @@ class SACAgent:
         self.noise_gen = torch.Generator(device=self.device).manual_seed(seed + NOISE_SEED_OFFSET)
         self.intrinsic_gen = torch.Generator(device=self.device).manual_seed(seed + INTRINSIC_SEED_OFFSET)
         self.updates = 0
+        self.run = Eager()
+        """Runs the update's pieces (:class:`Eager`; a batch of members swaps in its own)."""
         warn_if_bf16_is_slow(self.device, cfg.precision)
         configure_cuda(self.device, cfg.tf32)
         self.cuda_graphs = uses_cuda_graphs(self.device, cfg.compile)
@@ -170,27 +193,33 @@ class SACAgent:
         """Action in [-1, 1] for one stacked uint8 observation (centre crop)."""
         self.mark_step()
         x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
-        x = center_crop(x, self.cfg.crop_size)
         with self.autocast():
-            trunk = self.nets.critic.encoder.trunk(x)
-            policy = self.nets.actor(trunk, generator=self.noise_gen, sample=not deterministic)
-        return policy.action[0].cpu().numpy().astype(np.float32)
+            action = self.run.call(self.policy_action, x, deterministic)
+        return action[0].cpu().numpy().astype(np.float32)
+
+    def policy_action(self, obs: torch.Tensor, deterministic: bool) -> torch.Tensor:
+        """Actions ``(B, |A|)`` for a batch of uint8 observation stacks (centre crop); a sample
+        from :attr:`noise_gen` unless ``deterministic``."""
+        trunk = self.nets.critic.encoder.trunk(center_crop(obs, self.cfg.crop_size))
+        return self.nets.actor(trunk, generator=self.noise_gen, sample=not deterministic).action
 
     # -- learning ----------------------------------------------------------------
     def to_batch(self, sample: dict[str, np.ndarray | torch.Tensor]) -> Batch:
         """The update's :class:`Batch` from a replay sample: arrays, or tensors already on the
         agent's device (:meth:`FrameReplayBuffer.sample_batch`, taken as they are)."""
         d = self.device
-        raw_obs = torch.as_tensor(sample["obs"], device=d)
-        raw_next = torch.as_tensor(sample["next_obs"], device=d)
+        sample = {k: torch.as_tensor(sample[k], device=d) for k in ("obs", "next_obs", "action", "reward", "discount")}
+        return Batch(**self.run.call(self.crop_batch, sample), generator=self.gen)
+
+    def crop_batch(self, sample: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The :class:`Batch` fields of a sample on the agent's device: the RL crops of o and o'
+        (drawn from :attr:`gen`, o first), the transition's fields as columns."""
         size = self.cfg.crop_size
-        return Batch(
-            obs=random_crop(raw_obs, size, self.gen),
-            action=torch.as_tensor(sample["action"], device=d),
-            reward=torch.as_tensor(sample["reward"], device=d).unsqueeze(-1),
-            discount=torch.as_tensor(sample["discount"], device=d).unsqueeze(-1),
-            next_obs=random_crop(raw_next, size, self.gen),
-            raw_obs=raw_obs, raw_next_obs=raw_next, generator=self.gen)
+        return dict(obs=random_crop(sample["obs"], size, self.gen),
+                    action=sample["action"], reward=sample["reward"].unsqueeze(-1),
+                    discount=sample["discount"].unsqueeze(-1),
+                    next_obs=random_crop(sample["next_obs"], size, self.gen),
+                    raw_obs=sample["obs"], raw_next_obs=sample["next_obs"])
 
     def update(self, replay: FrameReplayBuffer, step: int) -> Metrics:
         """All updates of one agent step; ``step`` counts agent steps.  Metrics stay on the
@@ -203,22 +232,23 @@ class SACAgent:
             else:
                 metrics = self.update_sequential(replay, batch, step)
             if self.signal is not None:
-                metrics.update(self.signal.update(batch, step))
+                metrics.update(self.update_signal(batch, step))
         self.updates += 1
         return metrics
 
     def update_sequential(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
         """The CURL / DMC-GB order: critic; actor on a fresh encoding of o after the critic's
         step; target EMA; the auxiliary task on passes of its own."""
-        c, metrics = self.cfg, {}
+        c, metrics, run = self.cfg, {}, self.run
         if step % c.critic_update_every == 0:
-            metrics.update(self.update_critic(batch, self.encode(batch), step))
+            loss, critic_metrics = run.call(self.critic_objective, batch, step)
+            run.step(loss, self.critic_opt)
+            metrics.update(critic_metrics)
         if step % c.actor_update_every == 0:
-            with torch.no_grad():  # the actor never trains the convolutions: no graph
-                trunk = self.nets.critic.encoder.trunk(batch.obs)
-            metrics.update(self.update_actor_and_alpha(trunk))
+            actor_loss, alpha_loss, entropy = run.call(self.actor_objective, batch)
+            metrics.update(self.step_actor_and_alpha(actor_loss, alpha_loss, entropy))
         if step % c.target_update_every == 0:
-            self.soft_update_targets()
+            run.read(self.soft_update_targets)
         if self.aux_due(step):
             metrics.update(self.update_aux(replay, batch, step))
         return metrics
@@ -238,6 +268,22 @@ class SACAgent:
         if self.aux_due(step) and not fuse:
             metrics.update(self.update_aux(replay, batch, step))
         return metrics
+
+    def critic_objective(self, batch: Batch, step: int) -> tuple[torch.Tensor, Metrics]:
+        """The sequential schedule's critic loss (:meth:`critic_loss` on a fresh :meth:`encode`
+        of ``batch`` and its :meth:`bellman_target`) and its metrics."""
+        enc = self.encode(batch)
+        target_q, metrics = self.bellman_target(batch, enc, step)
+        loss, q_mean = self.critic_loss(batch, enc, target_q)
+        metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
+        return loss, metrics
+
+    def actor_objective(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The sequential schedule's actor and temperature losses on a fresh encoding of o after
+        the critic's step (:meth:`actor_losses`)."""
+        with torch.no_grad():  # the actor never trains the convolutions: no graph
+            trunk = self.nets.critic.encoder.trunk(batch.obs)
+        return self.actor_losses(trunk)
 
     def encode(self, batch: Batch, with_task_loss: bool = False) -> Encoding:
         """The update's encoder passes (:class:`~imssr.batch.Encoding`): the online trunk over
@@ -281,7 +327,7 @@ class SACAgent:
         with full_precision(tq1):
             # y in float32: r + beta r_int + gamma V' adds terms of different scales, and every
             # regression of this update aims at it.
-            target_v = torch.min(tq1.float(), tq2.float()) - self.alpha * next_policy.log_prob
+            target_v = torch.min(upcast(tq1), upcast(tq2)) - self.alpha * next_policy.log_prob
             return reward + batch.discount * self.cfg.discount * target_v, stats
 
     @torch.no_grad()
@@ -301,7 +347,7 @@ class SACAgent:
         n, views = self.nets, len(enc.view_weights)
         q1_all, q2_all = n.critic.q(n.critic.encoder.projection(enc.trunk), batch.action.repeat(views, 1))
         with full_precision(q1_all):  # the TD errors against the float32 target, in float32
-            q1_all, q2_all = q1_all.float(), q2_all.float()
+            q1_all, q2_all = upcast(q1_all), upcast(q2_all)
             loss = 0.0
             for q1, q2, weight in zip(q1_all.chunk(views), q2_all.chunk(views), enc.view_weights, strict=True):
                 loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
@@ -323,23 +369,34 @@ class SACAgent:
         metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
         return metrics
 
-    def update_actor_and_alpha(self, trunk: torch.Tensor) -> Metrics:
-        """Actor and temperature step on ``trunk``, the online trunk's output on ``batch.obs``
-        without a graph (SAC's policy and temperature losses)."""
+    def actor_losses(self, trunk: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """SAC's policy and temperature losses on ``trunk``, the online trunk's output on
+        ``batch.obs`` without a graph, and the policy's mean entropy.  The temperature's loss
+        reads log pi detached and the actor's reads alpha detached: either step leaves the
+        other's loss as it was."""
         n = self.nets
         policy = n.actor(trunk, generator=self.noise_gen)
         q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), policy.action)
         with full_precision(q1):  # float32 like alpha and log pi; min Q cast up to meet them
-            actor_loss = (self.alpha.detach() * policy.log_prob - torch.min(q1.float(), q2.float())).mean()
-        optimizer_step(actor_loss, self.actor_opt)
+            actor_loss = (self.alpha.detach() * policy.log_prob - torch.min(upcast(q1), upcast(q2))).mean()
         # The temperature's loss is float32 throughout: log_alpha is a float32 parameter and log pi
         # comes from the actor's float32 Gaussian.
         alpha_loss = (self.alpha * (-policy.log_prob - self.target_entropy).detach()).mean()
-        optimizer_step(alpha_loss, self.alpha_opt)
         log_std = policy.log_std
         entropy = 0.5 * log_std.shape[1] * (1.0 + math.log(2 * math.pi)) + log_std.sum(dim=-1)
-        return {"actor_loss": actor_loss.detach(), "alpha": self.alpha.detach(),
-                "alpha_loss": alpha_loss.detach(), "entropy": entropy.detach().mean()}
+        return actor_loss, alpha_loss, entropy.detach().mean()
+
+    def step_actor_and_alpha(self, actor_loss: torch.Tensor, alpha_loss: torch.Tensor,
+                             entropy: torch.Tensor) -> Metrics:
+        """The actor's step, then the temperature's, and their metrics (alpha after its step)."""
+        self.run.step(actor_loss, self.actor_opt)
+        self.run.step(alpha_loss, self.alpha_opt)
+        return {"actor_loss": actor_loss.detach(), "alpha": self.run.read(lambda: self.alpha.detach()),
+                "alpha_loss": alpha_loss.detach(), "entropy": entropy}
+
+    def update_actor_and_alpha(self, trunk: torch.Tensor) -> Metrics:
+        """Actor and temperature step on ``trunk`` (:meth:`actor_losses`)."""
+        return self.step_actor_and_alpha(*self.actor_losses(trunk))
 
     def aux_due(self, step: int) -> bool:
         """Whether the auxiliary task trains at agent step ``step``."""
@@ -347,9 +404,20 @@ class SACAgent:
 
     def update_aux(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
         """The task's own step, on the RL batch or on a batch of its own (``aux.own_batch``)."""
-        own = self.aux.cfg.own_batch
-        return self.aux.update(self.to_batch(replay.sample_batch(self.aux.cfg.batch_size, self.device)) if own
-                               else batch, step)
+        if self.aux.cfg.own_batch:
+            batch = self.to_batch(replay.sample_batch(self.aux.cfg.batch_size, self.device))
+        loss = self.run.call(self.aux.objective, batch)
+        self.run.step(loss, self.aux.optimizer)
+        self.run.read(lambda: self.aux.after_step(step))
+        return {"aux_loss": loss.detach()}
+
+    def update_signal(self, batch: Batch, step: int) -> Metrics:
+        """One step of the intrinsic signal's own networks, if it trains any (RND's predictor)."""
+        if self.signal.optimizer is None:
+            return {}
+        loss, metrics = self.run.call(self.signal.objective, batch)
+        self.run.step(loss, self.signal.optimizer)
+        return metrics
 
     @torch.no_grad()
     def soft_update_targets(self) -> None:

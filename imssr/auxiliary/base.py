@@ -95,10 +95,14 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         """Observations the critic regresses to the same target, with their loss weights."""
         return [(batch.obs, 1.0)]
 
+    def objective(self, batch: Batch) -> torch.Tensor:
+        """What the task's optimiser minimises on ``batch``: the mean of :meth:`per_sample_loss`."""
+        return self.per_sample_loss(batch).mean()
+
     def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
-        """One step of the task's optimiser (built by the agent) on the mean of
-        :meth:`per_sample_loss`, then :meth:`after_step`."""
-        loss = self.per_sample_loss(batch).mean()
+        """One step of the task's optimiser (built by the agent) on :meth:`objective`, then
+        :meth:`after_step`."""
+        loss = self.objective(batch)
         optimizer_step(loss, self.optimizer)
         self.after_step(step)
         return {"aux_loss": loss.detach()}
@@ -109,4 +113,6 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
         rather than at the first update; evaluation never needs it."""
 
     def after_step(self, step: int) -> None:
-        """Hook after each step of the task's parameters: momentum updates of its own targets."""
+        """Hook after each step of the task's parameters: momentum updates of its own targets.
+        It must act element by element on the weights (an EMA): a batch of member agents runs it
+        once on all members' stacked weights."""

@@ -27,7 +27,7 @@ from torch import nn
 from imssr.augmentations import random_crop
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
-from imssr.precision import full_precision
+from imssr.precision import full_precision, upcast
 
 if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
     from imssr.config import AgentConfig, AuxConfig
@@ -54,7 +54,7 @@ class CURL(AuxiliaryTask):
         with full_precision(z_query):
             # Float32 under any autocast: the positive's logit competes with B - 1 others that
             # differ from it in the last bits bfloat16 would drop (its loss is IM-CURL's r_int).
-            logits = z_query.float() @ (self.W @ z_key.float().T)
+            logits = upcast(z_query) @ (self.W @ upcast(z_key).T)
             # Subtracting the row max leaves the softmax unchanged and keeps exp() finite.
             return logits - logits.max(dim=1, keepdim=True).values
 

@@ -27,7 +27,7 @@ from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.networks import Projection, mlp, weight_init
 from imssr.networks.encoder import conv_stack
-from imssr.precision import full_precision
+from imssr.precision import full_precision, upcast
 
 if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
     from imssr.config import AgentConfig, AuxConfig
@@ -64,7 +64,7 @@ class PAD(AuxiliaryTask):
         """``L_PAD`` per sample: mean squared error over the action's dimensions, ``(B,)``, in
         float32 (it is IM-PAD's r_int before normalisation)."""
         with full_precision(pred):
-            return (pred.float() - action).pow(2).mean(dim=1)
+            return (upcast(pred) - action).pow(2).mean(dim=1)
 
     def predict_action(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         # One encoder pass over both observations.

@@ -34,7 +34,7 @@ from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.data import image_pool
 from imssr.networks import ema, weight_init
-from imssr.precision import FP32BatchNorm1d, full_precision
+from imssr.precision import FP32BatchNorm1d, full_precision, upcast
 
 if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
     from imssr.config import AgentConfig, AuxConfig, RunConfig
@@ -100,7 +100,7 @@ class SODA(AuxiliaryTask):
         with torch.no_grad():
             target = self.target_projection(self.target_trunk(target_view))
         with full_precision(h):  # the loss behind IM-SODA's r_int: unit vectors compared in float32
-            return (F.normalize(h.float(), dim=1) - F.normalize(target.float(), dim=1)).pow(2)
+            return (F.normalize(upcast(h), dim=1) - F.normalize(upcast(target), dim=1)).pow(2)
 
     def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:
         # Independent crops: the clean view is the batch's crop of o, the overlaid

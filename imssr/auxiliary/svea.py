@@ -19,7 +19,7 @@ import torch
 from imssr.augmentations import random_conv
 from imssr.auxiliary.base import AuxiliaryTask
 from imssr.batch import Batch, Encoding, NextObsContext
-from imssr.precision import full_precision
+from imssr.precision import full_precision, upcast
 
 if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
     from imssr.config import RunConfig
@@ -49,4 +49,4 @@ class SVEA(AuxiliaryTask):
     def intrinsic_loss(self, ctx: NextObsContext) -> torch.Tensor:
         z_hat = self.shared.encoder.projection(ctx.enc.next_trunk)
         with full_precision(z_hat):  # IM-SVEA's r_int before normalisation, in float32
-            return (z_hat.float() - ctx.enc.next_latent.float()).pow(2).sum(dim=1)
+            return (upcast(z_hat) - upcast(ctx.enc.next_latent)).pow(2).sum(dim=1)

@@ -14,6 +14,7 @@ import torch
 
 from imssr.batch import Batch, NextObsContext
 from imssr.networks.module import ModuleWithOptimizer
+from imssr.precision import optimizer_step
 
 if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
     from imssr.config import RunConfig
@@ -48,9 +49,18 @@ class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
         """Raw signal per sample, shape ``(B,)``, without gradients."""
 
+    def objective(self, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """What the signal's own optimiser (:attr:`optimizer`, if it has networks to train)
+        minimises on ``batch``, and its metrics."""
+        raise NotImplementedError(f"the {self.name} signal trains no networks")
+
     def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
-        """Train the signal's own networks, if any, once per agent update."""
-        return {}
+        """Train the signal's own networks, if any, once per agent update (:meth:`objective`)."""
+        if self.optimizer is None:
+            return {}
+        loss, metrics = self.objective(batch)
+        optimizer_step(loss, self.optimizer)
+        return metrics
 
 
 class SSLSignal(IntrinsicSignal):

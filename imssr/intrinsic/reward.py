@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from imssr.errors import ImssrError
-from imssr.precision import full_precision
+from imssr.precision import full_precision, upcast
 
 if TYPE_CHECKING:  # annotations only: the config imports this module for its rules
     from imssr.config import IntrinsicConfig, RunConfig
@@ -22,6 +22,8 @@ if TYPE_CHECKING:  # annotations only: the config imports this module for its ru
 NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 """The in-batch normalisations of :func:`normalize` (``intrinsic.normalization``)."""
 SCHEDULES = ("constant", "step")
+STAT_KEYS = ("r_int_mean", "r_int_std", "r_int_raw", "r_int_raw_std", "bonus_std", "beta")
+"""The metrics :class:`IntrinsicReward` adds to an update's (a run without it logs none)."""
 """The beta schedules of :class:`BetaSchedule` (``intrinsic.schedule``)."""
 
 
@@ -118,7 +120,7 @@ class IntrinsicReward:
         with full_precision(losses):
             # Float32 under any autocast: the normalisation divides small differences of
             # per-sample losses by their spread.
-            losses = losses.detach().flatten().float()
+            losses = upcast(losses.detach().flatten())
             c = self.cfg
             r_int = normalize(losses, c.normalization, c.norm_eps, c.unbiased_std, c.norm_rtol)
             beta = self.schedule(step)

@@ -17,7 +17,7 @@ from torch import nn
 
 from imssr.batch import Batch, NextObsContext
 from imssr.intrinsic.base import IntrinsicSignal
-from imssr.precision import full_precision, optimizer_step
+from imssr.precision import full_precision, upcast
 
 if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
     from imssr.config import IntrinsicConfig, RunConfig
@@ -64,19 +64,18 @@ class RND(IntrinsicSignal):
         self.optimizer = torch.optim.Adam(self.predictor.parameters(), lr=cfg.rnd_lr)
 
     def error(self, obs: torch.Tensor) -> torch.Tensor:
-        x = obs.float() / 255.0
+        x = obs.to(self.predictor[-1].weight.dtype) / 255.0
         with torch.no_grad():
             target = self.target(x)
         prediction = self.predictor(x)
         with full_precision(prediction):  # RND's r_int before normalisation, in float32
-            return (prediction.float() - target.float()).pow(2).mean(dim=1)
+            return (upcast(prediction) - upcast(target)).pow(2).mean(dim=1)
 
     @torch.no_grad()
     def forward(self, ctx: NextObsContext) -> torch.Tensor:
         return self.error(ctx.batch.next_obs)
 
-    def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
+    def objective(self, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         loss = self.error(batch.next_obs).mean()
-        optimizer_step(loss, self.optimizer)
-        return {"rnd_loss": loss.detach()}
+        return loss, {"rnd_loss": loss.detach()}
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from imssr import draws
 from imssr.precision import FP32LayerNorm
 
 
@@ -78,12 +79,16 @@ class ConvTrunk(nn.Module):
 
     def prepare(self, obs: torch.Tensor) -> torch.Tensor:
         """Pixels in [0, 255] -> floats in [0, 1], in the trunk's memory layout."""
-        fmt = torch.channels_last if self.channels_last else torch.contiguous_format
+        # A member of a batch of agents (torch.func.vmap) keeps the standard layout: vmap cannot
+        # lay out one member's view, and its convolutions run grouped over the members anyway.
+        nhwc = self.channels_last and not draws.is_member_batched(obs)
+        fmt = torch.channels_last if nhwc else torch.contiguous_format
+        dtype = self.convs[0].weight.dtype  # float32; float64 for an agent cast to it
         if obs.dtype == torch.uint8:
             # Relayout the 1-byte pixels, not the 4-byte floats, and divide in place
             # in the fresh float copy (same values as ``obs.float() / 255``).
-            return obs.contiguous(memory_format=fmt).float().div_(255.0)
-        return (obs / 255.0).contiguous(memory_format=fmt)
+            return obs.contiguous(memory_format=fmt).to(dtype).div_(255.0)
+        return (obs.to(dtype) / 255.0).contiguous(memory_format=fmt)
 
     def shared_features(self, obs: torch.Tensor) -> torch.Tensor:
         """Output of the shared layers, ``(B, filters, s', s')``, before the RL head."""

@@ -7,8 +7,9 @@ from typing import NamedTuple, Optional
 import torch
 from torch import nn
 
+from imssr import draws
 from imssr.networks.encoder import Encoder, Projection
-from imssr.precision import full_precision
+from imssr.precision import full_precision, upcast
 
 
 def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
@@ -61,7 +62,7 @@ class Actor(nn.Module):
             # The tanh-Gaussian in float32: log pi subtracts nearly equal terms and
             # log(1 - tanh^2) needs the squashed action's small distance to +-1; the noise is drawn
             # in float32 too, so both precisions draw the same noise.
-            return self._gaussian(*out.float().chunk(2, dim=-1), generator, sample)
+            return self._gaussian(*upcast(out).chunk(2, dim=-1), generator, sample)
 
     def _gaussian(self, mu: torch.Tensor, log_std: torch.Tensor, generator: Optional[torch.Generator],
                   sample: bool) -> PolicyOutput:
@@ -70,7 +71,7 @@ class Actor(nn.Module):
         if not sample:
             mean = torch.tanh(mu)
             return PolicyOutput(mean=mean, action=mean, log_prob=None, log_std=log_std)
-        noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+        noise = draws.randn(mu.shape, generator, mu.device, mu.dtype)
         pi = mu + noise * log_std.exp()
         log_pi = (-0.5 * noise.pow(2) - log_std).sum(-1, keepdim=True) \
             - 0.5 * math.log(2 * math.pi) * mu.shape[-1]
@@ -95,7 +96,7 @@ class QHeads(nn.Module):
             with full_precision(za):
                 # One state's Q varies over actions by a few percent of Q's size, about what
                 # bfloat16's 8 significant bits resolve: the actor's signal would be rounding.
-                za = za.float()
+                za = upcast(za)
                 return self.q1(za), self.q2(za)
         return self.q1(za), self.q2(za)
 

@@ -1,0 +1,190 @@
+"""Seeds as a batch axis: each member of an :class:`AgentBatch` is the run it would be alone.
+
+Three single-seed agents and a batch of three members built the same way see the same replay
+samples (identical buffers with identical sampler seeds) and draw from the same generators; after
+K updates their weights, Adam moments, generator states and metrics agree to float64 rounding
+(float64 agents), or closely (float32).
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from conftest import filled_buffer, tiny_config
+from imssr import draws
+from imssr.agents.batched import AgentBatch
+from imssr.agents.sac import SACAgent
+from imssr.errors import ImssrError
+
+SEEDS = (1, 2, 3)
+STEPS = 4  # covers the actor's and the targets' every-2nd-step updates
+ALGOS = ["curl", "im-curl", "soda", "im-soda", "pad", "im-pad", "svea", "im-svea", "curl+rnd", "soda+re3"]
+
+
+def member(algo: str, seed: int, dtype: torch.dtype = torch.float32, **agent_fields) -> SACAgent:
+    """A tiny agent of ``algo`` (60 px frames, 4 thin convolutions, batch 8), cast to ``dtype``."""
+    cfg = tiny_config(algo)
+    cfg.agent.encoder_layers, cfg.agent.encoder_filters, cfg.agent.crop_size = 4, 8, 52
+    cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, 1)
+    cfg.aux.image_pool_size = 8
+    intrinsic = agent_fields.pop("intrinsic", None) or cfg.intrinsic
+    for field, value in agent_fields.items():
+        setattr(cfg.agent, field, value)
+    agent = SACAgent((9, 60, 60), 2, cfg.agent, cfg.aux, intrinsic, seed=seed)
+    for module in (agent.nets, agent.aux, agent.signal):
+        if module is not None:
+            module.to(dtype)
+    return agent
+
+
+def buffers():
+    return [filled_buffer(action_dim=2, seed=s, size=60) for s in SEEDS]
+
+
+def flat(obj, prefix: str = "", out: dict | None = None) -> dict[str, torch.Tensor]:
+    """A state dict's tensors by dotted path."""
+    out = {} if out is None else out
+    if isinstance(obj, torch.Tensor):
+        out[prefix] = obj
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            flat(v, f"{prefix}.{k}", out)
+    elif isinstance(obj, (list, tuple)):
+        for k, v in enumerate(obj):
+            flat(v, f"{prefix}.{k}", out)
+    else:
+        out[prefix] = obj  # settings and counters: compared with ==
+    return out
+
+
+def train_both(singles: list[SACAgent], batch: AgentBatch, steps: int = STEPS):
+    single_replays, batch_replays = buffers(), buffers()
+    for step in range(steps):
+        single_metrics = [a.update(r, step) for a, r in zip(singles, single_replays)]
+        batch_metrics = batch.update(batch_replays, step)
+    return single_metrics, batch_metrics
+
+
+def assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol: float, atol: float) -> None:
+    """Every tensor of each member's state within ``atol + rtol * max|x|`` of its single run's
+    (generators and counters equal), and the same metric keys with close values."""
+    for i, agent in enumerate(singles):
+        expected, got = flat(agent.state_dict()), flat(batch.member_state_dict(i))
+        assert expected.keys() == got.keys()
+        for key, x in expected.items():
+            y = got[key]
+            if not isinstance(x, torch.Tensor):
+                assert x == y, (i, key)
+            elif x.dtype.is_floating_point:
+                if x.numel():
+                    assert float((x - y).abs().max()) <= atol + rtol * float(x.abs().max()), (i, key)
+            else:
+                assert torch.equal(x, y), (i, key)
+        metrics = batch.member_metrics(batch_metrics, i)
+        assert metrics.keys() == single_metrics[i].keys()
+        for key, value in single_metrics[i].items():
+            # atol: r_int_mean is zero up to rounding (a z-score's mean)
+            assert float(metrics[key]) == pytest.approx(float(value), rel=rtol, abs=1e3 * atol), (i, key)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_members_equal_single_runs_float64(algo):
+    singles = [member(algo, s, torch.float64) for s in SEEDS]
+    batch = AgentBatch([member(algo, s, torch.float64) for s in SEEDS])
+    single_metrics, batch_metrics = train_both(singles, batch)
+    # SODA's MLPs put a bias right before a batch norm: its gradient is zero in exact arithmetic,
+    # so the bias holds nothing but rounding (about 1e-12), and Adam scales that rounding up; the
+    # rest of the network stays within 1e-9 of the single run.
+    rtol, atol = (1e-9, 1e-10) if "soda" in algo else (1e-10, 1e-12)
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=rtol, atol=atol)
+
+
+@pytest.mark.parametrize("algo", ["curl", "im-curl", "im-pad", "im-svea"])
+def test_members_close_to_single_runs_float32(algo):
+    singles = [member(algo, s) for s in SEEDS]
+    batch = AgentBatch([member(algo, s) for s in SEEDS])
+    single_metrics, batch_metrics = train_both(singles, batch)
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=2e-3, atol=1e-6)
+
+
+def test_soda_float32_weights_close_as_a_whole():
+    """In float32 the rounding that Adam scales up in SODA's batch-normalised biases (see the
+    float64 test) is 1e-7 rather than 1e-16: small tensors move apart by percents, the networks
+    as a whole stay close."""
+    singles = [member("im-soda", s) for s in SEEDS]
+    batch = AgentBatch([member("im-soda", s) for s in SEEDS])
+    train_both(singles, batch)
+    for i, agent in enumerate(singles):
+        x = torch.cat([v.flatten() for v in agent.nets.state_dict().values()])
+        y = torch.cat([v.flatten() for v in batch.member_state_dict(i)["nets"].values()])
+        assert float((x - y).norm() / x.norm()) < 1e-4
+
+
+def test_base_and_im_variant_and_betas_in_one_batch():
+    """CURL (intrinsic off), IM-CURL and IM-CURL with another beta_0 train as one batch, each as
+    alone; the base logs no intrinsic metrics."""
+    im = tiny_config("im-curl").intrinsic
+    other = type(im)(**{**im.__dict__, "beta0": 0.3})
+    algos_and_intrinsics = [("curl", None), ("im-curl", None), ("im-curl", other)]
+
+    def build(i):
+        algo, intrinsic = algos_and_intrinsics[i]
+        return member(algo, SEEDS[i], torch.float64, **({"intrinsic": intrinsic} if intrinsic else {}))
+
+    singles = [build(i) for i in range(3)]
+    batch = AgentBatch([build(i) for i in range(3)])
+    assert batch.intrinsic_on == [False, True, True]
+    single_metrics, batch_metrics = train_both(singles, batch)
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=1e-10, atol=1e-12)
+    assert "beta" not in batch.member_metrics(batch_metrics, 0)
+    assert float(batch.member_metrics(batch_metrics, 2)["beta"]) == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_act_draws_each_members_own_noise(deterministic):
+    singles = [member("im-curl", s) for s in SEEDS]
+    batch = AgentBatch([member("im-curl", s) for s in SEEDS])
+    obs = torch.randint(0, 256, (3, 9, 60, 60), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
+    for _ in range(2):
+        expected = [a.act(obs[i].numpy(), deterministic) for i, a in enumerate(singles)]
+        got = batch.act(obs, deterministic)
+        assert got.shape == (3, 2)
+        for i in range(3):
+            torch.testing.assert_close(got[i], torch.as_tensor(expected[i]), rtol=1e-5, atol=1e-6)
+
+
+def test_member_state_round_trip():
+    """A member loaded from a single agent's state dict saves that state again."""
+    single = member("im-curl", 5)
+    single.update(filled_buffer(action_dim=2, seed=5, size=60), 0)
+    batch = AgentBatch([member("im-curl", s) for s in SEEDS])
+    batch.load_member_state_dict(1, single.state_dict())
+    expected, got = flat(single.state_dict()), flat(batch.member_state_dict(1))
+    assert expected.keys() == got.keys()
+    for key, x in expected.items():
+        assert torch.equal(x, got[key]) if isinstance(x, torch.Tensor) else x == got[key], key
+    # member 0 keeps its own weights
+    torch.testing.assert_close(flat(batch.member_state_dict(0))[".nets.critic.q.q1.0.weight"],
+                               member("im-curl", 1).nets.critic.q.q1[0].weight.detach())
+
+
+@pytest.mark.parametrize("members, message", [
+    (lambda: [member("curl", 1, update_schedule="fused"), member("curl", 2, update_schedule="fused")],
+     "update_schedule=sequential"),
+    (lambda: [member("curl", 1), member("curl", 2, hidden_dim=16)], "share the agent's settings"),
+    (lambda: [member("curl", 1), member("soda", 2)], "auxiliary task"),
+    (lambda: [member("curl", 1), member("curl+rnd", 2)], "weights of its own"),
+])
+def test_batches_that_cannot_be_are_refused_in_one_line(members, message):
+    with pytest.raises(ImssrError, match=message) as info:
+        AgentBatch(members())
+    assert "\n" not in str(info.value)
+
+
+def test_a_torch_random_call_with_member_generators_fails_loudly():
+    gens = draws.MemberGenerators([torch.Generator().manual_seed(s) for s in SEEDS])
+    with pytest.raises(TypeError):
+        torch.randint(0, 10, (4,), generator=gens)
+    stacked = draws.randint(10, (4,), gens, torch.device("cpu"))  # outside vmap: stacked
+    expected = torch.stack([torch.randint(0, 10, (4,), generator=torch.Generator().manual_seed(s)) for s in SEEDS])
+    assert torch.equal(stacked, expected)
