@@ -23,6 +23,7 @@ from imssr.rundir import RunDir, run_path
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
+from imssr.training.seeds import SEED_DIR, SeedsTrainer
 from imssr.training.stop import StopRequest, TrainingInterrupted
 from imssr.training.demo import record_episode, summary
 from imssr.training.evaluate import evaluate_run
@@ -177,8 +178,13 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override any config field, e.g. --set intrinsic.normalization=minmax; "
                             "repeatable (default: none)")
 
-    t = sub.add_parser("train", help="train one run", epilog=EXIT_STATUS_TEXT)
+    t = sub.add_parser("train", help="train one run, or many seeds of one in one process (--seeds)",
+                       epilog=EXIT_STATUS_TEXT)
     add_run_options(t)
+    t.add_argument("--seeds", metavar="1-10|1,3,5",
+                   help="train these seeds of the config in one process, in lockstep, each into "
+                        "OUT/seed_<n>/ (needs --out; with --resume continues them): one batched update "
+                        "for all seeds, each the run it would be alone (default: none, one run of --seed)")
     d = sub.add_parser("demo", help="a short IM-CURL run on cartpole_swingup that shows learning "
                                    "(about 12 min on 2 CPU cores): curve, GIF and the paper-scale command",
                        epilog=EXIT_STATUS_TEXT)
@@ -408,6 +414,8 @@ def cmd_train(args, demo: bool = False) -> int:
     refill = getattr(args, "refill_buffer", False)
     if refill and not args.resume:
         raise ImssrError("--refill-buffer goes with --resume")
+    if getattr(args, "seeds", None) is not None:
+        return _train_seeds(args, refill)
     cfg = _run_config(args, demo)
     run = RunDir(args.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed))
     # From here on SIGTERM / SIGINT stop the run after the current agent step, with a checkpoint.
@@ -434,6 +442,45 @@ def _train(cfg, run: RunDir, args, refill: bool, demo: bool, stop: StopRequest) 
             print(f"imssr: done; {run.eval_log}, {png}")
     finally:
         trainer.close()
+    return 0
+
+
+def _train_seeds(args, refill: bool) -> int:
+    """``imssr train --seeds``: the seeds of one config in one process (:class:`SeedsTrainer`)."""
+    seeds = parse_seeds(args.seeds)
+    if args.seed is not None:
+        raise ImssrError("--seeds and --seed exclude each other")
+    if not args.out:
+        raise ImssrError("--seeds needs --out DIR: each seed trains into DIR/seed_<n>")
+    if refill:
+        raise ImssrError("--refill-buffer resumes one run: use it with --out DIR/seed_<n> alone")
+    if args.config and args.resume:
+        raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
+    cfgs, runs = [], []
+    for seed in seeds:
+        seed_args = argparse.Namespace(**{**vars(args), "seed": seed,
+                                          "out": os.path.join(args.out, SEED_DIR.format(seed=seed))})
+        cfgs.append(_run_config(seed_args, demo=False))
+        runs.append(RunDir(seed_args.out))
+    stop = StopRequest().install()
+    try:
+        trainer = SeedsTrainer(cfgs, runs, resume=args.resume, stop=stop)
+        try:
+            cfg = cfgs[0]
+            print(f"imssr: {cfg.algo} on {cfg.env.task}, seeds {args.seeds} in one process: {cfg.budget_text()} "
+                  f"-> {os.path.join(args.out, SEED_DIR.format(seed='<n>'))}", flush=True)
+            failed = trainer.train()
+        finally:
+            trainer.close()
+    finally:
+        stop.uninstall()
+    for run, why in zip(runs, failed):
+        if why is None:
+            plot_learning_curve(run)
+    bad = [str(seed) for seed, why in zip(seeds, failed) if why is not None]
+    if bad:
+        raise ImssrError(f"seed(s) {', '.join(bad)} diverged (each run's status says where); the others finished")
+    print(f"imssr: done; {len(seeds)} runs in {args.out}")
     return 0
 
 

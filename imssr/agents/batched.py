@@ -255,6 +255,17 @@ class AgentBatch:
         with torch.no_grad(), t.autocast():
             return t.run.call(t.policy_action, x, deterministic)[:, 0]
 
+    @torch.no_grad()
+    def member_act(self, i: int, obs) -> "np.ndarray":
+        """Member ``i``'s deterministic action for one observation stack (evaluation): the single
+        agent's pass on the member's weights."""
+        t = self.template
+        x = torch.as_tensor(obs, device=t.device).unsqueeze(0)
+        weights = {name: value[i] for name, value in self.stacked.items()}
+        with t.autocast():
+            action = functional_call(self.root, weights, (t.policy_action, x, True), strict=True)
+        return action[0].cpu().numpy().astype("float32")
+
     def member_metrics(self, metrics: Metrics, i: int) -> Metrics:
         """Member ``i``'s metrics, with only the keys its run alone logs."""
         return {k: v[i] for k, v in metrics.items() if self.intrinsic_on[i] or k not in STAT_KEYS}

@@ -132,24 +132,15 @@ class Trainer:
         the run with :class:`DivergedError` ("diverged at agent step N: critic loss nan"); the
         last checkpoint is from before it, since nothing is saved after a divergence.
         """
-        cfg, s, total = self.cfg, self.state, self.cfg.total_steps
-        progress = Progress(total, s.step, s.frame, f"{cfg.algo} {cfg.env.task} s{cfg.train.seed}",
-                            bar=cfg.train.progress, every_s=self.progress_every_s,
-                            learning_starts=s.learning_starts)
+        s, total = self.state, self.cfg.total_steps
+        progress = self.progress()
         episode, obs = self.checkpoints.reopen_episode()
         try:
             while s.step < total:
                 if episode is None:
                     episode, obs = self._start_episode()
                 action = self._act(obs, episode)
-                obs, episode_over = self._env_step(action, episode)
-                progress.step(s.step, s.frame, s.last_return)
-                self._evaluate_if_due(progress)
-                if episode_over:
-                    self._end_episode(episode, progress)
-                    episode = None
-                    self._final_evaluation_if_last(progress)
-                    self._checkpoint_if_due()
+                obs, episode = self._after_action(action, episode, progress)
                 self._stop_if_requested(episode)
             self._finish(episode)
         except NonFiniteError as exc:
@@ -167,12 +158,38 @@ class Trainer:
         self.replay.add_first(info["frame"], self.env.physics_state(), self.state.step)
         return episode, obs
 
+    def progress(self) -> Progress:
+        """The progress report of this training from where it stands."""
+        cfg, s = self.cfg, self.state
+        return Progress(cfg.total_steps, s.step, s.frame, f"{cfg.algo} {cfg.env.task} s{cfg.train.seed}",
+                        bar=cfg.train.progress, every_s=self.progress_every_s, learning_starts=s.learning_starts)
+
+    def _after_action(self, action: np.ndarray, episode: Episode, progress: Progress
+                      ) -> tuple[np.ndarray, Optional[Episode]]:
+        """Everything of an agent step after its action: the env step, then what is due
+        (evaluation, the episode's end, its checkpoint); returns the next observation and the
+        episode (None once it ended)."""
+        s = self.state
+        obs, episode_over = self._env_step(action, episode)
+        progress.step(s.step, s.frame, s.last_return)
+        self._evaluate_if_due(progress)
+        if episode_over:
+            self._end_episode(episode, progress)
+            episode = None
+            self._final_evaluation_if_last(progress)
+            self._checkpoint_if_due()
+        return obs, episode
+
+    def _random_action(self) -> np.ndarray:
+        """A seed-phase action: uniform in [-1, 1] from the run's seed-phase generator."""
+        return self.state.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+
     def _act(self, obs: np.ndarray, episode: Episode) -> np.ndarray:
         """This agent step's action: uniform random until ``learning_starts``, else the policy's
         sample, after which the agent learns (:meth:`_learn`)."""
         s = self.state
         if s.step < s.learning_starts:
-            return s.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+            return self._random_action()
         burst = self.checkpoints.take_burst()
         if burst is not None:
             # Stopped inside the burst: its action was drawn before the stop; the updates go on.
@@ -189,12 +206,17 @@ class Trainer:
         """One update, or the burst of ``train.burst_updates`` once, when the first seed phase
         ends (not after a refill), from its update ``done`` on; the episode sums their metrics.
         A stop request inside the burst does not wait for its end (:meth:`_stop_in_burst`)."""
-        t, step = self.cfg.train, self.state.step
-        updates = max(1, t.burst_updates) if step == t.seed_steps else 1
-        for update in range(done, updates):
+        step = self.state.step
+        for update in range(done, self.updates_due()):
             if update > done and self.stop.signal_name is not None:
                 self._stop_in_burst(episode, action, update)
             episode.add_metrics(self.agent.update(self.replay, step))
+
+    def updates_due(self) -> int:
+        """How many updates this agent step makes: the burst of ``train.burst_updates`` at the
+        step the first seed phase ends, else one."""
+        t = self.cfg.train
+        return max(1, t.burst_updates) if self.state.step == t.seed_steps else 1
 
     def _env_step(self, action: np.ndarray, episode: Episode) -> tuple[np.ndarray, bool]:
         """Step the training env, store the transition and count the agent step; returns the
@@ -253,18 +275,27 @@ class Trainer:
         :class:`TrainingInterrupted`."""
         if self.stop.signal_name is None or self.step >= self.cfg.total_steps:
             return
+        self._save_for_stop(episode)
+        raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
+
+    def _save_for_stop(self, episode: Optional[Episode]) -> None:
+        """The checkpoint a stop request takes of this agent step (with the open ``episode``),
+        unless an episode end just wrote one."""
         if self.checkpoints.saved_step != self.step:
             self.divergence.raise_if_diverged(episode)
             self.save(episode)
-        raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
 
     def _stop_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
         """On a stop request after ``done`` updates of the burst: a checkpoint of the open ``episode``,
         the step's ``action`` (drawn before the burst) and the count, from which a resume does
         the rest of the burst and then takes the action; then :class:`TrainingInterrupted`."""
+        self._save_in_burst(episode, action, done)
+        raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
+
+    def _save_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
+        """The checkpoint of a stop after ``done`` updates of the burst (see :meth:`_stop_in_burst`)."""
         self.divergence.raise_if_diverged(episode)
         self.save(episode, burst={"updates_done": done, "action": torch.from_numpy(action.astype(np.float32))})
-        raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
 
     def _finish(self, episode: Optional[Episode]) -> None:
         """The budget is spent: when it ended mid-episode, evaluate (unless this step was) and

@@ -1,0 +1,236 @@
+"""Many seeds of one experiment in one process, in lockstep (``imssr train --seeds 1-10``).
+
+Each seed is a run of its own: a :class:`~imssr.training.loop.Trainer` with its run directory
+(``DIR/seed_<n>/``: config, CSV logs, checkpoints), envs, replay buffer, seed-phase generator and
+loop state, so ``evaluate``, ``plot``, ``report``, ``export`` and ``--resume`` see standard runs.
+Only the agent is shared: the seeds' agents become the members of one
+:class:`~imssr.agents.batched.AgentBatch`, which acts for all seeds at once and makes every
+seed's update as one computation.  Each seed still draws, samples and steps what its run alone
+would (:mod:`imssr.agents.batched`).
+
+The seeds share the agent step: they start, take the seed phase, burst, evaluate and checkpoint
+at the same steps.  A stop request checkpoints every seed at the current step; a seed whose
+losses or actions turn non-finite is stopped (its last checkpoint is from before) and the others
+go on.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+from imssr.agents.batched import AgentBatch
+from imssr.config import RunConfig
+from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
+from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir
+from imssr.training.evaluate import non_finite_text
+from imssr.training.loop import Trainer
+from imssr.training.progress import Progress
+from imssr.training.state import Episode
+from imssr.training.stop import StopRequest, TrainingInterrupted
+
+SEED_DIR = "seed_{seed}"
+"""A seed's run directory inside the ``--out`` of ``imssr train --seeds``."""
+
+
+class MemberAgent:
+    """Member ``i`` of an :class:`AgentBatch` as its seed's trainer sees an agent: deterministic
+    actions for evaluation, and the member's state in a single agent's layout for checkpoints."""
+
+    def __init__(self, batch: AgentBatch, i: int, agent):
+        self.batch, self.i = batch, i
+        self.signal = agent.signal  # what the divergence check names
+        self.cfg = agent.cfg
+
+    def act(self, obs: np.ndarray, deterministic: bool) -> np.ndarray:
+        if not deterministic:
+            raise ImssrError("a member of a batch samples actions with its batch (AgentBatch.act)")
+        return self.batch.member_act(self.i, obs)
+
+    def state_dict(self) -> dict:
+        return self.batch.member_state_dict(self.i)
+
+    def load_state_dict(self, state: dict, restore_rng: bool = True) -> None:
+        self.batch.load_member_state_dict(self.i, state)
+
+
+@dataclass
+class _Lane:
+    """One seed's place in the lockstep loop."""
+
+    trainer: Trainer
+    progress: Progress
+    episode: Optional[Episode]
+    obs: np.ndarray
+    failed: Optional[str] = None
+    """Why the seed stopped (a one-line divergence), or None while it trains."""
+
+
+class SeedsTrainer:
+    """Trains the seeds ``cfgs[i].train.seed`` of one configuration into ``runs[i]`` in lockstep
+    (see the module's doc).  The configs may differ in the seed and the intrinsic reward's
+    scalars (``intrinsic.beta0``, ``intrinsic.enabled``) only."""
+
+    def __init__(self, cfgs: Sequence[RunConfig], runs: Sequence[Union[RunDir, str]], resume: bool = False,
+                 stop: Optional[StopRequest] = None):
+        if len(cfgs) != len(runs) or not cfgs:
+            raise ImssrError("one run directory per seed")
+        self.stop = stop or StopRequest()
+        self.trainers: list[Trainer] = []
+        try:
+            for cfg, run in zip(cfgs, runs):
+                self.trainers.append(Trainer(cfg, run, resume=resume, stop=self.stop))
+            steps = sorted({t.step for t in self.trainers})
+            if len(steps) > 1:
+                behind = [str(t.cfg.train.seed) for t in self.trainers if t.step != steps[-1]]
+                raise ImssrError(f"the seeds' checkpoints are at different agent steps ({', '.join(map(str, steps))}): "
+                                 f"bring seed(s) {', '.join(behind)} to step {steps[-1]} alone first "
+                                 f"(imssr train --out DIR/seed_N --resume --steps {steps[-1]})")
+            if len({t.state.learning_starts for t in self.trainers}) > 1:
+                raise ImssrError("the seeds' seed phases end at different agent steps (a refilled replay buffer): "
+                                 "resume them one by one")
+            self.batch = AgentBatch([t.agent for t in self.trainers])
+            for i, t in enumerate(self.trainers):
+                t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def step(self) -> int:
+        """The agent step all seeds are at."""
+        return self.trainers[0].step
+
+    def train(self) -> list[Optional[str]]:
+        """Train every seed to ``train.steps`` agent steps; returns, per seed, None or the line
+        that says why it stopped early (a divergence).  A stop request checkpoints every
+        training seed at this agent step and raises :class:`TrainingInterrupted`."""
+        lanes = []
+        for t in self.trainers:
+            episode, obs = t.checkpoints.reopen_episode()
+            lanes.append(_Lane(t, t.progress(), episode, obs))
+            if os.path.exists(t.run_dir.status_path):  # this training now runs (RunDir.recording)
+                os.unlink(t.run_dir.status_path)
+        total = self.trainers[0].cfg.total_steps
+        try:
+            self._train(lanes, total)
+        except BaseException as exc:
+            state = INTERRUPTED if isinstance(exc, (KeyboardInterrupt, TrainingInterrupted)) else FAILED
+            for lane in self._active(lanes):
+                _record(lane.trainer, state, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+            raise
+        for lane in self._active(lanes):
+            _record(lane.trainer, FINISHED)
+        return [lane.failed for lane in lanes]
+
+    def _train(self, lanes: list[_Lane], total: int) -> None:
+        try:
+            while self.step < total and self._active(lanes):
+                for lane in self._active(lanes):
+                    if lane.episode is None:
+                        lane.episode, lane.obs = lane.trainer._start_episode()
+                actions = self._act(lanes)
+                for lane, action in zip(lanes, actions):
+                    if lane.failed is None:
+                        self._guarded(lane, lambda: self._after_action(lane, action))
+                self._stop_if_requested(lanes)
+            for lane in self._active(lanes):
+                self._guarded(lane, lambda: lane.trainer._finish(lane.episode))
+        finally:
+            for lane in lanes:
+                lane.progress.close()
+                lane.trainer.logger.close()
+
+    @staticmethod
+    def _active(lanes: list[_Lane]) -> list[_Lane]:
+        return [lane for lane in lanes if lane.failed is None]
+
+    def _after_action(self, lane: _Lane, action: np.ndarray) -> None:
+        lane.obs, lane.episode = lane.trainer._after_action(action, lane.episode, lane.progress)
+
+    def _guarded(self, lane: _Lane, fn) -> None:
+        """``fn()``; a divergence stops this seed only (one line), as it would stop its run."""
+        try:
+            fn()
+        except NonFiniteError as exc:
+            t = lane.trainer
+            text = str(exc) if isinstance(exc, DivergedError) and str(exc).startswith(DIVERGED_PREFIX) else \
+                f"{DIVERGED_PREFIX} {t.step}: {t.divergence.describe(exc, lane.episode)}"
+            lane.failed = text
+            _record(t, DIVERGED, text)
+            print(f"imssr: seed {t.cfg.train.seed}: {text}; the last checkpoint is from before it, "
+                  "the other seeds go on", flush=True)
+
+    def _act(self, lanes: list[_Lane]) -> list[np.ndarray]:
+        """This agent step's action of every seed: uniform random in the seed phase (each seed's
+        own generator), else the members' policy samples, after which all learn."""
+        first = lanes[0].trainer
+        if first.step < first.state.learning_starts:
+            return [lane.trainer._random_action() for lane in lanes]
+        bursts = [lane.trainer.checkpoints.take_burst() for lane in lanes]
+        if any(b is not None for b in bursts):
+            # Stopped inside the burst: every seed's action was drawn before the stop.
+            actions = [b["action"].numpy() for b in bursts]
+            self._learn(lanes, actions, done=int(bursts[0]["updates_done"]))
+            return actions
+        actions = self.batch.act(np.stack([lane.obs for lane in lanes]), deterministic=False).cpu().numpy()
+        actions = [a.astype(np.float32) for a in actions]
+        for lane, action in zip(self._active(lanes), [a for a, ln in zip(actions, lanes) if ln.failed is None]):
+            if not np.isfinite(action).all():  # as a run alone checks, before the simulator sees it
+                self._guarded(lane, lambda: _raise(DivergedError(f"action {non_finite_text(action)}")))
+        self._learn(lanes, actions)
+        return actions
+
+    def _learn(self, lanes: list[_Lane], actions: list[np.ndarray], done: int = 0) -> None:
+        """One update of every member, or the burst from its update ``done`` on; each seed's
+        episode sums its own metrics.  A stop request inside the burst checkpoints every seed
+        with the count done."""
+        first = lanes[0].trainer
+        for update in range(done, first.updates_due()):
+            if update > done and self.stop.signal_name is not None:
+                for lane, action in zip(lanes, actions):
+                    if lane.failed is None:
+                        lane.trainer._save_in_burst(lane.episode, action, update)
+                raise self._interrupted()
+            metrics = self.batch.update([lane.trainer.replay for lane in lanes], first.step)
+            for i, lane in enumerate(lanes):
+                if lane.failed is None:
+                    lane.episode.add_metrics(self.batch.member_metrics(metrics, i))
+
+    def _stop_if_requested(self, lanes: list[_Lane]) -> None:
+        if self.stop.signal_name is None or self.step >= self.trainers[0].cfg.total_steps:
+            return
+        for lane in self._active(lanes):
+            self._guarded(lane, lambda: lane.trainer._save_for_stop(lane.episode))
+        raise self._interrupted()
+
+    def _interrupted(self) -> TrainingInterrupted:
+        seeds = ",".join(str(t.cfg.train.seed) for t in self.trainers)
+        root = _common_root([t.run_dir.path for t in self.trainers])
+        return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
+                                   f"imssr train --seeds {seeds} --out {root} --resume")
+
+    def close(self) -> None:
+        """Close every seed's envs and release its run directory."""
+        for t in self.trainers:
+            t.close()
+
+
+def _common_root(paths: list[str]) -> str:
+    """The ``--out`` of seeds' run directories ``OUT/seed_<n>``."""
+    return os.path.dirname(os.path.normpath(paths[0]))
+
+
+def _record(trainer: Trainer, state: str, error: str = "") -> None:
+    """How a seed's training ended, in its run directory (as :meth:`RunDir.recording` records a
+    run alone); a record that cannot be written is left out."""
+    try:
+        trainer.run_dir.write_status(state, trainer.step, error)
+    except (ImssrError, OSError):
+        pass
+
+
+def _raise(exc: Exception):
+    raise exc

@@ -1,0 +1,137 @@
+"""Many seeds in one process (``imssr train --seeds``): standard run directories, an exact
+resume, a diverged seed stopped alone, and one-line errors."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from conftest import StopAtStep, tiny_config, without_timing
+from imssr.rundir import RunDir
+from imssr.training.seeds import SeedsTrainer
+from imssr.training.stop import TrainingInterrupted
+
+SEEDS = (1, 2)
+
+
+def configs(steps: int = 150):
+    cfgs = []
+    for seed in SEEDS:
+        cfg = tiny_config("im-curl", seed=seed, steps=steps, seed_steps=60, burst_updates=5,
+                          eval_every_steps=75, checkpoint_every_steps=125)
+        cfgs.append(cfg)
+    return cfgs
+
+
+def runs(root) -> list[str]:
+    return [os.path.join(str(root), f"seed_{s}") for s in SEEDS]
+
+
+def train_seeds(root, stop_at=None, resume=False, cfgs=None):
+    trainer = SeedsTrainer(cfgs or configs(), runs(root), resume=resume)
+    try:
+        if stop_at is not None:
+            trainer.stop = StopAtStep(trainer, stop_at)
+            for t in trainer.trainers:
+                t.stop = trainer.stop
+        return trainer.train()
+    finally:
+        trainer.close()
+
+
+def rows(path: str) -> list[dict]:
+    with open(path, newline="") as f:
+        return without_timing(list(csv.DictReader(f)))
+
+
+def final_nets(run: str) -> dict[str, torch.Tensor]:
+    return RunDir(run).checkpoint().state["agent"]["nets"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    root = tmp_path_factory.mktemp("seeds")
+    assert train_seeds(root) == [None, None]
+    return root
+
+
+def test_each_seed_is_a_standard_run(uninterrupted):
+    for seed, run in zip(SEEDS, runs(uninterrupted)):
+        config = json.load(open(os.path.join(run, "config.json")))
+        assert config["train"]["seed"] == seed
+        assert json.load(open(os.path.join(run, "status.json")))["state"] == "finished"
+        assert len(rows(os.path.join(run, "train.csv"))) == 1  # one 125-step episode of 150 steps
+        assert [r["step"] for r in rows(os.path.join(run, "eval.csv"))] == ["75", "150"]
+        assert RunDir(run).checkpoint().state["step"] == 150
+    # The seeds learned apart: their own weights.
+    a, b = (final_nets(r) for r in runs(uninterrupted))
+    assert not torch.equal(a["critic.q.q1.0.weight"], b["critic.q.q1.0.weight"])
+
+
+def test_a_stopped_batch_resumes_exactly(uninterrupted, tmp_path):
+    """Stopped in the middle of an episode and resumed, every seed's logs and weights are those
+    of the uninterrupted batch (CPU)."""
+    with pytest.raises(TrainingInterrupted, match=r"^stopped at agent step 100 by SIGTERM; continue with: "
+                                                  r"imssr train --seeds 1,2 --out .* --resume"):
+        train_seeds(tmp_path, stop_at=100)
+    assert train_seeds(tmp_path, resume=True) == [None, None]
+    for done, resumed in zip(runs(uninterrupted), runs(tmp_path)):
+        for log in ("train.csv", "eval.csv"):
+            assert rows(os.path.join(resumed, log)) == rows(os.path.join(done, log))
+        for key, value in final_nets(done).items():
+            assert torch.equal(value, final_nets(resumed)[key]), key
+
+
+def test_a_diverged_seed_stops_alone(tmp_path):
+    trainer = SeedsTrainer(configs(), runs(tmp_path))
+    try:
+        with torch.no_grad():  # seed 2's critic turns to NaN: its losses do at the first update
+            for name, value in trainer.batch.stacked.items():
+                if ".critic.q." in name:
+                    value[1].fill_(float("nan"))
+        failed = trainer.train()
+    finally:
+        trainer.close()
+    assert failed[0] is None and failed[1].startswith("diverged at agent step")
+    first, second = runs(tmp_path)
+    assert json.load(open(os.path.join(first, "status.json")))["state"] == "finished"
+    assert json.load(open(os.path.join(second, "status.json")))["state"] == "diverged"
+    assert RunDir(first).checkpoint().state["step"] == 150
+
+
+def imssr(*args):
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    return subprocess.run([sys.executable, "-m", "imssr", *args], capture_output=True, text=True, env=env)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seeds", "1-2"], "--seeds needs --out DIR"),
+    (["--seeds", "1-2", "--seed", "3", "--out", "X"], "--seeds and --seed exclude each other"),
+    (["--seeds", "2-1", "--out", "X"], "bad seed range"),
+])
+def test_seeds_errors_are_one_line(args, message, tmp_path):
+    proc = imssr("train", "--algo", "curl", "--task", "cartpole_swingup", *[
+        a.replace("X", str(tmp_path / "x")) for a in args])
+    assert proc.returncode == 2
+    assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_cli_trains_seeds_into_their_directories(tmp_path):
+    out = tmp_path / "batch"
+    proc = imssr("train", "--algo", "curl", "--task", "cartpole_swingup_sparse", "--seeds", "3,5",
+                 "--out", str(out), "--steps", "70", "--seed-steps", "60", "--eval-every", "70",
+                 "--eval-episodes", "1", "--batch-size", "8", "--no-progress", "--no-tensorboard",
+                 "--set", "agent.hidden_dim=32", "--set", "agent.feature_dim=16", "--set", "agent.encoder_filters=8",
+                 "--set", "train.burst_updates=0", "--set", "train.replay_capacity=1000")
+    assert proc.returncode == 0, proc.stderr
+    assert "seeds 3,5 in one process" in proc.stdout
+    for seed in (3, 5):
+        run = out / f"seed_{seed}"
+        assert json.load(open(run / "config.json"))["train"]["seed"] == seed
+        assert (run / "learning_curve.png").exists()
+        assert RunDir(str(run)).checkpoint().state["step"] == 70
