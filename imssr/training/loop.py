@@ -160,9 +160,9 @@ class Trainer:
 
     def progress(self) -> Progress:
         """The progress report of this training from where it stands."""
-        cfg, s = self.cfg, self.state
-        return Progress(cfg.total_steps, s.step, s.frame, f"{cfg.algo} {cfg.env.task} s{cfg.train.seed}",
-                        bar=cfg.train.progress, every_s=self.progress_every_s, learning_starts=s.learning_starts)
+        c, s = self.cfg, self.state
+        return Progress(c.total_steps, s.step, s.frame, f"{c.algo} {c.env.task} s{c.train.seed}", bar=c.train.progress,
+                        every_s=self.progress_every_s, learning_starts=s.learning_starts)
 
     def _after_action(self, action: np.ndarray, episode: Episode, progress: Progress
                       ) -> tuple[np.ndarray, Optional[Episode]]:
@@ -205,16 +205,16 @@ class Trainer:
     def _learn(self, episode: Episode, action: np.ndarray, done: int = 0) -> None:
         """One update, or the burst of ``train.burst_updates`` once, when the first seed phase
         ends (not after a refill), from its update ``done`` on; the episode sums their metrics.
-        A stop request inside the burst does not wait for its end (:meth:`_stop_in_burst`)."""
+        A stop request inside the burst does not wait for its end (:meth:`_save_in_burst`)."""
         step = self.state.step
         for update in range(done, self.updates_due()):
             if update > done and self.stop.signal_name is not None:
-                self._stop_in_burst(episode, action, update)
+                self._save_in_burst(episode, action, update)
+                raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
             episode.add_metrics(self.agent.update(self.replay, step))
 
     def updates_due(self) -> int:
-        """How many updates this agent step makes: the burst of ``train.burst_updates`` at the
-        step the first seed phase ends, else one."""
+        """This agent step's updates: ``train.burst_updates`` when the first seed phase ends, else 1."""
         t = self.cfg.train
         return max(1, t.burst_updates) if self.state.step == t.seed_steps else 1
 
@@ -279,21 +279,15 @@ class Trainer:
         raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
 
     def _save_for_stop(self, episode: Optional[Episode]) -> None:
-        """The checkpoint a stop request takes of this agent step (with the open ``episode``),
-        unless an episode end just wrote one."""
+        """A stop request's checkpoint of this step (and open ``episode``) unless one was just written."""
         if self.checkpoints.saved_step != self.step:
             self.divergence.raise_if_diverged(episode)
             self.save(episode)
 
-    def _stop_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
+    def _save_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
         """On a stop request after ``done`` updates of the burst: a checkpoint of the open ``episode``,
         the step's ``action`` (drawn before the burst) and the count, from which a resume does
-        the rest of the burst and then takes the action; then :class:`TrainingInterrupted`."""
-        self._save_in_burst(episode, action, done)
-        raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
-
-    def _save_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
-        """The checkpoint of a stop after ``done`` updates of the burst (see :meth:`_stop_in_burst`)."""
+        the rest of the burst and then takes the action."""
         self.divergence.raise_if_diverged(episode)
         self.save(episode, burst={"updates_done": done, "action": torch.from_numpy(action.astype(np.float32))})
 

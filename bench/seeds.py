@@ -1,0 +1,185 @@
+"""Seeds in one process against seeds in separate processes: aggregate agent steps per second.
+
+    python bench/seeds.py [--device cpu|cuda] [--algo curl] [--task cartpole_swingup]
+        [--n 1 2 4 8 16] [--steps 20] [--warmup 3] [--threads 0] [--fill 1000]
+        [--set SECTION.FIELD=VALUE ...] [--csv PATH]
+
+For each N the same work is timed twice, in one run: N seeds as one
+:class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), and N
+processes with one single-seed agent each, started together (what a sweep of single-seed runs
+does).  A step is the agent's part of a training step, for every seed: the policy's action for a
+new observation, then the update of that agent step (the paper's preset of ``--algo``, the
+sequential schedule, fp32), sampling each seed's own replay buffer of ``--fill`` random-frame
+transitions.  The environment is left out: it costs each seed the same in both layouts.
+``--threads`` torch threads in all (0: torch's default), split evenly among the separate
+processes (at least one each), so both layouts use the same cores.
+
+Printed: a Markdown table, one row per N: aggregate agent steps/s of the batch and of the
+separate processes, their ratio, and the peak memory per seed of each (CUDA: device memory; CPU:
+the process's peak resident memory).  On CUDA every timed step ends with a synchronisation.
+A CPU smoke run (checks that everything runs; its figures say nothing about a GPU)::
+
+    python bench/seeds.py --n 1 2 --steps 2 --warmup 1 --fill 200 --set agent.batch_size=8 \\
+        --set aux.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 \\
+        --set agent.encoder_filters=8
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+
+from imssr.agents import SACAgent
+from imssr.agents.batched import AgentBatch
+from imssr.algos import get_algo
+from imssr.config import apply_overrides
+from imssr.presets import make_config
+from imssr.replay import FrameReplayBuffer
+
+
+def build(args, seeds: list[int]):
+    """The seeds' agents (one batch, or a single agent) and their filled replay buffers."""
+    cfg = make_config(args.algo, args.task)
+    apply_overrides(cfg, args.set)
+    action_dim = args.action_dim
+    e = cfg.env
+    obs_shape = (3 * e.frame_stack, e.image_size, e.image_size)
+    agents, replays = [], []
+    for seed in seeds:
+        agents.append(SACAgent(obs_shape, action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
+                               cfg.intrinsic, device=args.device, seed=seed))
+        replays.append(filled(args.fill, e.image_size, e.frame_stack, action_dim, seed))
+    agent = AgentBatch(agents) if args.batched else agents[0]
+    return agent, replays, obs_shape
+
+
+def filled(n: int, size: int, frame_stack: int, action_dim: int, seed: int) -> FrameReplayBuffer:
+    rng = np.random.default_rng(seed)
+    buf = FrameReplayBuffer(n + 10, (3, size, size), action_dim, frame_stack, seed=seed)
+    for t in range(n):
+        if t % 125 == 0:
+            buf.add_first(rng.integers(0, 256, (3, size, size), dtype=np.uint8))
+        buf.add(rng.uniform(-1, 1, action_dim), float(rng.normal()), 1.0,
+                rng.integers(0, 256, (3, size, size), dtype=np.uint8))
+    return buf
+
+
+def worker(args) -> None:
+    """Time ``--steps`` agent steps of ``--members`` seeds; print one JSON line."""
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    seeds = list(range(1, args.members + 1))
+    agent, replays, obs_shape = build(args, seeds)
+    rng = np.random.default_rng(0)
+    cuda = args.device.startswith("cuda")
+
+    def one_step(step: int) -> None:
+        obs = rng.integers(0, 256, (len(seeds), *obs_shape), dtype=np.uint8)
+        if args.batched:
+            agent.act(obs, deterministic=False)
+            agent.update(replays, step)
+        else:
+            agent.act(obs[0], deterministic=False)
+            agent.update(replays[0], step)
+
+    for step in range(args.warmup):
+        one_step(step)
+    if cuda:
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+    start = time.perf_counter()
+    for step in range(args.warmup, args.warmup + args.steps):
+        one_step(step)
+        if cuda:
+            torch.cuda.synchronize()
+    seconds = time.perf_counter() - start
+    memory = torch.cuda.max_memory_allocated() if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(json.dumps({"seconds": seconds, "steps": args.steps * len(seeds), "memory": memory}), flush=True)
+
+
+def launch(args, members: int, batched: bool, threads: int) -> subprocess.Popen:
+    cmd = [sys.executable, __file__, "--worker", "--members", str(members), "--device", args.device,
+           "--algo", args.algo, "--task", args.task, "--steps", str(args.steps), "--warmup", str(args.warmup),
+           "--threads", str(threads), "--fill", str(args.fill), "--action-dim", str(args.action_dim)]
+    cmd += ["--batched"] if batched else []
+    for item in args.set:
+        cmd += ["--set", item]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "OMP_NUM_THREADS": str(max(threads, 1))})
+
+
+def collect(procs: list[subprocess.Popen]) -> list[dict]:
+    out = []
+    for p in procs:
+        stdout, _ = p.communicate()
+        if p.returncode != 0:
+            raise SystemExit(f"bench/seeds.py: a worker failed (exit {p.returncode})")
+        out.append(json.loads(stdout.strip().splitlines()[-1]))
+    return out
+
+
+def measure(args, n: int) -> dict:
+    total = args.threads or torch.get_num_threads()
+    start = time.perf_counter()
+    (batch,) = collect([launch(args, n, True, total)])
+    procs = [launch(args, 1, False, max(1, total // n)) for _ in range(n)]
+    separate = collect(procs)
+    # Separate processes start together; the slowest one's time is the wall time of the N seeds.
+    sep_rate = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
+    batch_rate = batch["steps"] / batch["seconds"]
+    return {"n": n, "batched_steps_s": batch_rate, "separate_steps_s": sep_rate, "ratio": batch_rate / sep_rate,
+            "batched_mib_per_seed": batch["memory"] / n / 2**20,
+            "separate_mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20,
+            "wall_s": time.perf_counter() - start}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--algo", default="curl")
+    p.add_argument("--task", default="cartpole_swingup")
+    p.add_argument("--n", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--fill", type=int, default=1000, help="random-frame transitions in each replay buffer")
+    p.add_argument("--action-dim", type=int, default=1, help="|A| (cartpole: 1)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    p.add_argument("--csv")
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--batched", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--members", type=int, default=1, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.worker:
+        worker(args)
+        return 0
+    print(f"# bench/seeds.py: {args.algo} on {args.device} ({platform.processor() or platform.machine()}), "
+          f"{args.threads or torch.get_num_threads()} threads, {args.steps} timed steps after {args.warmup}")
+    header = "| N | batched agent steps/s | separate agent steps/s | batched / separate | MiB per seed (batched) | MiB per seed (separate) |"
+    print(header)
+    print("|" + "---|" * 6)
+    rows = []
+    for n in args.n:
+        r = measure(args, n)
+        rows.append(r)
+        print(f"| {n} | {r['batched_steps_s']:.2f} | {r['separate_steps_s']:.2f} | {r['ratio']:.2f} | "
+              f"{r['batched_mib_per_seed']:.0f} | {r['separate_mib_per_seed']:.0f} |", flush=True)
+    if args.csv:
+        with open(args.csv, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
