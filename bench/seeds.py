@@ -1,22 +1,23 @@
 """Seeds in one process against seeds in separate processes: aggregate agent steps per second.
 
     python bench/seeds.py [--device cpu|cuda] [--algo curl] [--task cartpole_swingup]
-        [--n 1 2 4 8 16] [--steps 20] [--warmup 3] [--threads 0] [--fill 1000]
-        [--set SECTION.FIELD=VALUE ...] [--csv PATH]
+        [--n 1 2 4 8 16] [--modes loop vmap] [--steps 20] [--warmup 3] [--threads 0]
+        [--fill 1000] [--set SECTION.FIELD=VALUE ...] [--csv PATH]
 
-For each N the same work is timed twice, in one run: N seeds as one
-:class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), and N
-processes with one single-seed agent each, started together (what a sweep of single-seed runs
-does).  A step is the agent's part of a training step, for every seed: the policy's action for a
+For each N the same work is timed in one run: N seeds as one
+:class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), once per
+``--modes`` (``loop``: member after member; ``vmap``: all members as one vectorised computation),
+and N processes with one single-seed agent each, started together (what a sweep of single-seed
+runs does), the baseline of the ratios.  A step is the agent's part of a training step, for every seed: the policy's action for a
 new observation, then the update of that agent step (the paper's preset of ``--algo``, the
 sequential schedule, fp32), sampling each seed's own replay buffer of ``--fill`` random-frame
 transitions.  The environment is left out: it costs each seed the same in both layouts.
 ``--threads`` torch threads in all (0: torch's default), split evenly among the separate
 processes (at least one each), so both layouts use the same cores.
 
-Printed: a Markdown table, one row per N: aggregate agent steps/s of the batch and of the
-separate processes, their ratio, and the peak memory per seed of each (CUDA: device memory; CPU:
-the process's peak resident memory).  On CUDA every timed step ends with a synchronisation.
+Printed: a Markdown table, one row per N and layout: aggregate agent steps/s, the ratio to the
+separate processes, and the peak memory per seed (CUDA: device memory; CPU: the process's peak
+resident memory, imports included).  On CUDA every timed step ends with a synchronisation.
 A CPU smoke run (checks that everything runs; its figures say nothing about a GPU)::
 
     python bench/seeds.py --n 1 2 --steps 2 --warmup 1 --fill 200 --set agent.batch_size=8 \\
@@ -58,7 +59,7 @@ def build(args, seeds: list[int]):
         agents.append(SACAgent(obs_shape, action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
                                cfg.intrinsic, device=args.device, seed=seed))
         replays.append(filled(args.fill, e.image_size, e.frame_stack, action_dim, seed))
-    agent = AgentBatch(agents) if args.batched else agents[0]
+    agent = AgentBatch(agents, mode=args.mode) if args.batched else agents[0]
     return agent, replays, obs_shape
 
 
@@ -106,11 +107,11 @@ def worker(args) -> None:
     print(json.dumps({"seconds": seconds, "steps": args.steps * len(seeds), "memory": memory}), flush=True)
 
 
-def launch(args, members: int, batched: bool, threads: int) -> subprocess.Popen:
+def launch(args, members: int, batched: str, threads: int) -> subprocess.Popen:
     cmd = [sys.executable, __file__, "--worker", "--members", str(members), "--device", args.device,
            "--algo", args.algo, "--task", args.task, "--steps", str(args.steps), "--warmup", str(args.warmup),
            "--threads", str(threads), "--fill", str(args.fill), "--action-dim", str(args.action_dim)]
-    cmd += ["--batched"] if batched else []
+    cmd += ["--batched", "--mode", batched] if batched else []
     for item in args.set:
         cmd += ["--set", item]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True,
@@ -127,19 +128,20 @@ def collect(procs: list[subprocess.Popen]) -> list[dict]:
     return out
 
 
-def measure(args, n: int) -> dict:
+def measure(args, n: int) -> list[dict]:
+    """The rows of ``n`` seeds: the separate processes first (the baseline), then each mode."""
     total = args.threads or torch.get_num_threads()
-    start = time.perf_counter()
-    (batch,) = collect([launch(args, n, True, total)])
-    procs = [launch(args, 1, False, max(1, total // n)) for _ in range(n)]
-    separate = collect(procs)
+    separate = collect([launch(args, 1, "", max(1, total // n)) for _ in range(n)])
     # Separate processes start together; the slowest one's time is the wall time of the N seeds.
-    sep_rate = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
-    batch_rate = batch["steps"] / batch["seconds"]
-    return {"n": n, "batched_steps_s": batch_rate, "separate_steps_s": sep_rate, "ratio": batch_rate / sep_rate,
-            "batched_mib_per_seed": batch["memory"] / n / 2**20,
-            "separate_mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20,
-            "wall_s": time.perf_counter() - start}
+    base = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
+    rows = [{"n": n, "layout": f"{n} processes", "steps_s": base, "ratio": 1.0,
+             "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20}]
+    for mode in args.modes:
+        (batch,) = collect([launch(args, n, mode, total)])
+        rate = batch["steps"] / batch["seconds"]
+        rows.append({"n": n, "layout": f"1 process, {mode}", "steps_s": rate, "ratio": rate / base,
+                     "mib_per_seed": batch["memory"] / n / 2**20})
+    return rows
 
 
 def main(argv=None) -> int:
@@ -148,6 +150,7 @@ def main(argv=None) -> int:
     p.add_argument("--algo", default="curl")
     p.add_argument("--task", default="cartpole_swingup")
     p.add_argument("--n", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    p.add_argument("--modes", nargs="+", default=["loop", "vmap"], choices=["loop", "vmap"])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=0)
@@ -157,6 +160,7 @@ def main(argv=None) -> int:
     p.add_argument("--csv")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--batched", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--mode", default="auto", help=argparse.SUPPRESS)
     p.add_argument("--members", type=int, default=1, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
@@ -164,15 +168,14 @@ def main(argv=None) -> int:
         return 0
     print(f"# bench/seeds.py: {args.algo} on {args.device} ({platform.processor() or platform.machine()}), "
           f"{args.threads or torch.get_num_threads()} threads, {args.steps} timed steps after {args.warmup}")
-    header = "| N | batched agent steps/s | separate agent steps/s | batched / separate | MiB per seed (batched) | MiB per seed (separate) |"
-    print(header)
-    print("|" + "---|" * 6)
+    print("| N | layout | agent steps/s (all seeds) | ratio to N processes | MiB per seed |")
+    print("|---|---|---|---|---|")
     rows = []
     for n in args.n:
-        r = measure(args, n)
-        rows.append(r)
-        print(f"| {n} | {r['batched_steps_s']:.2f} | {r['separate_steps_s']:.2f} | {r['ratio']:.2f} | "
-              f"{r['batched_mib_per_seed']:.0f} | {r['separate_mib_per_seed']:.0f} |", flush=True)
+        for r in measure(args, n):
+            rows.append(r)
+            print(f"| {n} | {r['layout']} | {r['steps_s']:.2f} | {r['ratio']:.2f} | {r['mib_per_seed']:.0f} |",
+                  flush=True)
     if args.csv:
         with open(args.csv, "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(rows[0]))

@@ -2,15 +2,17 @@
 
 Every random number an update uses (crop offsets, overlay images, random-convolution kernels,
 policy noise) is drawn here, from a ``torch.Generator`` of the agent's.  A batch of member agents
-(:mod:`imssr.agents.batched`, one seed each) runs the single agent's code under ``torch.func.vmap``
-with :class:`MemberGenerators` in place of each generator: member ``i`` then draws from its own
-generator exactly what its run alone would draw (same calls, same shapes, same order), and the
-draws enter the vectorised computation as a batched tensor.  Code inside an update must draw
+(:mod:`imssr.agents.batched`, one seed each) runs the single agent's code with
+:class:`MemberGenerators` in place of each generator, either under ``torch.func.vmap`` (all
+members at once) or member after member (inside :func:`member`): member ``i`` then draws from its
+own generator exactly what its run alone would draw (same calls, same shapes, same order); under
+vmap the draws enter the vectorised computation as a batched tensor.  Code inside an update must draw
 through these functions: a ``torch`` random call with a :class:`MemberGenerators` fails loudly.
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+import contextlib
+from typing import Iterator, Optional, Sequence
 
 import torch
 from torch._C import _functorch
@@ -29,7 +31,20 @@ class MemberGenerators:
         return [g.get_state() for g in self.generators]
 
 
-Generator = "torch.Generator | MemberGenerators | None"
+_current: Optional[int] = None
+"""The member whose turn it is when a batch runs its members one after another (:func:`member`)."""
+
+
+@contextlib.contextmanager
+def member(i: int) -> Iterator[None]:
+    """Member ``i``'s turn: :class:`MemberGenerators` draw from its generator only, and
+    :func:`as_member_tensor` picks its row."""
+    global _current
+    previous, _current = _current, i
+    try:
+        yield
+    finally:
+        _current = previous
 
 
 def member_level() -> Optional[int]:
@@ -45,6 +60,8 @@ def is_member_batched(x: torch.Tensor) -> bool:
 def as_member_tensor(values: torch.Tensor) -> torch.Tensor:
     """``values`` ``(N, ...)`` as the current member's ``(...)`` inside the members' ``vmap``
     (its leading axis the member axis), and unchanged outside one."""
+    if _current is not None:
+        return values[_current]
     level = member_level()
     return values if level is None else _functorch._add_batch_dim(values, 0, level)
 
@@ -57,6 +74,8 @@ def member_values(values: Sequence[float], dtype: torch.dtype, device: torch.dev
 def randint(high: int, size: tuple[int, ...], generator, device: torch.device) -> torch.Tensor:
     """``torch.randint(0, high, size)`` from ``generator`` (per member for :class:`MemberGenerators`)."""
     if isinstance(generator, MemberGenerators):
+        if _current is not None:
+            return torch.randint(0, high, size, generator=generator.generators[_current], device=device)
         return as_member_tensor(torch.stack([torch.randint(0, high, size, generator=g, device=device)
                                              for g in generator.generators]))
     return torch.randint(0, high, size, generator=generator, device=device)
@@ -65,6 +84,8 @@ def randint(high: int, size: tuple[int, ...], generator, device: torch.device) -
 def randn(size: tuple[int, ...], generator, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
     """``torch.randn(size)`` from ``generator`` (per member for :class:`MemberGenerators`)."""
     if isinstance(generator, MemberGenerators):
+        if _current is not None:
+            return torch.randn(size, generator=generator.generators[_current], device=device, dtype=dtype)
         return as_member_tensor(torch.stack([torch.randn(size, generator=g, device=device, dtype=dtype)
                                              for g in generator.generators]))
     return torch.randn(size, generator=generator, device=device, dtype=dtype)

@@ -2,8 +2,9 @@
 
 Three single-seed agents and a batch of three members built the same way see the same replay
 samples (identical buffers with identical sampler seeds) and draw from the same generators; after
-K updates their weights, Adam moments, generator states and metrics agree to float64 rounding
-(float64 agents), or closely (float32).
+K updates their weights, Adam moments, generator states and metrics agree: bit for bit when the
+batch runs its members one after another (``loop``, the CPU's default), to float64 rounding
+(float64 agents) or closely (float32) when it maps them with vmap (CUDA's default).
 """
 from __future__ import annotations
 
@@ -88,9 +89,17 @@ def assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol: fl
 
 
 @pytest.mark.parametrize("algo", ALGOS)
-def test_members_equal_single_runs_float64(algo):
+def test_members_are_their_single_runs_bit_for_bit_in_loop_mode(algo):
+    singles = [member(algo, s) for s in SEEDS]
+    batch = AgentBatch([member(algo, s) for s in SEEDS], mode="loop")
+    single_metrics, batch_metrics = train_both(singles, batch)
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=0.0, atol=0.0)
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_members_equal_single_runs_float64_under_vmap(algo):
     singles = [member(algo, s, torch.float64) for s in SEEDS]
-    batch = AgentBatch([member(algo, s, torch.float64) for s in SEEDS])
+    batch = AgentBatch([member(algo, s, torch.float64) for s in SEEDS], mode="vmap")
     single_metrics, batch_metrics = train_both(singles, batch)
     # SODA's MLPs put a bias right before a batch norm: its gradient is zero in exact arithmetic,
     # so the bias holds nothing but rounding (about 1e-12), and Adam scales that rounding up; the
@@ -100,9 +109,9 @@ def test_members_equal_single_runs_float64(algo):
 
 
 @pytest.mark.parametrize("algo", ["curl", "im-curl", "im-pad", "im-svea"])
-def test_members_close_to_single_runs_float32(algo):
+def test_members_close_to_single_runs_float32_under_vmap(algo):
     singles = [member(algo, s) for s in SEEDS]
-    batch = AgentBatch([member(algo, s) for s in SEEDS])
+    batch = AgentBatch([member(algo, s) for s in SEEDS], mode="vmap")
     single_metrics, batch_metrics = train_both(singles, batch)
     assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=2e-3, atol=1e-6)
 
@@ -112,7 +121,7 @@ def test_soda_float32_weights_close_as_a_whole():
     float64 test) is 1e-7 rather than 1e-16: small tensors move apart by percents, the networks
     as a whole stay close."""
     singles = [member("im-soda", s) for s in SEEDS]
-    batch = AgentBatch([member("im-soda", s) for s in SEEDS])
+    batch = AgentBatch([member("im-soda", s) for s in SEEDS], mode="vmap")
     train_both(singles, batch)
     for i, agent in enumerate(singles):
         x = torch.cat([v.flatten() for v in agent.nets.state_dict().values()])
@@ -120,7 +129,8 @@ def test_soda_float32_weights_close_as_a_whole():
         assert float((x - y).norm() / x.norm()) < 1e-4
 
 
-def test_base_and_im_variant_and_betas_in_one_batch():
+@pytest.mark.parametrize("mode", ["loop", "vmap"])
+def test_base_and_im_variant_and_betas_in_one_batch(mode):
     """CURL (intrinsic off), IM-CURL and IM-CURL with another beta_0 train as one batch, each as
     alone; the base logs no intrinsic metrics."""
     im = tiny_config("im-curl").intrinsic
@@ -132,18 +142,21 @@ def test_base_and_im_variant_and_betas_in_one_batch():
         return member(algo, SEEDS[i], torch.float64, **({"intrinsic": intrinsic} if intrinsic else {}))
 
     singles = [build(i) for i in range(3)]
-    batch = AgentBatch([build(i) for i in range(3)])
+    batch = AgentBatch([build(i) for i in range(3)], mode=mode)
     assert batch.intrinsic_on == [False, True, True]
     single_metrics, batch_metrics = train_both(singles, batch)
-    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=1e-10, atol=1e-12)
+    exact = mode == "loop"
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=0.0 if exact else 1e-10,
+                         atol=0.0 if exact else 1e-12)
     assert "beta" not in batch.member_metrics(batch_metrics, 0)
     assert float(batch.member_metrics(batch_metrics, 2)["beta"]) == pytest.approx(0.3)
 
 
+@pytest.mark.parametrize("mode", ["loop", "vmap"])
 @pytest.mark.parametrize("deterministic", [False, True])
-def test_act_draws_each_members_own_noise(deterministic):
+def test_act_draws_each_members_own_noise(deterministic, mode):
     singles = [member("im-curl", s) for s in SEEDS]
-    batch = AgentBatch([member("im-curl", s) for s in SEEDS])
+    batch = AgentBatch([member("im-curl", s) for s in SEEDS], mode=mode)
     obs = torch.randint(0, 256, (3, 9, 60, 60), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
     for _ in range(2):
         expected = [a.act(obs[i].numpy(), deterministic) for i, a in enumerate(singles)]
@@ -188,3 +201,8 @@ def test_a_torch_random_call_with_member_generators_fails_loudly():
     stacked = draws.randint(10, (4,), gens, torch.device("cpu"))  # outside vmap: stacked
     expected = torch.stack([torch.randint(0, 10, (4,), generator=torch.Generator().manual_seed(s)) for s in SEEDS])
     assert torch.equal(stacked, expected)
+
+
+def test_unknown_mode_is_one_line():
+    with pytest.raises(ImssrError, match="unknown seed-batch mode 'grouped'; valid: auto, vmap, loop"):
+        AgentBatch([member("curl", 1)], mode="grouped")

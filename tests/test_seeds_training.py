@@ -73,6 +73,20 @@ def test_each_seed_is_a_standard_run(uninterrupted):
     assert not torch.equal(a["critic.q.q1.0.weight"], b["critic.q.q1.0.weight"])
 
 
+def test_on_the_cpu_each_seed_is_its_run_alone_bit_for_bit(uninterrupted, tmp_path):
+    """The CPU's batch runs its members one after another (``loop``): seed 2 of the batch leaves
+    the logs and weights of ``imssr train --seed 2``."""
+    from conftest import train_run
+
+    alone = tmp_path / "alone"
+    train_run(configs()[1], alone)
+    batched = runs(uninterrupted)[1]
+    for log in ("train.csv", "eval.csv"):
+        assert rows(os.path.join(batched, log)) == rows(os.path.join(str(alone), log))
+    for key, value in final_nets(str(alone)).items():
+        assert torch.equal(value, final_nets(batched)[key]), key
+
+
 def test_a_stopped_batch_resumes_exactly(uninterrupted, tmp_path):
     """Stopped in the middle of an episode and resumed, every seed's logs and weights are those
     of the uninterrupted batch (CPU)."""

@@ -6,17 +6,22 @@ every parameter, Adam moment and target weight is stored once as an ``(N, ...)``
 each piece of the single agent's update (:class:`~imssr.agents.sac.Eager`'s ``call``, ``step``
 and ``read``) runs once for all members:
 
-* ``call``: ``torch.func.vmap`` over the members of ``torch.func.functional_call`` on the
-  single agent's own code, so a convolution runs grouped over the members and a linear layer as
-  one batched matmul: the number of kernels does not grow with ``N``.  Random draws come from
-  each member's own generators (:mod:`imssr.draws`), in the order its run alone draws them.
+* ``call``: ``torch.func.functional_call`` of the single agent's own code on each member's
+  weights, in one of two ways (``mode``): ``vmap`` maps it over the members with
+  ``torch.func.vmap``, so a convolution runs grouped over the members and a linear layer as one
+  batched matmul, and the number of kernels does not grow with ``N`` (what a GPU wants);
+  ``loop`` runs it member after member, the very ops of a run alone (what a CPU wants: its
+  grouped convolutions are slow, and a kernel launch costs nothing; ``bench/seeds.py``).
+  ``auto``: ``vmap`` on CUDA, ``loop`` on the CPU.  Random draws come from each member's own
+  generators (:mod:`imssr.draws`), in the order its run alone draws them.
 * ``step``: the backward of the members' summed losses gives each member exactly its own
   gradient (a member's loss reads only its own weights), and one Adam over the stacked weights
   is ``N`` Adams: its update is element by element and all members share the step count.
 * ``read``: soft target updates and the temperature, element by element on the stacked weights.
 
 So a member is the run it would be alone: the same weights, draws and arithmetic, only grouped
-(``tests/test_agent_batch.py`` checks it to float64 rounding).  A member's state is a single
+(``tests/test_agent_batch.py`` checks it to float64 rounding under ``vmap``, bit for bit under
+``loop``).  A member's state is a single
 agent's (:meth:`AgentBatch.member_state_dict`), so every seed's checkpoint is a standard one.
 """
 from __future__ import annotations
@@ -37,6 +42,18 @@ from imssr.intrinsic.reward import STAT_KEYS, BetaSchedule
 
 GENERATORS = ("gen", "noise_gen", "intrinsic_gen")
 """A single agent's generators, each replaced by the members' own in the batch."""
+
+MODES = ("auto", "vmap", "loop")
+"""How a batch runs its members' computation (see the module's doc)."""
+
+
+def resolve_mode(mode: str, device: torch.device) -> str:
+    """``mode`` with ``auto`` resolved for ``device``: ``vmap`` on CUDA, ``loop`` elsewhere."""
+    if mode not in MODES:
+        raise ImssrError(f"unknown seed-batch mode {mode!r}; valid: {', '.join(MODES)}")
+    if mode == "auto":
+        return "vmap" if device.type == "cuda" else "loop"
+    return mode
 
 
 def batch_refusal(members: Sequence[SACAgent]) -> Optional[str]:
@@ -94,12 +111,21 @@ class _Call(nn.Module):
 class MemberExecution(Eager):
     """Runs the single agent's update pieces once for all members (see the module's doc)."""
 
-    def __init__(self, root: _Call, stacked: dict[str, torch.Tensor], optimizers: dict[int, torch.optim.Optimizer]):
-        self.root, self.stacked, self.optimizers = root, stacked, optimizers
+    def __init__(self, root: _Call, stacked: dict[str, torch.Tensor], optimizers: dict[int, torch.optim.Optimizer],
+                 n: int, mode: str):
+        self.root, self.stacked, self.optimizers, self.n, self.mode = root, stacked, optimizers, n, mode
 
     def call(self, fn, *args):
         specs = [_split(a) for a in args]
         tensors = [t for t, _ in specs]
+        if self.mode == "loop":
+            outs = []
+            for i in range(self.n):
+                weights = {name: value[i] for name, value in self.stacked.items()}
+                member_args = [_join(_row(t, i), static) for t, (_, static) in zip(tensors, specs)]
+                with draws.member(i):
+                    outs.append(_tensors(functional_call(self.root, weights, (fn, *member_args), strict=True)))
+            return _stack(outs)
         in_dims = (0, *[None if t is None else 0 for t in tensors])
 
         def member(weights, *member_tensors):
@@ -136,6 +162,34 @@ def _join(tensors, static):
     return Batch(**tensors, **value) if kind == "batch" else value
 
 
+def _row(tensors, i: int):
+    if tensors is None:
+        return None
+    if isinstance(tensors, dict):
+        return {k: v[i] for k, v in tensors.items()}
+    return tensors[i]
+
+
+def _stack(outs: list):
+    """The members' outputs (same structure) as one, each tensor stacked on a leading axis."""
+    first = outs[0]
+    if isinstance(first, dict):
+        return {k: _stack([o[k] for o in outs]) for k in first}
+    if isinstance(first, (tuple, list)):
+        return type(first)(_stack(list(parts)) for parts in zip(*outs))
+    return torch.stack(outs)
+
+
+def _stacked_like(values: list[torch.Tensor], like: torch.Tensor) -> torch.Tensor:
+    """``values`` stacked on a new leading axis, each row laid out as ``like`` (a channels-last
+    convolution weight stays channels-last: a member's row is then its run's very tensor)."""
+    if like.dim() == 4 and like.is_contiguous(memory_format=torch.channels_last) and not like.is_contiguous():
+        o, i, h, w = like.shape
+        out = torch.empty((len(values), o, h, w, i), dtype=like.dtype, device=like.device).permute(0, 1, 4, 2, 3)
+        return out.copy_(torch.stack(values))
+    return torch.stack(values)
+
+
 def _tensors(out):
     """``out`` with its Python numbers as tensors (vmap returns tensors only)."""
     if isinstance(out, dict):
@@ -161,13 +215,14 @@ class _StackedReplay:
 class AgentBatch:
     """``N`` member agents of one configuration trained as one (see the module's doc)."""
 
-    def __init__(self, members: Sequence[SACAgent]):
+    def __init__(self, members: Sequence[SACAgent], mode: str = "auto"):
         if not members:
             raise ImssrError("a batch of agents needs at least one member")
         reason = batch_refusal(members)
         if reason is not None:
             raise ImssrError(reason)
         self.n = len(members)
+        self.mode = resolve_mode(mode, members[0].device)
         self.intrinsic_on = [m.intrinsic is not None for m in members]
         template = next((m for m in members if m.intrinsic is not None), members[0])
         self.template = t = template
@@ -181,11 +236,13 @@ class AgentBatch:
         template_params = dict(self.root.named_parameters())
         self.stacked: dict[str, torch.Tensor] = {}
         for name in self.names:
-            values = torch.stack([_member_value(r, name, template_params).detach() for r in member_roots])
-            self.stacked[name] = nn.Parameter(values, requires_grad=template_params[name].requires_grad)
+            like = template_params[name]
+            values = _stacked_like([_member_value(r, name, template_params).detach() for r in member_roots], like)
+            self.stacked[name] = nn.Parameter(values, requires_grad=like.requires_grad)
         template_buffers = dict(self.root.named_buffers())
         for name in self.buffer_names:
-            self.stacked[name] = torch.stack([_member_value(b, name, template_buffers) for b in member_buffers])
+            self.stacked[name] = _stacked_like([_member_value(b, name, template_buffers) for b in member_buffers],
+                                               template_buffers[name])
         self.name_of = {id(p): name for name, p in template_params.items()}
         self.optimizers = {id(opt): self._stacked_optimizer(opt) for opt in self._template_optimizers()}
         for i, m in enumerate(members):
@@ -196,7 +253,7 @@ class AgentBatch:
             t.intrinsic.schedule = MemberSchedules([m.intrinsic.schedule if m.intrinsic is not None else None
                                                     for m in members], t.device)
         t.updates = members[0].updates
-        t.run = MemberExecution(self.root, self.stacked, self.optimizers)
+        t.run = MemberExecution(self.root, self.stacked, self.optimizers, self.n, self.mode)
 
     # -- building -------------------------------------------------------------------
     @staticmethod

@@ -124,9 +124,12 @@ class IntrinsicReward:
             c = self.cfg
             r_int = normalize(losses, c.normalization, c.norm_eps, c.unbiased_std, c.norm_rtol)
             beta = self.schedule(step)
+            # A member of a batch of agents gets its beta as a float64 tensor: it multiplies as the
+            # Python float does, rounded to the losses' dtype.
+            scale = beta.to(r_int.dtype) if isinstance(beta, torch.Tensor) else beta
             # r_int is normalised (zscore: mean 0, std 1 by construction), so the raw
             # loss's spread and the bonus actually added are logged too.
             stats = {"r_int_mean": r_int.mean(), "r_int_std": r_int.std(unbiased=False),
                      "r_int_raw": losses.mean(), "r_int_raw_std": losses.std(unbiased=False),
-                     "bonus_std": beta * r_int.std(unbiased=False), "beta": beta}
-            return (beta * r_int).unsqueeze(-1), stats
+                     "bonus_std": scale * r_int.std(unbiased=False), "beta": beta}
+            return (scale * r_int).unsqueeze(-1), stats
