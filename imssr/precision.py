@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from imssr import draws
+
 
 def autocast(device: torch.device, precision: str) -> ContextManager:
     """The context of an agent's forward passes: bfloat16 autocast for ``bf16``, else nothing."""
@@ -74,7 +76,9 @@ class FrozenBF16:
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         layer = self.layer
         device = x.device.type
-        if not torch.is_autocast_enabled(device) or torch.get_autocast_dtype(device) != torch.bfloat16:
+        if (not torch.is_autocast_enabled(device) or torch.get_autocast_dtype(device) != torch.bfloat16
+                or draws.is_member_batched(layer.weight)):
+            # A member's weights inside a batch's vmap are views of that call only: autocast casts them.
             return type(layer).forward(layer, x)
         params = (layer.weight, layer.bias)
         key = tuple(None if p is None else (p.data_ptr(), p._version) for p in params)
@@ -109,6 +113,10 @@ def optimizer_step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> No
         loss.backward()
         for opt in optimizers:
             opt.step()
+    # Autocast keeps its bfloat16 casts of the weights until the outermost autocast region ends,
+    # without looking at their versions: the passes after this step in the same update (the
+    # actor's on the critic's trunk, the auxiliary task's) would read the weights from before it.
+    torch.clear_autocast_cache()
 
 
 def native_bf16(cpuinfo: str) -> bool:

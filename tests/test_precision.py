@@ -212,3 +212,21 @@ def test_bf16_fidelity_measures_against_fp32_on_the_same_states_and_actions(tmp_
     assert fidelity.main([str(tmp_path / "missing")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("bf16_fidelity: ") and err.count("\n") == 1
+
+
+def test_a_pass_after_an_optimizer_step_reads_the_new_weights_under_bf16():
+    """Inside one update's autocast region, the actor's pass on the critic's trunk after the
+    critic's step casts the stepped weights, not autocast's cached casts of the old ones."""
+    from imssr.precision import optimizer_step
+
+    agent = small_agent("curl", "sequential", precision="bf16")
+    trunk = agent.nets.critic.encoder.trunk
+    x = torch.randint(0, 256, (4, 9, 52, 52), dtype=torch.uint8)
+    with agent.autocast():
+        before = trunk(x)
+        optimizer_step(before.float().pow(2).mean(), agent.critic_opt)
+        after = trunk(x)
+    with agent.autocast():  # a fresh region: casts of the current weights
+        fresh = trunk(x)
+    assert not torch.equal(before, after)
+    assert torch.equal(after, fresh)

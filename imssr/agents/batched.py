@@ -63,8 +63,6 @@ def batch_refusal(members: Sequence[SACAgent]) -> Optional[str]:
         return "seeds in one process need agent.update_schedule=sequential (the fused schedule is not batched)"
     if first.cfg.compile != "off":
         return "seeds in one process run eagerly on CPU and as one batch on CUDA: set agent.compile=off"
-    if first.cfg.precision != "fp32":
-        return "seeds in one process need agent.precision=fp32 (bf16's cached frozen weights are per agent)"
     for m in members[1:]:
         if (m.cfg, m.obs_shape, m.action_dim, m.device) != (first.cfg, first.obs_shape, first.action_dim, first.device):
             return "the members of one batch must share the agent's settings, observation and action shapes"
