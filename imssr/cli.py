@@ -19,7 +19,7 @@ from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, make_config, markdown_table, preset_settings, run_config
-from imssr.rundir import RunDir, run_path
+from imssr.rundir import CONFIG_FILE, RunDir, run_path
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
 from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
 from imssr.training import Trainer
@@ -185,6 +185,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train these seeds of the config in one process, in lockstep, each into "
                         "OUT/seed_<n>/ (needs --out; with --resume continues them): one batched update "
                         "for all seeds, each the run it would be alone (default: none, one run of --seed)")
+    t.add_argument("--runs", nargs="+", metavar="RUN_DIR",
+                   help="train these run directories, each described by its own config.json (as a sweep "
+                        "writes them), in one process as --seeds does; they may differ in the seed and in "
+                        "intrinsic.beta0 / intrinsic.enabled only, e.g. CURL and IM-CURL (default: none)")
     d = sub.add_parser("demo", help="a short IM-CURL run on cartpole_swingup that shows learning "
                                    "(about 12 min on 2 CPU cores): curve, GIF and the paper-scale command",
                        epilog=EXIT_STATUS_TEXT)
@@ -414,7 +418,7 @@ def cmd_train(args, demo: bool = False) -> int:
     refill = getattr(args, "refill_buffer", False)
     if refill and not args.resume:
         raise ImssrError("--refill-buffer goes with --resume")
-    if getattr(args, "seeds", None) is not None:
+    if getattr(args, "seeds", None) is not None or getattr(args, "runs", None):
         return _train_seeds(args, refill)
     cfg = _run_config(args, demo)
     run = RunDir(args.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed))
@@ -446,29 +450,43 @@ def _train(cfg, run: RunDir, args, refill: bool, demo: bool, stop: StopRequest) 
 
 
 def _train_seeds(args, refill: bool) -> int:
-    """``imssr train --seeds``: the seeds of one config in one process (:class:`SeedsTrainer`)."""
-    seeds = parse_seeds(args.seeds)
-    if args.seed is not None:
-        raise ImssrError("--seeds and --seed exclude each other")
-    if not args.out:
-        raise ImssrError("--seeds needs --out DIR: each seed trains into DIR/seed_<n>")
+    """``imssr train --seeds`` (the seeds of one config) or ``--runs`` (run directories with
+    their own config.json) in one process (:class:`SeedsTrainer`)."""
     if refill:
-        raise ImssrError("--refill-buffer resumes one run: use it with --out DIR/seed_<n> alone")
-    if args.config and args.resume:
-        raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
+        raise ImssrError("--refill-buffer resumes one run: use it with --out RUN_DIR alone")
+    if args.runs:
+        if args.seeds is not None or args.out or args.config or args.algo or args.task or args.seed is not None:
+            raise ImssrError("--runs takes each run's own config.json: leave out --seeds, --out, --config, "
+                             "--algo, --task and --seed")
+        dirs = list(dict.fromkeys(os.path.normpath(d) for d in args.runs))
+        for d in dirs:
+            if not os.path.isfile(os.path.join(d, CONFIG_FILE)):
+                raise ImssrError(f"--runs {d}: no {CONFIG_FILE} there (write one, or train it with --out)")
+        per_run = [{"config": os.path.join(d, CONFIG_FILE), "out": d} for d in dirs]
+        where = f"{len(dirs)} run directories"
+    else:
+        seeds = parse_seeds(args.seeds)
+        if args.seed is not None:
+            raise ImssrError("--seeds and --seed exclude each other")
+        if not args.out:
+            raise ImssrError("--seeds needs --out DIR: each seed trains into DIR/seed_<n>")
+        if args.config and args.resume:
+            raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
+        per_run = [{"seed": seed, "out": os.path.join(args.out, SEED_DIR.format(seed=seed))} for seed in seeds]
+        where = os.path.join(args.out, SEED_DIR.format(seed="<n>"))
     cfgs, runs = [], []
-    for seed in seeds:
-        seed_args = argparse.Namespace(**{**vars(args), "seed": seed,
-                                          "out": os.path.join(args.out, SEED_DIR.format(seed=seed))})
-        cfgs.append(_run_config(seed_args, demo=False))
-        runs.append(RunDir(seed_args.out))
+    for fields in per_run:
+        run_args = argparse.Namespace(**{**vars(args), **fields})
+        cfgs.append(_run_config(run_args, demo=False))
+        runs.append(RunDir(run_args.out))
     stop = StopRequest().install()
     try:
         trainer = SeedsTrainer(cfgs, runs, resume=args.resume, stop=stop)
         try:
             cfg = cfgs[0]
-            print(f"imssr: {cfg.algo} on {cfg.env.task}, seeds {args.seeds} in one process: {cfg.budget_text()} "
-                  f"-> {os.path.join(args.out, SEED_DIR.format(seed='<n>'))}", flush=True)
+            algos = ", ".join(dict.fromkeys(c.algo for c in cfgs))
+            print(f"imssr: {algos} on {cfg.env.task}, seeds {','.join(str(c.train.seed) for c in cfgs)} in one "
+                  f"process: {cfg.budget_text()} -> {where}", flush=True)
             failed = trainer.train()
         finally:
             trainer.close()
@@ -477,10 +495,10 @@ def _train_seeds(args, refill: bool) -> int:
     for run, why in zip(runs, failed):
         if why is None:
             plot_learning_curve(run)
-    bad = [str(seed) for seed, why in zip(seeds, failed) if why is not None]
+    bad = [run.path for run, why in zip(runs, failed) if why is not None]
     if bad:
-        raise ImssrError(f"seed(s) {', '.join(bad)} diverged (each run's status says where); the others finished")
-    print(f"imssr: done; {len(seeds)} runs in {args.out}")
+        raise ImssrError(f"{', '.join(bad)} diverged (each run's status.json says where); the others finished")
+    print(f"imssr: done; {len(runs)} runs: {', '.join(run.path for run in runs)}")
     return 0
 
 

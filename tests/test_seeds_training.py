@@ -149,3 +149,28 @@ def test_cli_trains_seeds_into_their_directories(tmp_path):
         assert json.load(open(run / "config.json"))["train"]["seed"] == seed
         assert (run / "learning_curve.png").exists()
         assert RunDir(str(run)).checkpoint().state["step"] == 70
+
+
+def test_runs_of_curl_and_im_curl_train_in_one_process(tmp_path):
+    """``imssr train --runs`` trains run directories described by their config.json (as a sweep
+    writes them): the base and its IM- variant in one batch."""
+    dirs = []
+    for algo in ("curl", "im-curl"):
+        cfg = tiny_config(algo, seed=4, steps=70, seed_steps=60, eval_every_steps=70)
+        run = RunDir(str(tmp_path / algo))
+        os.makedirs(run.path)
+        run.write_config(cfg)
+        dirs.append(run.path)
+    proc = imssr("train", "--runs", *dirs, "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    assert "curl, im-curl on cartpole_swingup_sparse, seeds 4,4 in one process" in proc.stdout
+    for run in dirs:
+        assert RunDir(run).checkpoint().state["step"] == 70
+    assert [RunDir(run).read_config().intrinsic.enabled for run in dirs] == [False, True]
+
+
+def test_runs_that_differ_elsewhere_are_refused_in_one_line(tmp_path):
+    cfgs = [tiny_config("curl", seed=1), tiny_config("curl", seed=2, steps=300)]
+    with pytest.raises(Exception, match=r"^runs in one process must share every setting but the seed and the "
+                                        r"intrinsic reward: train.steps is 250 in one and 300 in another$"):
+        SeedsTrainer(cfgs, [str(tmp_path / "a"), str(tmp_path / "b")])
