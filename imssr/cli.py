@@ -268,8 +268,9 @@ def add_sweep_parsers(sub) -> None:
     sw.add_argument("--root", help="sweep directory (default runs/sweep)")
     sw.add_argument("--file", metavar="SWEEP.json",
                     help="JSON object with the same keys (algos, tasks, seeds, steps or frames, set, beta0, "
-                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, address, launcher, slurm_partition, "
-                         "slurm_time, slurm_gpus_per_task, slurm_array_parallelism, logger); flags override it "
+                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, runs_per_process, address, "
+                         "launcher, slurm_partition, slurm_time, slurm_gpus_per_task, slurm_array_parallelism, "
+                         "logger); flags override it "
                          "(default: none)")
     sw.add_argument("--algos", metavar="A,B",
                     help="algorithms, see imssr algos (default: none: a sweep needs them, here or in --file)")
@@ -289,6 +290,10 @@ def add_sweep_parsers(sub) -> None:
     sw.add_argument("--cpus-per-run", type=_positive_float, help="CPUs per run (default 1)")
     sw.add_argument("--gpus-per-run", type=_nonneg_float, help="GPUs per run, fractions allowed (default 0)")
     sw.add_argument("--max-parallel", type=_nonneg_int, help="runs at once (default: what the cluster holds)")
+    sw.add_argument("--runs-per-process", type=_nonneg_int,
+                    help="runs that can share a batch (seeds, a base and its IM- variant, beta0 values) trained "
+                         "in one process, at most this many; 1: one per process (default 0: all that can share "
+                         "on CUDA, one per process on the CPU)")
     sw.add_argument("--address", help="existing Ray cluster, e.g. 10.0.0.1:6379 (default: a local Ray)")
     sw.add_argument("--launcher", choices=list(LAUNCHERS),
                     help="ray: Ray tasks (a local Ray, or --address); slurm: one SLURM job per run through "
@@ -332,7 +337,8 @@ def _sweep_config(args):
         cfg.steps = cfg.frames = None
     given = {"root": args.root, "steps": args.steps, "frames": args.frames, "retries": args.retries,
              "cpus_per_run": args.cpus_per_run, "gpus_per_run": args.gpus_per_run,
-             "max_parallel": args.max_parallel, "address": args.address, "launcher": args.launcher,
+             "max_parallel": args.max_parallel, "runs_per_process": args.runs_per_process,
+             "address": args.address, "launcher": args.launcher,
              "slurm_partition": args.slurm_partition, "slurm_time": args.slurm_time,
              "slurm_gpus_per_task": args.slurm_gpus_per_task,
              "slurm_array_parallelism": args.slurm_array_parallelism, "logger": args.logger}

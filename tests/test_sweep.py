@@ -461,3 +461,35 @@ def test_a_fresh_attempt_keeps_results_only_a_checkpoint_makes_and_a_run_in_use(
         lock.release()
     assert run.discard_unresumable() == ["train.csv"]
     assert not os.path.exists(run.train_log) and run.has_config()
+
+
+def test_runs_that_can_share_a_batch_are_packed_into_processes(tmp_path):
+    from imssr.sweep.sweep import pack
+
+    cfg = SweepConfig(root=str(tmp_path / "s"), algos=["curl", "im-curl", "curl+rnd"], tasks=[TASK], seeds=[1, 2],
+                      steps=125, overrides=TINY)
+    queued = plan_runs(cfg)
+    names = lambda groups: [[st.run.name for st in g] for g in groups]  # noqa: E731
+    assert all(len(g) == 1 for g in pack(queued, 0))  # on the CPU: one run per process
+    assert all(len(g) == 1 for g in pack(queued, 1))
+    assert names(pack(queued, 3)) == [
+        [f"curl {TASK} seed 1", f"curl {TASK} seed 2", f"im-curl {TASK} seed 1"],
+        [f"im-curl {TASK} seed 2"],
+        [f"curl+rnd {TASK} seed 1", f"curl+rnd {TASK} seed 2"]]  # RND's own weights: a batch of its own
+    statuses = plan_runs(replace(cfg, algos=["curl", "im-curl"]))
+    for st in statuses:  # as the sweep resolves them for a GPU (no GPU needed to plan)
+        st.config.train.device = "cuda"
+    assert [len(g) for g in pack(statuses, 0)] == [4]  # on CUDA: all that can share
+
+
+def test_a_packed_sweep_trains_curl_and_im_curl_in_one_process(tmp_path):
+    root = str(tmp_path / "sweep")
+    proc = sweep_cli("--algos", "curl,im-curl", "--tasks", TASK, "--seeds", "1", "--steps", "125",
+                     "--root", root, "--launcher", "local", "--runs-per-process", "2", *set_args(TINY))
+    assert "2 runs in 1 processes" in proc.stdout
+    runs = status(root)["runs"]
+    assert [r["state"] for r in runs] == ["done", "done"]
+    second = os.path.join(root, runs[1]["log"])
+    assert "trained in one process with 1 other run(s)" in open(second).read()
+    for r in runs:
+        assert RunDir(os.path.join(root, r["dir"])).is_done(125)

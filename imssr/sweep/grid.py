@@ -83,6 +83,15 @@ class SweepConfig:
     """GPUs of each SLURM job; > 0 trains on ``cuda`` unless ``train.device`` is overridden."""
     slurm_array_parallelism: int = 0
     """SLURM jobs of the sweep's job array running at once; 0: as many as SLURM allows (256)."""
+    runs_per_process: int = 0
+    """Runs trained in one process as one batch of agents (``imssr train --runs``: one update for
+    all of them, each the run it would be alone).  Runs that can share a batch, i.e. that differ
+    only in the seed and the intrinsic reward's ``beta_0`` or on/off (the seeds of a grid point, a
+    base algo and its IM- variant, a beta_0 sweep), go in processes of at most this many; 1: one
+    run per process; 0: as many as can share when the runs train on CUDA (what one GPU wants: its
+    time goes to one batched step instead of time-slicing many processes), else 1 (on the CPU
+    separate processes use the cores as well: docs/performance.md).  A process takes the CPUs and
+    GPUs of one run (``cpus_per_run``, ``gpus_per_run``)."""
     logger: str = ""
     """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's
     default.  With ``wandb``, runs are grouped under the root's name in W&B."""
@@ -135,6 +144,7 @@ class SweepConfig:
             (0 < self.cpus_per_run < math.inf, "--cpus-per-run must be a finite number > 0"),
             (0 <= self.gpus_per_run < math.inf, "--gpus-per-run must be a finite number >= 0"),
             (self.max_parallel >= 0, "--max-parallel must be >= 0"),
+            (self.runs_per_process >= 0, "--runs-per-process must be >= 0"),
             # The same rule as imssr train's (train.seed): a seed it refuses would fail every run.
             (all(0 <= s <= MAX_SEED for s in self.seeds),
              f"seeds must be {SEED_RULE}, got {next((s for s in self.seeds if not 0 <= s <= MAX_SEED), None)}"),
@@ -325,7 +335,7 @@ def _coerce(key: str, value: Any) -> Any:
             raise ImssrError(f"sweep file: {key!r} must be a string")
         # A committed sweep file can keep its runs outside the repository ("~/imssr-runs/...").
         return os.path.expanduser(value) if key == "root" else value
-    kind = {"steps": int, "frames": int, "retries": int, "max_parallel": int,
+    kind = {"steps": int, "frames": int, "retries": int, "max_parallel": int, "runs_per_process": int,
             "cpus_per_run": float, "gpus_per_run": float, "slurm_time": int, "slurm_gpus_per_task": int,
             "slurm_array_parallelism": int}[key]
     if value is None and key in ("steps", "frames"):

@@ -21,7 +21,7 @@ from imssr.errors import ImssrError
 from imssr.extras import require
 from imssr.rundir.lock import local_holder
 from imssr.sweep.grid import SweepConfig
-from imssr.sweep.runner import STOP_GRACE_S, RunAttempt, execute_run
+from imssr.sweep.runner import STOP_GRACE_S, RunAttempt, execute_runs
 
 # The local Ray started for a sweep only passes small results around: a small object
 # store keeps its start-up memory low on small machines.
@@ -34,15 +34,24 @@ SUBMITIT_FOLDER = ".submitit"
 
 @dataclass(frozen=True)
 class Attempt:
-    """What an attempt runs: ``imssr train`` of one run directory (its ``config.json``) to
-    ``steps`` agent steps."""
+    """What an attempt runs: ``imssr train`` of one run directory (its ``config.json``), or of
+    several in one process (``imssr train --runs``), to ``steps`` agent steps."""
 
-    run_dir: str
-    """The run directory."""
+    run_dirs: tuple[str, ...]
+    """The run directories (one unless the sweep packs runs: ``runs_per_process``)."""
     steps: int
     """The budget in agent steps that makes the run done."""
     attempt: int
     """The attempt's number (1 for the first of this sweep)."""
+
+    @property
+    def run_dir(self) -> str:
+        """The first run directory (the one whose ``sweep.log`` holds the process's output)."""
+        return self.run_dirs[0]
+
+    def failed(self, error: str) -> list[dict]:
+        """The result of each run when the attempt itself failed with ``error``."""
+        return [{"ok": False, "error": error} for _ in self.run_dirs]
 
 
 class Launcher:
@@ -68,9 +77,9 @@ class Launcher:
         for at least one."""
         raise NotImplementedError
 
-    def result(self, handle: Any) -> dict:
-        """A finished attempt's result (:func:`imssr.sweep.runner.execute_run`'s keys); a lost
-        worker or job is a failed attempt."""
+    def result(self, handle: Any) -> list[dict]:
+        """A finished attempt's result for each of its runs (:func:`imssr.sweep.runner.execute_run`'s
+        keys); a lost worker or job is a failed attempt."""
         raise NotImplementedError
 
     def stop(self, handles: list[Any]) -> None:
@@ -111,13 +120,13 @@ class LocalLauncher(Launcher):
         return min(fits, self.cfg.max_parallel) if self.cfg.max_parallel else fits
 
     def submit(self, attempts: list[Attempt]) -> list[RunAttempt]:
-        return [RunAttempt(a.run_dir, a.steps, a.attempt, os.nice(0)) for a in attempts]
+        return [RunAttempt(list(a.run_dirs), a.steps, a.attempt, os.nice(0)) for a in attempts]
 
     def wait(self, handles: list[RunAttempt], timeout_s: float) -> list[RunAttempt]:
         return _wait_polling(handles, lambda h: h.ended, timeout_s)
 
-    def result(self, handle: RunAttempt) -> dict:
-        return handle.finish()
+    def result(self, handle: RunAttempt) -> list[dict]:
+        return handle.finish_all()
 
     def stop(self, handles: list[RunAttempt]) -> None:
         for handle in handles:
@@ -129,8 +138,8 @@ class RayLauncher(Launcher):
 
     def __init__(self, cfg: SweepConfig):
         self.cfg, self.ray, self.task = cfg, None, None
-        self.run_dirs: dict[Any, str] = {}
-        """The run directory of each submitted task (:meth:`stop` signals its training)."""
+        self.attempts: dict[Any, Attempt] = {}
+        """The attempt of each submitted task (:meth:`stop` signals its training)."""
 
     def check(self) -> None:
         require("ray", "sweep")
@@ -144,22 +153,22 @@ class RayLauncher(Launcher):
         return _capacity(self.ray, self.cfg)
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
-        handles = [self.task.remote(a.run_dir, a.steps, a.attempt, sweep_niceness(self.cfg)) for a in attempts]
-        self.run_dirs.update(zip(handles, (a.run_dir for a in attempts)))
+        handles = [self.task.remote(list(a.run_dirs), a.steps, a.attempt, sweep_niceness(self.cfg))
+                   for a in attempts]
+        self.attempts.update(zip(handles, attempts))
         return handles
 
     def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
         ready, _ = self.ray.wait(list(handles), num_returns=1, timeout=timeout_s)
-        for handle in ready:
-            self.run_dirs.pop(handle, None)
         return ready
 
-    def result(self, handle: Any) -> dict:
+    def result(self, handle: Any) -> list[dict]:
+        attempt = self.attempts.pop(handle)
         try:
             return self.ray.get(handle)
         except self.ray.exceptions.RayError as exc:
             text = str(exc).strip().splitlines()
-            return {"ok": False, "error": f"Ray task failed: {text[0] if text else type(exc).__name__}"}
+            return attempt.failed(f"Ray task failed: {text[0] if text else type(exc).__name__}")
 
     def stop(self, handles: list[Any]) -> None:
         # Each training gets one SIGTERM and checkpoints where it is; wait for that before
@@ -172,7 +181,8 @@ class RayLauncher(Launcher):
         # taken its lock yet.  Never both for one training: a second SIGTERM stops it at once,
         # without its checkpoint.
         for handle in handles:
-            run_dir = None if self.cfg.address else self.run_dirs.get(handle)
+            attempt = self.attempts.get(handle)
+            run_dir = None if self.cfg.address or attempt is None else attempt.run_dir
             pid = local_holder(run_dir) if run_dir else None
             if pid is None:
                 self.ray.cancel(handle, force=False)
@@ -196,6 +206,7 @@ class SlurmLauncher(Launcher):
 
     def __init__(self, cfg: SweepConfig, cluster: str = "slurm"):
         self.cfg, self.cluster, self.executor = cfg, cluster, None
+        self.attempts: dict[Any, Attempt] = {}
 
     def check(self) -> None:
         require("submitit", "slurm")
@@ -224,21 +235,22 @@ class SlurmLauncher(Launcher):
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
         with self.executor.batch():
-            jobs = [self.executor.submit(execute_run, a.run_dir, a.steps, a.attempt)
+            jobs = [self.executor.submit(execute_runs, list(a.run_dirs), a.steps, a.attempt)
                     for a in attempts]
+        self.attempts.update(zip(jobs, attempts))
         return jobs
 
     def wait(self, handles: list[Any], timeout_s: float) -> list[Any]:
         # done() asks SLURM (sacct) at most every few seconds per job: submitit caches the answer.
         return _wait_polling(handles, lambda job: job.done(), timeout_s, interval_s=1.0)
 
-    def result(self, handle: Any) -> dict:
+    def result(self, handle: Any) -> list[dict]:
+        attempt = self.attempts.pop(handle)
         try:
             return handle.result()
         except Exception as exc:  # noqa: BLE001 - a job SLURM lost, cancelled or timed out
             text = str(exc).strip().splitlines()
-            return {"ok": False, "error": f"SLURM job {handle.job_id} failed: "
-                                          f"{text[0] if text else type(exc).__name__}"}
+            return attempt.failed(f"SLURM job {handle.job_id} failed: {text[0] if text else type(exc).__name__}")
 
     def stop(self, handles: list[Any]) -> None:
         for job in handles:
@@ -248,9 +260,9 @@ class SlurmLauncher(Launcher):
                 pass
 
 
-def _remote_run(run_dir: str, steps: int, attempt: int, niceness: Optional[int] = None) -> dict:
+def _remote_run(run_dirs: list[str], steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
     """The Ray task body (module level, so workers import it rather than unpickle code)."""
-    return execute_run(run_dir, steps, attempt, niceness)
+    return execute_runs(run_dirs, steps, attempt, niceness)
 
 
 def sweep_niceness(cfg: SweepConfig) -> Optional[int]:

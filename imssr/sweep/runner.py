@@ -89,7 +89,9 @@ def lower_session_priority(pid: int, niceness: int, wait_s: float = AUTOGROUP_WA
 class RunAttempt:
     """One attempt of a run: ``imssr train --config RUN/config.json --out RUN`` (with ``--resume``
     when the run has a checkpoint) started in a subprocess that writes to the run's
-    ``sweep.log``; :meth:`finish` says what happened.  The sweep wrote ``config.json`` before
+    ``sweep.log``; :meth:`finish` says what happened.  Several runs (a packed process,
+    ``runs_per_process``) train as ``imssr train --runs RUN ...`` writing to the first run's
+    ``sweep.log``, and :meth:`finish_all` says what happened to each.  The sweep wrote ``config.json`` before
     (:meth:`imssr.sweep.grid.Run.resolved_config`): the file is the whole description of the run.
 
     Killing the attempt (:meth:`stop`, or the death of the process that started it) leaves only
@@ -98,12 +100,17 @@ class RunAttempt:
     workers run at +15), given to the training's session (:func:`lower_session_priority`).
     """
 
-    def __init__(self, run_dir: RunDir | str, steps: int, attempt: int, niceness: Optional[int] = None):
-        self.run = run = as_run_dir(run_dir)
-        os.makedirs(run.path, exist_ok=True)
+    def __init__(self, run_dir: RunDir | str | list, steps: int, attempt: int, niceness: Optional[int] = None):
+        self.runs = [as_run_dir(r) for r in (run_dir if isinstance(run_dir, (list, tuple)) else [run_dir])]
+        self.run = run = self.runs[0]
+        for r in self.runs:
+            os.makedirs(r.path, exist_ok=True)
         self.steps, self.attempt = steps, attempt
         self.resumed = run.has_checkpoint()
-        cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
+        if len(self.runs) == 1:
+            cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
+        else:
+            cmd = [sys.executable, "-m", "imssr", "train", "--no-progress", "--runs", *(r.path for r in self.runs)]
         if self.resumed:
             cmd.append("--resume")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -123,7 +130,8 @@ class RunAttempt:
             # continues; `imssr train` refuses to start over them, so the sweep clears them (and
             # nothing else: a finished run, a training still running there, fail the attempt).
             try:
-                run.discard_unresumable()
+                for r in self.runs:
+                    r.discard_unresumable()
             except ImssrError as exc:
                 self.error = str(exc)
                 return
@@ -133,6 +141,10 @@ class RunAttempt:
         header = (f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
                   f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
         try:
+            for other in self.runs[1:]:
+                _open_log(other.sweep_log, f"==> attempt {attempt}: trained in one process with "
+                                           f"{len(self.runs) - 1} other run(s); its output is in {self.log_path}\n"
+                          ).close()
             log = _open_log(self.log_path, header)
         except ImssrError as exc:  # a full disk, a link: the attempt fails in one line, nothing started
             self.error = str(exc)
@@ -159,37 +171,62 @@ class RunAttempt:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait()
 
-    def finish(self) -> dict:
-        """What the finished attempt did (see :func:`execute_run`); writes ``done.json`` when the
-        run reached its budget."""
+    def finish_all(self) -> list[dict]:
+        """What the finished attempt did to each of its runs (:meth:`finish` of each)."""
+        return [self.finish(run) for run in self.runs]
+
+    def finish(self, run: Optional[RunDir] = None) -> dict:
+        """What the finished attempt did (see :func:`execute_run`) to ``run`` (default: its
+        first); writes ``done.json`` when the run reached its budget.  In a packed process a run
+        that finished is done even when another one diverged (the process then exits 2)."""
+        run = run or self.run
         if self.proc is None:
             return {"ok": False, "returncode": None, "resumed": self.resumed, "error": self.error,
                     "interrupted": False, "diverged": False, "final_step": 0, "final_frame": 0,
                     "seconds": 0.0}
         returncode = self.proc.wait()
-        final_step, final_frame = self.run.last_evaluation()
+        if len(self.runs) > 1 and returncode != 0 and run.read_status() is not None \
+                and run.read_status().get("state") == "finished":
+            returncode = 0  # this run finished; another of the process did not
+        final_step, final_frame = run.last_evaluation()
         result = {"ok": False, "returncode": returncode, "resumed": self.resumed, "error": "",
                   "interrupted": returncode in INTERRUPTED_STATUSES, "diverged": False,
                   "final_step": final_step, "final_frame": final_frame,
                   "seconds": round(time.time() - self.start, 1)}
         if returncode != 0:
-            result["error"] = _last_line(self.log_path, self.offset) or f"exit status {returncode}"
+            own = run.read_status() if len(self.runs) > 1 else None
+            result["error"] = ((own or {}).get("error") or _last_line(self.log_path, self.offset)
+                               or f"exit status {returncode}")
             result["diverged"] = DIVERGED_PREFIX in result["error"]
         elif final_step < self.steps:
             result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
                                f"before its budget of {self.steps} steps")
         else:
             result["ok"] = True
-            self.run.write_done(self.steps, final_step, self.attempt, self.resumed, result["seconds"])
-        if not result["ok"] and self.run.read_status() is None:
+            run.write_done(self.steps, final_step, self.attempt, self.resumed, result["seconds"])
+        if not result["ok"] and run.read_status() is None:
             # The training ended before it could say how (it failed to start, or a signal ended it
             # at once): the run's status says it here.
             state = INTERRUPTED if result["interrupted"] else DIVERGED if result["diverged"] else FAILED
             try:
-                self.run.write_status(state, final_step, result["error"])
+                run.write_status(state, final_step, result["error"])
             except (ImssrError, OSError):  # a full disk: the result still says what happened
                 pass
         return result
+
+
+def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
+    """:func:`execute_run` of several runs trained in one process (``imssr train --runs``): one
+    result per run."""
+    attempt_ = None
+    try:
+        attempt_ = RunAttempt(list(run_dirs), steps, attempt, niceness)
+        while not attempt_.ended:
+            time.sleep(0.5)
+    finally:
+        if attempt_ is not None:
+            attempt_.stop()
+    return attempt_.finish_all()
 
 
 def execute_run(run_dir: RunDir | str, steps: int, attempt: int, niceness: Optional[int] = None) -> dict:

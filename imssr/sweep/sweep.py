@@ -33,6 +33,7 @@ from imssr.jsonio import dumps
 from imssr.rundir import SWEEP_LOG, RunDir
 from imssr.sweep.grid import SWEEP_STATUS, Run, SweepConfig, expand, save_plan
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
+from imssr.config.batching import batch_key
 from imssr.rundir.lock import DirectoryLock
 
 STATES = ("queued", "running", "done", "failed", "interrupted")
@@ -213,11 +214,12 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
                for s in statuses})
     started = time.time()
     status_path = write_status(cfg, statuses, started)
-    todo = deque(s for s in statuses if s.state == "queued")
-    for st in todo:
+    queued = [s for s in statuses if s.state == "queued"]
+    for st in queued:
         # The one description of the run its worker trains (written before any attempt, and
         # not again between attempts: the training keeps what it adds, e.g. footage folders).
         st.run.run_dir.write_config(st.config)
+    todo = deque(pack(queued, cfg.runs_per_process))
     refused = [s for s in statuses if s.state == "failed"]
     for st in refused:
         print(f"imssr: {st.run.name} not started: {st.errors[-1]}", flush=True)
@@ -227,8 +229,8 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
         write_status(cfg, statuses, started, finished=True)
         return statuses
     print(f"imssr: {len(statuses)} runs, {sum(s.state == 'done' for s in statuses)} done, "
-          f"{sum(s.action == 'resume' for s in todo)} to resume, {sum(s.action == 'fresh' for s in todo)} new "
-          f"({cfg.launcher}); status in {status_path}", flush=True)
+          f"{sum(s.action == 'resume' for s in queued)} to resume, {sum(s.action == 'fresh' for s in queued)} new "
+          f"({cfg.launcher}{_packing_text(todo)}); status in {status_path}", flush=True)
     ui = None
     inflight: dict = {}
     previous = _sigterm_as_interrupt()
@@ -247,20 +249,23 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
         while todo or inflight:
             batch = []
             while todo and len(inflight) + len(batch) < parallel:
-                st = todo.popleft()
-                st.state, st.attempts = "running", st.attempts + 1
-                batch.append(st)
+                group = todo.popleft()
+                for st in group:
+                    st.state, st.attempts = "running", st.attempts + 1
+                batch.append(group)
             if batch:
-                handles = launcher.submit([Attempt(st.run.dir, st.steps, st.attempts) for st in batch])
+                handles = launcher.submit([Attempt(tuple(st.run.dir for st in group), group[0].steps,
+                                                   max(st.attempts for st in group)) for group in batch])
                 inflight.update(zip(handles, batch))
                 write_status(cfg, statuses, started)
             ready = launcher.wait(list(inflight), poll_s)
             for handle in ready:
-                st = inflight.pop(handle)
-                result = launcher.result(handle)
-                ui.say(settle(st, result, cfg.retries))
-                if st.state == "queued":
-                    todo.append(st)
+                group = inflight.pop(handle)
+                for st, result in zip(group, launcher.result(handle)):
+                    ui.say(settle(st, result, cfg.retries))
+                again = [st for st in group if st.state == "queued"]
+                if again:
+                    todo.append(again)
             if ready:
                 write_status(cfg, statuses, started)
             ui.refresh()
@@ -286,6 +291,41 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
             signal.signal(signal.SIGTERM, previous)
     write_status(cfg, statuses, started, finished=True)
     return statuses
+
+
+def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]]:
+    """The queued runs in the groups that train in one process each (``runs_per_process``, see
+    :class:`~imssr.sweep.grid.SweepConfig`), in the plan's order.  Runs share a group when
+    :func:`~imssr.training.seeds.batch_key` allows it and they continue from the same agent step
+    (fresh: 0; resumed: their newest checkpoint's)."""
+    groups: list[list[RunStatus]] = []
+    open_groups: dict[tuple, list[tuple[list[RunStatus], list]]] = {}
+    for st in queued:
+        limit = runs_per_process or (0 if st.config.train.device.startswith("cuda") else 1)
+        if limit == 1:
+            groups.append([st])
+            continue
+        shared, weighted, own = batch_key(st.config)
+        steps = st.run.run_dir.checkpoint_steps() if st.action == "resume" else [0]
+        if not steps:  # a checkpoint without a numbered copy: its step is not known here
+            groups.append([st])
+            continue
+        key = (shared, weighted, steps[-1], st.steps)
+        for group, owns in open_groups.get(key, []):
+            if (limit == 0 or len(group) < limit) and (own is None or owns[0] in (None, own)):
+                group.append(st)
+                owns[0] = owns[0] or own
+                break
+        else:
+            group = [st]
+            groups.append(group)
+            open_groups.setdefault(key, []).append((group, [own]))
+    return groups
+
+
+def _packing_text(groups) -> str:
+    runs = sum(len(g) for g in groups)
+    return "" if runs == len(groups) else f", {runs} runs in {len(groups)} processes"
 
 
 def settle(st: RunStatus, result: dict, retries: int) -> str:

@@ -23,6 +23,7 @@ import numpy as np
 
 from imssr.agents.batched import AgentBatch
 from imssr.config import RunConfig
+from imssr.config.batching import lockstep_conflict
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir
 from imssr.training.evaluate import non_finite_text
@@ -33,33 +34,6 @@ from imssr.training.stop import StopRequest, TrainingInterrupted
 
 SEED_DIR = "seed_{seed}"
 """A seed's run directory inside the ``--out`` of ``imssr train --seeds``."""
-
-
-SHARED_EXCEPT = {("algo",), ("train", "seed"), ("intrinsic",)}
-"""What the runs of one lockstep batch may differ in: the seed, and the intrinsic reward (whose
-weights-free scalars :func:`imssr.agents.batched.batch_refusal` checks), hence the algo's name
-(CURL and IM-CURL)."""
-
-
-def lockstep_conflict(cfgs: Sequence[RunConfig]) -> Optional[str]:
-    """Why ``cfgs`` cannot train in lockstep (one line naming the first setting that differs), or None."""
-    def flat(d: dict, prefix: tuple = ()) -> dict:
-        out = {}
-        for k, v in d.items():
-            key = (*prefix, k)
-            if key in SHARED_EXCEPT or key[:1] in SHARED_EXCEPT:
-                continue
-            out.update(flat(v, key) if isinstance(v, dict) else {key: v})
-        return out
-
-    first = flat(cfgs[0].to_dict())
-    for cfg in cfgs[1:]:
-        other = flat(cfg.to_dict())
-        for key in first.keys() | other.keys():
-            if first.get(key) != other.get(key):
-                return (f"runs in one process must share every setting but the seed and the intrinsic reward: "
-                        f"{'.'.join(key)} is {first.get(key)!r} in one and {other.get(key)!r} in another")
-    return None
 
 
 class MemberAgent:
