@@ -134,7 +134,7 @@ def measure(args, n: int) -> list[dict]:
     separate = collect([launch(args, 1, "", max(1, total // n)) for _ in range(n)])
     # Separate processes start together; the slowest one's time is the wall time of the N seeds.
     base = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
-    rows = [{"n": n, "layout": f"{n} processes", "steps_s": base, "ratio": 1.0,
+    rows = [{"n": n, "layout": f"{n} process{'es' if n > 1 else ''}", "steps_s": base, "ratio": 1.0,
              "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20}]
     for mode in args.modes:
         (batch,) = collect([launch(args, n, mode, total)])

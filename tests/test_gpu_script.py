@@ -1,0 +1,28 @@
+"""The prepared GPU run (scripts/gpu_dmc100k.sh) on the CPU at tiny sizes: the bench, a packed
+sweep of CURL and IM-CURL, the archive of the finished runs; few files, at most two folders deep
+(what a device run brings back)."""
+from __future__ import annotations
+
+import os
+import subprocess
+import tarfile
+
+from conftest import REPO
+
+
+def test_the_prepared_gpu_run_works_on_the_cpu(tmp_path):
+    out, root = tmp_path / "out", tmp_path / "runs"
+    env = {**os.environ, "OUT": str(out), "ROOT": str(root), "TINY": "1", "DEVICE": "cpu", "SEEDS": "1",
+           "PROCESSES": "1", "RUNS_PER_PROCESS": "2", "CPUS_PER_PROCESS": "1", "BENCH_S": "120"}
+    proc = subprocess.run(["bash", os.path.join(REPO, "scripts", "gpu_dmc100k.sh")], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "2 runs in 1 processes" in proc.stdout
+    files = [os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs]
+    assert len(files) <= 8 and all(f.count(os.sep) <= 1 for f in files), files
+    assert {"sweep/bench_seeds.md", "sweep/runs.tar.gz", "sweep/sweep_status.json"} <= set(files)
+    with tarfile.open(out / "sweep" / "runs.tar.gz") as tar:
+        names = tar.getnames()
+    for algo in ("curl", "im-curl"):
+        assert f"runs/fp32/cartpole_swingup/{algo}/seed_1/eval.csv" in names
+    assert "| 1 | 1 process, loop |" in (out / "sweep" / "bench_seeds.md").read_text()
