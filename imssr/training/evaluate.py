@@ -45,6 +45,43 @@ def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[f
     return [float(r) for r in np.asarray(returns)]
 
 
+def evaluate_members(act, envs: list, episodes: int, record: bool = False
+                     ) -> list[tuple[list[float], list, Optional[Exception]]]:
+    """:func:`evaluate` of several agents at once, each in its own env (``envs[k]``), their
+    episodes in lockstep: ``act(observations)`` gives every agent's deterministic action for its
+    observation in one call (a batch of agents' members).  Returns, per env, its returns, the
+    first episode's frames when ``record``, and the error that stopped it (a non-finite action),
+    as :func:`evaluate` would have raised it; an env that ended its episode waits for the others."""
+    results = [([], [], None) for _ in envs]
+    for episode in range(episodes):
+        live = [k for k, r in enumerate(results) if r[2] is None]
+        obs, totals, done = {}, {k: 0.0 for k in live}, set()
+        for k in live:
+            obs[k], info = envs[k].reset()
+            if record and episode == 0:
+                results[k][1].append(_hwc(info["frame"]))
+        while len(done) < len(live):
+            actions = act(obs)
+            for k in live:
+                if k in done:
+                    continue
+                if not np.isfinite(actions[k]).all():
+                    results[k] = (results[k][0], results[k][1],
+                                  DivergedError(f"evaluation action {non_finite_text(actions[k])}"))
+                    done.add(k)
+                    continue
+                obs[k], reward, terminated, truncated, info = envs[k].step(actions[k])
+                if record and episode == 0:
+                    results[k][1].append(_hwc(info["frame"]))
+                totals[k] += reward
+                if terminated or truncated:
+                    done.add(k)
+        for k in live:
+            if results[k][2] is None:
+                results[k][0].append(float(np.asarray(totals[k])))
+    return results
+
+
 def non_finite_text(values) -> str:
     """The first non-finite value of ``values`` as text: ``nan``, ``inf`` or ``-inf``."""
     values = np.asarray(values, dtype=np.float64).ravel()
@@ -64,18 +101,21 @@ def eval_row(frame: int, step: int, mode: str, returns: list[float]) -> dict:
             "return_max": float(np.max(returns))}
 
 
-def evaluate_in_training(agent, eval_envs: dict, t, state: RunState, logger: Logger) -> list[dict]:
+def evaluate_in_training(agent, eval_envs: dict, t, state: RunState, logger: Logger,
+                         episodes_of: Callable = evaluate) -> list[dict]:
     """The evaluation of a training at ``state``'s step in every scene of ``eval_envs`` (``t``: the
     run's ``train`` config): ``t.eval_episodes`` episodes each, one ``eval.csv`` row each, kept in
     ``state.eval_history``.  At every ``t.eval_video_every``-th evaluation, the first episode of
-    each scene is recorded (the frames the evaluation renders anyway: the returns do not change)."""
+    each scene is recorded (the frames the evaluation renders anyway: the returns do not change).
+    ``episodes_of``: :func:`evaluate`, or what stands in for it (a batch of runs' lockstep
+    evaluation, :mod:`imssr.training.seeds`)."""
     # This evaluation's number, counted from the history so that a resume keeps the rhythm.
     number = len({item["row"]["step"] for item in state.eval_history}) + 1
     record = t.eval_video_every > 0 and number % t.eval_video_every == 0
     rows = []
     for mode, env in eval_envs.items():
         frames: Optional[list] = [] if record else None
-        returns = evaluate(agent, env, t.eval_episodes, record=frames)
+        returns = episodes_of(agent, env, t.eval_episodes, record=frames)
         row = dict(eval_row(state.frame, state.step, mode, returns), wall_time=time.time())
         logger.log_eval(row, returns)
         if frames:

@@ -28,7 +28,7 @@ from imssr.rundir import RunDir, as_run_dir
 from imssr.training.build import build_training, resolve_device
 from imssr.training.checkpointing import Checkpointer, resume_point, thread_warning
 from imssr.training.divergence import DivergenceCheck
-from imssr.training.evaluate import evaluate_in_training, non_finite_text
+from imssr.training.evaluate import evaluate, evaluate_in_training, non_finite_text
 from imssr.training.logger import open_logger
 from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
 from imssr.training.state import Episode
@@ -54,6 +54,8 @@ class Trainer:
 
     progress_every_s: float = PROGRESS_EVERY_S
     """Seconds between progress lines when stdout is not a terminal (see :data:`PROGRESS_EVERY_S`)."""
+    episodes_of = staticmethod(evaluate)
+    """How an evaluation plays its episodes (:func:`~imssr.training.evaluate.evaluate`)."""
 
     def __init__(self, cfg: RunConfig, run: Union[RunDir, str], resume: bool = False, refill_buffer: bool = False,
                  stop: Optional[StopRequest] = None):
@@ -120,7 +122,8 @@ class Trainer:
 
     def run_eval(self) -> list[dict]:
         """Evaluate now in every scene of ``train.eval_modes`` (:func:`evaluate_in_training`)."""
-        return evaluate_in_training(self.agent, self.eval_envs, self.cfg.train, self.state, self.logger)
+        return evaluate_in_training(self.agent, self.eval_envs, self.cfg.train, self.state, self.logger,
+                                    self.episodes_of)
 
     def train(self) -> None:
         """Train to ``cfg.train.steps`` agent steps: act, learn, step the env; evaluate and

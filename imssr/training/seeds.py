@@ -26,7 +26,7 @@ from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir
-from imssr.training.evaluate import non_finite_text
+from imssr.training.evaluate import evaluate_members, non_finite_text
 from imssr.training.loop import Trainer
 from imssr.training.progress import Progress
 from imssr.training.state import Episode
@@ -98,6 +98,9 @@ class SeedsTrainer:
             self.batch = AgentBatch([t.agent for t in self.trainers])
             for i, t in enumerate(self.trainers):
                 t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
+                t.episodes_of = self._episodes_of(i)
+            self._lanes: list[_Lane] = []
+            self._evaluated: dict = {}
         except BaseException:
             self.close()
             raise
@@ -107,11 +110,41 @@ class SeedsTrainer:
         """The agent step all seeds are at."""
         return self.trainers[0].step
 
+    def _episodes_of(self, i: int):
+        """Seed ``i``'s stand-in for :func:`~imssr.training.evaluate.evaluate`: the first seed to
+        evaluate a scene at a step plays the episodes of every training seed in lockstep, one
+        batched action for all (:func:`evaluate_members`); each seed then takes its own."""
+        def play(agent, env, episodes: int, record=None) -> list[float]:
+            mode = next(m for m, e in self.trainers[i].eval_envs.items() if e is env)
+            key = (self.step, mode)
+            if key not in self._evaluated:
+                members = [k for k, lane in enumerate(self._lanes) if lane.failed is None]
+                envs = [self.trainers[k].eval_envs[mode] for k in members]
+                results = evaluate_members(lambda obs: self._act_members(obs, members), envs, episodes,
+                                           record is not None)
+                self._evaluated = {key: dict(zip(members, results))}
+            returns, frames, error = self._evaluated[key][i]
+            if error is not None:
+                raise error
+            if record is not None:
+                record.extend(frames)
+            return returns
+        return play
+
+    def _act_members(self, obs: dict[int, np.ndarray], members: list[int]) -> dict[int, np.ndarray]:
+        """Deterministic actions of the members ``obs`` names (the others get a blank frame)."""
+        some = next(iter(obs.values()))
+        full = np.zeros((len(self.trainers), *some.shape), dtype=some.dtype)
+        for k, o in obs.items():
+            full[members[k]] = o
+        actions = self.batch.act(full, deterministic=True).cpu().numpy()
+        return {k: actions[members[k]].astype(np.float32) for k in obs}
+
     def train(self) -> list[Optional[str]]:
         """Train every seed to ``train.steps`` agent steps; returns, per seed, None or the line
         that says why it stopped early (a divergence).  A stop request checkpoints every
         training seed at this agent step and raises :class:`TrainingInterrupted`."""
-        lanes = []
+        self._lanes = lanes = []
         for t in self.trainers:
             episode, obs = t.checkpoints.reopen_episode()
             lanes.append(_Lane(t, t.progress(), episode, obs))
