@@ -14,8 +14,9 @@
 #   nvidia-smi.txt                    the device, driver and CUDA versions
 # Settings (environment): BUDGET_S (total seconds, default 540), BENCH_S (the bench's share,
 # default 150), PROCESSES (processes at once, default 4), RUNS_PER_PROCESS (default 5),
-# CPUS_PER_PROCESS (default 4), SEEDS (default 1-10), DEVICE (cuda), TINY=1 (tiny networks and
-# budgets, one seed: the CPU test in tests/test_gpu_script.py).
+# CPUS_PER_PROCESS (default 2: torch threads of a process), ENV_WORKERS (default true: each env in
+# a process of its own, stepping while the agent learns), SEEDS (default 1-10), DEVICE (cuda),
+# TINY=1 (tiny networks and budgets, one seed: the CPU test in tests/test_gpu_script.py).
 # Checkpoints are taken only at the end of a run (train.checkpoint_every_steps): a 100k-frame
 # replay is 375 MB a run, and nothing but the exported files comes back.  At the budget's end the
 # sweep is stopped (SIGTERM: every training checkpoints and stops) and whatever finished is kept.
@@ -30,7 +31,8 @@ BUDGET_S="${BUDGET_S:-540}"
 BENCH_S="${BENCH_S:-150}"
 PROCESSES="${PROCESSES:-4}"
 RUNS_PER_PROCESS="${RUNS_PER_PROCESS:-5}"
-CPUS_PER_PROCESS="${CPUS_PER_PROCESS:-4}"
+CPUS_PER_PROCESS="${CPUS_PER_PROCESS:-2}"
+ENV_WORKERS="${ENV_WORKERS:-true}"
 SEEDS="${SEEDS:-1-10}"
 PY="${PYTHON:-python}"
 [ -x .venv/bin/python ] && PY=.venv/bin/python
@@ -42,7 +44,7 @@ left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
 { nvidia-smi 2>&1 || echo "no nvidia-smi"; "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"; } > "$OUT_DIR/nvidia-smi.txt" 2>&1 || true
 
 BENCH=(--device "$DEVICE" --n 1 2 4 8 16 --steps 20 --warmup 5 --fill 2000)
-SET=(--set train.checkpoint_every_steps=100000000)
+SET=(--set train.checkpoint_every_steps=100000000 --set "train.env_workers=$ENV_WORKERS")
 if [ "${TINY:-0}" = 1 ]; then
   BENCH=(--device "$DEVICE" --n 1 --modes loop --steps 2 --warmup 1 --fill 200 --threads 1 --set agent.batch_size=8
          --set aux.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8)

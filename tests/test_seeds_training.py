@@ -101,21 +101,57 @@ def test_a_stopped_batch_resumes_exactly(uninterrupted, tmp_path):
             assert torch.equal(value, final_nets(resumed)[key]), key
 
 
-def test_a_diverged_seed_stops_alone(tmp_path):
+@pytest.mark.parametrize("bad", [0, 1])
+def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad):
+    """The seed whose critic turns to NaN stops at its first episode's end; the other trains on,
+    leaving the logs and weights of the batch where nothing diverged."""
     trainer = SeedsTrainer(configs(), runs(tmp_path))
     try:
-        with torch.no_grad():  # seed 2's critic turns to NaN: its losses do at the first update
+        with torch.no_grad():
             for name, value in trainer.batch.stacked.items():
                 if ".critic.q." in name:
-                    value[1].fill_(float("nan"))
+                    value[bad].fill_(float("nan"))
         failed = trainer.train()
     finally:
         trainer.close()
-    assert failed[0] is None and failed[1].startswith("diverged at agent step")
-    first, second = runs(tmp_path)
-    assert json.load(open(os.path.join(first, "status.json")))["state"] == "finished"
-    assert json.load(open(os.path.join(second, "status.json")))["state"] == "diverged"
-    assert RunDir(first).checkpoint().state["step"] == 150
+    good = 1 - bad
+    assert failed[good] is None and failed[bad].startswith("diverged at agent step")
+    statuses = [json.load(open(os.path.join(run, "status.json")))["state"] for run in runs(tmp_path)]
+    assert statuses[good] == "finished" and statuses[bad] == "diverged"
+    done, other = runs(uninterrupted)[good], runs(tmp_path)[good]
+    for log in ("train.csv", "eval.csv"):
+        assert rows(os.path.join(other, log)) == rows(os.path.join(done, log))
+    assert RunDir(other).checkpoint().state["step"] == 150
+
+
+def test_two_evaluation_scenes_in_lockstep_are_each_seeds_own(tmp_path):
+    """With two evaluation scenes, each seed's eval.csv is its run alone's."""
+    from conftest import train_run
+
+    cfgs = configs(steps=80)
+    for cfg in cfgs:
+        cfg.train.eval_modes = "training,color_easy"
+        cfg.train.eval_every_steps = 80
+    assert train_seeds(tmp_path / "batch", cfgs=cfgs) == [None, None]
+    train_run(cfgs[1], tmp_path / "alone")
+    batched = rows(os.path.join(runs(tmp_path / "batch")[1], "eval.csv"))
+    assert [r["mode"] for r in batched] == ["training", "color_easy"]
+    assert batched == rows(str(tmp_path / "alone" / "eval.csv"))
+
+
+def test_the_resume_command_names_seeds_or_run_directories(tmp_path):
+    trainer = SeedsTrainer(configs(), runs(tmp_path))
+    try:
+        assert trainer.resume_command() == f"imssr train --seeds 1,2 --out {tmp_path} --resume"
+    finally:
+        trainer.close()
+    cfgs = configs()
+    dirs = [str(tmp_path / "x" / "curl"), str(tmp_path / "x" / "im-curl")]
+    trainer = SeedsTrainer(cfgs, dirs)
+    try:
+        assert trainer.resume_command() == f"imssr train --runs {dirs[0]} {dirs[1]} --resume"
+    finally:
+        trainer.close()
 
 
 def imssr(*args):
@@ -174,3 +210,22 @@ def test_runs_that_differ_elsewhere_are_refused_in_one_line(tmp_path):
     with pytest.raises(Exception, match=r"^runs in one process must share every setting but the seed and the "
                                         r"intrinsic reward: train.steps is 250 in one and 300 in another$"):
         SeedsTrainer(cfgs, [str(tmp_path / "a"), str(tmp_path / "b")])
+
+
+def test_envs_in_worker_processes_change_nothing(uninterrupted, tmp_path):
+    """train.env_workers: every env in a process of its own, stepped ahead while the agent
+    learns; the seeds' logs and weights are those of the envs in the training's process, and so
+    are a run alone's."""
+    from conftest import train_run
+
+    cfgs = configs()
+    for cfg in cfgs:
+        cfg.train.env_workers = True
+    assert train_seeds(tmp_path / "batch", cfgs=cfgs) == [None, None]
+    alone = tmp_path / "alone"
+    train_run(cfgs[0], alone)
+    for done, other in [*zip(runs(uninterrupted), runs(tmp_path / "batch")), (runs(uninterrupted)[0], str(alone))]:
+        for log in ("train.csv", "eval.csv"):
+            assert rows(os.path.join(other, log)) == rows(os.path.join(done, log))
+        for key, value in final_nets(done).items():
+            assert torch.equal(value, final_nets(other)[key]), key

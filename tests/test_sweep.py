@@ -480,6 +480,8 @@ def test_runs_that_can_share_a_batch_are_packed_into_processes(tmp_path):
     for st in statuses:  # as the sweep resolves them for a GPU (no GPU needed to plan)
         st.config.train.device = "cuda"
     assert [len(g) for g in pack(statuses, 0)] == [4]  # on CUDA: all that can share
+    fused = plan_runs(replace(cfg, algos=["curl"], overrides=TINY + ["agent.update_schedule=fused"]))
+    assert [len(g) for g in pack(fused, 3)] == [1, 1]  # a schedule no batch takes: a process each
 
 
 def test_a_packed_sweep_trains_curl_and_im_curl_in_one_process(tmp_path):

@@ -37,8 +37,10 @@ from imssr import draws
 from imssr.agents.sac import Eager, Metrics, SACAgent
 from imssr.batch import Batch
 from imssr.config import IntrinsicConfig
+from imssr.config.batching import agent_refusal
 from imssr.errors import ImssrError
 from imssr.intrinsic.reward import STAT_KEYS, BetaSchedule
+from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
 GENERATORS = ("gen", "noise_gen", "intrinsic_gen")
 """A single agent's generators, each replaced by the members' own in the batch."""
@@ -59,10 +61,8 @@ def resolve_mode(mode: str, device: torch.device) -> str:
 def batch_refusal(members: Sequence[SACAgent]) -> Optional[str]:
     """Why ``members`` cannot train as one :class:`AgentBatch` (one line), or None."""
     first = members[0]
-    if first.cfg.update_schedule != "sequential":
-        return "seeds in one process need agent.update_schedule=sequential (the fused schedule is not batched)"
-    if first.cfg.compile != "off":
-        return "seeds in one process run eagerly on CPU and as one batch on CUDA: set agent.compile=off"
+    if agent_refusal(first.cfg):
+        return agent_refusal(first.cfg)
     for m in members[1:]:
         if (m.cfg, m.obs_shape, m.action_dim, m.device) != (first.cfg, first.obs_shape, first.action_dim, first.device):
             return "the members of one batch must share the agent's settings, observation and action shapes"
@@ -354,12 +354,14 @@ class AgentBatch:
         state = {}
         for index, values in full["state"].items():
             shape = params[index].shape
-            state[index] = {k: (v[i].clone() if k != "step" and isinstance(v, torch.Tensor) and v.shape == shape else v)
-                            for k, v in values.items()}
+            state[index] = {k: ((v[i] if k != "step" and v.shape == shape else v).clone()
+                                if isinstance(v, torch.Tensor) else v) for k, v in values.items()}
         return {"state": state, "param_groups": full["param_groups"]}
 
-    def load_member_state_dict(self, i: int, state: dict) -> None:
-        """Set member ``i`` from a single agent's :meth:`SACAgent.state_dict` (its own checkpoint)."""
+    def load_member_state_dict(self, i: int, state: dict, restore_rng: bool = True) -> None:
+        """Set member ``i`` from a single agent's :meth:`SACAgent.state_dict` (its own checkpoint);
+        its generators too, unless ``restore_rng`` is false, as :meth:`SACAgent.load_state_dict`
+        does (a state saved on another device type reseeds them)."""
         t = self.template
         with torch.no_grad():
             for prefix, module_state in (("nets", state["nets"]), ("aux", state.get("aux", {}).get("module")),
@@ -371,9 +373,15 @@ class AgentBatch:
         for key, module in (("aux", t.aux), ("signal", t.signal)):
             if module is not None and module.optimizer is not None and key in state:
                 self._set_member_optimizer_state(self.optimizers[id(module.optimizer)], i, state[key]["optimizer"])
-        for attr in GENERATORS:
-            getattr(t, attr).generators[i].set_state(state[attr])
         t.updates = state["updates"]
+        if restore_rng:
+            seed = int(t.gen.generators[i].initial_seed())
+            for attr, offset in zip(GENERATORS, (0, NOISE_SEED_OFFSET, INTRINSIC_SEED_OFFSET)):
+                gen = getattr(t, attr).generators[i]
+                try:
+                    gen.set_state(state[attr])
+                except RuntimeError:  # saved on another device type
+                    gen.manual_seed(seed + offset + t.updates)
 
 
 def _member_value(named: dict[str, torch.Tensor], name: str, template: dict[str, torch.Tensor]) -> torch.Tensor:

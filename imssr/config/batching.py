@@ -15,6 +15,16 @@ weights-free scalars :func:`imssr.agents.batched.batch_refusal` checks), hence t
 (CURL and IM-CURL)."""
 
 
+def agent_refusal(agent) -> Optional[str]:
+    """Why an agent with these settings (an ``AgentConfig``) cannot be a member of a batch (one
+    line), or None."""
+    if agent.update_schedule != "sequential":
+        return "seeds in one process need agent.update_schedule=sequential (the fused schedule is not batched)"
+    if agent.compile != "off":
+        return "seeds in one process run eagerly on CPU and as one batch on CUDA: set agent.compile=off"
+    return None
+
+
 def shared_settings(cfg: RunConfig) -> dict[tuple[str, ...], object]:
     """Every setting of ``cfg`` that the runs of one lockstep batch share, by its path."""
     def flat(d: dict, prefix: tuple = ()) -> dict:

@@ -23,7 +23,7 @@ RESUMABLE_CHANGES = frozenset({
     "agent.precision", "agent.q_heads_fp32", "agent.tf32", "agent.compile", "train.torch_threads", "train.eval_episodes",
     "train.eval_every_steps", "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer",
     "train.wandb", "train.wandb_project", "train.wandb_group", "train.eval_video_every",
-    "train.eval_video_format"})
+    "train.eval_video_format", "train.env_workers"})
 """The settings a resume may change (:meth:`RunConfig.resume_conflicts`): the budget, where and how
 fast the run computes, and what it evaluates, logs and keeps; every other setting shapes the
 learning and is the run's own."""

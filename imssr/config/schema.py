@@ -272,6 +272,11 @@ class TrainConfig:
     """Show a progress bar with frames per second."""
     torch_threads: int = 0
     """torch intra-op threads (0 leaves torch's default)."""
+    env_workers: bool = False
+    """Step the training env and each evaluation env in a process of its own, overlapped with the
+    update where the loop's order allows it (many seeds in one process step all their envs at
+    once); the envs see exactly the same calls.  Pays off with ``--seeds`` on a machine with cores
+    to spare; costs a process and an EGL context per env."""
 
     def eval_mode_list(self, training_mode: str) -> list[str]:
         """The scenes to evaluate in, in order, without repeats."""

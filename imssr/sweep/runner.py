@@ -19,7 +19,7 @@ from typing import Optional
 from imssr.contention import scheduling_group
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.files import disk_full_as_error, open_append
-from imssr.rundir import DIVERGED, FAILED, INTERRUPTED, RunDir, as_run_dir
+from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir, as_run_dir
 
 # Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
 # second signal (or one before its handlers were in place) ended it; it resumes either way.
@@ -171,6 +171,15 @@ class RunAttempt:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait()
 
+    def _own_status(self, run: RunDir) -> Optional[dict]:
+        """``run``'s status when this attempt wrote it (not one left by an earlier attempt)."""
+        try:
+            if os.path.getmtime(run.status_path) < self.start - 1.0:
+                return None
+        except OSError:
+            return None
+        return run.read_status()
+
     def finish_all(self) -> list[dict]:
         """What the finished attempt did to each of its runs (:meth:`finish` of each)."""
         return [self.finish(run) for run in self.runs]
@@ -185,16 +194,16 @@ class RunAttempt:
                     "interrupted": False, "diverged": False, "final_step": 0, "final_frame": 0,
                     "seconds": 0.0}
         returncode = self.proc.wait()
-        if len(self.runs) > 1 and returncode != 0 and run.read_status() is not None \
-                and run.read_status().get("state") == "finished":
+        # In a packed process each run says how it ended (a status written by this attempt).
+        own = self._own_status(run) if len(self.runs) > 1 else None
+        if own is not None and own["state"] == FINISHED:
             returncode = 0  # this run finished; another of the process did not
         final_step, final_frame = run.last_evaluation()
         result = {"ok": False, "returncode": returncode, "resumed": self.resumed, "error": "",
-                  "interrupted": returncode in INTERRUPTED_STATUSES, "diverged": False,
-                  "final_step": final_step, "final_frame": final_frame,
+                  "interrupted": returncode in INTERRUPTED_STATUSES and (own is None or own["state"] != DIVERGED),
+                  "diverged": False, "final_step": final_step, "final_frame": final_frame,
                   "seconds": round(time.time() - self.start, 1)}
         if returncode != 0:
-            own = run.read_status() if len(self.runs) > 1 else None
             result["error"] = ((own or {}).get("error") or _last_line(self.log_path, self.offset)
                                or f"exit status {returncode}")
             result["diverged"] = DIVERGED_PREFIX in result["error"]

@@ -33,7 +33,7 @@ from imssr.jsonio import dumps
 from imssr.rundir import SWEEP_LOG, RunDir
 from imssr.sweep.grid import SWEEP_STATUS, Run, SweepConfig, expand, save_plan
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
-from imssr.config.batching import batch_key
+from imssr.config.batching import agent_refusal, batch_key
 from imssr.rundir.lock import DirectoryLock
 
 STATES = ("queued", "running", "done", "failed", "interrupted")
@@ -263,9 +263,8 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
                 group = inflight.pop(handle)
                 for st, result in zip(group, launcher.result(handle)):
                     ui.say(settle(st, result, cfg.retries))
-                again = [st for st in group if st.state == "queued"]
-                if again:
-                    todo.append(again)
+                # Regrouped: a run stopped alone, or saved at another step than the rest, moves.
+                todo.extend(pack([st for st in group if st.state == "queued"], cfg.runs_per_process))
             if ready:
                 write_status(cfg, statuses, started)
             ui.refresh()
@@ -302,11 +301,11 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
     open_groups: dict[tuple, list[tuple[list[RunStatus], list]]] = {}
     for st in queued:
         limit = runs_per_process or (0 if st.config.train.device.startswith("cuda") else 1)
-        if limit == 1:
+        if limit == 1 or agent_refusal(st.config.agent):
             groups.append([st])
             continue
         shared, weighted, own = batch_key(st.config)
-        steps = st.run.run_dir.checkpoint_steps() if st.action == "resume" else [0]
+        steps = st.run.run_dir.checkpoint_steps() if st.run.run_dir.has_checkpoint() else [0]
         if not steps:  # a checkpoint without a numbered copy: its step is not known here
             groups.append([st])
             continue

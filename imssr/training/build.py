@@ -3,6 +3,7 @@ training and by the evaluation of a saved run), a training's parts at agent step
 (:func:`build_training`), and a saved run's agent at one of its checkpoints (:func:`load_agent`)."""
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass
 from typing import Any, Optional
@@ -15,6 +16,7 @@ from imssr.agents import SACAgent
 from imssr.algos import get_algo
 from imssr.config import RunConfig
 from imssr.envs import env_from_config
+from imssr.envs.worker import EnvWorker
 from imssr.errors import ImssrError
 from imssr.replay import make_replay_buffer
 from imssr.rng import seed_everything
@@ -79,14 +81,17 @@ def build_training(cfg: RunConfig, device: torch.device, replay_placement) -> Tr
     global seed, the envs, the weights, SODA's image pool, then the streams spawned from the seed)."""
     seed_everything(cfg.train.seed)
     e = cfg.env
+    # Each env in a process of its own (train.env_workers), or here.
+    make = (lambda **kw: EnvWorker(functools.partial(env_from_config, e, **kw))) if cfg.train.env_workers \
+        else (lambda **kw: env_from_config(e, **kw))
     # Training footage and evaluation footage come from disjoint pools.
-    env = env_from_config(e, seed=cfg.train.seed, footage_split="train")
+    env = make(seed=cfg.train.seed, footage_split="train")
     eval_envs: dict[str, Any] = {}
     try:
         for mode in cfg.train.eval_mode_list(e.mode):
-            eval_envs[mode] = env_from_config(e, seed=cfg.train.seed + TRAINING_EVAL_SEED_OFFSET, mode=mode,
-                                              footage_split="test")
-        if torch.cuda.is_available():  # on a GPU machine, MuJoCo's EGL rendering on the CPU (llvmpipe)
+            eval_envs[mode] = make(seed=cfg.train.seed + TRAINING_EVAL_SEED_OFFSET, mode=mode, footage_split="test")
+        if torch.cuda.is_available() and not cfg.train.env_workers:
+            # On a GPU machine, MuJoCo's EGL rendering on the CPU (llvmpipe)
             warning = software_rendering_warning(os.environ.get("MUJOCO_GL", "egl"), gl_renderer(env.physics),
                                                  gpu=True)
             if warning:

@@ -8,6 +8,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from imssr.envs import env_from_config
+from imssr.envs.worker import step_all
 from imssr.envs.scenes import get_mode
 from imssr.errors import DivergedError
 from imssr.plots.media import save_montage, save_video
@@ -63,14 +64,13 @@ def evaluate_members(act, envs: list, episodes: int, record: bool = False
         while len(done) < len(live):
             actions = act(obs)
             for k in live:
-                if k in done:
-                    continue
-                if not np.isfinite(actions[k]).all():
+                if k not in done and not np.isfinite(actions[k]).all():
                     results[k] = (results[k][0], results[k][1],
                                   DivergedError(f"evaluation action {non_finite_text(actions[k])}"))
                     done.add(k)
-                    continue
-                obs[k], reward, terminated, truncated, info = envs[k].step(actions[k])
+            stepping = [k for k in live if k not in done]
+            for k, step in zip(stepping, step_all([envs[k] for k in stepping], [actions[k] for k in stepping])):
+                obs[k], reward, terminated, truncated, info = step
                 if record and episode == 0:
                     results[k][1].append(_hwc(info["frame"]))
                 totals[k] += reward

@@ -20,6 +20,7 @@ import torch
 from imssr.config import RunConfig
 from imssr.contention import contention_warning
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
+from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
@@ -202,6 +203,8 @@ class Trainer:
         action = self.agent.act(obs, deterministic=False)
         if not np.isfinite(action).all():  # a few host values: no device sync
             raise DivergedError(f"action {non_finite_text(action)}")
+        if isinstance(self.env, EnvWorker) and self.updates_due() == 1:  # not a burst: it may stop halfway
+            self.env.step_async(action)  # the env steps while the agent learns
         self._learn(episode, action)
         return action
 

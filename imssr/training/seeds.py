@@ -24,6 +24,7 @@ import numpy as np
 from imssr.agents.batched import AgentBatch
 from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
+from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir
 from imssr.training.evaluate import evaluate_members, non_finite_text
@@ -54,7 +55,7 @@ class MemberAgent:
         return self.batch.member_state_dict(self.i)
 
     def load_state_dict(self, state: dict, restore_rng: bool = True) -> None:
-        self.batch.load_member_state_dict(self.i, state)
+        self.batch.load_member_state_dict(self.i, state, restore_rng)
 
 
 @dataclass
@@ -88,10 +89,10 @@ class SeedsTrainer:
                 self.trainers.append(Trainer(cfg, run, resume=resume, stop=self.stop))
             steps = sorted({t.step for t in self.trainers})
             if len(steps) > 1:
-                behind = [str(t.cfg.train.seed) for t in self.trainers if t.step != steps[-1]]
-                raise ImssrError(f"the seeds' checkpoints are at different agent steps ({', '.join(map(str, steps))}): "
-                                 f"bring seed(s) {', '.join(behind)} to step {steps[-1]} alone first "
-                                 f"(imssr train --out DIR/seed_N --resume --steps {steps[-1]})")
+                behind = [t.run_dir.path for t in self.trainers if t.step != steps[-1]]
+                raise ImssrError(f"the runs' checkpoints are at different agent steps ({', '.join(map(str, steps))}): "
+                                 f"bring {', '.join(behind)} to step {steps[-1]} alone first "
+                                 f"(imssr train --out RUN_DIR --resume --steps {steps[-1]})")
             if len({t.state.learning_starts for t in self.trainers}) > 1:
                 raise ImssrError("the seeds' seed phases end at different agent steps (a refilled replay buffer): "
                                  "resume them one by one")
@@ -99,16 +100,23 @@ class SeedsTrainer:
             for i, t in enumerate(self.trainers):
                 t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
                 t.episodes_of = self._episodes_of(i)
+                t.checkpoints.keep_before_final = self._keep_before_final(i)
             self._lanes: list[_Lane] = []
             self._evaluated: dict = {}
+            self._rngs_before: dict[int, dict] = {}
         except BaseException:
             self.close()
             raise
 
     @property
     def step(self) -> int:
-        """The agent step all seeds are at."""
-        return self.trainers[0].step
+        """The agent step every training seed is at (a stopped seed stays behind)."""
+        return max(t.step for t in self.trainers)
+
+    @staticmethod
+    def _lead(lanes: list[_Lane]) -> Trainer:
+        """A training seed's trainer: its step, schedules and seed phase are every training seed's."""
+        return next(lane.trainer for lane in lanes if lane.failed is None)
 
     def _episodes_of(self, i: int):
         """Seed ``i``'s stand-in for :func:`~imssr.training.evaluate.evaluate`: the first seed to
@@ -116,13 +124,19 @@ class SeedsTrainer:
         batched action for all (:func:`evaluate_members`); each seed then takes its own."""
         def play(agent, env, episodes: int, record=None) -> list[float]:
             mode = next(m for m, e in self.trainers[i].eval_envs.items() if e is env)
-            key = (self.step, mode)
+            step = self.step
+            key = (step, mode)
+            members = [k for k, lane in enumerate(self._lanes) if lane.failed is None]
+            if not any(k[0] == step for k in self._evaluated):
+                # This step's first evaluation: each seed's eval envs as its own evaluation finds them.
+                self._rngs_before = {k: {m: e.get_rng_state() for m, e in self.trainers[k].eval_envs.items()}
+                                     for k in members}
             if key not in self._evaluated:
-                members = [k for k, lane in enumerate(self._lanes) if lane.failed is None]
                 envs = [self.trainers[k].eval_envs[mode] for k in members]
                 results = evaluate_members(lambda obs: self._act_members(obs, members), envs, episodes,
                                            record is not None)
-                self._evaluated = {key: dict(zip(members, results))}
+                self._evaluated = {**{k: v for k, v in self._evaluated.items() if k[0] == step},
+                                   key: dict(zip(members, results))}
             returns, frames, error = self._evaluated[key][i]
             if error is not None:
                 raise error
@@ -130,6 +144,18 @@ class SeedsTrainer:
                 record.extend(frames)
             return returns
         return play
+
+    def _keep_before_final(self, i: int):
+        """Seed ``i``'s :meth:`Checkpointer.keep_before_final`, with its eval envs' random states
+        from before this step's lockstep evaluation (another seed may have played them already)."""
+        checkpoints = self.trainers[i].checkpoints
+        keep = type(checkpoints).keep_before_final
+
+        def keep_before_final() -> None:
+            keep(checkpoints)
+            if any(k[0] == self.step for k in self._evaluated) and i in self._rngs_before:
+                checkpoints.before_final["eval_env_rngs"] = self._rngs_before[i]
+        return keep_before_final
 
     def _act_members(self, obs: dict[int, np.ndarray], members: list[int]) -> dict[int, np.ndarray]:
         """Deterministic actions of the members ``obs`` names (the others get a blank frame)."""
@@ -203,33 +229,46 @@ class SeedsTrainer:
     def _act(self, lanes: list[_Lane]) -> list[np.ndarray]:
         """This agent step's action of every seed: uniform random in the seed phase (each seed's
         own generator), else the members' policy samples, after which all learn."""
-        first = lanes[0].trainer
+        first = self._lead(lanes)
         if first.step < first.state.learning_starts:
-            return [lane.trainer._random_action() for lane in lanes]
+            actions = [lane.trainer._random_action() for lane in lanes]
+            self._send_ahead(lanes, actions)
+            return actions
         bursts = [lane.trainer.checkpoints.take_burst() for lane in lanes]
         if any(b is not None for b in bursts):
             # Stopped inside the burst: every seed's action was drawn before the stop.
             actions = [b["action"].numpy() for b in bursts]
             self._learn(lanes, actions, done=int(bursts[0]["updates_done"]))
             return actions
-        actions = self.batch.act(np.stack([lane.obs for lane in lanes]), deterministic=False).cpu().numpy()
+        obs = [lane.obs for lane in lanes]
+        blank = np.zeros_like(next(o for o in obs if o is not None))
+        actions = self.batch.act(np.stack([blank if o is None else o for o in obs]), deterministic=False).cpu().numpy()
         actions = [a.astype(np.float32) for a in actions]
         for lane, action in zip(self._active(lanes), [a for a, ln in zip(actions, lanes) if ln.failed is None]):
             if not np.isfinite(action).all():  # as a run alone checks, before the simulator sees it
                 self._guarded(lane, lambda: _raise(DivergedError(f"action {non_finite_text(action)}")))
+        if first.updates_due() == 1:  # not a burst: it may stop halfway, before the env's step
+            self._send_ahead(lanes, actions)
         self._learn(lanes, actions)
         return actions
+
+    def _send_ahead(self, lanes: list[_Lane], actions: list[np.ndarray]) -> None:
+        """Every training seed's env in a worker (``train.env_workers``) starts its step now: they
+        step at once, and while the agent learns (the update does not read the envs)."""
+        for lane, action in zip(lanes, actions):
+            if lane.failed is None and isinstance(lane.trainer.env, EnvWorker):
+                lane.trainer.env.step_async(action)
 
     def _learn(self, lanes: list[_Lane], actions: list[np.ndarray], done: int = 0) -> None:
         """One update of every member, or the burst from its update ``done`` on; each seed's
         episode sums its own metrics.  A stop request inside the burst checkpoints every seed
         with the count done."""
-        first = lanes[0].trainer
+        first = self._lead(lanes)
         for update in range(done, first.updates_due()):
             if update > done and self.stop.signal_name is not None:
                 for lane, action in zip(lanes, actions):
                     if lane.failed is None:
-                        lane.trainer._save_in_burst(lane.episode, action, update)
+                        self._guarded(lane, lambda: lane.trainer._save_in_burst(lane.episode, action, update))
                 raise self._interrupted()
             metrics = self.batch.update([lane.trainer.replay for lane in lanes], first.step)
             for i, lane in enumerate(lanes):
@@ -237,27 +276,31 @@ class SeedsTrainer:
                     lane.episode.add_metrics(self.batch.member_metrics(metrics, i))
 
     def _stop_if_requested(self, lanes: list[_Lane]) -> None:
-        if self.stop.signal_name is None or self.step >= self.trainers[0].cfg.total_steps:
+        if self.stop.signal_name is None or not self._active(lanes) or self.step >= self.trainers[0].cfg.total_steps:
             return
         for lane in self._active(lanes):
             self._guarded(lane, lambda: lane.trainer._save_for_stop(lane.episode))
         raise self._interrupted()
 
     def _interrupted(self) -> TrainingInterrupted:
-        seeds = ",".join(str(t.cfg.train.seed) for t in self.trainers)
-        root = _common_root([t.run_dir.path for t in self.trainers])
         return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
-                                   f"imssr train --seeds {seeds} --out {root} --resume")
+                                   f"{self.resume_command()}")
+
+    def resume_command(self) -> str:
+        """The command that continues these runs: ``--seeds`` when they are ``OUT/seed_<n>`` of
+        one ``OUT`` and their seeds, else ``--runs``."""
+        paths = [os.path.normpath(t.run_dir.path) for t in self.trainers]
+        roots = {os.path.dirname(p) for p in paths}
+        if len(roots) == 1 and all(os.path.basename(p) == SEED_DIR.format(seed=t.cfg.train.seed)
+                                   for p, t in zip(paths, self.trainers)):
+            seeds = ",".join(str(t.cfg.train.seed) for t in self.trainers)
+            return f"imssr train --seeds {seeds} --out {roots.pop()} --resume"
+        return f"imssr train --runs {' '.join(paths)} --resume"
 
     def close(self) -> None:
         """Close every seed's envs and release its run directory."""
         for t in self.trainers:
             t.close()
-
-
-def _common_root(paths: list[str]) -> str:
-    """The ``--out`` of seeds' run directories ``OUT/seed_<n>``."""
-    return os.path.dirname(os.path.normpath(paths[0]))
 
 
 def _record(trainer: Trainer, state: str, error: str = "") -> None:
