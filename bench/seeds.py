@@ -8,10 +8,10 @@ For each N the same work is timed in one run: N seeds as one
 :class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), once per
 ``--modes`` (``loop``: member after member; ``vmap``: all members as one vectorised computation),
 and N processes with one single-seed agent each, started together (what a sweep of single-seed
-runs does), the baseline of the ratios.  A step is the agent's part of a training step, for every seed: the policy's action for a
-new observation, then the update of that agent step (the paper's preset of ``--algo``, the
-sequential schedule, fp32), sampling each seed's own replay buffer of ``--fill`` random-frame
-transitions.  The environment is left out: it costs each seed the same in both layouts.
+runs does), the baseline of the ratios.  A step is the agent's part of a training step, for every
+seed: the policy's action for a new observation, then the update of that agent step (the paper's
+preset of ``--algo``, the sequential schedule, fp32), sampling each seed's own replay buffer of
+``--fill`` random-frame transitions.  The environment is left out: it costs each seed the same in both layouts.
 ``--threads`` torch threads in all (0: torch's default), split evenly among the separate
 processes (at least one each), so both layouts use the same cores.
 

@@ -55,8 +55,8 @@ class Eager:
     """How an agent runs the pieces of its update: as they are, for one agent.
 
     A batch of member agents (:class:`imssr.agents.batched.AgentBatch`) swaps in its own, which
-    runs each piece once for all members (``torch.func.vmap`` over stacked weights), so that the
-    update's schedule below is written once for both."""
+    runs each piece for all members (vmapped over their stacked weights, or member after member),
+    so that the update's schedule below is written once for both."""
 
     def call(self, fn, *args):
         """``fn(*args)``: a piece that computes losses or a batch (random draws included)."""
