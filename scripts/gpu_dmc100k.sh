@@ -18,7 +18,9 @@
 # a process of its own, stepping while the agent learns), SEEDS (default 1-10), DEVICE (cuda),
 # TINY=1 (tiny networks and budgets, one seed: the CPU test in tests/test_gpu_script.py).
 # Checkpoints are taken only at the end of a run (train.checkpoint_every_steps): a 100k-frame
-# replay is 375 MB a run, and nothing but the exported files comes back.  At the budget's end the
+# replay is 375 MB a run, and nothing but the exported files comes back.  Replay frames stay in
+# host memory (train.replay_device=cpu: the same batches): on the GPU each run's store would
+# reserve its whole capacity (100,000 transitions, 3 GB), 60 GB for 20 runs.  At the budget's end the
 # sweep is stopped (SIGTERM: every training checkpoints and stops) and whatever finished is kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -44,7 +46,7 @@ left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
 { nvidia-smi 2>&1 || echo "no nvidia-smi"; "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"; } > "$OUT_DIR/nvidia-smi.txt" 2>&1 || true
 
 BENCH=(--device "$DEVICE" --n 1 2 4 8 16 --steps 20 --warmup 5 --fill 2000)
-SET=(--set train.checkpoint_every_steps=100000000 --set "train.env_workers=$ENV_WORKERS")
+SET=(--set train.checkpoint_every_steps=100000000 --set "train.env_workers=$ENV_WORKERS" --set train.replay_device=cpu)
 if [ "${TINY:-0}" = 1 ]; then
   BENCH=(--device "$DEVICE" --n 1 --modes loop --steps 2 --warmup 1 --fill 200 --threads 1 --set agent.batch_size=8
          --set aux.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8)

@@ -40,6 +40,6 @@ def summary(cfg: RunConfig, run: RunDir, minutes: float, gif: str, png: str) -> 
     return (f"imssr: demo done in {minutes:.0f} min. {cfg.algo} on {cfg.env.task}, mean evaluation return "
             f"over {int(last['episodes'])} episodes: {ret(first)}{untrained} -> {ret(last)}{best_text}. "
             f"Curve: {png}; the trained policy: {gif}. A short run on the dense task, not a result: "
-            f"the paper's runs are `imssr train --algo im-curl --task cartpole_swingup_sparse --seed 1 "
-            f"--device cuda` ({PAPER_STEPS:,} agent steps each, about {days:.0f} days per seed on 2 CPU "
-            f"cores: use a GPU).")
+            f"the paper's runs are `imssr train --algo im-curl --task cartpole_swingup_sparse --seeds 1-5 "
+            f"--out runs/im-curl --device cuda` ({PAPER_STEPS:,} agent steps each, about {days:.0f} days "
+            f"per seed on 2 CPU cores: use a GPU).")
