@@ -142,9 +142,7 @@ class MemberExecution(Eager):
 
 def _split(arg) -> tuple[Any, Any]:
     """An argument as (what vmap maps over, what stays as it is)."""
-    if isinstance(arg, torch.Tensor):
-        return arg, None
-    if isinstance(arg, dict):
+    if isinstance(arg, (torch.Tensor, dict)):
         return arg, None
     if isinstance(arg, Batch):
         fields = {f.name: getattr(arg, f.name) for f in dataclasses.fields(arg)}
@@ -222,29 +220,23 @@ class AgentBatch:
         self.n = len(members)
         self.mode = resolve_mode(mode, members[0].device)
         self.intrinsic_on = [m.intrinsic is not None for m in members]
-        template = next((m for m in members if m.intrinsic is not None), members[0])
-        self.template = t = template
-        modules = {"nets": t.nets, **({"aux": t.aux} if t.aux is not None else {}),
-                   **({"signal": t.signal} if t.signal is not None else {})}
-        self.root = _Call(modules)
-        self.names = [name for name, _ in self.root.named_parameters()]
-        self.buffer_names = [name for name, _ in self.root.named_buffers()]
+        self.template = t = next((m for m in members if m.intrinsic is not None), members[0])
+        self.root = _Call(self._modules_of(t))
         member_roots = [dict(_Call(self._modules_of(m)).named_parameters()) for m in members]
         member_buffers = [dict(_Call(self._modules_of(m)).named_buffers()) for m in members]
         template_params = dict(self.root.named_parameters())
         self.stacked: dict[str, torch.Tensor] = {}
-        for name in self.names:
-            like = template_params[name]
+        for name, like in template_params.items():
             values = _stacked_like([_member_value(r, name, template_params).detach() for r in member_roots], like)
             self.stacked[name] = nn.Parameter(values, requires_grad=like.requires_grad)
         template_buffers = dict(self.root.named_buffers())
-        for name in self.buffer_names:
-            self.stacked[name] = _stacked_like([_member_value(b, name, template_buffers) for b in member_buffers],
-                                               template_buffers[name])
+        for name, like in template_buffers.items():
+            self.stacked[name] = _stacked_like([_member_value(b, name, template_buffers) for b in member_buffers], like)
         self.name_of = {id(p): name for name, p in template_params.items()}
-        self.optimizers = {id(opt): self._stacked_optimizer(opt) for opt in self._template_optimizers()}
+        self.optimizers = {id(opt): self._stacked_optimizer(opt) for opt in self._optimizers_of(t)}
         for i, m in enumerate(members):
-            self._load_optimizers(i, m)
+            for opt, member_opt in zip(self._optimizers_of(t), self._optimizers_of(m)):
+                self._set_member_optimizer_state(self.optimizers[id(opt)], i, member_opt.state_dict())
         for attr in GENERATORS:
             setattr(t, attr, draws.MemberGenerators([getattr(m, attr) for m in members]))
         if t.intrinsic is not None:
@@ -259,10 +251,11 @@ class AgentBatch:
         return {"nets": agent.nets, **({"aux": agent.aux} if agent.aux is not None else {}),
                 **({"signal": agent.signal} if agent.signal is not None else {})}
 
-    def _template_optimizers(self) -> list[torch.optim.Optimizer]:
-        t = self.template
-        opts = [t.critic_opt, t.actor_opt, t.alpha_opt]
-        opts += [m.optimizer for m in (t.aux, t.signal) if m is not None and m.optimizer is not None]
+    @staticmethod
+    def _optimizers_of(agent: SACAgent) -> list[torch.optim.Optimizer]:
+        """``agent``'s optimisers, in one order for every agent of the configuration."""
+        opts = [agent.critic_opt, agent.actor_opt, agent.alpha_opt]
+        opts += [m.optimizer for m in (agent.aux, agent.signal) if m is not None and m.optimizer is not None]
         return opts
 
     def _stacked_optimizer(self, opt: torch.optim.Optimizer) -> torch.optim.Optimizer:
@@ -271,15 +264,6 @@ class AgentBatch:
         groups = [{**{k: v for k, v in g.items() if k != "params"},
                    "params": [self.stacked[self.name_of[id(p)]] for p in g["params"]]} for g in opt.param_groups]
         return type(opt)(groups)
-
-    def _member_optimizers(self, agent: SACAgent) -> list[torch.optim.Optimizer]:
-        opts = [agent.critic_opt, agent.actor_opt, agent.alpha_opt]
-        opts += [m.optimizer for m in (agent.aux, agent.signal) if m is not None and m.optimizer is not None]
-        return opts
-
-    def _load_optimizers(self, i: int, agent: SACAgent) -> None:
-        for opt, member_opt in zip(self._template_optimizers(), self._member_optimizers(agent)):
-            self._set_member_optimizer_state(self.optimizers[id(opt)], i, member_opt.state_dict())
 
     def _set_member_optimizer_state(self, stacked_opt: torch.optim.Optimizer, i: int, member_state: dict) -> None:
         params = [p for g in stacked_opt.param_groups for p in g["params"]]

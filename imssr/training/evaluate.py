@@ -25,25 +25,15 @@ def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[f
     With ``record`` (a list), the first episode's frames (``(H, W, 3)`` uint8,
     what the agent sees) are appended to it.
     """
-    returns = []
-    for episode in range(episodes):
-        obs, info = env.reset()
-        keep = record is not None and episode == 0
-        if keep:
-            record.append(_hwc(info["frame"]))
-        done, total = False, 0.0
-        while not done:
-            action = agent.act(obs, deterministic=True)
-            if not np.isfinite(action).all():
-                # The simulator would end in a PhysicsError traceback; the trainer adds the step.
-                raise DivergedError(f"evaluation action {non_finite_text(action)}")
-            obs, reward, terminated, truncated, info = env.step(action)
-            if keep:
-                record.append(_hwc(info["frame"]))
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-    return [float(r) for r in np.asarray(returns)]
+    def act(obs: dict) -> dict:
+        return {k: agent.act(o, deterministic=True) for k, o in obs.items()}
+
+    ((returns, frames, error),) = evaluate_members(act, [env], episodes, record is not None)
+    if record is not None:
+        record.extend(frames)
+    if error is not None:
+        raise error
+    return returns
 
 
 def evaluate_members(act, envs: list, episodes: int, record: bool = False
@@ -52,7 +42,8 @@ def evaluate_members(act, envs: list, episodes: int, record: bool = False
     episodes in lockstep: ``act(observations)`` gives every agent's deterministic action for its
     observation in one call (a batch of agents' members).  Returns, per env, its returns, the
     first episode's frames when ``record``, and the error that stopped it (a non-finite action),
-    as :func:`evaluate` would have raised it; an env that ended its episode waits for the others."""
+    as :func:`evaluate` would have raised it (the simulator would end in a PhysicsError traceback;
+    the trainer adds the step); an env that ended its episode waits for the others."""
     results = [([], [], None) for _ in envs]
     for episode in range(episodes):
         live = [k for k, r in enumerate(results) if r[2] is None]
