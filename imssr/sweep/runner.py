@@ -230,11 +230,13 @@ def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[in
     attempt_ = None
     try:
         attempt_ = RunAttempt(list(run_dirs), steps, attempt, niceness)
+        # In steps: a Ray cancel interrupts the main thread between bytecodes, which a
+        # blocking wait for the child never returns to.
         while not attempt_.ended:
             time.sleep(0.5)
     finally:
         if attempt_ is not None:
-            attempt_.stop()
+            attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
     return attempt_.finish_all()
 
 
@@ -248,17 +250,7 @@ def execute_run(run_dir: RunDir | str, steps: int, attempt: int, niceness: Optio
     ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``: as
     in :class:`RunAttempt`.
     """
-    attempt_ = None
-    try:
-        attempt_ = RunAttempt(run_dir, steps, attempt, niceness)
-        # In steps: a Ray cancel interrupts the main thread between bytecodes, which a
-        # blocking wait for the child never returns to.
-        while not attempt_.ended:
-            time.sleep(0.5)
-    finally:
-        if attempt_ is not None:
-            attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
-    return attempt_.finish()
+    return execute_runs([run_dir], steps, attempt, niceness)[0]
 
 
 def _open_log(path: str, header: str):
