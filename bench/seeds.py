@@ -176,11 +176,12 @@ def main(argv=None) -> int:
             rows.append(r)
             print(f"| {n} | {r['layout']} | {r['steps_s']:.2f} | {r['ratio']:.2f} | {r['mib_per_seed']:.0f} |",
                   flush=True)
-    if args.csv:
-        with open(args.csv, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+        if args.csv:
+            # Rewritten after every N, so a bench stopped by a time limit keeps the rows it finished.
+            with open(args.csv, "w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=list(rows[0]))
+                w.writeheader()
+                w.writerows(rows)
     return 0
 
 

@@ -12,8 +12,9 @@
 #   runs.tar.gz                       imssr export of every finished run (config.json, CSV logs)
 #   sweep_status.json, sweep.log      the sweep's status and the first packed process's output
 #   nvidia-smi.txt                    the device, driver and CUDA versions
+#   progress.log                      every 20 s: GPU use and each run's last training row
 # Settings (environment): BUDGET_S (total seconds, default 540), BENCH_S (the bench's share,
-# default 150), PROCESSES (processes at once, default 4), RUNS_PER_PROCESS (default 5),
+# default 120; 0 skips it, as when the same command is run again to resume the sweep), PROCESSES (processes at once, default 4), RUNS_PER_PROCESS (default 5),
 # CPUS_PER_PROCESS (default 2: torch threads of a process), ENV_WORKERS (default true: each env in
 # a process of its own, stepping while the agent learns), SEEDS (default 1-10), DEVICE (cuda),
 # TINY=1 (tiny networks and budgets, one seed: the CPU test in tests/test_gpu_script.py).
@@ -30,7 +31,7 @@ OUT_DIR="${OUT:-/tmp/gpu-out}/$NAME"
 ROOT="${ROOT:-/tmp/gpu-runs/$NAME}"
 DEVICE="${DEVICE:-cuda}"
 BUDGET_S="${BUDGET_S:-540}"
-BENCH_S="${BENCH_S:-150}"
+BENCH_S="${BENCH_S:-120}"
 PROCESSES="${PROCESSES:-4}"
 RUNS_PER_PROCESS="${RUNS_PER_PROCESS:-5}"
 CPUS_PER_PROCESS="${CPUS_PER_PROCESS:-2}"
@@ -45,7 +46,7 @@ left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
 
 { nvidia-smi 2>&1 || echo "no nvidia-smi"; "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"; } > "$OUT_DIR/nvidia-smi.txt" 2>&1 || true
 
-BENCH=(--device "$DEVICE" --n 1 2 4 8 16 --steps 20 --warmup 5 --fill 2000)
+BENCH=(--device "$DEVICE" --n 1 2 4 8 16 --steps 20 --warmup 5 --fill 1000)
 SET=(--set train.checkpoint_every_steps=100000000 --set "train.env_workers=$ENV_WORKERS" --set train.replay_device=cpu)
 if [ "${TINY:-0}" = 1 ]; then
   BENCH=(--device "$DEVICE" --n 1 --modes loop --steps 2 --warmup 1 --fill 200 --threads 1 --set agent.batch_size=8
@@ -55,10 +56,20 @@ if [ "${TINY:-0}" = 1 ]; then
         --set train.replay_capacity=1000 --set train.eval_every_steps=70 --set train.eval_episodes=1)
 fi
 
-echo "gpu_dmc100k: bench ($BENCH_S s at most)"
-timeout "$BENCH_S" "$PY" bench/seeds.py "${BENCH[@]}" --csv "$OUT_DIR/bench_seeds.csv" \
-  > "$OUT_DIR/bench_seeds.md" 2>&1 || echo "gpu_dmc100k: the bench stopped early (exit $?)" >> "$OUT_DIR/bench_seeds.md"
-cat "$OUT_DIR/bench_seeds.md"
+if [ "$BENCH_S" -gt 0 ]; then
+  echo "gpu_dmc100k: bench ($BENCH_S s at most)"
+  timeout "$BENCH_S" "$PY" bench/seeds.py "${BENCH[@]}" --csv "$OUT_DIR/bench_seeds.csv" \
+    > "$OUT_DIR/bench_seeds.md" 2>&1 || echo "gpu_dmc100k: the bench stopped early (exit $?)" >> "$OUT_DIR/bench_seeds.md"
+  cat "$OUT_DIR/bench_seeds.md"
+fi
+
+# Every 20 s: the GPU's use and each run's last training row (agent step, wall time), appended.
+(set +e; while sleep 20; do
+   echo "== $(( $(date +%s) - START )) s"
+   nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null || true
+   for f in $(find "$ROOT" -name train.csv 2>/dev/null | sort); do echo "$f $(tail -n 1 "$f")"; done
+ done >> "$OUT_DIR/progress.log" 2>&1) &
+MONITOR=$!
 
 GPU_SET=()
 [ "$DEVICE" = cpu ] || GPU_SET=(--gpus-per-run "$(awk "BEGIN {print 1 / ($PROCESSES * $RUNS_PER_PROCESS)}")")
@@ -71,6 +82,7 @@ timeout --signal=TERM --kill-after=60 "$(( $(left) - 45 ))" "$PY" -m imssr sweep
 echo "gpu_dmc100k: sweep exit ${PIPESTATUS[0]} after $(( $(date +%s) - START )) s"
 set -e
 
+kill "$MONITOR" 2>/dev/null || true
 cp "$ROOT/sweep_status.json" "$OUT_DIR/" 2>/dev/null || true
 # The largest sweep.log: a packed process's output (the others point to it).
 first_log=$(find "$ROOT" -name sweep.log -printf '%s %p\n' 2>/dev/null | sort -rn | head -n 1 | cut -d' ' -f2-)
