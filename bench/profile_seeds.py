@@ -1,0 +1,91 @@
+"""Where the time of N seeds' agent step goes: torch.profiler over a single agent and a batch.
+
+    python bench/profile_seeds.py [--device cuda] [--algo curl] [--n 5] [--modes vmap loop]
+        [--steps 5] [--warmup 3] [--fill 1000] [--rows 20] [--set SECTION.FIELD=VALUE ...]
+
+The agents, replay buffers and agent step (the policy's action, then the update) of
+``bench/seeds.py``: first one single-seed agent, then ``--n`` seeds as one
+:class:`~imssr.agents.batched.AgentBatch` in each of ``--modes``.  For each it prints the wall
+time per agent step (all seeds), the device's busy time per step (the sum of its kernels' times;
+CPU: the operators' self time) and the operators that take most of it.  Busy time near the wall
+time means the device is the limit; far below, the host (Python, dispatch, launches).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from seeds import build  # noqa: E402  (bench/seeds.py: the same agents and buffers)
+
+
+def profile_one(args, n: int, mode: str) -> None:
+    args.batched, args.mode = mode != "single", mode
+    seeds = list(range(1, n + 1))
+    agent, replays, obs_shape = build(args, seeds)
+    rng = np.random.default_rng(0)
+    cuda = args.device.startswith("cuda")
+
+    def one_step(step: int) -> None:
+        obs = rng.integers(0, 256, (n, *obs_shape), dtype=np.uint8)
+        if args.batched:
+            agent.act(obs, deterministic=False)
+            agent.update(replays, step)
+        else:
+            agent.act(obs[0], deterministic=False)
+            agent.update(replays[0], step)
+
+    for step in range(args.warmup):
+        one_step(step)
+    if cuda:
+        torch.cuda.synchronize()
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    start = time.perf_counter()
+    with profile(activities=activities) as prof:
+        for step in range(args.warmup, args.warmup + args.steps):
+            one_step(step)
+        if cuda:
+            torch.cuda.synchronize()
+    wall = (time.perf_counter() - start) / args.steps
+    events = prof.key_averages()
+    key = "self_device_time_total" if cuda else "self_cpu_time_total"
+    busy = sum(getattr(e, key) for e in events) / 1e6 / args.steps
+    print(f"\n## {n} seed{'s' if n > 1 else ''}, {mode}: {wall * 1e3:.1f} ms per agent step (all seeds), "
+          f"{n / wall:.1f} agent steps/s; {'device' if cuda else 'CPU operators'} busy "
+          f"{busy * 1e3:.1f} ms per step ({busy / wall:.0%}, under the profiler)")
+    print(events.table(sort_by=key, row_limit=args.rows, max_name_column_width=60))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--algo", default="curl")
+    p.add_argument("--task", default="cartpole_swingup")
+    p.add_argument("--n", type=int, default=5)
+    p.add_argument("--modes", nargs="+", default=["vmap", "loop"], choices=["vmap", "loop"])
+    p.add_argument("--steps", type=int, default=5)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--fill", type=int, default=1000)
+    p.add_argument("--action-dim", type=int, default=1)
+    p.add_argument("--rows", type=int, default=20)
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    args = p.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print(f"# bench/profile_seeds.py: {args.algo} on {args.device}, torch {torch.__version__}, "
+          f"{args.steps} profiled agent steps after {args.warmup}")
+    profile_one(args, 1, "single")
+    for mode in args.modes:
+        profile_one(args, args.n, mode)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
