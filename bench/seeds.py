@@ -2,7 +2,7 @@
 
     python bench/seeds.py [--device cpu|cuda] [--algo curl] [--task cartpole_swingup]
         [--n 1 2 4 8 16] [--modes loop vmap] [--steps 20] [--warmup 3] [--threads 0]
-        [--fill 1000] [--set SECTION.FIELD=VALUE ...] [--csv PATH]
+        [--fill 1000] [--baseline-n 1 2 4] [--set SECTION.FIELD=VALUE ...] [--csv PATH]
 
 For each N the same work is timed in one run: N seeds as one
 :class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), once per
@@ -131,11 +131,13 @@ def collect(procs: list[subprocess.Popen]) -> list[dict]:
 def measure(args, n: int) -> list[dict]:
     """The rows of ``n`` seeds: the separate processes first (the baseline), then each mode."""
     total = args.threads or torch.get_num_threads()
-    separate = collect([launch(args, 1, "", max(1, total // n)) for _ in range(n)])
-    # Separate processes start together; the slowest one's time is the wall time of the N seeds.
-    base = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
-    rows = [{"n": n, "layout": f"{n} process{'es' if n > 1 else ''}", "steps_s": base, "ratio": 1.0,
-             "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20}]
+    rows, base = [], float("nan")
+    if args.baseline_n is None or n in args.baseline_n:
+        separate = collect([launch(args, 1, "", max(1, total // n)) for _ in range(n)])
+        # Separate processes start together; the slowest one's time is the wall time of the N seeds.
+        base = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
+        rows.append({"n": n, "layout": f"{n} process{'es' if n > 1 else ''}", "steps_s": base, "ratio": 1.0,
+                     "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20})
     for mode in args.modes:
         (batch,) = collect([launch(args, n, mode, total)])
         rate = batch["steps"] / batch["seconds"]
@@ -157,6 +159,9 @@ def main(argv=None) -> int:
     p.add_argument("--fill", type=int, default=1000, help="random-frame transitions in each replay buffer")
     p.add_argument("--action-dim", type=int, default=1, help="|A| (cartpole: 1)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    p.add_argument("--baseline-n", type=int, nargs="+", metavar="N",
+                   help="run the separate processes only for these N (default: every N); each start "
+                        "costs seconds, many on a GPU machine; rows without one show no ratio")
     p.add_argument("--csv")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--batched", action="store_true", help=argparse.SUPPRESS)
@@ -174,7 +179,8 @@ def main(argv=None) -> int:
     for n in args.n:
         for r in measure(args, n):
             rows.append(r)
-            print(f"| {n} | {r['layout']} | {r['steps_s']:.2f} | {r['ratio']:.2f} | {r['mib_per_seed']:.0f} |",
+            ratio = "-" if r["ratio"] != r["ratio"] else f"{r['ratio']:.2f}"
+            print(f"| {n} | {r['layout']} | {r['steps_s']:.2f} | {ratio} | {r['mib_per_seed']:.0f} |",
                   flush=True)
         if args.csv:
             # Rewritten after every N, so a bench stopped by a time limit keeps the rows it finished.

@@ -23,6 +23,9 @@
 # host memory (train.replay_device=cpu: the same batches): on the GPU each run's store would
 # reserve its whole capacity (100,000 transitions, 3 GB), 60 GB for 20 runs.  At the budget's end the
 # sweep is stopped (SIGTERM: every training checkpoints and stops) and whatever finished is kept.
+# On one H100 the 20 runs train at about 113 agent steps/s in all (docs/performance.md, "On one
+# NVIDIA H100"): 250,000 agent steps are about 37 minutes, so they finish only with BUDGET_S of
+# about 2,500 or more.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SWEEP="${1:-docs/results/dmc100k_cartpole_swingup/sweep.json}"
@@ -46,7 +49,9 @@ left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
 
 { nvidia-smi 2>&1 || echo "no nvidia-smi"; "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"; } > "$OUT_DIR/nvidia-smi.txt" 2>&1 || true
 
-BENCH=(--device "$DEVICE" --n 1 2 4 8 16 --steps 20 --warmup 5 --fill 1000)
+# vmap only (loop is slower than separate processes on a GPU), separate processes up to N = 4:
+# each start of a process costs 15-25 s on a GPU machine.
+BENCH=(--device "$DEVICE" --n 1 2 4 8 16 --modes vmap --baseline-n 1 4 --steps 20 --warmup 5 --fill 1000)
 SET=(--set train.checkpoint_every_steps=100000000 --set "train.env_workers=$ENV_WORKERS" --set train.replay_device=cpu)
 if [ "${TINY:-0}" = 1 ]; then
   BENCH=(--device "$DEVICE" --n 1 --modes loop --steps 2 --warmup 1 --fill 200 --threads 1 --set agent.batch_size=8
