@@ -119,6 +119,36 @@ def filled_buffer(n_steps: int = 200, action_dim: int = 1, seed: int = 0, episod
     return buf
 
 
+def as_single_file_replay(path: str, checksum: bool = True) -> np.ndarray:
+    """Rewrite the replay buffer saved as ``path`` in the layout of imssr before frame files: the
+    ``.npz`` (no counter, no frame-file list; ``frames_sha256`` when ``checksum``) and one
+    ``.frames.npy`` of the ring's first slots.  Returns those frames."""
+    import hashlib
+
+    from imssr.replay.buffer import frames_path, replay_files
+
+    with np.load(path) as data:
+        fields = {k: data[k] for k in data.files if k not in ("frame_chunks", "frame_chunk_sha256")}
+        capacity, head, size = (int(x) for x in fields["meta"][:3])
+        written = int(fields["meta"][4])
+        chunks = [(int(a), int(b)) for a, b in data["frame_chunks"]]
+    fields["meta"] = fields["meta"][:4]
+    extent = capacity if size == capacity else head
+    frames = np.zeros((extent, *(int(x) for x in fields["frame_shape"])), np.uint8)
+    for (a, b), chunk_file in zip(chunks, replay_files(path)[1:]):
+        for k, frame in zip(range(a, b), np.load(chunk_file)):
+            if k >= written - size:
+                frames[k % capacity] = frame
+        os.unlink(chunk_file)
+    np.save(frames_path(path), frames)
+    if checksum:
+        with open(frames_path(path), "rb") as fh:
+            fields["frames_sha256"] = np.array(hashlib.sha256(fh.read()).hexdigest())
+    with open(path, "wb") as fh:
+        np.savez(fh, **fields)
+    return frames
+
+
 def assert_same_nets(a, b) -> None:
     """Every tensor of two agents' networks is bit-for-bit equal."""
     for (k, v), (_, w) in zip(a.nets.state_dict().items(), b.nets.state_dict().items()):

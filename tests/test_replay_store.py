@@ -1,5 +1,7 @@
 """The two frame stores: the numpy host store and the tensor store (run here on the CPU) draw the
 same indices, give the same batches and write the same files, so either resumes the other."""
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -7,7 +9,7 @@ import torch
 import imssr.replay.buffer as buffer_module
 import imssr.replay.device as device_module
 from imssr.replay import FrameReplayBuffer, TensorFrameReplayBuffer
-from imssr.replay.buffer import Packing, ReplayFileError, frames_path
+from imssr.replay.buffer import Packing, ReplayFileError, replay_files
 
 SHAPE = (3, 6, 6)
 
@@ -79,16 +81,18 @@ def test_the_packed_staging_buffer_round_trips():
 @pytest.mark.parametrize("capacity", [1000, 100])
 def test_both_stores_write_the_same_files(tmp_path, capacity, chunks):
     host, tensor = _fill(_host(capacity, physics_dim=4)), _fill(_tensor(capacity, physics_dim=4))
-    a, b = str(tmp_path / "host.npz"), str(tmp_path / "tensor.npz")
+    a, b = str(tmp_path / "host" / "replay.npz"), str(tmp_path / "tensor" / "replay.npz")
     host.save(a)
     tensor.save(b)
-    with open(frames_path(a), "rb") as fa, open(frames_path(b), "rb") as fb:
-        assert fa.read() == fb.read()
-    with np.load(a) as da, np.load(b) as db:
-        assert da.files == db.files
-        for k in da.files:
-            assert np.array_equal(da[k], db[k]), k
-    assert np.array_equal(np.load(frames_path(b)), _frames(host)[:capacity])
+    files_a, files_b = replay_files(a), replay_files(b)
+    assert [os.path.basename(f) for f in files_a] == [os.path.basename(f) for f in files_b]
+    for fa, fb in zip(files_a, files_b):
+        with open(fa, "rb") as ha, open(fb, "rb") as hb:
+            assert ha.read() == hb.read(), fa
+    # The frame file holds the live frames in the order they were written.
+    (frame_file,) = files_b[1:]
+    order = np.arange(host.written - host.size, host.written) % capacity
+    assert np.array_equal(np.load(frame_file), np.asarray(host.frames)[order])
 
 
 @pytest.fixture(params=["one chunk", "many chunks"])
@@ -123,14 +127,15 @@ def test_a_file_of_one_store_resumes_in_the_other(tmp_path, writer, reader, chun
 def test_the_tensor_store_verifies_what_it_loads(tmp_path):
     path = str(tmp_path / "replay.npz")
     _fill(_host()).save(path)
-    with open(frames_path(path), "r+b") as fh:
+    frame_file = replay_files(path)[-1]
+    with open(frame_file, "r+b") as fh:
         fh.seek(-1, 2)
         last = fh.read(1)
         fh.seek(-1, 2)
         fh.write(bytes([last[0] ^ 0xFF]))
-    with pytest.raises(ReplayFileError, match=r"replay\.npz\.frames\.npy is damaged \(checksum mismatch\)"):
+    with pytest.raises(ReplayFileError, match=r"replay-frames-\d+-\d+\.npy is damaged \(checksum mismatch\)"):
         _tensor().load(path)
-    with open(frames_path(path), "r+b") as fh:
+    with open(frame_file, "r+b") as fh:
         fh.truncate(200)
     with pytest.raises(ReplayFileError, match="truncated"):
         _tensor().load(path)
@@ -141,7 +146,7 @@ def test_an_empty_tensor_store_saves_and_loads(tmp_path):
     _tensor().save(path)
     other = _tensor()
     other.load(path)
-    assert len(other) == 0 and np.load(frames_path(path)).shape == (0, *SHAPE)
+    assert len(other) == 0 and replay_files(path) == [path]
 
 
 def test_the_tensor_store_takes_any_frame_layout():
@@ -167,3 +172,75 @@ def test_on_a_gpu_both_paths_give_the_cpu_batches(tmp_path):
     loaded = _host()
     loaded.load(path, device.state_dict()["rng"])
     assert np.array_equal(_frames(loaded), device.frames[:device.size].cpu().numpy())
+
+
+# -- saves that write only what is new ------------------------------------------------------
+
+def _frame_files(directory) -> dict[str, tuple[int, int]]:
+    """The frame files in ``directory`` and their (inode, mtime): which writes made them."""
+    return {f: (os.stat(os.path.join(directory, f)).st_ino, os.stat(os.path.join(directory, f)).st_mtime_ns)
+            for f in os.listdir(directory) if f.startswith("replay-frames-")}
+
+
+def test_a_save_writes_only_the_frames_since_the_last_one(tmp_path):
+    buf = _fill(_host(capacity=1000), n_steps=100)
+    buf.save(str(tmp_path / "a.npz"))
+    first = _frame_files(tmp_path)
+    _fill(buf, n_steps=50, seed=1)
+    buf.save(str(tmp_path / "b.npz"))
+    files = replay_files(str(tmp_path / "b.npz"))
+    # The first file is the one written before (same inode and time), named again; the new one
+    # holds the 52 frames written since (50 transitions and two episodes' first frames).
+    assert {f: v for f, v in _frame_files(tmp_path).items() if f in first} == first
+    assert [os.path.basename(f) for f in files[1:]] == [*first, "replay-frames-000000000103-000000000155.npy"]
+    assert np.load(files[2]).shape == (52, *SHAPE)
+    buf.save(str(tmp_path / "c.npz"))  # nothing new: no frame file written
+    assert replay_files(str(tmp_path / "c.npz"))[1:] == files[1:] and len(_frame_files(tmp_path)) == 2
+
+
+@pytest.mark.parametrize("store", [_host, _tensor])
+@pytest.mark.parametrize("every", [7, 33, 150])  # 150 > capacity: more than a ring between saves
+def test_saves_across_the_rings_wraps_load_exactly(tmp_path, store, every):
+    buf, rng = store(capacity=100), np.random.default_rng(3)
+    for save in range(8):
+        _fill(buf, n_steps=every, episode_len=int(rng.integers(5, 40)), seed=save)
+        path = str(tmp_path / f"replay-{save}.npz")
+        buf.save(path)
+        loaded = store(capacity=100, seed=99)
+        loaded.load(path, buf.state_dict()["rng"])
+        assert loaded.state_dict() == buf.state_dict() and loaded.written == buf.written
+        live = buf.live_slots()
+        assert np.array_equal(np.asarray(loaded.frames)[live], np.asarray(buf.frames)[live])
+        _assert_same_batch(loaded.sample_batch(32, "cpu"), buf.sample_batch(32, "cpu"))
+        # Only files that still hold a live frame are named.
+        assert all(int(f[-16:-4]) > buf.written - buf.size for f in replay_files(path)[1:])
+
+
+def test_a_missing_frame_file_is_one_line_and_the_next_save_writes_them_all(tmp_path):
+    buf = _fill(_host(capacity=1000), n_steps=60)
+    buf.save(str(tmp_path / "a.npz"))
+    _fill(buf, n_steps=60, seed=1)
+    buf.save(str(tmp_path / "b.npz"))
+    lost = replay_files(str(tmp_path / "b.npz"))[1]
+    os.unlink(lost)
+    with pytest.raises(ReplayFileError, match=rf"^replay buffer file not found: {lost}$"):
+        _host(capacity=1000).load(str(tmp_path / "b.npz"))
+    buf.save(str(tmp_path / "c.npz"))
+    (whole,) = replay_files(str(tmp_path / "c.npz"))[1:]
+    assert np.load(whole).shape == (buf.size, *SHAPE)
+    _host(capacity=1000).load(str(tmp_path / "c.npz"))
+
+
+def test_an_index_that_misses_frames_is_refused(tmp_path):
+    buf = _fill(_host(capacity=1000), n_steps=60)
+    buf.save(str(tmp_path / "a.npz"))
+    _fill(buf, n_steps=60, seed=1)
+    path = str(tmp_path / "b.npz")
+    buf.save(path)
+    with np.load(path) as data:
+        fields = {k: data[k] for k in data.files}
+    fields["frame_chunks"], fields["frame_chunk_sha256"] = fields["frame_chunks"][1:], fields["frame_chunk_sha256"][1:]
+    with open(path, "wb") as fh:
+        np.savez(fh, **fields)  # unsealed: read unverified, as a file of imssr before checksums
+    with pytest.raises(ReplayFileError, match=r"b\.npz does not name frame files for all its frames$"):
+        _host(capacity=1000).load(path)

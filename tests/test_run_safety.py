@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_same_nets, fill_fs, filled_buffer, tiny_config, train_run, without_timing
+from conftest import (as_single_file_replay, assert_same_nets, fill_fs, filled_buffer, tiny_config, train_run,
+                      without_timing)
 from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_csv, atomic_write_text
@@ -80,6 +81,12 @@ def run(stopped, tmp_path):
     path = str(tmp_path / "run")
     shutil.copytree(stopped, path)
     return path
+
+
+REPLAY_250 = ["replay-000000250.npz", "replay-frames-000000000000-000000000126.npy",
+              "replay-frames-000000000126-000000000252.npy"]
+"""The replay files of the checkpoint at agent step 250: the index and one frame file per save
+(125 agent steps and an episode's first frame each)."""
 
 
 def _ckpt(run_dir, name):
@@ -246,8 +253,7 @@ def test_numbered_checkpoints_are_real_copies(stopped):
     assert not os.path.samefile(latest, numbered)
     assert open(latest, "rb").read() == open(numbered, "rb").read()
     assert sorted(os.listdir(os.path.join(stopped, "checkpoints"))) == [
-        "latest.pt", "replay-000000250.npz", "replay-000000250.npz.frames.npy",
-        "step-000000125.pt", "step-000000250.pt"]
+        "latest.pt", *REPLAY_250, "step-000000125.pt", "step-000000250.pt"]
 
 
 def test_flipped_bytes_in_latest_are_caught_and_resume_falls_back_exactly(run, full, capsys):
@@ -284,8 +290,8 @@ def test_an_older_checkpoint_resumes_with_a_refilled_buffer(run, capsys):
 def test_a_lost_replay_buffer_needs_refill_buffer(run, fault, capsys):
     replay = _ckpt(run, "replay-000000250.npz")
     if fault == "damaged":
-        _flip(replay + ".frames.npy")
-        expected = r"replay-000000250\.npz\.frames\.npy is damaged \(checksum mismatch\)"
+        _flip(_ckpt(run, REPLAY_250[2]))
+        expected = r"replay-frames-000000000126-000000000252\.npy is damaged \(checksum mismatch\)"
     else:
         os.unlink(replay)
         expected = r"replay buffer file not found: .*replay-000000250\.npz"
@@ -310,19 +316,33 @@ def test_files_from_before_checksums_still_load(run):
     path = RunDir(run).latest
     state = torch.load(path, weights_only=False)
     torch.save(state, path)  # as earlier versions wrote it: no seal
-    replay = _ckpt(run, state["replay_file"])
-    with np.load(replay) as data:
-        fields = {k: data[k] for k in data.files if k != "frames_sha256"}
-    with open(replay, "wb") as fh:
-        np.savez(fh, **fields)
-    frames = np.load(replay + ".frames.npy")
-    np.save(replay + ".frames.npy", frames)
+    frames = as_single_file_replay(_ckpt(run, state["replay_file"]), checksum=False)
     t = Trainer(_cfg(), run, resume=True)
     try:
         assert t.step == 250 and t.replay.size == frames.shape[0]
         assert np.array_equal(t.replay.frames[: t.replay.size], frames)
     finally:
         t.close()
+
+
+def test_a_replay_buffer_in_one_frames_file_resumes_exactly_and_is_verified(run, full):
+    """A checkpoint whose replay buffer is one ``.frames.npy`` beside its index (imssr before frame
+    files) resumes exactly; its next save writes frame files and drops the single file."""
+    frames = as_single_file_replay(_ckpt(run, "replay-000000250.npz"))
+    assert sorted(os.listdir(os.path.join(run, "checkpoints")))[1:3] == [
+        "replay-000000250.npz", "replay-000000250.npz.frames.npy"]
+    t = Trainer(_cfg(), run, resume=True)
+    t.close()
+    assert t.replay.size == frames.shape[0] and np.array_equal(t.replay.frames[: t.replay.size], frames)
+    _assert_same_run(_train(run, resume=True), run, full[1], full[0])
+    assert not [f for f in os.listdir(os.path.join(run, "checkpoints")) if f.endswith(".frames.npy")]
+
+
+def test_a_damaged_single_frames_file_is_caught(run):
+    as_single_file_replay(_ckpt(run, "replay-000000250.npz"))
+    _flip(_ckpt(run, "replay-000000250.npz.frames.npy"))
+    with pytest.raises(ImssrError, match=r"replay-000000250\.npz\.frames\.npy is damaged \(checksum mismatch\)"):
+        Trainer(_cfg(), run, resume=True)
 
 
 def test_evaluate_picks_a_checkpoint(run, capsys):
@@ -369,8 +389,7 @@ def _after_failed_save(run_dir):
     """The previous checkpoint is whole and nothing of the failed save is left."""
     assert load_checkpoint(RunDir(run_dir).latest)["step"] == 250
     assert sorted(os.listdir(os.path.join(run_dir, "checkpoints"))) == [
-        "latest.pt", "replay-000000250.npz", "replay-000000250.npz.frames.npy",
-        "step-000000125.pt", "step-000000250.pt"]
+        "latest.pt", *REPLAY_250, "step-000000125.pt", "step-000000250.pt"]
 
 
 def test_checkpoint_write_on_a_full_disk_keeps_the_previous_one(run, full, monkeypatch):
@@ -398,19 +417,21 @@ def test_replay_write_on_a_full_disk(tmp_path, monkeypatch, error):
     buf = filled_buffer(60, capacity=100, size=8)
     path = str(tmp_path / "replay.npz")
     buf.save(path)
+    before = sorted(os.listdir(tmp_path))
+    buf.add(np.zeros(1), 0.0, 1.0, np.zeros((3, 8, 8), np.uint8))  # one new frame for the next save
 
-    def half_then_fail(fh, array, *args, **kwargs):
-        fh.write(b"\x93NUMPY" + bytes(100))
+    def half_then_fail(writer, slot, count):
+        writer.write(bytes(100))
         raise error
 
-    monkeypatch.setattr(np, "save", half_then_fail)
+    monkeypatch.setattr(buf, "_write_slots", half_then_fail)
     with pytest.raises(ImssrError) as err:
         buf.save(path)
     assert re.fullmatch(NO_SPACE.replace("no space left", r"no space left( \(disk quota exceeded\))?"),
                         str(err.value)), str(err.value)
-    assert f"while writing {path}.frames.npy (" in str(err.value)
+    assert f"while writing {tmp_path}/replay-frames-000000000062-000000000063.npy (" in str(err.value)
     monkeypatch.undo()
-    assert sorted(os.listdir(tmp_path)) == ["replay.npz", "replay.npz.frames.npy"]
+    assert sorted(os.listdir(tmp_path)) == before == ["replay-frames-000000000000-000000000062.npy", "replay.npz"]
     FrameReplayBuffer(100, (3, 8, 8), 1).load(path)  # the old files are whole
 
 
@@ -427,7 +448,7 @@ def test_a_run_on_a_full_file_system_stops_in_one_line_and_resumes(stopped, full
         t.close()
     match = re.fullmatch(NO_SPACE, str(err.value))
     assert match and match["device"] == mnt, str(err.value)
-    assert match["path"] == _ckpt(run, "replay-000000375.npz.frames.npy")
+    assert match["path"] == _ckpt(run, "replay-frames-000000000252-000000000378.npy")
     _after_failed_save(run)
     os.unlink(filler)
     _assert_same_run(_train(run, resume=True), run, full[1], full[0])
@@ -450,7 +471,7 @@ def test_every_writer_reports_a_full_file_system(tiny_fs):
     buf = filled_buffer(60, capacity=100, size=100)  # 1.8 MB of frames
     log = CSVLog(os.path.join(run, "train.csv"), ["frame", "note"])
     fill_fs(mnt)
-    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing .*replay\.npz\.frames\.npy"):
+    with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing .*replay-frames-0+-0+62\.npy"):
         buf.save(os.path.join(run, "replay.npz"))
     with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {run}/train.csv$"):
         for i in range(10_000):  # fills the file's last page first
@@ -476,7 +497,8 @@ def test_output_files_honour_the_umask(tmp_path, umask):
     finally:
         os.umask(old)
     files = ["config.json", "table.csv", "train.csv", "checkpoints/replay-000000003.npz",
-             "checkpoints/replay-000000003.npz.frames.npy", "checkpoints/latest.pt", "checkpoints/step-000000003.pt"]
+             "checkpoints/replay-frames-000000000000-000000000062.npy", "checkpoints/latest.pt",
+             "checkpoints/step-000000003.pt"]
     modes = {f: oct(stat.S_IMODE(os.stat(run / f).st_mode)) for f in files}
     assert modes == {f: oct(0o666 & ~umask) for f in files}
     assert lock_mode == 0o666 & ~umask

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config
+from conftest import filled_buffer, tiny_config
 from imssr.errors import ImssrError
 from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir, RunPath,
                           parse_run_path, run_path)
@@ -39,32 +39,39 @@ def test_layout(tmp_path):
     assert run.log("evaluate_episodes") == run.evaluate_episodes_log == os.path.join(root, "evaluate_episodes.csv")
     assert run.latest == os.path.join(root, "checkpoints", LATEST_CHECKPOINT)
     assert run.numbered(250) == os.path.join(root, "checkpoints", "step-000000250.pt")
-    # The replay file's name, formatted in one place, and its frames beside it.
+    # The replay index's name, formatted in one place, and the frame files it names beside it.
     assert RunDir.replay_name(250) == "replay-000000250.npz"
-    assert run.replay_files("replay-000000250.npz") == (
-        os.path.join(root, "checkpoints", "replay-000000250.npz"),
-        os.path.join(root, "checkpoints", "replay-000000250.npz.frames.npy"))
     assert run.video_path("training.gif") == os.path.join(root, "videos", "training.gif")
     assert (run.analysis_dir, run.tb_dir) == (os.path.join(root, "analysis"), os.path.join(root, "tb"))
     assert (run.done_path, run.status_path) == (os.path.join(root, DONE_FILE), os.path.join(root, STATUS_FILE))
     assert os.fspath(run) == root
     with pytest.raises(ImssrError, match=f"^run directory not found: {root}$"):
         run.require()
+    filled_buffer(60, size=8).save(run.replay_path("replay-000000250.npz"))
+    assert run.replay_files("replay-000000250.npz") == [
+        os.path.join(root, "checkpoints", "replay-000000250.npz"),
+        os.path.join(root, "checkpoints", "replay-frames-000000000000-000000000062.npy")]
 
 
 def test_save_keeps_the_newest_copies_and_only_the_replay_files_latest_names(tmp_path):
     run = RunDir(tmp_path)
     os.makedirs(run.checkpoint_dir)
+    # A single-file replay buffer (imssr before frame files) and a killed write's leftover.
     for name in ("replay-000000001.npz", "replay-000000001.npz.frames.npy", ".tmp-left-by-a-kill"):
         (tmp_path / "checkpoints" / name).write_bytes(b"x")
+    buf = filled_buffer(40, capacity=100, size=8)
     for step in (1, 2, 3):
+        for _ in range(40):  # 40 frames per save: the third save wraps the ring of 100
+            buf.add(np.zeros(1), 0.0, 1.0, np.full((3, 8, 8), step, np.uint8))
         current = RunDir.replay_name(step)
-        for path in run.replay_files(current):
-            open(path, "wb").close()
+        buf.save(run.replay_path(current))
         run.save_checkpoint(_state(step, replay_file=current), keep=2)
     assert run.checkpoint_steps() == [2, 3]
+    # Saved: frames 0-80 (the fill's 41 and 40 more), 81-120, 121-160; live: the last 100 (61-160),
+    # so the first file stays for its last 20 frames.
     assert sorted(os.listdir(run.checkpoint_dir)) == [
-        "latest.pt", "replay-000000003.npz", "replay-000000003.npz.frames.npy",
+        "latest.pt", "replay-000000003.npz", "replay-frames-000000000000-000000000081.npy",
+        "replay-frames-000000000081-000000000121.npy", "replay-frames-000000000121-000000000161.npy",
         "step-000000002.pt", "step-000000003.pt"]
     # Real copies: the numbered file of latest's step is equal to it, not the same file.
     assert load_checkpoint(run.numbered(3))["step"] == load_checkpoint(run.latest)["step"] == 3

@@ -19,6 +19,13 @@ states again under other nuisances and place them in the true state space: 8 byt
 coordinate + 4 per slot (cartpole +20 B, walker +76 B on a 30 KB frame).  Slots whose state
 was not recorded (loaded from a replay file written before this) hold NaN and step -1.
 
+Saved, the buffer is an index (``.npz``: the per-slot fields, the ring's position and the list of
+frame files with their sha256) and frame files that each hold the frames written between two
+saves (``replay-frames-<first>-<end>.npy``, frames counted from the buffer's first write).  A save
+writes only the frames written since the previous save into the same directory, and a new index;
+the frame files the index names are those still holding a live frame.  So the bytes a run writes
+for its checkpoints grow with its length, not with its square.
+
 An update takes its batch from :meth:`FrameReplayBuffer.sample_batch`: tensors on the agent's
 device, gathered on the host into one staging buffer (pinned for a GPU) and copied once.
 :class:`imssr.replay.device.TensorFrameReplayBuffer` keeps the frames on the device instead and
@@ -38,6 +45,28 @@ import torch
 from imssr.errors import ImssrError
 from imssr.files import atomic_path
 from imssr.integrity import HashingWriter, check_zip, seal_zip
+
+
+CHUNK_FILE = "replay-frames-{first:012d}-{end:012d}.npy"
+"""A frame file: the frames written ``first`` to ``end - 1`` (counted from the buffer's first write)."""
+
+
+def chunk_path(directory: str, first: int, end: int) -> str:
+    """The frame file of the frames ``first`` to ``end - 1`` in ``directory``."""
+    return os.path.join(directory, CHUNK_FILE.format(first=first, end=end))
+
+
+def replay_files(path: str) -> list[str]:
+    """The files of the buffer saved as ``path``: the index and the frame files it names (for an
+    index written before frame files, or one that cannot be read: the single frames file)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "frame_chunks" in data.files:
+                directory = os.path.dirname(path)
+                return [path] + [chunk_path(directory, int(a), int(b)) for a, b in data["frame_chunks"]]
+    except Exception:  # noqa: BLE001 - missing or damaged: load() says which, in one line
+        pass
+    return [path, frames_path(path)]
 
 
 def frames_path(path: str) -> str:
@@ -104,6 +133,11 @@ class FrameReplayBuffer:
         self.agent_step = np.zeros((self.capacity if self.physics_dim else 0,), dtype=np.int32)
         self.head = 0  # next slot to write
         self.size = 0  # live slots
+        self.written = 0  # frames ever written: frame k sits in slot k % capacity
+        # The frame files of the last save or load that still hold live frames, as
+        # (first, end, sha256), and their directory: the next save there writes only newer frames.
+        self._chunks: list[tuple[int, int, str]] = []
+        self._chunks_dir: Optional[str] = None
         self.rng = np.random.default_rng(seed)
         self._open_episode = False
 
@@ -166,6 +200,7 @@ class FrameReplayBuffer:
             self.agent_step[self.head] = agent_step
         self.head = (self.head + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+        self.written += 1
 
     def _write_frame(self, slot: int, frame: np.ndarray) -> None:
         self.frames[slot] = frame
@@ -286,33 +321,65 @@ class FrameReplayBuffer:
                 "rng": self.rng.bit_generator.state}
 
     def save(self, path: str) -> None:
-        """Write the live contents atomically: ``path`` (small fields, ``.npz``) and
-        ``path + '.frames.npy'`` (frames, raw, so that loading can stream them).
-
-        The frames' sha256 (hashed as they are written) is stored in the ``.npz``, and the
-        ``.npz`` is sealed with its own (:mod:`imssr.integrity`); :meth:`load` verifies both.
+        """Write the live contents atomically: the frames written since the last save into
+        ``path``'s directory as a new frame file (:data:`CHUNK_FILE`), then the index ``path``
+        (``.npz``: small fields, the ring's position, the frame files that hold live frames and
+        the sha256 of each).  The frame files of earlier saves stay as they are and are named
+        again while they hold a live frame; the ``.npz`` is sealed with its own sha256
+        (:mod:`imssr.integrity`).  :meth:`load` verifies every file it reads.
         """
+        directory = os.path.dirname(os.path.abspath(path))
+        live_from = self.written - self.size
+        chunks = [c for c in self._chunks if c[1] > live_from] if self._chunks_dir == directory else []
+        if not all(os.path.exists(chunk_path(directory, a, b)) for a, b, _ in chunks):
+            chunks = []  # a frame file was removed: write every live frame again
+        first = chunks[-1][1] if chunks else live_from
+        if first < self.written:
+            chunks.append((first, self.written, self._save_chunk(directory, first, self.written)))
         n = self._extent()
-        with atomic_path(frames_path(path), needed=n * self.frame_nbytes() + 128) as tmp:
-            with open(tmp, "wb") as fh:
-                writer = HashingWriter(fh)
-                self._save_frames(writer, n)
         small = {"actions": self.actions[:n], "rewards": self.rewards[:n], "discounts": self.discounts[:n],
                  "step_in_episode": self.step_in_episode[:n]}
         if self.physics_dim:
             small.update(physics=self.physics[:n], agent_step=self.agent_step[:n])
-        with atomic_path(path, needed=sum(x.nbytes for x in small.values()) + 4096) as tmp:
+        with atomic_path(path, needed=sum(x.nbytes for x in small.values()) + 4096 + 100 * len(chunks)) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, **small,
-                         meta=np.array([self.capacity, self.head, self.size, int(self._open_episode)]),
-                         frame_shape=np.array(self.frame_shape), frames_sha256=np.array(writer.digest))
+                         meta=np.array([self.capacity, self.head, self.size, int(self._open_episode), self.written]),
+                         frame_shape=np.array(self.frame_shape),
+                         frame_chunks=np.array([(a, b) for a, b, _ in chunks], dtype=np.int64).reshape(-1, 2),
+                         frame_chunk_sha256=np.array([h for _, _, h in chunks], dtype="<U64"))
             seal_zip(tmp)
+        self._chunks, self._chunks_dir = chunks, directory
 
-    def _save_frames(self, writer: HashingWriter, n: int) -> None:
-        """The first ``n`` frames as one ``.npy`` array."""
-        # Through a writer that is not a file: numpy then writes chunks with write() (hashed on
-        # the way) instead of tofile(), whose full-disk error has no errno.  A view: no copy.
-        np.save(writer, self.frames[:n])
+    def _save_chunk(self, directory: str, first: int, end: int) -> str:
+        """Write frames ``first`` to ``end - 1`` as one ``.npy`` frame file; returns its sha256."""
+        n = end - first
+        with atomic_path(chunk_path(directory, first, end), needed=n * self.frame_nbytes() + 128) as tmp:
+            with open(tmp, "wb") as fh:
+                # Through a writer that is not a file, hashed on the way (numpy's tofile() would
+                # lose a full disk's errno); the header is np.save's for this shape.
+                writer = HashingWriter(fh)
+                np.lib.format.write_array_header_1_0(writer, {
+                    "descr": np.lib.format.dtype_to_descr(np.dtype(np.uint8)), "fortran_order": False,
+                    "shape": (n, *self.frame_shape)})
+                for slot, count in self._slot_runs(first, end):
+                    self._write_slots(writer, slot, count)
+        return writer.digest
+
+    def _slot_runs(self, first: int, end: int) -> list[tuple[int, int]]:
+        """Frames ``first`` to ``end - 1`` as runs of consecutive slots ``(slot, count)``."""
+        runs, k = [], first
+        while k < end:
+            slot = k % self.capacity
+            count = min(end - k, self.capacity - slot)
+            runs.append((slot, count))
+            k += count
+        return runs
+
+    def _write_slots(self, writer: HashingWriter, slot: int, count: int) -> None:
+        """The frames of slots ``slot`` to ``slot + count - 1``, raw, to ``writer``."""
+        fb = self.frame_nbytes()
+        writer.write(memoryview(self.frames).cast("B")[slot * fb:(slot + count) * fb])  # a view: no copy
 
     def _extent(self) -> int:
         # Slots ever written: a prefix until the ring wraps, then all of it.
@@ -321,15 +388,17 @@ class FrameReplayBuffer:
     def load(self, path: str, rng_state: Optional[dict] = None) -> None:
         """Load what :meth:`save` wrote, verifying its checksums (files written before
         checksums load unverified); :class:`ReplayFileError` when a file is missing or damaged."""
-        for p in (path, frames_path(path)):
-            if not os.path.exists(p):
-                raise ReplayFileError(f"replay buffer file not found: {p}")
+        if not os.path.exists(path):
+            raise ReplayFileError(f"replay buffer file not found: {path}")
         try:
             if check_zip(path) is False:
                 raise ReplayFileError(f"replay buffer {path} is damaged (checksum mismatch)")
             # Arrays only: an object array in a replay file someone else wrote would unpickle.
             with np.load(path, allow_pickle=False) as data:
-                capacity, head, size, open_ = (int(x) for x in data["meta"])
+                meta = [int(x) for x in data["meta"]]
+                capacity, head, size, open_ = meta[:4]
+                # Files written before the counter: any count that puts the head where it is.
+                written = meta[4] if len(meta) > 4 else (head if size < capacity else capacity + head)
                 if capacity != self.capacity or tuple(data["frame_shape"]) != self.frame_shape:
                     raise ImssrError(
                         f"replay buffer {path} has capacity {capacity} and frames "
@@ -340,15 +409,70 @@ class FrameReplayBuffer:
                 self.discounts[:n] = data["discounts"]
                 self.step_in_episode[:n] = data["step_in_episode"]
                 self._read_physics(data, path, n)
-                expected = str(data["frames_sha256"]) if "frames_sha256" in data.files else None
-            self._read_frames(frames_path(path), n, expected)
+                if "frame_chunks" in data.files:
+                    chunks = [(int(a), int(b), str(h)) for (a, b), h in
+                              zip(data["frame_chunks"], data["frame_chunk_sha256"], strict=True)]
+                else:
+                    chunks = None
+                    expected = str(data["frames_sha256"]) if "frames_sha256" in data.files else None
+            directory = os.path.dirname(os.path.abspath(path))
+            if chunks is None:
+                fpath = frames_path(path)
+                if not os.path.exists(fpath):
+                    raise ReplayFileError(f"replay buffer file not found: {fpath}")
+                self._read_frames(fpath, n, expected)
+            else:
+                self._read_chunks(path, directory, chunks, written - size, written)
         except ImssrError:
             raise
         except Exception as exc:  # noqa: BLE001 - zip/npy corruption has many faces
             raise ReplayFileError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
-        self.head, self.size, self._open_episode = head, size, bool(open_)
+        self.head, self.size, self._open_episode, self.written = head, size, bool(open_), written
+        self._chunks, self._chunks_dir = (chunks, directory) if chunks is not None else ([], None)
         if rng_state is not None:
             self.rng.bit_generator.state = rng_state
+
+    def _read_chunks(self, path: str, directory: str, chunks: list[tuple[int, int, str]],
+                     live_from: int, written: int) -> None:
+        """Read the live frames (``live_from`` to ``written - 1``) from the frame files the index
+        ``path`` names, each verified against its sha256."""
+        covered = live_from
+        for first, end, _ in chunks:
+            if first > covered or end <= first:
+                break
+            covered = max(covered, end)
+        if (chunks and chunks[0][0] > live_from) or covered < written:
+            raise ReplayFileError(f"replay buffer {path} does not name frame files for all its frames")
+        for first, end, expected in chunks:
+            fpath = chunk_path(directory, first, end)
+            if not os.path.exists(fpath):
+                raise ReplayFileError(f"replay buffer file not found: {fpath}")
+            h = hashlib.sha256()
+            with open(fpath, "rb") as fh:
+                self._read_npy_header(fh, h, fpath, end - first)
+                dead = max(0, min(live_from, end) - first)  # frames the ring has overwritten since
+                if dead:
+                    read_hashed(fh, h, memoryview(bytearray(dead * self.frame_nbytes())), fpath)
+                for slot, count in self._slot_runs(first + dead, end):
+                    self._read_slots(fh, h, slot, count, fpath)
+                if fh.read(1):
+                    raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
+            if h.hexdigest() != expected:
+                raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
+
+    def _read_npy_header(self, fh, h, fpath: str, n: int) -> None:
+        """Read a frame file's ``.npy`` header (hashed into ``h``); it must describe ``n`` frames."""
+        reader = _HashingReader(fh, h)
+        version = np.lib.format.read_magic(reader)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(reader)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(reader)
+        else:
+            raise ValueError(f"npy format version {version}")
+        if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
+            raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
+                                  f"expected {(n, *self.frame_shape)} (uint8)")
 
     def _read_physics(self, data, path: str, n: int) -> None:
         """The recorded physics states and agent steps of a file; a file written before they
@@ -366,30 +490,23 @@ class FrameReplayBuffer:
         self.agent_step[:n] = data["agent_step"]
 
     def _read_frames(self, fpath: str, n: int, expected: Optional[str]) -> None:
-        """Read ``n`` frames straight into the ring, in chunks (peak memory stays one buffer),
-        hashing the file on the way; ``expected`` is its sha256 (None: not verified)."""
+        """Read the single frames file of an index written before frame files: ``n`` frames
+        straight into the ring's first slots, hashing the file on the way; ``expected`` is its
+        sha256 (None: not verified)."""
         h = hashlib.sha256()
         with open(fpath, "rb") as fh:
-            reader = _HashingReader(fh, h)
-            version = np.lib.format.read_magic(reader)
-            if version == (1, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_1_0(reader)
-            elif version == (2, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_2_0(reader)
-            else:
-                raise ValueError(f"npy format version {version}")
-            if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
-                raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
-                                      f"expected {(n, *self.frame_shape)} (uint8)")
-            self._read_frame_data(fh, h, n * self.frame_nbytes(), fpath)
+            self._read_npy_header(fh, h, fpath, n)
+            self._read_slots(fh, h, 0, n, fpath)
             if fh.read(1):
                 raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
         if expected is not None and h.hexdigest() != expected:
             raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
 
-    def _read_frame_data(self, fh, h, total: int, fpath: str) -> None:
-        """``total`` bytes of frames from ``fh`` into the ring's first slots, hashed into ``h``."""
-        read_hashed(fh, h, memoryview(self.frames).cast("B")[:total], fpath)
+    def _read_slots(self, fh, h, slot: int, count: int, fpath: str) -> None:
+        """``count`` frames from ``fh`` into slots ``slot`` onwards, hashed into ``h`` (peak memory
+        beyond the ring: one read)."""
+        fb = self.frame_nbytes()
+        read_hashed(fh, h, memoryview(self.frames).cast("B")[slot * fb:(slot + count) * fb], fpath)
 
     def __len__(self) -> int:
         return self.size

@@ -92,21 +92,19 @@ class TensorFrameReplayBuffer(FrameReplayBuffer):
         return {k: v.numpy() for k, v in self.gather_batch(idx, torch.device("cpu")).items()}
 
     # -- persistence -------------------------------------------------------------
-    def _save_frames(self, writer: HashingWriter, n: int) -> None:
-        """The bytes ``np.save`` writes for the host store's frames, copied from the device in
-        chunks (peak host memory: one chunk)."""
-        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.uint8)), "fortran_order": False,
-                  "shape": (n, *self.frame_shape)}
-        np.lib.format.write_array_header_1_0(writer, header)  # np.save's header for this shape
+    def _write_slots(self, writer: HashingWriter, slot: int, count: int) -> None:
+        """The slots' frames, copied from the device in pieces (peak host memory: one piece)."""
         rows = max(1, SAVE_CHUNK // self.frame_nbytes())
-        for start in range(0, n, rows):
-            chunk = self.frames[start:min(start + rows, n)].cpu()  # on the CPU: the tensor itself
-            writer.write(memoryview(chunk.numpy()).cast("B"))
+        for start in range(slot, slot + count, rows):
+            piece = self.frames[start:min(start + rows, slot + count)].cpu()  # on the CPU: the tensor itself
+            writer.write(memoryview(piece.numpy()).cast("B"))
 
-    def _read_frame_data(self, fh, h, total: int, fpath: str) -> None:
+    def _read_slots(self, fh, h, slot: int, count: int, fpath: str) -> None:
+        total = count * self.frame_nbytes()
         staging = torch.empty(max(1, min(total, READ_CHUNK)), dtype=torch.uint8,
                               pin_memory=self.device.type == "cuda")
-        view, flat = memoryview(staging.numpy()), self.frames.view(-1)
+        view = memoryview(staging.numpy())
+        flat = self.frames[slot:slot + count].view(-1)
         for start in range(0, total, len(view)):
             size = min(len(view), total - start)
             read_hashed(fh, h, view[:size], fpath)

@@ -22,13 +22,15 @@ Layout of ``RUN/`` (every name below is a constant of this module)::
     checkpoints/
         latest.pt                      the checkpoint a resume continues from
         step-<step>.pt                 the ``train.keep_checkpoints`` newest, real copies
-        replay-<step>.npz (+ .frames.npy)  the replay buffer ``latest.pt`` names
+        replay-<step>.npz              the index of the replay buffer ``latest.pt`` names
+        replay-frames-<a>-<b>.npy      its frames a to b-1 (:mod:`imssr.replay.buffer`)
 
-Order of a checkpoint's writes, each atomic (temporary file, fsync, rename): the replay frames,
-the replay ``.npz`` (which holds the frames' sha256), ``latest.pt`` (which names the ``.npz``),
-its numbered copy, then removal of what the new ``latest.pt`` no longer names.  A kill at any
-moment leaves ``latest.pt`` old or new, whole, with the replay files it names; a damaged
-``latest.pt`` falls back to the newest numbered checkpoint that verifies.
+Order of a checkpoint's writes, each atomic (temporary file, fsync, rename): the frames written
+since the last checkpoint (one new frame file), the replay ``.npz`` (which names the frame files
+that hold live frames, with their sha256), ``latest.pt`` (which names the ``.npz``), its numbered
+copy, then removal of what the new ``latest.pt`` no longer names.  A kill at any moment leaves
+``latest.pt`` old or new, whole, with the replay files it names; a damaged ``latest.pt`` falls
+back to the newest numbered checkpoint that verifies.
 
 Readers (``imssr evaluate``, ``analyze``, ``report``, :class:`imssr.api.Run`) take no lock:
 every file they read is replaced atomically.
@@ -47,7 +49,7 @@ from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
 from imssr.files import atomic_write_text, read_csv
 from imssr.jsonio import dumps
-from imssr.replay.buffer import frames_path
+from imssr.replay import buffer as replay_buffer
 from imssr.rundir.checkpoint import CheckpointDamaged, copy_checkpoint, load_checkpoint, write_checkpoint
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
 
@@ -95,8 +97,8 @@ LATEST_CHECKPOINT = "latest.pt"
 NUMBERED_CHECKPOINT = "step-{step:09d}.pt"
 """A retained checkpoint of agent step ``step``."""
 REPLAY_FILE = "replay-{step:09d}.npz"
-"""The replay buffer saved with the checkpoint of agent step ``step`` (its frames beside it,
-:func:`imssr.replay.buffer.frames_path`)."""
+"""The index of the replay buffer saved with the checkpoint of agent step ``step`` (its frame
+files beside it, :func:`imssr.replay.buffer.replay_files`)."""
 CHECKPOINT_GLOB, REPLAY_GLOB, TEMP_GLOB = "step-*.pt", "replay-*", ".tmp-*"
 EARLY_PARTS = TRAINING_LOGS + (VIDEOS_DIR,)
 """The parts of a run (:meth:`RunDir.run_parts`) that a training writes before its first
@@ -279,10 +281,16 @@ class RunDir:
         """``checkpoints/<name>``: a replay file a checkpoint names."""
         return os.path.join(self.checkpoint_dir, name)
 
-    def replay_files(self, name: str) -> tuple[str, str]:
-        """The two files of the replay buffer ``name``: the ``.npz`` and its frames."""
-        path = self.replay_path(name)
-        return path, frames_path(path)
+    def replay_files(self, name: str) -> list[str]:
+        """The files of the replay buffer ``name``: its ``.npz`` index and the frame files it names."""
+        return replay_buffer.replay_files(self.replay_path(name))
+
+    def remove_unnamed_replay_files(self, name: Optional[str]) -> None:
+        """Remove the replay files that the replay buffer ``name`` (None: none) does not use."""
+        kept = {os.path.basename(p) for p in self.replay_files(name)} if name else set()
+        for old in glob.glob(os.path.join(self.checkpoint_dir, REPLAY_GLOB)):
+            if os.path.basename(old) not in kept:
+                os.unlink(old)
 
     # -- life ----------------------------------------------------------------------------
     @property
@@ -426,11 +434,7 @@ class RunDir:
             for old in self.numbered_checkpoints()[:-keep]:
                 os.unlink(old)
         # Numbered checkpoints therefore hold weights for evaluation; exact resume uses latest.
-        current = state.get("replay_file")
-        kept = {os.path.basename(p) for p in self.replay_files(current)} if current else set()
-        for old in glob.glob(os.path.join(self.checkpoint_dir, REPLAY_GLOB)):
-            if os.path.basename(old) not in kept:
-                os.unlink(old)
+        self.remove_unnamed_replay_files(state.get("replay_file"))
         for tmp in glob.glob(os.path.join(self.checkpoint_dir, TEMP_GLOB)):
             os.unlink(tmp)
         return path

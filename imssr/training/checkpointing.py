@@ -129,12 +129,12 @@ class Checkpointer:
         instead (None when it loaded)."""
         if not state.get("replay_file"):
             return "checkpoint holds no replay buffer"
-        path, frames = self.run.replay_files(state["replay_file"])
+        path = self.run.replay_path(state["replay_file"])
         try:
             self.replay.load(path, state["replay_state"]["rng"])
         except ReplayFileError as exc:
             # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
-            if fallback and not (os.path.exists(path) and os.path.exists(frames)):
+            if fallback and not all(os.path.exists(p) for p in self.run.replay_files(state["replay_file"])):
                 return f"no replay buffer was kept for {os.path.basename(self.resumed_from)}"
             if self.refill_buffer:
                 return str(exc)
@@ -179,7 +179,7 @@ class Checkpointer:
         """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
         the burst of updates a stop interrupted).  A save that fails (a full disk) leaves the
         previous checkpoint as it was and removes the replay files it wrote, which no checkpoint
-        names."""
+        names.  The replay buffer writes only the frames that arrived since the previous save."""
         step, latest = self.state.step, self.run.latest
         before = _identity(latest)
         replay_file = self.run.replay_name(step) if self.cfg.train.save_buffer else None
@@ -188,10 +188,9 @@ class Checkpointer:
                 self.replay.save(self.run.replay_path(replay_file))
             self.run.save_checkpoint(self._state(replay_file, episode, burst), keep=self.cfg.train.keep_checkpoints)
         except ImssrError:
-            if replay_file and replay_file != self.replay_file and _identity(latest) == before:
-                for p in self.run.replay_files(replay_file):
-                    if os.path.exists(p):
-                        os.unlink(p)
+            if replay_file and _identity(latest) == before:
+                # latest.pt is the previous one: keep what it names, drop what this save wrote.
+                self.run.remove_unnamed_replay_files(self.replay_file)
             raise
         self.replay_file, self.saved_step = replay_file, step
 
