@@ -314,8 +314,10 @@ def add_sweep_parsers(sub) -> None:
     rp = sub.add_parser("report", help="tables, curves and aggregate metrics of a sweep directory")
     rp.add_argument("root", metavar="ROOT", help="sweep directory (runs below it, any depth)")
     rp.add_argument("--out", help="report directory (default ROOT/report)")
-    rp.add_argument("--paper-results", metavar="CSV",
-                    help="the paper's numbers (default ../shared/spec/paper_results.csv from the repository)")
+    rp.add_argument("--paper-results", metavar="NAME|CSV",
+                    help="the published numbers beside the sweep's: imssr-paper (the default: the IM-SSR "
+                         "paper's Tables I and II), curl-dmc100k (the CURL paper's DMControl-100k row), "
+                         "or a CSV file (table,task,mode,frames_fraction,algorithm,mean,std[,seeds])")
     rp.add_argument("--reps", type=_positive_int, default=2000, help="bootstrap replicates for the CIs")
 
     ex = sub.add_parser("export", help="copy the config and CSV logs of a sweep's finished runs "

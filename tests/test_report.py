@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import load_script
+from conftest import REPO, load_script
 from imssr.report.report import write_report
 from imssr.presets import make_config
 from imssr.training.logger import EVAL_COLUMNS, read_csv
@@ -67,7 +67,7 @@ def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
         make_run(root, "im-curl", seed, curve(a, b, c) + curve(1, 2, 3, mode="color_hard"))
     write_report(root, out, paper_results=paper_csv, reps=200)
     t = table(out)
-    std = float(np.std([100, 200, 300]))  # 81.65: ddof 0
+    std = float(np.std([100, 200, 300], ddof=1))  # 100: the sample std
     assert float(t["training", "curl", "1.0"]["mean"]) == 200.0
     assert float(t["training", "curl", "1.0"]["std"]) == pytest.approx(std, rel=1e-5)
     assert float(t["training", "curl", "0.2"]["mean"]) == 20.0  # step 100, not 300
@@ -84,8 +84,11 @@ def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
     assert float(t["color_hard", "im-curl", "1.0"]["mean"]) == 3.0
     assert t["color_hard", "curl", "1.0"]["seeds"] == "0"
     md = open(os.path.join(out, "report.md")).read()
-    assert "| `cartpole_swingup_sparse` | curl | **20.0** ± 8.2 |  | 200.0 ± 81.6 |  | 200.0 ± 81.6 | 744.2 ± 23.8 | 1: 100.0, 2: 200.0, 3: 300.0 | 3/3 |" in md
-    assert "| im-curl | 0.0 ± 0.0 |  | **500.0** ± 81.6 |  | **500.0** ± 81.6 | 744.8 ± 54.2 | 1: 400.0, 2: 500.0, 3: 600.0 | 3/3 |" in md
+    assert "| `cartpole_swingup_sparse` | curl | **20.0** ± 10.0 |  | 200.0 ± 100.0 |  | 200.0 ± 100.0 | 744.2 ± 23.8 | 1: 100.0, 2: 200.0, 3: 300.0 | 3/3 |" in md
+    assert "| im-curl | 0.0 ± 0.0 |  | **500.0** ± 100.0 |  | **500.0** ± 100.0 | 744.8 ± 54.2 | 1: 400.0, 2: 500.0, 3: 600.0 | 3/3 |" in md
+    # The fixture's published numbers give no seed count: no interval for the difference.
+    assert "| `training` | `cartpole_swingup_sparse` | curl | 1.0T | 200.0 ± 100.0 (3) | 744.2 ± 23.8 | " \
+           "no interval: the source gives no seed count |" in md
     assert "### `training` (T = 1,000 agent steps)" in md and md.index("### `training`") < md.index("### `color_hard`")
     assert f"| `{TASK}` | 8 | 200 steps (1,600 frames) | 500 steps (4,000 frames) | 1,000 steps (8,000 frames) |" in md
     # The paper's T is 500,000 agent steps; this sweep's points are other steps, and the note says so.
@@ -101,25 +104,42 @@ def test_table_numbers_bold_and_paper_column(tmp_path, paper_csv):
     assert not os.path.exists(os.path.join(out, "beta0.png"))
 
 
-def test_aggregates_iqm_and_probability_of_improvement(tmp_path, paper_csv):
+def test_aggregates_iqm_from_five_seeds_and_comparisons_within_a_task(tmp_path, paper_csv):
     root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
-    for seed, ret in zip((1, 2, 3, 4), (100, 200, 300, 1000)):
+    for seed, ret in zip((1, 2, 3, 4, 5), (100, 200, 300, 400, 1000)):
         make_run(root, "curl", seed, curve(0, 0, ret))
-    for seed, ret in zip((1, 2, 3, 4), (400, 500, 600, 700)):
+    for seed, ret in zip((1, 2, 3, 4, 5), (400, 500, 600, 700, 800)):
         make_run(root, "im-curl", seed, curve(0, 0, ret))
     write_report(root, out, paper_results=paper_csv, reps=200)
     agg = {(r["fraction"], r["metric"], r["label"]): r for r in read_csv(os.path.join(out, "aggregates.csv"))}
-    # IQM of 0.1, 0.2, 0.3, 1.0: the middle half, (0.2 + 0.3) / 2.
+    # IQM of 0.1, 0.2, 0.3, 0.4, 1.0: the middle three, (0.2 + 0.3 + 0.4) / 3.
     iqm = agg["1.0", "IQM", "curl"]
-    assert float(iqm["point"]) == pytest.approx(0.25)
-    assert float(iqm["ci_low"]) <= 0.25 <= float(iqm["ci_high"])
-    assert float(agg["1.0", "IQM", "im-curl"]["point"]) == pytest.approx(0.55)
-    # im-curl beats curl in 3 of 4 seeds x 4 seeds = 12 of 16 pairs (1000 beats every im-curl seed).
-    poi = agg["1.0", "P(X > Y)", "im-curl > curl"]
-    assert float(poi["point"]) == pytest.approx(12 / 16)
-    assert poi["tasks"] == TASK and poi["runs"] == "4"
-    # Identical scores at 0.2T: no improvement either way.
-    assert float(agg["0.2", "P(X > Y)", "im-curl > curl"]["point"]) == 0.5
+    assert float(iqm["point"]) == pytest.approx(0.3)
+    assert float(iqm["ci_low"]) <= 0.3 <= float(iqm["ci_high"]) and iqm["runs"] == "5"
+    assert float(agg["1.0", "IQM", "im-curl"]["point"]) == pytest.approx(0.6)
+    assert not any(metric != "IQM" for _, metric, _ in agg)  # no cross-task comparisons
+    # im-curl against curl on the task: 19.5 of 25 pairs (400 ties 400), Mann-Whitney two-sided.
+    pairs = {(r["x"], r["y"], r["fraction"]): r for r in read_csv(os.path.join(out, "comparisons.csv"))}
+    pair = pairs["im-curl", "curl", "1.0"]
+    assert float(pair["p_x_beats_y"]) == pytest.approx(19.5 / 25)
+    assert (pair["n_x"], pair["n_y"], pair["exact"]) == ("5", "5", "1")
+    assert 0.05 < float(pair["p_value"]) < 0.2  # exactness is tests/test_stats.py's
+    # Identical scores at 0.2T: no improvement either way, p = 1.
+    assert (float(pairs["im-curl", "curl", "0.2"]["p_x_beats_y"]), float(pairs["im-curl", "curl", "0.2"]["p_value"])) \
+        == (0.5, 1.0)
+    md = open(os.path.join(out, "report.md")).read()
+    assert "| `training` | `cartpole_swingup_sparse` | 1.0T | im-curl | curl | 5, 5 | +200.0 | 0.78 | 0.167 |" in md
+
+
+def test_four_seeds_give_no_iqm_and_say_why(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for seed in (1, 2, 3, 4):
+        make_run(root, "curl", seed, curve(0, 0, 100 * seed))
+    write_report(root, out, paper_results=paper_csv, reps=50)
+    assert read_csv(os.path.join(out, "aggregates.csv")) == []
+    md = open(os.path.join(out, "report.md")).read()
+    assert "training at 1.0T: no IQM or bootstrap interval: curl has 4 seeds on some task, and they need at " \
+           "least 5" in md
 
 
 def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
@@ -143,17 +163,16 @@ def test_partial_sweep_is_reported_not_crashed(tmp_path, paper_csv):
     assert (t["training", "curl", "1.0"]["seeds"], float(t["training", "curl", "1.0"]["mean"])) == ("2", 150.0)
     assert (t["training", "im-curl", "1.0"]["seeds"], t["training", "im-curl", "1.0"]["expected_seeds"]) == ("1", "3")
     md = open(os.path.join(out, "report.md")).read()
-    assert "150.0 ± 50.0 (2/3)" in md and "**400.0** ± 0.0 (1/3)" in md
+    assert "150.0 ± 70.7 (2/3)" in md and "**400.0** ± – (1/3)" in md
     assert "training / cartpole_swingup_sparse / curl at 1.0T (step 1000): no value for seed(s) 3 " \
            "(not reached: last evaluation at step 500)" in md
     assert "im-curl at 1.0T (step 1000): no value for seed(s) 2 (no evaluation in this mode); " \
            "no run for seed(s) 3" in md
     assert f"{TASK}/im-curl/seed_2: no evaluations yet" in md
     assert f"{TASK}/im-curl/seed_3: planned but not started" in md
-    # rliable needs a full matrix: the fewest seeds of any task (1 for im-curl) are used.
-    agg = {(r["fraction"], r["metric"], r["label"]): r for r in read_csv(os.path.join(out, "aggregates.csv"))}
-    assert agg["1.0", "IQM", "im-curl"]["runs"] == "1"
-    assert float(agg["1.0", "IQM", "curl"]["point"]) == pytest.approx(0.15)
+    # Two and one seeds: no IQM or bootstrap interval, and the notes say why.
+    assert read_csv(os.path.join(out, "aggregates.csv")) == []
+    assert "training at 1.0T: no IQM or bootstrap interval: curl has 2 seeds, im-curl has 1 seed on some task" in md
 
 
 def test_points_are_agent_steps_rounded_up():
@@ -190,19 +209,38 @@ def test_missing_paper_results_drops_the_column_with_a_note(tmp_path):
     make_run(root, "curl", 1, curve(10, 100, 100))
     write_report(root, out, paper_results=str(tmp_path / "nope.csv"), reps=50)
     md = open(os.path.join(out, "report.md")).read()
-    assert "paper 1.0T" not in md and "paper results not found at" in md
+    assert "paper 1.0T" not in md and f"paper results not found: {tmp_path / 'nope.csv'} (a CSV file" in md
     assert table(out)["training", "curl", "1.0"]["paper_mean"] == ""
 
 
-def test_default_paper_results_are_the_spec_copy():
-    from imssr.report.tables import default_paper_results, load_paper_results
+def test_the_published_numbers_ship_with_the_package():
+    from imssr.report.tables import PaperNumber, load_paper_results
 
-    path = default_paper_results()
-    if not os.path.exists(path):
-        pytest.skip("no ../shared/spec beside this checkout")
-    paper = load_paper_results(path)
-    assert paper[(TASK, "training", 0.2, "IM-CURL")] == (318.4, 240.3)
-    assert paper[("walker_walk", "video_hard", 1.0, "IM-SODA")][0] > 0
+    paper = load_paper_results()  # the default: the IM-SSR paper's Tables I and II, 5 seeds
+    assert paper[(TASK, "training", 0.2, "IM-CURL")] == PaperNumber(318.4, 240.3, 5, "IM-SSR paper, Table I")
+    assert paper[("walker_walk", "video_hard", 1.0, "IM-SODA")].mean > 0 and len(paper) == 120
+    curl = load_paper_results("curl-dmc100k")
+    assert curl == {("cartpole_swingup", "training", 1.0, "CURL"):
+                    PaperNumber(582.0, 146.0, 10, "CURL paper, Table 1 (100K step scores)")}
+    spec = os.path.join(os.path.dirname(REPO), "shared", "spec", "paper_results.csv")
+    if os.path.exists(spec):  # the shipped copy holds the spec's every number
+        for row in read_csv(spec):
+            key = (row["task"], row["mode"], float(row["frames_fraction"]), row["algorithm"])
+            assert (paper[key].mean, paper[key].std) == (float(row["mean"]), float(row["std"])), key
+
+
+def test_a_difference_from_a_published_number_has_its_interval(tmp_path):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for seed, ret in zip((1, 2, 3), (349.1, 421.7, 762.9)):
+        make_run(root, "curl", seed, curve(0, 0, ret), task="cartpole_swingup")
+    write_report(root, out, paper_results="curl-dmc100k", reps=50)
+    row = table(out)["training", "curl", "1.0"]
+    assert (row["paper_mean"], row["paper_std"], row["paper_seeds"]) == ("582", "146", "10")
+    # Welch: 511.2 - 582 = -70.8, standard errors 221.0 / sqrt 3 and 146 / sqrt 10, about 2.2 dof.
+    diff, low, high = (float(row[k]) for k in ("paper_diff", "paper_diff_low", "paper_diff_high"))
+    assert diff == pytest.approx(511.2333 - 582, abs=1e-3) and low < -500 and high > 400
+    md = open(os.path.join(out, "report.md")).read()
+    assert "| `training` | `cartpole_swingup` | curl | 1.0T | 511.2 ± 221.0 (3) | 582.0 ± 146.0 (n = 10) | -70.8 [" in md
 
 
 def test_beta_sweep_report_draws_return_against_beta(tmp_path, paper_csv):
@@ -221,8 +259,8 @@ def test_beta_sweep_report_draws_return_against_beta(tmp_path, paper_csv):
     assert t["training", "im-curl beta0=0.1", "1.0"]["paper_mean"] == ""
     md = open(os.path.join(out, "report.md")).read()
     assert "## Beta_0 sensitivity" in md
-    agg = {(r["metric"], r["label"]) for r in read_csv(os.path.join(out, "aggregates.csv"))}
-    assert ("P(X > Y)", "im-curl beta0=0.01 > curl") in agg
+    pairs = {(r["x"], r["y"], r["fraction"]): r for r in read_csv(os.path.join(out, "comparisons.csv"))}
+    assert float(pairs["im-curl beta0=0.01", "curl", "1.0"]["p_x_beats_y"]) == 1.0
     assert {r["beta0"] for r in read_csv(os.path.join(out, "evaluations.csv"))} == {"", "0.01", "0.1"}
 
 
@@ -265,7 +303,7 @@ def test_runs_the_sweep_lists_as_failed_are_reported_as_failed(tmp_path, paper_c
     assert (t["training", "im-curl", "1.0"]["seeds"], t["training", "im-curl", "1.0"]["failed_seeds"]) == ("1", "1")
     md = open(os.path.join(out, "report.md")).read()
     assert "4 runs, 14 evaluations. **2 failed** in the sweep (see Failed runs)." in md
-    assert "150.0 ± 50.0 (2/3, 1 failed)" in md and "| 2/3, 1 failed |" in md
+    assert "150.0 ± 70.7 (2/3, 1 failed)" in md and "| 2/3, 1 failed |" in md
     assert "## Failed runs" in md
     assert f"- `{TASK}/curl/seed_3`: diverged at agent step 412: critic loss nan" in md
     assert f"- `{TASK}/im-curl/seed_2`: device 'cuda:99' requested but CUDA is not available" in md
@@ -311,8 +349,8 @@ def test_compare_sweeps_table_and_exit_status(tmp_path):
 
 
 def test_bf16_runs_are_rows_of_their_own_beside_fp32(tmp_path, paper_csv):
-    """The same algo and seeds at two precisions: two rows, two curves, IQMs and a probability of
-    improvement within each precision, each seed's return listed."""
+    """The same algo and seeds at two precisions: two rows, two curves, comparisons within each
+    precision and within each algo, each seed's return listed."""
     root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
     for precision, offset in (("fp32", 0), ("bf16", 50)):
         for seed, ret in zip((1, 2, 3), (100, 200, 300)):
@@ -329,12 +367,14 @@ def test_bf16_runs_are_rows_of_their_own_beside_fp32(tmp_path, paper_csv):
     assert t["training", "curl bf16", "1.0"]["paper_mean"] == "744.2"
     labels = [r["label"] for r in read_csv(os.path.join(out, "table.csv")) if r["fraction"] == "1.0"]
     assert labels == ["curl", "im-curl", "curl bf16", "im-curl bf16"]
-    agg = {(r["fraction"], r["metric"], r["label"]): r for r in read_csv(os.path.join(out, "aggregates.csv"))}
-    assert float(agg["1.0", "IQM", "curl bf16"]["point"]) == pytest.approx(0.25)
-    assert ("1.0", "P(X > Y)", "im-curl bf16 > curl bf16") in agg and ("1.0", "P(X > Y)", "im-curl > curl") in agg
-    assert not any("im-curl bf16 > curl" == k[2] for k in agg)
+    # Comparisons within a precision (IM-X against X) and within an algorithm (bf16 against fp32),
+    # never across both.
+    pairs = {(r["x"], r["y"]) for r in read_csv(os.path.join(out, "comparisons.csv")) if r["fraction"] == "1.0"}
+    assert pairs == {("im-curl", "curl"), ("im-curl bf16", "curl bf16"), ("curl bf16", "curl"),
+                     ("im-curl bf16", "im-curl")}
     md = open(os.path.join(out, "report.md")).read()
-    assert "| curl bf16 | **0.0** ± 0.0 |  | **0.0** ± 0.0 |  | 250.0 ± 81.6 | 744.2 ± 23.8 | 1: 150.0, 2: 250.0, 3: 350.0 | 3/3 |" in md
+    assert "| curl bf16 | **0.0** ± 0.0 |  | **0.0** ± 0.0 |  | 250.0 ± 100.0 | 744.2 ± 23.8 | 1: 150.0, 2: 250.0, 3: 350.0 | 3/3 |" in md
+    assert "| `training` | `cartpole_swingup_sparse` | 1.0T | curl bf16 | curl | 3, 3 | +50.0 | 0.67 | 0.700 |" in md
     assert {r["precision"] for r in read_csv(os.path.join(out, "evaluations.csv"))} == {"fp32", "bf16"}
 
 

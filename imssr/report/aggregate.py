@@ -2,21 +2,20 @@
 
 Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks
 weigh alike.  Per mode and fraction of T: the interquartile mean (IQM) of each algo with a
-95% stratified-bootstrap confidence interval, and the probability that each algo with an
-intrinsic reward (IM-X, and X+RND / X+RE3) beats its base X on a randomly drawn task.
+95% stratified-bootstrap confidence interval, where every task has at least
+:data:`MIN_SEEDS` seeds (with fewer, the IQM is about the mean and the interval about
+[min, max]: none is given, and a note says why).  Comparisons of two algorithms are made within
+a task (:mod:`imssr.report.comparisons`), not pooled here.
 """
 from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Optional
-
 import numpy as np
 
 from imssr.extras import require
 from imssr.files import atomic_write_csv
-from imssr.presets import ALGOS
-from imssr.report.results import group_label
+from imssr.report.stats import MIN_SEEDS_FOR_BOOTSTRAP
 from imssr.report.tables import FRACTIONS, Row, mode_order
 
 # The report extra; imported with this module, which only `imssr report` imports.
@@ -24,6 +23,7 @@ rly = require("rliable.library", "report")
 metrics = require("rliable.metrics", "report")
 
 DMC_MAX_RETURN = 1000.0
+MIN_SEEDS = MIN_SEEDS_FOR_BOOTSTRAP
 AGGREGATE_COLUMNS = ["mode", "fraction", "metric", "label", "point", "ci_low", "ci_high", "tasks", "runs"]
 
 
@@ -34,9 +34,9 @@ class Aggregate:
     mode: str
     fraction: float
     metric: str
-    """``IQM`` or ``P(X > Y)``."""
+    """``IQM``."""
     label: str
-    """The algo, or ``X > Y`` for a probability of improvement."""
+    """The algo (with its beta_0 and precision, as the table's rows)."""
     point: float
     ci_low: float
     ci_high: float
@@ -56,7 +56,7 @@ def score_matrix(rows: list[Row], fraction_index: int, tasks: list[str]) -> np.n
 
 
 def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggregate], list[str]]:
-    """IQM per label and probability of improvement per (intrinsic label, base) pair."""
+    """IQM per label where every task it averages has at least :data:`MIN_SEEDS` seeds."""
     out: list[Aggregate] = []
     notes: list[str] = []
 
@@ -76,30 +76,25 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggr
             common = sorted(set.intersection(*scored.values()))
             if not common:
                 notes.append(f"{mode} at {fraction:.1f}T: no task has a score for every algo; no IQM")
-            else:
-                dropped = sorted(set.union(*scored.values()) - set(common))
-                if dropped:
-                    notes.append(f"{mode} at {fraction:.1f}T: IQM over {', '.join(common)} only "
-                                 f"(not every algo has {', '.join(dropped)})")
-                matrices = {label: score_matrix(by_label[label], i, common) for label in scored}
-                point, ci = _estimates(matrices, iqm, reps, seed)
-                for label, m in matrices.items():
-                    out.append(Aggregate(mode, fraction, "IQM", label, float(point[label][0]),
-                                         float(ci[label][0][0]), float(ci[label][1][0]), common, m.shape[0]))
-            for label in scored:
-                base = _base_label(label, by_label, ALGOS)
-                if base is None or base not in scored:
-                    continue
-                tasks = sorted(scored[label] & scored[base])
-                if not tasks:
-                    continue
-                x = score_matrix(by_label[label], i, tasks)
-                y = score_matrix(by_label[base], i, tasks)
-                key = f"{label} > {base}"
-                point, ci = _estimates({key: (x, y)}, metrics.probability_of_improvement, reps, seed)
-                low, high = np.ravel(ci[key])
-                out.append(Aggregate(mode, fraction, "P(X > Y)", key, float(point[key]),
-                                     float(low), float(high), tasks, min(x.shape[0], y.shape[0])))
+                continue
+            dropped = sorted(set.union(*scored.values()) - set(common))
+            if dropped:
+                notes.append(f"{mode} at {fraction:.1f}T: IQM over {', '.join(common)} only "
+                             f"(not every algo has {', '.join(dropped)})")
+            matrices = {label: score_matrix(by_label[label], i, common) for label in scored}
+            few = {label: m.shape[0] for label, m in matrices.items() if m.shape[0] < MIN_SEEDS}
+            if few:
+                notes.append(f"{mode} at {fraction:.1f}T: no IQM or bootstrap interval: "
+                             + ", ".join(f"{label} has {n} seed{'s' if n > 1 else ''}" for label, n in few.items())
+                             + f" on some task, and they need at least {MIN_SEEDS} (with fewer, the IQM is about "
+                             "the mean and the interval about [min, max])")
+                matrices = {label: m for label, m in matrices.items() if label not in few}
+            if not matrices:
+                continue
+            point, ci = _estimates(matrices, iqm, reps, seed)
+            for label, m in matrices.items():
+                out.append(Aggregate(mode, fraction, "IQM", label, float(point[label][0]),
+                                     float(ci[label][0][0]), float(ci[label][1][0]), common, m.shape[0]))
     return out, notes
 
 
@@ -111,19 +106,10 @@ def _estimates(scores: dict, func, reps: int, seed: int):
         return rly.get_interval_estimates(scores, func, reps=reps, random_state=np.random.RandomState(seed))
 
 
-def _base_label(label: str, by_label: dict, algos) -> Optional[str]:
-    """The base algo's label, at the same precision, for a label whose algo has an intrinsic
-    reward (else None)."""
-    row = by_label[label][0]
-    spec = algos.get(row.algo)
-    if spec is None or not spec.intrinsic_enabled:
-        return None
-    return group_label(spec.base, None, row.precision)
-
-
 def markdown(aggregates: list[Aggregate]) -> str:
     if not aggregates:
-        return "No aggregate metrics (no task has scores for the compared algos).\n"
+        return (f"No aggregate metrics: each needs a score on every task it averages and at least "
+                f"{MIN_SEEDS} seeds per task (the Notes say which are missing).\n")
     lines = ["| mode | T | metric | algo | estimate | 95% CI | tasks | runs/task |",
              "|---|---:|---|---|---:|---|---|---:|"]
     for a in aggregates:

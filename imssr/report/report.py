@@ -3,8 +3,11 @@
 Files written under ``out``:
 
 - ``evaluations.csv``  every evaluation of every seed (``algo,task,mode,seed,step,frame,return,beta0``)
-- ``table.csv``        mean/std/seeds at 0.2T, 0.5T, 1.0T per (mode, task, algo), the paper's beside
-- ``aggregates.csv``   rliable IQM and probability of improvement with 95% CIs
+- ``table.csv``        mean/std/seeds at 0.2T, 0.5T, 1.0T per (mode, task, algo), the published
+                       numbers beside with the difference and its 95% Welch interval
+- ``comparisons.csv``  per task: each algo with an intrinsic reward against its base, each
+                       precision against fp32: n, P(X > Y) and the two-sided Mann-Whitney p
+- ``aggregates.csv``   rliable IQM across tasks with 95% bootstrap CIs (5 seeds per task or more)
 - ``curves.png``       learning curves against agent steps, one panel per task and mode
 - ``beta0.png``        final return against beta_0 (only for a beta sweep)
 - ``report.md``        all of the above in one page, with the runs that failed in the sweep
@@ -17,8 +20,9 @@ from __future__ import annotations
 import os
 from typing import Optional
 
+from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
-from imssr.report import aggregate, figures, tables
+from imssr.report import aggregate, comparisons, figures, tables
 from imssr.report.results import collect, write_evaluations
 
 PAPER_T = 500_000
@@ -32,25 +36,31 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
     results = collect(root)
     os.makedirs(out, exist_ok=True)
     notes = list(results.notes)
-    paper_path = paper_results or tables.default_paper_results()
-    paper = None
-    if os.path.exists(paper_path):
-        paper = tables.load_paper_results(paper_path)
-    else:
-        notes.append(f"paper results not found at {paper_path}: no paper column (--paper-results PATH)")
+    try:
+        paper = tables.load_paper_results(paper_results)
+    except ImssrError as exc:
+        if paper_results is None:
+            raise
+        paper = None
+        notes.append(f"{exc}: no paper column")
     rows, row_notes = tables.build_rows(results, paper)
     notes += row_notes
     budgets = sorted({results.budget(t) for t in {r.task for r in results.runs}})
-    if paper is not None and budgets != [PAPER_T]:
+    # The IM-SSR paper's tables (shipped, or the spec's CSV naming them "I" and "II") are at its T.
+    imssr_paper = paper is not None and any(p.source.startswith("IM-SSR") or p.source in ("I", "II")
+                                            for p in paper.values())
+    if imssr_paper and budgets != [PAPER_T]:
         paper_points = "/".join(f"{tables.point_step(f, PAPER_T):,}" for f in tables.FRACTIONS)
         notes.append(f"the paper's numbers are at T = {PAPER_T:,} agent steps (0.2T/0.5T/1.0T = "
                      f"{paper_points} steps); this sweep's T is {', '.join(f'{b:,}' for b in budgets)} "
                      f"agent steps, so its 0.2T/0.5T/1.0T are other agent steps")
     aggregates, agg_notes = aggregate.compute(rows, reps=reps)
     notes += agg_notes
+    pairs = comparisons.compute(rows)
     written = [
         (write_evaluations(results, os.path.join(out, "evaluations.csv")), "per-seed evaluations"),
         (tables.write_table_csv(rows, os.path.join(out, "table.csv")), "table (CSV)"),
+        (comparisons.write_csv(pairs, os.path.join(out, "comparisons.csv")), "comparisons (CSV)"),
         (aggregate.write_csv(aggregates, os.path.join(out, "aggregates.csv")), "aggregate metrics (CSV)"),
         (figures.plot_curves(results, os.path.join(out, "curves.png")), "learning curves"),
     ]
@@ -58,7 +68,7 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
     if beta_png:
         written.append((beta_png, "final return against beta_0"))
     # The root as the user named it: a committed report should not carry this machine's paths.
-    md = _markdown(results, os.path.normpath(root), rows, aggregates, notes, paper is not None,
+    md = _markdown(results, os.path.normpath(root), rows, aggregates, pairs, notes, paper is not None,
                    beta_png is not None, reps)
     path = os.path.join(out, "report.md")
     atomic_write_text(path, md)
@@ -66,25 +76,37 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
     return written
 
 
-def _markdown(results, root_name: str, rows, aggregates, notes, with_paper: bool, beta_plot: bool,
+def _markdown(results, root_name: str, rows, aggregates, pairs, notes, with_paper: bool, beta_plot: bool,
               reps: int) -> str:
     n_evals = sum(len(r.evals) for r in results.runs)
     failed = (f" **{len(results.failures)} failed** in the sweep (see Failed runs)." if results.failures else "")
+    against = tables.markdown_against_paper(rows) if with_paper else ""
     parts = [
         f"# Sweep report: `{root_name}`\n",
-        f"{len(results.runs)} runs, {n_evals} evaluations.{failed} Cells: mean ± std over seeds (ddof 0) of each "
-        "seed's last evaluation return at or before the point's agent step; **bold**: best mean of the task at that "
-        "point; `(n/N)`: only n of the N expected seeds reached the point; `k failed`: k of them failed in "
-        "the sweep."
-        + (" `paper` columns: the published numbers (Tables I and II)." if with_paper else "") + "\n",
+        f"{len(results.runs)} runs, {n_evals} evaluations.{failed} Cells: mean ± std over seeds (sample std, "
+        "ddof 1; – for one seed) of each seed's last evaluation return at or before the point's agent step; "
+        "**bold**: best mean of the task at that point; `(n/N)`: only n of the N expected seeds reached the "
+        "point; `k failed`: k of them failed in the sweep; the last column: n per row."
+        + (" `paper` columns: the published numbers, with their seeds where the source states them."
+           if with_paper else "") + "\n",
         "## Table\n",
         "T is the budget in agent steps; each task's points in agent steps and environment frames:\n",
         tables.markdown_points(results),
         tables.markdown_tables(rows, results, with_paper),
+    ]
+    if against:
+        parts += ["## Against the published numbers\n",
+                  "The difference of means (ours minus published) with its 95% Welch interval, from each "
+                  "side's std and seeds. A published std is the spread of seeds, not an interval for its "
+                  "mean: a result \"inside the spread\" says little, the interval of the difference says how "
+                  "far apart the two means may be.\n", against]
+    parts += [
+        "## Comparisons within a task\n",
+        comparisons.markdown(pairs),
         "## Aggregate metrics (rliable)\n",
-        f"Scores normalised by 1000 (the DMC maximum). IQM: interquartile mean over runs and tasks; "
-        f"P(X > Y): probability that X beats its base Y on a random task. 95% stratified-bootstrap CIs, "
-        f"{reps} replicates.\n",
+        f"Scores normalised by 1000 (the DMC maximum). IQM: interquartile mean over runs and tasks, with a "
+        f"95% stratified-bootstrap CI ({reps} replicates), given only where every task has at least "
+        f"{aggregate.MIN_SEEDS} seeds.\n",
         aggregate.markdown(aggregates),
         "## Learning curves\n",
         "Evaluation return against agent steps (environment frames on the top axis).\n",

@@ -7,8 +7,10 @@ value there is its last evaluation at or before step ``p``: the evaluation at ``
 the evaluation interval divides it, as the paper's 10,000 steps divide its points.  A run made
 when budgets counted frames evaluated at the first step at or after each scheduled frame, which
 is the same step.  A seed whose evaluations stop before ``p`` (an unfinished run) has no value
-there, and the cell says how many of the expected seeds it averages.  Std is over seeds with
-ddof = 0 (numpy's default, as RL papers' tables use), so one seed has std 0.  A seed whose run
+there, and the cell says how many of the expected seeds it averages.  Std is the sample standard
+deviation over seeds (ddof 1, :func:`imssr.report.stats.sample_std`), so one seed has none.  A
+published number comes with its seeds where the source says them, and a cell beside one gets the
+difference of means with its 95% Welch interval.  A seed whose run
 ``sweep_status.json`` lists as failed and that has no value at a point is counted as failed
 there ("(2/3, 1 failed)"), not as merely missing.
 """
@@ -23,14 +25,28 @@ from typing import Optional
 
 import numpy as np
 
+from imssr.errors import ImssrError
 from imssr.files import atomic_write_csv
 from imssr.presets import ALGOS
 from imssr.report.results import RunResult, SweepResults
+from imssr.report.stats import sample_std, welch_interval
 
 FRACTIONS = (0.2, 0.5, 1.0)
 TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",
-                 "seeds", "expected_seeds", "failed_seeds", "best", "paper_mean", "paper_std", "precision",
-                 "per_seed"]
+                 "seeds", "expected_seeds", "failed_seeds", "best", "paper_mean", "paper_std", "paper_seeds",
+                 "paper_diff", "paper_diff_low", "paper_diff_high", "precision", "per_seed"]
+
+
+@dataclass(frozen=True)
+class PaperNumber:
+    """A published mean ± std over seeds."""
+
+    mean: float
+    std: float
+    seeds: Optional[int]
+    """Seeds behind it, where the source says (None: not stated)."""
+    source: str
+    """Where it was published, e.g. "IM-SSR paper, Table I"."""
 
 
 @dataclass
@@ -51,8 +67,8 @@ class Cell:
     """Seeds without a value here whose run failed (``sweep_status.json``)."""
     best: bool = False
     """Highest mean of its (mode, task) row group at this fraction."""
-    paper: Optional[tuple[float, float]] = None
-    """The paper's (mean, std) for the same algo, task, mode and fraction, if published."""
+    paper: Optional[PaperNumber] = None
+    """The published number for the same algo, task, mode and fraction, if any."""
 
     @property
     def n(self) -> int:
@@ -64,7 +80,15 @@ class Cell:
 
     @property
     def std(self) -> float:
-        return float(np.std(list(self.values.values()))) if self.values else math.nan
+        """Sample standard deviation over seeds (ddof 1; NaN below two seeds)."""
+        return sample_std(list(self.values.values()))
+
+    def against_paper(self) -> Optional[tuple[float, float, float]]:
+        """``(ours - published, low, high)``: the difference of means and its 95% Welch interval;
+        None without a published number with its seeds, or with fewer than two seeds here."""
+        if self.paper is None or self.paper.seeds is None:
+            return None
+        return welch_interval(self.mean, self.std, self.n, self.paper.mean, self.paper.std, self.paper.seeds)
 
 
 @dataclass
@@ -203,36 +227,68 @@ def _mark_best(rows: list[Row]) -> None:
                 row.cells[i].best = bool(row.cells[i].n) and row.cells[i].mean == top
 
 
-# -- the paper's numbers ---------------------------------------------------------------
-def default_paper_results() -> str:
-    """``../shared/spec/paper_results.csv`` beside the repository checkout."""
-    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    return os.path.join(os.path.dirname(repo), "shared", "spec", "paper_results.csv")
+# -- the published numbers ---------------------------------------------------------------
+PAPER_DATASETS = {
+    "imssr-paper": ("imssr_paper.csv", "the IM-SSR paper's Tables I and II (T = 500,000 agent steps)"),
+    "curl-dmc100k": ("curl_dmc100k.csv", "the CURL paper's Table 1, DMControl-100k (100,000 frames)"),
+}
+"""Published numbers shipped with imssr (``imssr/report/data/``): name -> (file, what it holds)."""
+DEFAULT_PAPER = "imssr-paper"
 
 
-def load_paper_results(path: str) -> dict[tuple[str, str, float, str], tuple[float, float]]:
-    """``(task, mode, fraction, paper algo name) -> (mean, std)`` from the spec's CSV."""
+def paper_results_text(spec: Optional[str] = None) -> tuple[str, str]:
+    """``(CSV text, where it came from)`` of ``spec``: a shipped dataset's name
+    (:data:`PAPER_DATASETS`; None: :data:`DEFAULT_PAPER`) or a CSV file's path."""
+    from importlib import resources
+
+    spec = spec or DEFAULT_PAPER
+    if spec in PAPER_DATASETS:
+        name = PAPER_DATASETS[spec][0]
+        return resources.files("imssr.report").joinpath("data", name).read_text(encoding="utf-8"), spec
+    try:
+        with open(spec, encoding="utf-8") as fh:
+            return fh.read(), spec
+    except FileNotFoundError:
+        raise ImssrError(f"paper results not found: {spec} (a CSV file, or one of "
+                         f"{', '.join(PAPER_DATASETS)})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ImssrError(f"cannot read paper results {spec}: {exc}") from None
+
+
+def load_paper_results(spec: Optional[str] = None) -> dict[tuple[str, str, float, str], PaperNumber]:
+    """``(task, mode, fraction, paper algo name) -> PaperNumber`` from a shipped dataset or a CSV
+    (columns ``table, task, mode, frames_fraction, algorithm, mean, std`` and, optionally,
+    ``seeds``)."""
+    text, _ = paper_results_text(spec)
     out = {}
-    with open(path, newline="") as fh:
-        for row in csv.DictReader(fh):
-            try:
-                key = (row["task"], row["mode"], float(row["frames_fraction"]), row["algorithm"])
-                out[key] = (float(row["mean"]), float(row["std"]))
-            except (KeyError, TypeError, ValueError):
-                continue
+    for row in csv.DictReader(text.splitlines()):
+        try:
+            key = (row["task"], row["mode"], float(row["frames_fraction"]), row["algorithm"])
+            seeds = row.get("seeds") or None
+            out[key] = PaperNumber(float(row["mean"]), float(row["std"]), int(seeds) if seeds else None,
+                                   row.get("table") or "")
+        except (KeyError, TypeError, ValueError):
+            continue
     return out
 
 
 # -- output ------------------------------------------------------------------------------
 def _fmt(mean: float, std: float) -> str:
-    return f"{mean:.1f} ± {std:.1f}"
+    return f"{mean:.1f} ± {'–' if math.isnan(std) else f'{std:.1f}'}"
+
+
+def paper_text(paper: PaperNumber) -> str:
+    """``"582.0 ± 146.0 (n = 10)"``; the n only where the source states it."""
+    return _fmt(paper.mean, paper.std) + ("" if paper.seeds is None else f" (n = {paper.seeds})")
 
 
 def cell_text(cell: Cell) -> str:
     failed = f", {len(cell.failed)} failed" if cell.failed else ""
     if not cell.n:
         return f"– (0/{cell.expected}{failed})"
-    text = f"**{cell.mean:.1f}** ± {cell.std:.1f}" if cell.best else _fmt(cell.mean, cell.std)
+    text = _fmt(cell.mean, cell.std)
+    if cell.best:
+        text = f"**{cell.mean:.1f}**" + text[len(f"{cell.mean:.1f}"):]
     return text if cell.n >= cell.expected and not failed else f"{text} ({cell.n}/{cell.expected}{failed})"
 
 
@@ -282,7 +338,7 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
             for cell in row.cells:
                 cols.append(cell_text(cell))
                 if with_paper:
-                    cols.append(_fmt(*cell.paper) if cell.paper else "")
+                    cols.append(paper_text(cell.paper) if cell.paper else "")
             final = row.cells[-1]
             cols.append(per_seed_text(final))
             cols.append(f"{final.n}/{final.expected}" + (f", {len(final.failed)} failed" if final.failed else ""))
@@ -291,16 +347,37 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
     return "\n".join(out)
 
 
+def markdown_against_paper(rows: list[Row]) -> str:
+    """Each cell with a published number: ours and theirs with n, the difference and its interval."""
+    lines = ["| mode | task | algo | T | ours: mean ± std (n) | published: mean ± std (n) | "
+             "difference, 95% Welch interval |", "|---|---|---|---:|---:|---:|---|"]
+    for row in rows:
+        for cell in row.cells:
+            if cell.paper is None or not cell.n:
+                continue
+            diff = cell.against_paper()
+            why = "no interval: the source gives no seed count" if cell.paper.seeds is None else \
+                "no interval: fewer than two seeds"
+            lines.append(f"| `{row.mode}` | `{row.task}` | {row.label} | {cell.fraction:.1f}T | "
+                         f"{_fmt(cell.mean, cell.std)} ({cell.n}) | {paper_text(cell.paper)} | "
+                         + (why if diff is None else f"{diff[0]:+.1f} [{diff[1]:+.1f}, {diff[2]:+.1f}]") + " |")
+    return "\n".join(lines) + "\n" if len(lines) > 2 else ""
+
+
 def write_table_csv(rows: list[Row], path: str) -> str:
     def lines():
         for row in rows:
             for cell in row.cells:
-                paper = cell.paper or ("", "")
+                p = cell.paper
+                paper = ["", "", ""] if p is None else [f"{p.mean:g}", f"{p.std:g}", "" if p.seeds is None else p.seeds]
+                diff = cell.against_paper() if cell.n else None
                 yield [row.mode, row.task, row.label, row.algo,
                        "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.step,
                        "" if cell.frame is None else cell.frame,
-                       "" if not cell.n else f"{cell.mean:.6g}", "" if not cell.n else f"{cell.std:.6g}",
-                       cell.n, cell.expected, len(cell.failed), int(cell.best), *paper, row.precision,
+                       "" if not cell.n else f"{cell.mean:.6g}",
+                       "" if not cell.n or math.isnan(cell.std) else f"{cell.std:.6g}",
+                       cell.n, cell.expected, len(cell.failed), int(cell.best), *paper,
+                       *(["", "", ""] if diff is None else [f"{v:.6g}" for v in diff]), row.precision,
                        per_seed_text(cell, sep=";").replace(": ", ":")]
 
     return atomic_write_csv(path, TABLE_COLUMNS, lines())
