@@ -1,6 +1,7 @@
 """Shared fixtures: tiny configurations that exercise the real code paths quickly."""
 from __future__ import annotations
 
+import csv
 import errno
 import os
 import subprocess
@@ -11,6 +12,7 @@ import torch
 
 import imssr  # noqa: F401 - configures MUJOCO_GL before dm_control loads
 from imssr.presets import make_config
+from imssr.training.logger import EVAL_COLUMNS
 from imssr.replay import FrameReplayBuffer
 
 # Two torch threads; one per process when pytest-xdist runs the suite on several workers
@@ -213,3 +215,39 @@ def fill_fs(directory, leave=0):
         except OSError as exc:
             assert exc.errno == errno.ENOSPC
     return path
+
+
+# -- run directories as `imssr train` leaves them, for reports ------------------------------
+
+TASK = "cartpole_swingup_sparse"
+"""The reports' task: action repeat 8, so agent step s is frame 8 * s."""
+
+
+def make_run(root, algo, seed, evals, task=TASK, steps=1000, beta0=None, precision="fp32", q_heads_fp32=False):
+    """A run directory as `imssr train` leaves it: config.json and eval.csv rows (mode, agent step,
+    return); T = ``steps`` agent steps."""
+    cfg = make_config(algo, task)
+    cfg.train.steps, cfg.train.seed, cfg.agent.precision = steps, seed, precision
+    cfg.agent.q_heads_fp32 = q_heads_fp32
+    if beta0 is not None:
+        cfg.intrinsic.beta0 = beta0
+    label = cfg.agent.precision_label
+    parts = ([] if label == "fp32" else [label]) + [task, algo] + \
+        ([] if beta0 is None else [f"beta0_{beta0!r}"]) + [f"seed_{seed}"]
+    run = os.path.join(root, *parts)
+    os.makedirs(run)
+    with open(os.path.join(run, "config.json"), "w") as fh:
+        fh.write(cfg.to_json())
+    with open(os.path.join(run, "eval.csv"), "w", newline="") as fh:
+        w = csv.DictWriter(fh, EVAL_COLUMNS)
+        w.writeheader()
+        for mode, step, ret in evals:
+            w.writerow({"frame": step * cfg.env.action_repeat, "step": step, "mode": mode, "return_mean": ret, "return_std": 1.0,
+                        "episodes": 1, "return_min": ret, "return_max": ret, "wall_time": 0})
+    return run
+
+
+def curve(r02, r05, r10, mode="training"):
+    # T = 1000 agent steps.  0.2T = step 200: the evaluation at step 100 is the last at or
+    # before it (300 is after); 0.5T = step 500 and 1.0T = step 1000 have an evaluation each.
+    return [(mode, 100, r02), (mode, 300, -1.0), (mode, 500, r05), (mode, 1000, r10)]

@@ -1,0 +1,54 @@
+"""The built wheel on its own: installed into a fresh virtual environment in a temporary folder,
+away from the checkout and from ``../shared``, it carries the published numbers and a report
+prints them (no code path reads files beside the repository)."""
+import os
+import shutil
+import site
+import subprocess
+import sys
+import zipfile
+
+from conftest import REPO, curve, make_run
+
+
+def _build_wheel(tmp_path) -> str:
+    """The wheel of a copy of the package's sources (the build leaves nothing in the checkout)."""
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(os.path.join(REPO, name), src)
+    shutil.copytree(os.path.join(REPO, "imssr"), src / "imssr",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
+                    "-q", "-w", str(tmp_path / "dist"), str(src)], check=True, capture_output=True, text=True)
+    (wheel,) = os.listdir(tmp_path / "dist")
+    return str(tmp_path / "dist" / wheel)
+
+
+def test_a_wheel_installed_elsewhere_prints_the_papers_numbers(tmp_path):
+    wheel = _build_wheel(tmp_path)
+    assert "imssr/report/data/imssr_paper.csv" in zipfile.ZipFile(wheel).namelist()
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    python = str(venv / "bin" / "python")
+    target = subprocess.run([python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                            check=True, capture_output=True, text=True).stdout.strip()
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-index", "--target", target,
+                    wheel], check=True)
+    # imssr's dependencies from this environment, after the new one's own site-packages: the
+    # wheel's imssr comes first, and this checkout's editable install is not activated (a path
+    # in a .pth file is added as it is; the .pth files inside it are not read).
+    with open(os.path.join(target, "deps.pth"), "w") as fh:
+        fh.write("\n".join(site.getsitepackages()) + "\n")
+    runs, report = tmp_path / "elsewhere" / "runs", tmp_path / "elsewhere" / "report"
+    for seed in (1, 2):
+        make_run(str(runs), "curl", seed, curve(0, 0, 700.0 + seed))
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run([python, "-c", "import imssr, sys; print(imssr.__file__)"], cwd=tmp_path / "elsewhere",
+                          capture_output=True, text=True, env=env)
+    assert proc.stdout.strip().startswith(target), proc.stdout + proc.stderr
+    proc = subprocess.run([python, "-m", "imssr", "report", str(runs), "--out", str(report), "--reps", "20"],
+                          cwd=tmp_path / "elsewhere", capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    md = (report / "report.md").read_text()
+    assert "paper 1.0T" in md and "744.2 ± 23.8 (n = 5)" in md
