@@ -13,7 +13,7 @@ from imssr.envs.gym_ids import register_envs as _register_envs  # noqa: E402
 # gymnasium.make("imssr/<task>-v0", mode=..., seed=...): string entry points, no mujoco loaded here.
 _register_envs()
 
-__version__ = "0.2.0"
+from imssr._version import __version__  # noqa: E402
 __all__ = ["make_env", "list_tasks", "ImssrError", "GL_BACKEND", "__version__", "train", "load_run", "Run"]
 
 _API = ("train", "load_run", "Run")

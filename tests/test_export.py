@@ -53,7 +53,7 @@ def test_export_copies_finished_runs_only_and_report_reads_the_copy(tmp_path):
                       os.path.join("fp32", TASK, "curl", "seed_2"): "skipped (interrupted)"}
     copied = {os.path.relpath(os.path.join(d, f), dest) for d, _, files in os.walk(dest) for f in files}
     expected = {os.path.join(p, TASK, a, f"seed_{s}", name) for p, a, s in finished
-                for name in ("config.json", "eval.csv", "eval_episodes.csv", "train.csv")}
+                for name in ("config.json", "provenance.json", "eval.csv", "eval_episodes.csv", "train.csv")}
     assert copied == expected  # no checkpoints, replay, tb/, status files, nor the interrupted run
     source = run_path(str(root / "bf16"), TASK, "curl", 1)
     for name in ("config.json", "eval.csv", "train.csv"):

@@ -23,6 +23,7 @@ from typing import Optional
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
 from imssr.report import aggregate, comparisons, figures, tables
+from imssr.provenance import CODE_FIELDS, DEVICE_FIELDS, summary
 from imssr.report.results import collect, write_evaluations
 
 PAPER_T = 500_000
@@ -54,6 +55,7 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
         notes.append(f"the paper's numbers are at T = {PAPER_T:,} agent steps (0.2T/0.5T/1.0T = "
                      f"{paper_points} steps); this sweep's T is {', '.join(f'{b:,}' for b in budgets)} "
                      f"agent steps, so its 0.2T/0.5T/1.0T are other agent steps")
+    notes += mixed_makers(results)
     aggregates, agg_notes = aggregate.compute(rows, reps=reps)
     notes += agg_notes
     pairs = comparisons.compute(rows)
@@ -101,6 +103,9 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, notes, with_pape
                   "mean: a result \"inside the spread\" says little, the interval of the difference says how "
                   "far apart the two means may be.\n", against]
     parts += [
+        "## Code and devices\n",
+        "What made each row's runs (every start and resume of every run: `provenance.json`):\n",
+        makers_markdown(results),
         "## Comparisons within a task\n",
         comparisons.markdown(pairs),
         "## Aggregate metrics (rliable)\n",
@@ -125,3 +130,38 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, notes, with_pape
     parts.append("## Notes\n")
     parts.append("\n".join(f"- {n}" for n in notes) + "\n" if notes else "Every expected seed reached every point.\n")
     return "\n".join(parts)
+
+
+def makers(results) -> dict[tuple[str, str], dict[str, int]]:
+    """``(task, label) -> {one line of code and device: runs}`` over every record of every run
+    (a run resumed elsewhere counts under both); runs without records under "not recorded"."""
+    out: dict[tuple[str, str], dict[str, int]] = {}
+    for run in results.runs:
+        lines = {summary(r) for r in run.provenance} or {"not recorded (a run of imssr before provenance.json)"}
+        group = out.setdefault((run.task, run.label), {})
+        for line in lines:
+            group[line] = group.get(line, 0) + 1
+    return out
+
+
+def mixed_makers(results) -> list[str]:
+    """One warning per row whose runs were made by more than one code version or device."""
+    notes = []
+    keys: dict[tuple[str, str], set] = {}
+    for run in results.runs:
+        for r in run.provenance:
+            keys.setdefault((run.task, run.label), set()).add(tuple(r.get(f) for f in (*CODE_FIELDS, *DEVICE_FIELDS)))
+    for (task, label), found in sorted(keys.items()):
+        if len(found) > 1:
+            lines = makers(results)[task, label]
+            notes.append(f"warning: {task} / {label} mixes code versions or devices: "
+                         + "; ".join(f"{line} ({n} run{'s' if n > 1 else ''})" for line, n in sorted(lines.items())))
+    return notes
+
+
+def makers_markdown(results) -> str:
+    lines = ["| task | algo | code and device | runs |", "|---|---|---|---:|"]
+    for (task, label), found in sorted(makers(results).items()):
+        for i, (line, n) in enumerate(sorted(found.items())):
+            lines.append(f"| {'`' + task + '`' if i == 0 else ''} | {label if i == 0 else ''} | {line} | {n} |")
+    return "\n".join(lines) + "\n"

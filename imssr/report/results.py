@@ -51,6 +51,9 @@ class RunResult:
     """``(mode, step, frame, return_mean)`` of every evaluation, in file order."""
     failure: Optional[str] = None
     """The last error of a run that ``sweep_status.json`` lists as failed; None otherwise."""
+    provenance: list[dict] = field(default_factory=list)
+    """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] for a run of imssr
+    before them or one whose file cannot be read."""
 
     @property
     def frames(self) -> int:
@@ -184,6 +187,10 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     repeat = cfg.env.action_repeat
     run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
                     precision=cfg.agent.precision_label, run_dir=run_files)
+    records = run_files.read_provenance()
+    if records is None:
+        notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
+    run.provenance = records or []
     path = run_files.eval_log
     rows = read_csv(path, complete_only=True)
     for row in rows:

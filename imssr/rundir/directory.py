@@ -3,6 +3,7 @@
 Layout of ``RUN/`` (every name below is a constant of this module)::
 
     config.json             the run's resolved config (what ``imssr train --config`` runs)
+    provenance.json         which code and machine made it: a record per start and resume
     train.csv               one row per training episode
     eval.csv                one row per evaluation and scene during training
     eval_episodes.csv       one row per evaluation episode during training
@@ -55,6 +56,8 @@ from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
 
 CONFIG_FILE = "config.json"
 """The run's resolved config: written before training starts, read by every command on the run."""
+PROVENANCE_FILE = "provenance.json"
+"""``{"records": [...]}``: :func:`imssr.provenance.record` of every start and resume, in order."""
 TRAIN_LOG = "train.csv"
 """One row per training episode."""
 EVAL_LOG = "eval.csv"
@@ -325,6 +328,33 @@ class RunDir:
     def read_config(self) -> RunConfig:
         """The run's config (a one-line error when it is missing or invalid)."""
         return load_config(self.config_path)
+
+    # -- provenance ----------------------------------------------------------------------
+    @property
+    def provenance_path(self) -> str:
+        return os.path.join(self.path, PROVENANCE_FILE)
+
+    def record_provenance(self, record: dict) -> str:
+        """Append ``record`` (:func:`imssr.provenance.record`) to the run's provenance, atomically.
+        A file that cannot be read is kept beside as ``provenance.json.damaged`` and a new list begun."""
+        records = self.read_provenance()
+        if records is None:
+            os.replace(self.provenance_path, self.provenance_path + ".damaged")
+            records = []
+        os.makedirs(self.path, exist_ok=True)
+        atomic_write_text(self.provenance_path, dumps({"records": records + [record]}, indent=2) + "\n")
+        return self.provenance_path
+
+    def read_provenance(self) -> Optional[list[dict]]:
+        """The provenance records, oldest first: [] when there is no file (a run of imssr before
+        them), None when the file cannot be read."""
+        if not os.path.exists(self.provenance_path):
+            return []
+        data = _read_json(self.provenance_path)
+        records = data.get("records") if isinstance(data, dict) else None
+        if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
+            return None
+        return records
 
     # -- what the directory holds ------------------------------------------------------------
     def run_parts(self) -> list[str]:

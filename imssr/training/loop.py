@@ -17,6 +17,7 @@ from typing import Optional, Union
 import numpy as np
 import torch
 
+from imssr import provenance
 from imssr.config import RunConfig
 from imssr.contention import contention_warning
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
@@ -94,6 +95,8 @@ class Trainer:
         if ckpt is not None:
             self.checkpoints.restore(ckpt)
         self.run_dir.write_config(cfg)
+        self.run_dir.record_provenance(provenance.record(self.device, "start" if ckpt is None else "resume",
+                                                         self.step))
         self.logger = open_logger(self.run_dir, cfg, resume_frame=None if ckpt is None else self.frame)
         if ckpt is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.

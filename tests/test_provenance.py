@@ -1,0 +1,99 @@
+"""Every run says which code and machine made it: a provenance record at its start and at every
+resume, kept by an export, shown per row by a report, with a warning where a row mixes them."""
+import json
+import os
+import socket
+
+from conftest import REPO, curve, make_run, tiny_config, train_run
+from imssr.provenance import FIELDS, command_line, git_state, record
+from imssr.report.export import export_runs
+from imssr.report.report import write_report
+from imssr.rundir import RunDir
+
+
+def _cfg():
+    cfg = tiny_config("curl")
+    cfg.train.steps, cfg.train.eval_every_steps, cfg.train.eval_episodes = 130, 130, 1
+    return cfg
+
+
+def test_a_run_records_its_start_and_every_resume(tmp_path):
+    run = str(tmp_path / "run")
+    train_run(_cfg(), run, stop_at=70)
+    train_run(_cfg(), run, resume=True)
+    records = RunDir(run).read_provenance()
+    assert [(r["event"], r["agent_step"]) for r in records] == [("start", 0), ("resume", 70)]
+    first = records[0]
+    assert set(FIELDS) <= set(first) and first["device"] == "cpu" and first["torch"]
+    assert first["cpu"] and first["device_name"] == first["cpu"] and isinstance(first["cpu_native_bf16"], (bool, type(None)))
+    if os.path.exists(os.path.join(REPO, ".git")):  # from a checkout: its commit and whether it is modified
+        assert len(first["git_commit"]) == 40 and isinstance(first["git_clean"], bool)
+    text = open(RunDir(run).provenance_path).read()
+    assert socket.gethostname() not in text and os.path.expanduser("~") not in text
+
+
+def test_the_command_line_keeps_no_paths_of_the_machine():
+    home = os.path.expanduser("~")
+    argv = ["/opt/venv/bin/imssr", "train", "--out", "/scratch/alice/runs/x", "--config=/home/a/c.json",
+            "--task", "walker_walk", "--out", "runs/rel", f"{home}/data"]
+    assert command_line(argv) == ["imssr", "train", "--out", "…/x", "--config=…/c.json", "--task", "walker_walk",
+                                  "--out", "runs/rel", "…/data"]
+
+
+def test_an_installed_package_has_no_git_state(monkeypatch, tmp_path):
+    import imssr.provenance as prov
+
+    git_state.cache_clear()
+    monkeypatch.setattr(prov, "__file__", str(tmp_path / "site-packages" / "imssr" / "provenance.py"))
+    try:
+        assert git_state() == (None, None)
+        assert record(__import__("torch").device("cpu"), "start", 0, ["imssr"])["git_commit"] is None
+    finally:
+        git_state.cache_clear()
+
+
+def test_a_damaged_provenance_file_is_kept_aside_and_a_new_one_begun(tmp_path):
+    run = RunDir(str(tmp_path / "run"))
+    os.makedirs(run.path)
+    with open(run.provenance_path, "w") as fh:
+        fh.write("{not json")
+    assert run.read_provenance() is None
+    run.record_provenance({"event": "start"})
+    assert run.read_provenance() == [{"event": "start"}]
+    assert open(run.provenance_path + ".damaged").read() == "{not json"
+
+
+def _with_provenance(run_dir, **fields):
+    rec = {"event": "start", "agent_step": 0, "imssr": "0.2.0", "git_commit": "a" * 40, "git_clean": True,
+           "torch": "2.13.0", "cuda": None, "cudnn": None, "device": "cpu", "device_name": "CPU A", **fields}
+    with open(os.path.join(run_dir, "provenance.json"), "w") as fh:
+        json.dump({"records": [rec]}, fh)
+
+
+def test_a_report_names_each_rows_code_and_device_and_warns_when_one_row_mixes_them(tmp_path):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    _with_provenance(make_run(root, "curl", 1, curve(0, 0, 100)))
+    _with_provenance(make_run(root, "curl", 2, curve(0, 0, 200)), device_name="NVIDIA H100 80GB HBM3",
+                     cuda="13.0", torch="2.11.0+cu130")
+    _with_provenance(make_run(root, "im-curl", 1, curve(0, 0, 300)))
+    make_run(root, "im-curl", 2, curve(0, 0, 400))  # imssr before provenance records
+    write_report(root, out, reps=20)
+    md = open(os.path.join(out, "report.md")).read()
+    assert "| `cartpole_swingup_sparse` | curl | imssr 0.2.0 (aaaaaaa), torch 2.11.0+cu130, CUDA 13.0, on " \
+           "NVIDIA H100 80GB HBM3 | 1 |" in md
+    assert "|  |  | imssr 0.2.0 (aaaaaaa), torch 2.13.0, CUDA -, on CPU A | 1 |" in md
+    assert "warning: cartpole_swingup_sparse / curl mixes code versions or devices: " in md
+    assert "| im-curl | imssr 0.2.0 (aaaaaaa), torch 2.13.0, CUDA -, on CPU A | 1 |" in md
+    assert "|  |  | not recorded (a run of imssr before provenance.json) | 1 |" in md
+    assert "im-curl mixes" not in md
+
+
+def test_an_export_keeps_the_provenance(tmp_path):
+    root, dest = str(tmp_path / "sweep"), str(tmp_path / "dest")
+    run = str(tmp_path / "sweep" / "cartpole_swingup_sparse" / "curl" / "seed_0")
+    train_run(_cfg(), run)
+    RunDir(run).write_status("finished", 130)  # as `imssr train` records the end of a run
+    exported = export_runs(root, dest)
+    assert [e.state for e in exported] == ["new"], exported
+    (copied,) = [os.path.join(d, f) for d, _, fs in os.walk(dest) for f in fs if f == "provenance.json"]
+    assert open(copied).read() == open(os.path.join(run, "provenance.json")).read()
