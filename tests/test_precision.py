@@ -192,23 +192,28 @@ def test_fp32_agents_keep_the_layers_own_forward():
 
 
 def test_bf16_fidelity_measures_against_fp32_on_the_same_states_and_actions(tmp_path, capsys):
-    """scripts/bf16_fidelity.py on a trained (tiny) run: fp32 against itself is exact (same
-    states, actions, weights); bf16 differs; the CLI prints one block per split and refuses a
-    missing run in one line."""
+    """scripts/bf16_fidelity.py on a trained (tiny) run: fp32 against itself agrees exactly (same
+    states, candidates, weights: no regret, every gradient sign kept); bf16 is measured on the same
+    ones; the CLI prints a row per checkpoint and part and refuses a missing run in one line."""
     out_dir = tmp_path / "run"
     train_run(tiny_config("curl", steps=80, eval_every_steps=0, checkpoint_every_steps=80), out_dir)
     fidelity = load_script("scripts/bf16_fidelity.py")
     run = imssr.load_run(str(out_dir))
-    same = fidelity.measure(run, 6, 4, encoder="fp32", head="fp32")
-    assert same["err_max"] == 0 and same["argmax_agreement"] == 1 and same["grad_sign_same"] == 1
-    assert same["states"] == 6 and same["actions"] == 4 and same["spread_median"] > 0
-    bf16 = fidelity.measure(run, 6, 4)
-    assert bf16["err_max"] > 0 and 0 <= bf16["grad_sign_same"] <= 1
-    assert bf16["q_median"] == same["q_median"]
+    x = fidelity.states(run, episodes=2, per_episode=3, seed=0)
+    assert x.shape[0] == 6 and x.dtype == torch.uint8
+    same = fidelity.measure(run, x, 5, 0, encoder="fp32", head="fp32")
+    assert (same["regret_share"], same["regret_median"], same["sign_same"], same["cosine_median"]) == (0, 0, 1, 1)
+    assert same["spread_median"] > 0
+    bf16 = fidelity.measure(run, x, 5, 0, encoder="bf16", head="bf16")
+    assert 0 <= bf16["sign_same"] <= 1 and 0 <= bf16["regret_median"] <= 1 and bf16["q_median"] == same["q_median"]
+    # The candidates of a one-dimensional action are an even grid of [-1, 1].
+    grid = fidelity.candidates(torch.zeros(2, 1), 5, torch.Generator().manual_seed(0))
+    assert torch.equal(grid[0, :, 0], torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0]))
 
-    assert fidelity.main([str(out_dir), "--states", "4", "--actions", "3", "--split"]) == 0
-    printed = capsys.readouterr().out
-    assert printed.count("states x 3 actions") == 3 and "encoder fp32, Q heads bf16" in printed
+    assert fidelity.main([str(out_dir), "--episodes", "1", "--states-per-episode", "3", "--actions", "3",
+                          "--split"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| 80 |")]
+    assert [r.split(" | ")[1] for r in rows] == ["encoder and Q heads", "encoder only", "Q heads only"]
     assert fidelity.main([str(tmp_path / "missing")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("bf16_fidelity: ") and err.count("\n") == 1
