@@ -323,7 +323,7 @@ def add_sweep_parsers(sub) -> None:
     ex = sub.add_parser("export", help="copy the config and CSV logs of a sweep's finished runs "
                         "(no checkpoints, no replay) to a tree that imssr report reads and git can keep",
                         description="Each finished run under ROOT goes to DEST/<precision>/<task>/<algo>/seed_<n> "
-                        "(config.json, eval.csv, eval_episodes.csv, train.csv, and evaluate*.csv when present). "
+                        "(config.json, provenance.json, eval.csv, eval_episodes.csv, train.csv, and evaluate*.csv when present). "
                         "Running and interrupted runs are skipped; files already there with the same bytes are "
                         "left alone, so exporting again after each finished run copies each run once.")
     ex.add_argument("root", metavar="ROOT", help="sweep directory (runs below it, any depth)")
