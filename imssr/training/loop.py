@@ -74,8 +74,7 @@ class Trainer:
             raise
 
     def _setup(self, cfg: RunConfig, resume: bool, refill_buffer: bool) -> None:
-        """Check the config and the run directory, build the envs, agent and replay buffer,
-        restore a resumed run's checkpoint, write config.json and open the logs."""
+        """Check the config and run directory; build envs, agent, replay; restore; write config, provenance, logs."""
         self.cfg = _checked(cfg, new_run=not resume)
         self.device = resolve_device(cfg.train.device)
         self.replay_placement = replay_placement(cfg.train.replay_device, self.device,
@@ -95,8 +94,7 @@ class Trainer:
         if ckpt is not None:
             self.checkpoints.restore(ckpt)
         self.run_dir.write_config(cfg)
-        self.run_dir.record_provenance(provenance.record(self.device, "start" if ckpt is None else "resume",
-                                                         self.step))
+        self.run_dir.record_provenance(provenance.record(self.device, "resume" if ckpt else "start", self.step))
         self.logger = open_logger(self.run_dir, cfg, resume_frame=None if ckpt is None else self.frame)
         if ckpt is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
