@@ -17,30 +17,17 @@ import os
 import sys
 import time
 
-import numpy as np
 import torch
 from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from seeds import build  # noqa: E402  (bench/seeds.py: the same agents and buffers)
+from seeds import agent_step  # noqa: E402  (bench/seeds.py: the same agents, buffers and step)
 
 
 def profile_one(args, n: int, mode: str) -> None:
     args.batched, args.mode = mode != "single", mode
-    seeds = list(range(1, n + 1))
-    agent, replays, obs_shape = build(args, seeds)
-    rng = np.random.default_rng(0)
+    one_step = agent_step(args, n)
     cuda = args.device.startswith("cuda")
-
-    def one_step(step: int) -> None:
-        obs = rng.integers(0, 256, (n, *obs_shape), dtype=np.uint8)
-        if args.batched:
-            agent.act(obs, deterministic=False)
-            agent.update(replays, step)
-        else:
-            agent.act(obs[0], deterministic=False)
-            agent.update(replays[0], step)
-
     for step in range(args.warmup):
         one_step(step)
     if cuda:

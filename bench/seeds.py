@@ -74,17 +74,14 @@ def filled(n: int, size: int, frame_stack: int, action_dim: int, seed: int) -> F
     return buf
 
 
-def worker(args) -> None:
-    """Time ``--steps`` agent steps of ``--members`` seeds; print one JSON line."""
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    seeds = list(range(1, args.members + 1))
-    agent, replays, obs_shape = build(args, seeds)
+def agent_step(args, n: int):
+    """The timed unit for ``n`` seeds built as ``args`` says: ``one_step(step)`` acts on a random
+    observation per seed, then runs that agent step's update."""
+    agent, replays, obs_shape = build(args, list(range(1, n + 1)))
     rng = np.random.default_rng(0)
-    cuda = args.device.startswith("cuda")
 
     def one_step(step: int) -> None:
-        obs = rng.integers(0, 256, (len(seeds), *obs_shape), dtype=np.uint8)
+        obs = rng.integers(0, 256, (n, *obs_shape), dtype=np.uint8)
         if args.batched:
             agent.act(obs, deterministic=False)
             agent.update(replays, step)
@@ -92,6 +89,15 @@ def worker(args) -> None:
             agent.act(obs[0], deterministic=False)
             agent.update(replays[0], step)
 
+    return one_step
+
+
+def worker(args) -> None:
+    """Time ``--steps`` agent steps of ``--members`` seeds; print one JSON line."""
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    one_step = agent_step(args, args.members)
+    cuda = args.device.startswith("cuda")
     for step in range(args.warmup):
         one_step(step)
     if cuda:
@@ -104,7 +110,7 @@ def worker(args) -> None:
             torch.cuda.synchronize()
     seconds = time.perf_counter() - start
     memory = torch.cuda.max_memory_allocated() if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    print(json.dumps({"seconds": seconds, "steps": args.steps * len(seeds), "memory": memory}), flush=True)
+    print(json.dumps({"seconds": seconds, "steps": args.steps * args.members, "memory": memory}), flush=True)
 
 
 def launch(args, members: int, batched: str, threads: int) -> subprocess.Popen:

@@ -1,0 +1,34 @@
+"""bench/profile_seeds.py and bench/replay_checkpoint.py on tiny CPU smoke runs: they run and
+print their tables (never timings); the seeds bench runs in tests/test_gpu_script.py."""
+import os
+import subprocess
+import sys
+
+from conftest import REPO
+
+TINY = ["--set", "agent.batch_size=8", "--set", "aux.batch_size=8", "--set", "agent.hidden_dim=32",
+        "--set", "agent.feature_dim=16", "--set", "agent.encoder_filters=8"]
+
+
+def _run(script, *args):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([REPO, os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, os.path.join(REPO, "bench", script), *args], capture_output=True,
+                          text=True, env=env, cwd=REPO, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc.stdout
+
+
+def test_profile_seeds_profiles_a_single_agent_and_each_mode():
+    out = _run("profile_seeds.py", "--n", "2", "--modes", "loop", "vmap", "--steps", "1", "--warmup", "1",
+               "--fill", "100", "--threads", "1", "--rows", "3", *TINY)
+    headings = [line for line in out.splitlines() if line.startswith("## ")]
+    assert [h.split(":")[0] for h in headings] == ["## 1 seed, single", "## 2 seeds, loop", "## 2 seeds, vmap"]
+    assert all("CPU operators busy" in h for h in headings) and "aten::" in out
+
+
+def test_replay_checkpoint_compares_new_frames_with_whole_rewrites(tmp_path):
+    out = _run("replay_checkpoint.py", "--capacity", "50", "--frames", "130", "--every", "20", "--size", "8",
+               "--dir", str(tmp_path))
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| whole") or line.startswith("| new")]
+    assert [r[0] for r in rows] == ["| whole buffer", "| new frames only"] and rows[0][3] == "1.00"
+    assert float(rows[1][3]) < 1  # fewer bytes written: no timing is checked
