@@ -226,7 +226,17 @@ def test_sweep_file_equals_flags(tmp_path, capsys):
      "seeds must be an integer in [0, 2147483647] (numpy and dm_control take 32-bit seeds, and evaluation "
      "adds up to 20000), got 18446744073709551616"),
     (["--algos", "curl", "--tasks", TASK, "--seeds", "4294967296"], "seeds must be an integer in [0, 2147483647]"),
-    (["--algos", "curl", "--tasks", TASK, "--set", "train.seed=1e30"], "train.seed must be an integer in"),
+    (["--algos", "curl", "--tasks", TASK, "--set", "train.seed_steps=1e30"], "train.seed_steps must be at most 2,147,483,647"),
+    # What the grid sets per run is not overridden for every run (each would train seed 5).
+    (["--algos", "curl", "--tasks", TASK, "--seeds", "1-2", "--set", "train.seed=5"],
+     "--set train.seed is set by the sweep's grid for every run (--seeds); leave it out of --set"),
+    (["--algos", "im-curl", "--tasks", TASK, "--beta0", "0.1,0.2", "--set", "intrinsic.beta0=0.3"],
+     "--set intrinsic.beta0 is set by the sweep's grid for every run (--beta0)"),
+    (["--algos", "curl", "--tasks", TASK, "--steps", "100", "--set", "train.steps=50"],
+     "--set train.steps is set by the sweep's grid for every run (--steps/--frames)"),
+    # A range is checked before its seeds are listed.
+    (["--algos", "curl", "--tasks", TASK, "--seeds", "5-3000000000"],
+     "bad seed range '5-3000000000': 2,999,999,996 seeds, at most 100,000"),
     (["--algos", "curl", "--tasks", TASK, "--set", "agent.critic_lr=NaN"], "agent.critic_lr expects a finite number"),
     (["--tasks", TASK], "a sweep needs --algos"),
     (["--algos", "curl", "--tasks", TASK, "--steps", "10", "--frames", "80"],

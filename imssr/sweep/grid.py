@@ -124,6 +124,16 @@ class SweepConfig:
             setattr(cfg, key, _coerce(key, value))
         return cfg
 
+    def grid_fields(self) -> dict[str, str]:
+        """The run settings the grid gives each run, which an override would silently replace:
+        field -> the sweep setting that sets it."""
+        fields = {"algo": "--algos", "env.task": "--tasks", "train.seed": "--seeds"}
+        if self.beta0:
+            fields["intrinsic.beta0"] = "--beta0"
+        if self.steps is not None or self.frames is not None:
+            fields.update({"train.steps": "--steps/--frames", "train.frames": "--steps/--frames"})
+        return fields
+
     def validate(self) -> "SweepConfig":
         if not self.algos:
             raise ImssrError("a sweep needs --algos (see imssr algos)")
@@ -161,6 +171,11 @@ class SweepConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
+        for override in self.overrides:
+            key = override.partition("=")[0].strip()
+            if key in self.grid_fields():
+                raise ImssrError(f"--set {key} is set by the sweep's grid for every run ({self.grid_fields()[key]}); "
+                                 "leave it out of --set")
         if self.logger:
             logger_fields(self.logger)
         if self.beta0:
@@ -267,6 +282,10 @@ def parse_names(text: Any, what: str) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+MAX_SEEDS = 100_000
+"""The most seeds one seed list may name (each is a run per algo and task)."""
+
+
 def parse_seeds(text: Any) -> list[int]:
     """``1,2,3``, ``1-5``, ``1-3,7`` or a JSON list of integers -> seeds, without repeats."""
     items = text if isinstance(text, list) else str(text).split(",")
@@ -286,6 +305,9 @@ def parse_seeds(text: Any) -> list[int]:
                 a, b = int(lo), int(hi)
                 if a > b:
                     raise ImssrError(f"bad seed range {part!r}: {a} > {b}")
+                # Checked before the list is built: a typo like 5-3000000000 would fill memory.
+                if b - a + 1 > MAX_SEEDS:
+                    raise ImssrError(f"bad seed range {part!r}: {b - a + 1:,} seeds, at most {MAX_SEEDS:,}")
                 seeds.extend(range(a, b + 1))
             else:
                 seeds.append(int(part))
