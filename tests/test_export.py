@@ -188,3 +188,21 @@ def test_git_keeps_the_results_trees_and_ignores_the_top_level_runs():
     assert not ignored("docs/results/dmc100k_cartpole_swingup/runs/fp32/cartpole_swingup/curl/seed_1/eval.csv")
     assert not ignored("docs/results/any_sweep/runs/bf16/cartpole_swingup/curl/seed_1/config.json")
     assert ignored("runs/demo/eval.csv")
+
+
+@pytest.mark.parametrize("field, value", [("env.task", "../../escape"), ("env.task", "/abs/escape"),
+                                          ("algo", "..")])
+def test_export_never_writes_outside_dest_for_names_read_from_a_run(tmp_path, field, value):
+    root, dest = tmp_path / "sweep", tmp_path / "deep" / "dest"
+    run = run_path(str(root), TASK, "curl", 1)
+    _train_finished(_tiny("curl", 1), run)
+    cfg = json.loads(open(os.path.join(run, "config.json")).read())
+    section, _, name = field.rpartition(".")
+    (cfg[section] if section else cfg)[name] = value
+    with open(os.path.join(run, "config.json"), "w") as fh:
+        json.dump(cfg, fh)
+    before = sorted(str(p) for p in tmp_path.rglob("*"))
+    exported = export_runs(str(root), str(dest))
+    assert [e.state for e in exported] == [
+        f"skipped (its config.json names {'task' if name == 'task' else 'algo'} {value!r}: not a plain name)"]
+    assert sorted(str(p) for p in tmp_path.rglob("*")) == before  # nothing written anywhere

@@ -54,7 +54,18 @@ def export_runs(root: str, dest: str) -> list[Exported]:
     out = []
     for run in sorted(results.runs, key=lambda r: r.dir):
         beta = None if run.beta0 is None else beta_label(run.beta0)
+        # Names read from a run's own files become path parts: only plain names, and the target
+        # must stay inside DEST (a config naming its task "../../x" must not write elsewhere).
+        unsafe = [f"{what} {name!r}" for what, name in (("precision", run.precision), ("task", run.task),
+                                                        ("algo", run.algo)) if not _plain_name(name)]
+        if unsafe:
+            out.append(Exported(run.dir, dest, f"skipped (its config.json names {', '.join(unsafe)}: "
+                                               "not a plain name)"))
+            continue
         target = run_path(os.path.join(dest, run.precision), run.task, run.algo, run.seed, beta)
+        if not _inside(target, dest):
+            out.append(Exported(run.dir, dest, "skipped (its path would leave the export directory)"))
+            continue
         state = run.run_dir.status()
         if state != FINISHED:
             out.append(Exported(run.dir, target, f"skipped ({state})"))
@@ -103,3 +114,9 @@ def _read_own(path: str) -> bytes:
 
 def _inside(path: str, root: str) -> bool:
     return os.path.commonpath([os.path.realpath(path), os.path.realpath(root)]) == os.path.realpath(root)
+
+
+def _plain_name(name: str) -> bool:
+    """A single path part: not empty, no separator, not ``.`` or ``..``, no NUL."""
+    return (isinstance(name, str) and name not in ("", ".", "..") and "\0" not in name
+            and not any(sep in name for sep in ("/", "\\", os.sep)))
