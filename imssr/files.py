@@ -98,13 +98,28 @@ def _mb(nbytes: int) -> str:
 
 @contextlib.contextmanager
 def disk_full_as_error(path: str, needed: Optional[int] = None) -> Iterator[None]:
-    """Turn a full-disk ``OSError`` raised inside the block into an :class:`ImssrError`."""
+    """Turn a full-disk ``OSError`` raised inside the block into an :class:`ImssrError`, and a
+    write past the process's file-size limit (``EFBIG``: ``ulimit -f``) into one naming the file."""
     try:
         yield
     except OSError as exc:
+        if exc.errno == errno.EFBIG:
+            size = "" if needed is None else f" ({_mb(needed)} MB needed)"
+            raise ImssrError(f"file larger than this process's file-size limit (ulimit -f: "
+                             f"{_fsize_limit()}) while writing {path}{size}") from None
         if not is_disk_full(exc):
             raise
         raise ImssrError(no_space_message(path, needed, quota=exc.errno == errno.EDQUOT)) from None
+
+
+def _fsize_limit() -> str:
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    except (ImportError, OSError, ValueError):  # pragma: no cover - not POSIX
+        return "unknown"
+    return "unlimited" if soft == resource.RLIM_INFINITY else f"{_mb(soft)} MB"
 
 
 def atomic_write_text(path: str, text: str) -> None:

@@ -574,3 +574,26 @@ def test_a_full_tensorboard_disk_during_the_run_keeps_a_finished_run_finished(ru
     assert warnings == [f"imssr: warning: no space left on {mnt} while writing {mnt}: TensorBoard stops here "
                         "(train.csv and eval.csv keep every row)"], warnings
     assert [int(r["step"]) for r in read_csv(RunDir(run).train_log)] == [125, 250, 375]
+
+
+def test_a_file_size_limit_names_the_file_and_keeps_the_previous_checkpoint(tmp_path):
+    """``ulimit -f`` (RLIMIT_FSIZE; Python ignores SIGXFSZ, so a write past it fails with EFBIG):
+    one line naming the file and the limit, the previous checkpoint whole, no temporary file."""
+    run = str(tmp_path / "run")
+    code = (
+        "import resource, sys, torch\n"
+        "from imssr.errors import ImssrError\n"
+        "from imssr.rundir import RunDir\n"
+        f"run = RunDir({run!r})\n"
+        "run.save_checkpoint({'step': 1, 'w': torch.zeros(10), 'replay_file': None})\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))\n"
+        "try:\n"
+        "    run.save_checkpoint({'step': 2, 'w': torch.zeros(1_000_000), 'replay_file': None})\n"
+        "except ImssrError as exc:\n"
+        "    print(exc)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == (f"file larger than this process's file-size limit (ulimit -f: 1.0 MB) while "
+                                   f"writing {RunDir(run).latest} (4.0 MB needed)")
+    assert load_checkpoint(RunDir(run).latest)["step"] == 1
+    assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["latest.pt", "step-000000001.pt"]
