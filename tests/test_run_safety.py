@@ -597,3 +597,18 @@ def test_a_file_size_limit_names_the_file_and_keeps_the_previous_checkpoint(tmp_
                                    f"writing {RunDir(run).latest} (4.0 MB needed)")
     assert load_checkpoint(RunDir(run).latest)["step"] == 1
     assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["latest.pt", "step-000000001.pt"]
+
+
+def test_an_evaluation_appended_after_a_torn_row_starts_on_a_line_of_its_own(tmp_path):
+    """A row of evaluate.csv cut short by a full disk (or a kill) is dropped before the next
+    evaluation appends: it used to continue the torn line ("240,30,tra240,30,training,...")."""
+    from imssr.training.logger import append_locked
+
+    path = tmp_path / "evaluate.csv"
+    path.write_text("frame,step,mode\n240,30,training\n480,60,tra")
+    append_locked(str(path), ["frame", "step", "mode"], [{"frame": 720, "step": 90, "mode": "training"}])
+    assert path.read_text() == "frame,step,mode\n240,30,training\n720,90,training\n"
+    torn_header = tmp_path / "evaluate_episodes.csv"
+    torn_header.write_text("frame,st")
+    append_locked(str(torn_header), ["frame", "step"], [{"frame": 1, "step": 2}])
+    assert torn_header.read_text() == "frame,step\n1,2\n"

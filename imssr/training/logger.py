@@ -100,11 +100,35 @@ def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
     together, with the header first when the file is new."""
     with disk_full_as_error(path), open_append(path, newline="") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
+        _drop_torn_line(path)
         if fh.seek(0, os.SEEK_END) == 0:
             fh.write(",".join(columns) + "\n")
         writer = csv.DictWriter(fh, columns, extrasaction="ignore")
         writer.writerows({k: _fmt(r.get(k)) for k in columns} for r in rows)
         fh.flush()
+
+
+def _drop_torn_line(path: str) -> None:
+    """Cut a last line without its newline (a row that a full disk or a kill cut short) off the
+    file, so that the next row starts on a line of its own instead of continuing the torn one."""
+    with open(path, "rb") as fh:
+        end = fh.seek(0, os.SEEK_END)
+        if end == 0:
+            return
+        fh.seek(end - 1)
+        if fh.read(1) == b"\n":
+            return
+        pos = end
+        while pos > 0:  # back to the last newline, a block at a time
+            start = max(0, pos - 4096)
+            fh.seek(start)
+            block = fh.read(pos - start)
+            i = block.rfind(b"\n")
+            if i >= 0:
+                pos = start + i + 1
+                break
+            pos = start
+    os.truncate(path, pos)
 
 
 class Logger:
