@@ -76,7 +76,7 @@ def test_wrong_types_and_inconsistent_settings_are_one_line_errors(tmp_path):
 
     data = make_config("curl", "walker_walk").to_dict()
     data["train"]["steps"] = "many"
-    with pytest.raises(ImssrError, match="train.steps must be a int"):
+    with pytest.raises(ImssrError, match="train.steps must be an integer"):
         RunConfig.from_dict(data).validate()
     with pytest.raises(ImssrError, match="must be an object"):
         RunConfig.from_dict({"env": [1, 2]})
@@ -209,7 +209,7 @@ def test_overrides_go_through_the_typed_schema():
     # A value set in code must have its field's type: OmegaConf would convert "5", validation refuses it.
     cfg = make_config("curl", "walker_walk")
     cfg.train.steps = "5"
-    with pytest.raises(ImssrError, match="train.steps must be a int, got '5'"):
+    with pytest.raises(ImssrError, match="train.steps must be an integer, got '5'"):
         cfg.validate()
 
 

@@ -234,6 +234,9 @@ def test_sweep_file_equals_flags(tmp_path, capsys):
      "--set intrinsic.beta0 is set by the sweep's grid for every run (--beta0)"),
     (["--algos", "curl", "--tasks", TASK, "--steps", "100", "--set", "train.steps=50"],
      "--set train.steps is set by the sweep's grid for every run (--steps/--frames)"),
+    # An empty root is not the current directory.
+    (["--algos", "curl", "--tasks", TASK, "--root", ""],
+     "the sweep's root is empty: give --root DIR (or \"root\" in the sweep file)"),
     # A range is checked before its seeds are listed.
     (["--algos", "curl", "--tasks", TASK, "--seeds", "5-3000000000"],
      "bad seed range '5-3000000000': 2,999,999,996 seeds, at most 100,000"),

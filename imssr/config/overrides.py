@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from imssr.config.schema import FIELD_TYPES, SECTIONS
+from imssr.config.schema import FIELD_TYPES, SECTIONS, type_phrase
 from imssr.errors import ImssrError
 
 if TYPE_CHECKING:
@@ -48,7 +48,7 @@ def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunCon
             raise ImssrError(f"{key} must be a finite number, got an integer too large for a float") from None
         if key in raw:
             raise ImssrError(f"{key} expects {_expected(key)}, got {raw[key]!r}") from None
-        raise ImssrError(f"{key} must be a {FIELD_TYPES.get(key, str).__name__}, got {value!r}") from None
+        raise ImssrError(f"{key} must be {type_phrase(FIELD_TYPES.get(key, str))}, got {value!r}") from None
     for key, text in texts.items():
         _set(merged, key, text)
     for key, text in raw.items():

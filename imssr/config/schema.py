@@ -300,6 +300,11 @@ FIELD_TYPES = {"algo": str, "version": int, **{f"{name}.{f.name}": type(getattr(
 """``section.field`` (and the top-level ``algo``, ``version``) -> its type: bool, int, float or str."""
 
 
+def type_phrase(kind: type) -> str:
+    """How an error names a field's type: "an integer", "a number", "true or false", "a string"."""
+    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(kind, f"a {kind.__name__}")
+
+
 def steps_for_frames(frames: int, action_repeat: int) -> int:
     """Agent steps that cover ``frames`` environment frames (rounded up, as the loop runs them)."""
     return -(-frames // action_repeat)

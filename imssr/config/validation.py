@@ -13,7 +13,7 @@ from imssr.algos import get_algo
 from imssr.config.overrides import _get, _is_finite, _merged
 from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
                                  MAX_SEED, PRECISIONS, REPLAY_DEVICES, SEED_RULE, TF32_MODES, UPDATE_SCHEDULES,
-                                 VIDEO_FORMATS)
+                                 VIDEO_FORMATS, type_phrase)
 from imssr.config.version import CONFIG_VERSION
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
@@ -135,5 +135,5 @@ def _check_types(cfg: RunConfig) -> None:
     for key, kind in FIELD_TYPES.items():
         value = _get(cfg, key)
         if _get(typed, key) != value or isinstance(value, bool) != (kind is bool):
-            raise ImssrError(f"{key} must be a {kind.__name__}, got {value!r}")
+            raise ImssrError(f"{key} must be {type_phrase(kind)}, got {value!r}")
 

@@ -146,6 +146,7 @@ class SweepConfig:
         for task in self.tasks:
             get_task(task)
         checks = [
+            (bool(self.root.strip()), 'the sweep\'s root is empty: give --root DIR (or "root" in the sweep file)'),
             (self.steps is None or self.frames is None,
              "give the budget as --steps (agent steps) or --frames, not both"),
             (self.steps is None or self.steps >= 1, "--steps must be >= 1"),
