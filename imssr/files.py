@@ -157,8 +157,12 @@ def read_csv(path: str, complete_only: bool = False) -> list[dict]:
     short (``...,training,2.`` of ``2.5`` would read as a number)."""
     if not os.path.exists(path):
         return []
-    with open(path, newline="") as fh:
-        text = fh.read()
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            text = fh.read()
+    except UnicodeDecodeError as exc:
+        raise ImssrError(f"{path} is damaged: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset "
+                         f"{exc.start})") from None
     if complete_only and text and not text.endswith("\n"):
         text = text[:text.rfind("\n") + 1]
     return list(csv.DictReader(io.StringIO(text, newline="")))

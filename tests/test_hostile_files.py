@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config
+from conftest import tiny_config, train_run
 from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
@@ -168,3 +168,44 @@ def test_writes_in_a_run_directory_refuse_to_follow_a_link(tmp_path):
     with pytest.raises(ImssrError, match=message.format(run.lock_path)):
         run.open()
     assert outside.read_text() == "precious\n"
+
+
+# -- bytes that are not UTF-8, JSON nested too deep -----------------------------------------
+
+def test_a_run_with_a_damaged_eval_log_is_skipped_by_report_and_export_with_a_note(tmp_path):
+    from conftest import curve, make_run
+    from imssr.report.export import export_runs
+    from imssr.report.report import write_report
+
+    root = str(tmp_path / "sweep")
+    make_run(root, "curl", 1, curve(0, 0, 100))
+    bad = make_run(root, "curl", 2, curve(0, 0, 200))
+    with open(os.path.join(bad, "eval.csv"), "ab") as fh:
+        fh.write(b"8000,1000,training,\xff\n")
+    write_report(root, str(tmp_path / "report"), reps=20)
+    md = open(tmp_path / "report" / "report.md").read()
+    assert "curl/seed_2: " in md and "eval.csv is damaged: not UTF-8 text (byte 0xff at offset" in md
+    assert "1 runs, 4 evaluations." in md
+    export_runs(root, str(tmp_path / "dest"))  # no traceback: the damaged run is not read
+
+
+def test_a_damaged_train_log_stops_a_resume_in_one_line_naming_it(tmp_path, capsys):
+    run = str(tmp_path / "run")
+    cfg = tiny_config("curl", steps=130, eval_every_steps=130, eval_episodes=1)
+    train_run(cfg, run, stop_at=70)
+    with open(os.path.join(run, "train.csv"), "ab") as fh:
+        fh.write(b"\xfe\xff")
+    assert main(["train", "--resume", "--out", run, "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"imssr: error: {run}/train.csv is damaged: not UTF-8 text"), err
+
+
+@pytest.mark.parametrize("what", ["config", "sweep"])
+def test_json_nested_too_deep_is_one_line(tmp_path, capsys, what):
+    path = tmp_path / f"{what}.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    args = ["train", "--config", str(path), "--out", str(tmp_path / "r")] if what == "config" else \
+        ["sweep", "--file", str(path), "--dry-run"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nests its JSON too deeply" in err[0], err

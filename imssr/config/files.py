@@ -22,6 +22,8 @@ def read_config_file(path: str) -> Any:
         raise ImssrError(f"config file {path} is not a JSON text file (it is not UTF-8 text)") from None
     except json.JSONDecodeError as exc:
         raise ImssrError(f"config file {path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ImssrError(f"config file {path} nests its JSON too deeply to be a config") from None
 
 
 def load_config(path: str) -> RunConfig:

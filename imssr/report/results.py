@@ -192,7 +192,11 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
     run.provenance = records or []
     path = run_files.eval_log
-    rows = read_csv(path, complete_only=True)
+    try:
+        rows = read_csv(path, complete_only=True)
+    except ImssrError as exc:  # one damaged run must not stop a report of the others
+        notes.append(f"{rel}: {exc}; skipped")
+        return None
     for row in rows:
         try:
             frame = int(float(row["frame"]))
@@ -212,13 +216,14 @@ def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
     if not os.path.exists(path):
         return []
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             plan = json.load(fh)
         # Plans written before runs carried their precision: the presets' fp32.
         return [PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), int(r["steps"]),
                            os.path.join(root, r["dir"]), str(r.get("precision", "fp32"))) for r in plan["runs"]]
-    except (OSError, ValueError, KeyError, TypeError, ImssrError) as exc:
-        notes.append(f"{SWEEP_PLAN}: unreadable ({exc}); expected seeds come from the runs found")
+    except (OSError, ValueError, KeyError, TypeError, RecursionError, ImssrError) as exc:
+        notes.append(f"{SWEEP_PLAN}: unreadable ({type(exc).__name__ if isinstance(exc, RecursionError) else exc}); "
+                     "expected seeds come from the runs found")
         return []
 
 

@@ -629,9 +629,9 @@ def as_run_dir(run: Union[RunDir, str, "os.PathLike[str]"]) -> RunDir:
 
 def _read_json(path: str) -> Optional[dict]:
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # ValueError: bad JSON or not UTF-8
         return None
     return data if isinstance(data, dict) else None
 

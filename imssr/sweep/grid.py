@@ -373,17 +373,21 @@ def load_sweep_file(path: str) -> SweepConfig:
     if not os.path.exists(path):
         raise ImssrError(f"sweep file not found: {path}")
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
     except json.JSONDecodeError as exc:
         raise ImssrError(f"sweep file {path} is not valid JSON: {exc}") from None
+    except UnicodeDecodeError:
+        raise ImssrError(f"sweep file {path} is not a JSON text file (it is not UTF-8 text)") from None
+    except RecursionError:
+        raise ImssrError(f"sweep file {path} nests its JSON too deeply to be a sweep file") from None
     return SweepConfig.from_dict(data)
 
 
 def status_of(root: str) -> Optional[dict]:
     """The last sweep status written under ``root`` (None if there is none)."""
     try:
-        with open(os.path.join(root, SWEEP_STATUS)) as fh:
+        with open(os.path.join(root, SWEEP_STATUS), encoding="utf-8") as fh:
             return json.load(fh)
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError, RecursionError):  # ValueError: bad JSON or not UTF-8
         return None
