@@ -612,3 +612,22 @@ def test_an_evaluation_appended_after_a_torn_row_starts_on_a_line_of_its_own(tmp
     torn_header.write_text("frame,st")
     append_locked(str(torn_header), ["frame", "step"], [{"frame": 1, "step": 2}])
     assert torn_header.read_text() == "frame,step\n1,2\n"
+
+
+def test_a_lost_config_json_is_restored_from_the_checkpoint_and_the_resume_is_exact(run, full, capsys):
+    """``--resume`` on a run whose config.json is gone: the checkpoint holds the config it was
+    trained with, which is written back (one line says so), and the run ends as it would have."""
+    os.unlink(os.path.join(run, "config.json"))
+    assert main(["train", "--resume", "--out", run, "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert f"imssr: {run}/config.json was missing; restored from {RunDir(run).latest} (the config it was " \
+           "trained with)" in out
+    for name in ("train.csv", "eval.csv"):
+        assert _strip(read_csv(os.path.join(run, name))) == _strip(read_csv(os.path.join(full[0], name))), name
+    assert RunDir(run).read_config().to_dict() == RunDir(full[0]).read_config().to_dict()
+
+
+def test_without_config_json_or_checkpoint_there_is_nothing_to_resume(tmp_path, capsys):
+    os.makedirs(tmp_path / "run")
+    assert main(["train", "--resume", "--out", str(tmp_path / "run")]) == 2
+    assert f"nothing to resume: {tmp_path / 'run' / 'config.json'} does not exist" in capsys.readouterr().err

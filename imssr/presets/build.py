@@ -107,10 +107,12 @@ def base_config(algo: str | None = None, task: str | None = None, *, network: st
     if config_file:
         cfg = load_partial_config(config_file, algo, task)
     elif resume_dir:
-        saved = as_run_dir(resume_dir).config_path
-        if not os.path.exists(saved):
-            raise ImssrError(f"nothing to resume: {saved} does not exist")
-        cfg = load_config(saved)
+        run = as_run_dir(resume_dir)
+        if not os.path.exists(run.config_path):
+            if not run.has_checkpoint():
+                raise ImssrError(f"nothing to resume: {run.config_path} does not exist")
+            _restore_config(run)
+        cfg = load_config(run.config_path)
     else:
         algo = algo or ("im-curl" if demo else None)
         task = task or ("cartpole_swingup" if demo else None)
@@ -149,3 +151,16 @@ def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup", network: 
     if not cfg.aux.own_batch:
         cfg.aux.batch_size = cfg.agent.batch_size  # the task trains on the RL batch
     return cfg
+
+
+def _restore_config(run: RunDir) -> None:
+    """Write back a run's lost ``config.json`` from the checkpoint a resume would continue from
+    (verified when loaded; it holds the config it was trained with), saying so in one line."""
+    ckpt = run.checkpoint()
+    saved = ckpt.state.get("config")
+    if not isinstance(saved, dict):
+        raise ImssrError(f"nothing to resume: {run.config_path} does not exist, and {ckpt.path} holds no config")
+    cfg = RunConfig.from_dict(saved)
+    run.write_config(cfg)
+    print(f"imssr: {run.config_path} was missing; restored from {ckpt.path} (the config it was trained with)",
+          flush=True)
