@@ -206,3 +206,25 @@ def test_export_never_writes_outside_dest_for_names_read_from_a_run(tmp_path, fi
     assert [e.state for e in exported] == [
         f"skipped (its config.json names {'task' if name == 'task' else 'algo'} {value!r}: not a plain name)"]
     assert sorted(str(p) for p in tmp_path.rglob("*")) == before  # nothing written anywhere
+
+
+def test_runs_that_differ_only_in_a_setting_stay_apart_in_report_and_export(tmp_path):
+    """Two sweeps under one root that differ in a --set (same algo, task and seed): the report
+    gives each its own row, labelled by the setting, and the export keeps both."""
+    root, dest = tmp_path / "sweep", tmp_path / "dest"
+    for norm, seed_runs in (("zscore", 2), ("minmax", 2)):
+        for seed in range(1, seed_runs + 1):
+            cfg = _tiny("im-curl", seed)
+            cfg.intrinsic.normalization = norm
+            _train_finished(cfg, run_path(str(root / norm), TASK, "im-curl", seed))
+    write_report(str(root), str(tmp_path / "report"), reps=20)
+    rows = read_csv(str(tmp_path / "report" / "table.csv"))
+    labels = sorted({r["label"] for r in rows})
+    assert labels == ["im-curl [intrinsic.normalization=minmax]", "im-curl [intrinsic.normalization=zscore]"]
+    assert {r["seeds"] for r in rows if r["fraction"] == "1.0"} == {"2"}
+    exported = export_runs(str(root), str(dest))
+    assert [e.state for e in exported] == ["new"] * 4
+    assert len({e.dest for e in exported}) == 4
+    assert export_runs(str(root), str(dest)) and all(e.state == "unchanged" for e in export_runs(str(root), str(dest)))
+    write_report(str(dest), str(tmp_path / "report2"), reps=20)
+    assert sorted({r["label"] for r in read_csv(str(tmp_path / "report2" / "table.csv"))}) == labels

@@ -63,6 +63,10 @@ def export_runs(root: str, dest: str) -> list[Exported]:
                                                "not a plain name)"))
             continue
         target = run_path(os.path.join(dest, run.precision), run.task, run.algo, run.seed, beta)
+        if run.variant:
+            # Another run shares its algo, task, seed and precision: keep both, each at its own
+            # path under the sweep (directories found on disk: plain names), not one over the other.
+            target = os.path.join(dest, run.precision, os.path.relpath(run.dir, results.root))
         if not _inside(target, dest):
             out.append(Exported(run.dir, dest, "skipped (its path would leave the export directory)"))
             continue

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Any, Optional
 
 from imssr.config import steps_for_frames
 from imssr.errors import ImssrError
@@ -51,6 +51,12 @@ class RunResult:
     """``(mode, step, frame, return_mean)`` of every evaluation, in file order."""
     failure: Optional[str] = None
     """The last error of a run that ``sweep_status.json`` lists as failed; None otherwise."""
+    settings: dict[str, Any] = field(default_factory=dict, repr=False)
+    """The run's config, flattened (``section.field -> value``): what tells apart two runs that
+    share algo, task, seed and precision."""
+    variant: str = ""
+    """The settings that set this run apart from another run of the same algo, task, seed and
+    precision (``intrinsic.normalization=zscore``); empty when no other run shares them."""
     provenance: list[dict] = field(default_factory=list)
     """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] for a run of imssr
     before them or one whose file cannot be read."""
@@ -62,9 +68,11 @@ class RunResult:
 
     @property
     def label(self) -> str:
-        """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep and
-        the precision when it is not the paper's fp32."""
-        return group_label(self.algo, self.beta0, self.precision)
+        """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep, the
+        precision when it is not the paper's fp32, and the settings that set it apart from runs
+        of the same algo, task and seed (:attr:`variant`)."""
+        label = group_label(self.algo, self.beta0, self.precision)
+        return f"{label} [{self.variant}]" if self.variant else label
 
 
 def group_label(algo: str, beta0: Optional[float], precision: str = "fp32") -> str:
@@ -142,6 +150,7 @@ def collect(root: str) -> SweepResults:
         run = _read_run(dirpath, root, notes)
         if run is not None:
             runs.append(run)
+    set_apart(runs, root)
     planned = _read_plan(root, notes)
     failures = read_failures(root)
     for item in (*runs, *planned):
@@ -153,6 +162,43 @@ def collect(root: str) -> SweepResults:
     if not runs:
         raise ImssrError(f"no runs under {root} (a run directory holds config.json and eval.csv)")
     return SweepResults(root, runs, planned, notes, failures)
+
+
+IDENTITY = ("algo", "env.task", "train.seed")
+"""Settings that every run of a group may differ in (its seed) or that name the group already."""
+RUN_ONLY = ("train.seed", "train.device", "train.torch_threads", "train.progress", "train.wandb", "train.wandb_group",
+            "train.tensorboard", "train.replay_device", "train.gpu_share", "train.env_workers")
+"""Settings that say where and how a run was executed, not what it learned with: never a variant."""
+
+
+def _flat(data: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def set_apart(runs: list[RunResult], root: str) -> None:
+    """Give distinct labels to runs that share algo, task, seed and precision but differ in other
+    settings (two sweeps over one root that differ in a ``--set``): a report must never average
+    them as one group's seeds.  Each run of such a (task, label) group gets :attr:`RunResult.variant`:
+    its values of the settings in which the group's runs differ."""
+    groups: dict[tuple[str, str], list[RunResult]] = {}
+    for run in runs:
+        groups.setdefault((run.task, run.label), []).append(run)
+    for group in groups.values():
+        seeds = [r.seed for r in group]
+        if len(seeds) == len(set(seeds)):
+            continue
+        keys = sorted({k for r in group for k in r.settings if k not in IDENTITY + RUN_ONLY
+                       and len({repr(o.settings.get(k)) for o in group}) > 1})
+        for run in group:
+            # Runs alike in every setting (a copy of a run, the same sweep twice): their directories.
+            run.variant = ", ".join(f"{k}={run.settings.get(k)}" for k in keys) or \
+                os.path.relpath(os.path.dirname(run.dir), root)
 
 
 def read_failures(root: str) -> dict[str, str]:
@@ -186,7 +232,7 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         return None
     repeat = cfg.env.action_repeat
     run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
-                    precision=cfg.agent.precision_label, run_dir=run_files)
+                    precision=cfg.agent.precision_label, run_dir=run_files, settings=_flat(cfg.to_dict()))
     records = run_files.read_provenance()
     if records is None:
         notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
