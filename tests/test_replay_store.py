@@ -200,7 +200,7 @@ def test_a_save_writes_only_the_frames_since_the_last_one(tmp_path):
 
 @pytest.mark.parametrize("store", [_host, _tensor])
 @pytest.mark.parametrize("every", [7, 33, 150])  # 150 > capacity: more than a ring between saves
-def test_saves_across_the_rings_wraps_load_exactly(tmp_path, store, every):
+def test_saves_across_the_rings_wraps_load_exactly(tmp_path, store, every, chunks):
     buf, rng = store(capacity=100), np.random.default_rng(3)
     for save in range(8):
         _fill(buf, n_steps=every, episode_len=int(rng.integers(5, 40)), seed=save)

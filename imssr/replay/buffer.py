@@ -451,8 +451,7 @@ class FrameReplayBuffer:
             with open(fpath, "rb") as fh:
                 self._read_npy_header(fh, h, fpath, end - first)
                 dead = max(0, min(live_from, end) - first)  # frames the ring has overwritten since
-                if dead:
-                    read_hashed(fh, h, memoryview(bytearray(dead * self.frame_nbytes())), fpath)
+                _skip_hashed(fh, h, dead * self.frame_nbytes(), fpath)
                 for slot, count in self._slot_runs(first + dead, end):
                     self._read_slots(fh, h, slot, count, fpath)
                 if fh.read(1):
@@ -525,6 +524,16 @@ def read_hashed(fh, h, out: memoryview, fpath: str) -> None:
             raise ReplayFileError(f"replay frames {fpath} are truncated")
         h.update(out[pos:pos + got])
         pos += got
+
+
+def _skip_hashed(fh, h, nbytes: int, fpath: str) -> None:
+    """Read ``nbytes`` from ``fh`` into ``h`` only, one :data:`READ_CHUNK` at a time (frames of a
+    file that the ring has overwritten since: hashed, not kept)."""
+    scratch = memoryview(bytearray(min(nbytes, READ_CHUNK)))
+    while nbytes > 0:
+        size = min(nbytes, len(scratch))
+        read_hashed(fh, h, scratch[:size], fpath)
+        nbytes -= size
 
 
 ALIGN = 8
