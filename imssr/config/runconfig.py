@@ -68,7 +68,7 @@ class RunConfig:
             before = _flat(RunConfig.from_dict(saved).to_dict())
         except (ImssrError, TypeError):
             before = _flat(saved)
-        now = _flat(self.to_dict())
+        now = self.flat()
         return sorted(k for k in before.keys() | now.keys()
                       if before.get(k) != now.get(k) and k not in RESUMABLE_CHANGES)
 
@@ -91,6 +91,10 @@ class RunConfig:
             # A JSON boolean agent.tf32 reads as the mode of the same name.
             data = {**data, "agent": {**agent, "tf32": "true" if agent["tf32"] else "false"}}
         return _merged(cls(), data, raw={})
+
+    def flat(self) -> dict[str, Any]:
+        """Every setting under its dotted name (``agent.batch_size``), the top-level ones as they are."""
+        return _flat(self.to_dict())
 
     def validate(self) -> "RunConfig":
         """Reject bad values with one-line errors: the general rules of :mod:`imssr.config.validation`,

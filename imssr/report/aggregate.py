@@ -3,14 +3,15 @@
 Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks
 weigh alike.  Per mode and fraction of T: the interquartile mean (IQM) of each algo with a
 95% stratified-bootstrap confidence interval, where every task has at least
-:data:`MIN_SEEDS` seeds (with fewer, the IQM is about the mean and the interval about
-[min, max]: none is given, and a note says why).  Comparisons of two algorithms are made within
-a task (:mod:`imssr.report.comparisons`), not pooled here.
+:data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds (with fewer, the IQM is about the
+mean and the interval about [min, max]: none is given, and a note says why).  Comparisons of
+two algorithms are made within a task (:mod:`imssr.report.comparisons`), not pooled here.
 """
 from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+
 import numpy as np
 
 from imssr.extras import require
@@ -23,7 +24,6 @@ rly = require("rliable.library", "report")
 metrics = require("rliable.metrics", "report")
 
 DMC_MAX_RETURN = 1000.0
-MIN_SEEDS = MIN_SEEDS_FOR_BOOTSTRAP
 AGGREGATE_COLUMNS = ["mode", "fraction", "metric", "label", "point", "ci_low", "ci_high", "tasks", "runs"]
 
 
@@ -56,7 +56,8 @@ def score_matrix(rows: list[Row], fraction_index: int, tasks: list[str]) -> np.n
 
 
 def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggregate], list[str]]:
-    """IQM per label where every task it averages has at least :data:`MIN_SEEDS` seeds."""
+    """IQM per label where every task it averages has at least
+    :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds."""
     out: list[Aggregate] = []
     notes: list[str] = []
 
@@ -82,12 +83,13 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggr
                 notes.append(f"{mode} at {fraction:.1f}T: IQM over {', '.join(common)} only "
                              f"(not every algo has {', '.join(dropped)})")
             matrices = {label: score_matrix(by_label[label], i, common) for label in scored}
-            few = {label: m.shape[0] for label, m in matrices.items() if m.shape[0] < MIN_SEEDS}
+            few = {label: m.shape[0] for label, m in matrices.items()
+                   if m.shape[0] < MIN_SEEDS_FOR_BOOTSTRAP}
             if few:
                 notes.append(f"{mode} at {fraction:.1f}T: no IQM or bootstrap interval: "
                              + ", ".join(f"{label} has {n} seed{'s' if n > 1 else ''}" for label, n in few.items())
-                             + f" on some task, and they need at least {MIN_SEEDS} (with fewer, the IQM is about "
-                             "the mean and the interval about [min, max])")
+                             + f" on some task, and they need at least {MIN_SEEDS_FOR_BOOTSTRAP} (with fewer, the "
+                             "IQM is about the mean and the interval about [min, max])")
                 matrices = {label: m for label, m in matrices.items() if label not in few}
             if not matrices:
                 continue
@@ -109,7 +111,7 @@ def _estimates(scores: dict, func, reps: int, seed: int):
 def markdown(aggregates: list[Aggregate]) -> str:
     if not aggregates:
         return (f"No aggregate metrics: each needs a score on every task it averages and at least "
-                f"{MIN_SEEDS} seeds per task (the Notes say which are missing).\n")
+                f"{MIN_SEEDS_FOR_BOOTSTRAP} seeds per task (the Notes say which are missing).\n")
     lines = ["| mode | T | metric | algo | estimate | 95% CI | tasks | runs/task |",
              "|---|---:|---|---|---:|---|---|---:|"]
     for a in aggregates:

@@ -25,6 +25,7 @@ from imssr.files import atomic_write_text
 from imssr.report import aggregate, comparisons, figures, tables
 from imssr.provenance import CODE_FIELDS, DEVICE_FIELDS, summary
 from imssr.report.results import collect, write_evaluations
+from imssr.report.stats import MIN_SEEDS_FOR_BOOTSTRAP
 
 PAPER_T = 500_000
 """The paper's T in agent steps (Table III, "Number of training steps"): its 0.2T, 0.5T and 1.0T
@@ -55,7 +56,8 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
         notes.append(f"the paper's numbers are at T = {PAPER_T:,} agent steps (0.2T/0.5T/1.0T = "
                      f"{paper_points} steps); this sweep's T is {', '.join(f'{b:,}' for b in budgets)} "
                      f"agent steps, so its 0.2T/0.5T/1.0T are other agent steps")
-    notes += mixed_makers(results)
+    made_by = makers(results)
+    notes += mixed_makers(results, made_by)
     aggregates, agg_notes = aggregate.compute(rows, reps=reps)
     notes += agg_notes
     pairs = comparisons.compute(rows)
@@ -70,7 +72,7 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
     if beta_png:
         written.append((beta_png, "final return against beta_0"))
     # The root as the user named it: a committed report should not carry this machine's paths.
-    md = _markdown(results, os.path.normpath(root), rows, aggregates, pairs, notes, paper is not None,
+    md = _markdown(results, os.path.normpath(root), rows, aggregates, pairs, made_by, notes, paper is not None,
                    beta_png is not None, reps)
     path = os.path.join(out, "report.md")
     atomic_write_text(path, md)
@@ -78,8 +80,8 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
     return written
 
 
-def _markdown(results, root_name: str, rows, aggregates, pairs, notes, with_paper: bool, beta_plot: bool,
-              reps: int) -> str:
+def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, with_paper: bool,
+              beta_plot: bool, reps: int) -> str:
     n_evals = sum(len(r.evals) for r in results.runs)
     failed = (f" **{len(results.failures)} failed** in the sweep (see Failed runs)." if results.failures else "")
     against = tables.markdown_against_paper(rows) if with_paper else ""
@@ -105,13 +107,13 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, notes, with_pape
     parts += [
         "## Code and devices\n",
         "What made each row's runs (every start and resume of every run: `provenance.json`):\n",
-        makers_markdown(results),
+        makers_markdown(made_by),
         "## Comparisons within a task\n",
         comparisons.markdown(pairs),
         "## Aggregate metrics (rliable)\n",
         f"Scores normalised by 1000 (the DMC maximum). IQM: interquartile mean over runs and tasks, with a "
         f"95% stratified-bootstrap CI ({reps} replicates), given only where every task has at least "
-        f"{aggregate.MIN_SEEDS} seeds.\n",
+        f"{MIN_SEEDS_FOR_BOOTSTRAP} seeds.\n",
         aggregate.markdown(aggregates),
         "## Learning curves\n",
         "Evaluation return against agent steps (environment frames on the top axis).\n",
@@ -144,24 +146,21 @@ def makers(results) -> dict[tuple[str, str], dict[str, int]]:
     return out
 
 
-def mixed_makers(results) -> list[str]:
-    """One warning per row whose runs were made by more than one code version or device."""
-    notes = []
+def mixed_makers(results, made_by: dict[tuple[str, str], dict[str, int]]) -> list[str]:
+    """One warning per row whose runs were made by more than one code version or device
+    (``made_by``: :func:`makers` of ``results``)."""
     keys: dict[tuple[str, str], set] = {}
     for run in results.runs:
         for r in run.provenance:
             keys.setdefault((run.task, run.label), set()).add(tuple(r.get(f) for f in (*CODE_FIELDS, *DEVICE_FIELDS)))
-    for (task, label), found in sorted(keys.items()):
-        if len(found) > 1:
-            lines = makers(results)[task, label]
-            notes.append(f"warning: {task} / {label} mixes code versions or devices: "
-                         + "; ".join(f"{line} ({n} run{'s' if n > 1 else ''})" for line, n in sorted(lines.items())))
-    return notes
+    return [f"warning: {task} / {label} mixes code versions or devices: "
+            + "; ".join(f"{line} ({n} run{'s' if n > 1 else ''})" for line, n in sorted(made_by[task, label].items()))
+            for (task, label), found in sorted(keys.items()) if len(found) > 1]
 
 
-def makers_markdown(results) -> str:
+def makers_markdown(made_by: dict[tuple[str, str], dict[str, int]]) -> str:
     lines = ["| task | algo | code and device | runs |", "|---|---|---|---:|"]
-    for (task, label), found in sorted(makers(results).items()):
+    for (task, label), found in sorted(made_by.items()):
         for i, (line, n) in enumerate(sorted(found.items())):
             lines.append(f"| {'`' + task + '`' if i == 0 else ''} | {label if i == 0 else ''} | {line} | {n} |")
     return "\n".join(lines) + "\n"

@@ -166,19 +166,9 @@ def collect(root: str) -> SweepResults:
 
 IDENTITY = ("algo", "env.task", "train.seed")
 """Settings that every run of a group may differ in (its seed) or that name the group already."""
-RUN_ONLY = ("train.seed", "train.device", "train.torch_threads", "train.progress", "train.wandb", "train.wandb_group",
+RUN_ONLY = ("train.device", "train.torch_threads", "train.progress", "train.wandb", "train.wandb_group",
             "train.tensorboard", "train.replay_device", "train.gpu_share", "train.env_workers")
 """Settings that say where and how a run was executed, not what it learned with: never a variant."""
-
-
-def _flat(data: dict, prefix: str = "") -> dict[str, Any]:
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def set_apart(runs: list[RunResult], root: str) -> None:
@@ -232,7 +222,7 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         return None
     repeat = cfg.env.action_repeat
     run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
-                    precision=cfg.agent.precision_label, run_dir=run_files, settings=_flat(cfg.to_dict()))
+                    precision=cfg.agent.precision_label, run_dir=run_files, settings=cfg.flat())
     records = run_files.read_provenance()
     if records is None:
         notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
