@@ -50,7 +50,7 @@ from imssr.replay import FrameReplayBuffer
 def build(args, seeds: list[int]):
     """The seeds' agents (one batch, or a single agent) and their filled replay buffers."""
     cfg = make_config(args.algo, args.task)
-    apply_overrides(cfg, args.set)
+    cfg = apply_overrides(cfg, args.set).validate()
     action_dim = args.action_dim
     e = cfg.env
     obs_shape = (3 * e.frame_stack, e.image_size, e.image_size)

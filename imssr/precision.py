@@ -101,6 +101,15 @@ def cache_frozen_weights(*modules: nn.Module) -> int:
     return len(layers)
 
 
+def adam(params, lr: float, betas: tuple[float, float] = (0.9, 0.999), fused: bool = False) -> torch.optim.Adam:
+    """torch's Adam, fused (``agent.fused_adam``: one kernel per group on CUDA, the last bits of
+    rounding differ) or torch's default implementation (the foreach kernels on CUDA, the
+    per-tensor loop on CPU; foreach is bit-identical there and gains nothing).  No optimiser
+    step is captured in a CUDA graph (``agent.compile`` compiles forward passes only), so
+    neither needs ``capturable=True``."""
+    return torch.optim.Adam(params, lr=lr, betas=betas, fused=True if fused else None)
+
+
 def optimizer_step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> None:
     """Backpropagate ``loss`` and step each optimiser on its parameters' fresh gradients.
 

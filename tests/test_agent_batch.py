@@ -224,3 +224,27 @@ def test_bf16_members_with_float32_q_heads(mode):
         x = torch.cat([v.flatten() for v in agent.nets.state_dict().values()])
         y = torch.cat([v.flatten() for v in batch.member_state_dict(i)["nets"].values()])
         assert float((x - y).norm() / x.norm()) < 1e-2
+
+
+def test_fused_adam_is_opt_in_the_same_rule_and_kept_by_a_batch():
+    assert tiny_config("im-curl").agent.fused_adam is False
+    plain, fused = member("im-curl", 1), member("im-curl", 1, fused_adam=True)
+    assert all(not o.defaults["fused"] for o in AgentBatch._optimizers_of(plain))
+    assert all(o.defaults["fused"] for o in AgentBatch._optimizers_of(fused))
+    for agent in (plain, fused):
+        replay = buffers()[0]
+        for step in range(STEPS):
+            agent.update(replay, step)
+    # The same update rule: only the rounding differs.
+    for key, x in flat(plain.state_dict()).items():
+        y = flat(fused.state_dict())[key]
+        if isinstance(x, torch.Tensor) and x.dtype.is_floating_point and x.numel():
+            assert float((x - y).abs().max()) <= 1e-6 + 1e-4 * float(x.abs().max()), key
+    # A batch's stacked optimisers keep the members' setting, so each member is its single fused
+    # run (to the rounding of the fused kernel, whose vector lanes split a stacked tensor
+    # differently from a member's).
+    singles = [member("im-curl", s, fused_adam=True) for s in SEEDS]
+    batch = AgentBatch([member("im-curl", s, fused_adam=True) for s in SEEDS], mode="loop")
+    assert all(g["fused"] for o in batch.optimizers.values() for g in o.param_groups)
+    single_metrics, batch_metrics = train_both(singles, batch)
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=1e-5, atol=1e-9)

@@ -32,3 +32,18 @@ def test_replay_checkpoint_compares_new_frames_with_whole_rewrites(tmp_path):
     rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| whole") or line.startswith("| new")]
     assert [r[0] for r in rows] == ["| whole buffer", "| new frames only"] and rows[0][3] == "1.00"
     assert float(rows[1][3]) < 1  # fewer bytes written: no timing is checked
+
+
+def test_the_seeds_benches_build_their_agents_with_the_overrides():
+    sys.path.insert(0, os.path.join(REPO, "bench"))
+    try:
+        import seeds
+    finally:
+        sys.path.remove(os.path.join(REPO, "bench"))
+    args = seeds.main.__globals__["argparse"].Namespace(
+        algo="curl", task="cartpole_swingup", action_dim=1, fill=20, device="cpu", batched=True, mode="loop",
+        set=[*TINY[1::2], "agent.fused_adam=true"])
+    batch, replays, _ = seeds.build(args, [1, 2])
+    template = batch.template
+    assert template.cfg.batch_size == 8 and template.cfg.encoder_filters == 8
+    assert all(g["fused"] for o in batch.optimizers.values() for g in o.param_groups) and len(replays) == 2

@@ -1,6 +1,6 @@
-"""The prepared GPU run (scripts/gpu_dmc100k.sh) on the CPU at tiny sizes: the bench, a packed
-sweep of CURL and IM-CURL, the archive of the finished runs; few files, at most two folders deep
-(what a device run brings back)."""
+"""The prepared GPU runs on the CPU at tiny sizes: scripts/gpu_dmc100k.sh (the bench, a packed
+sweep of CURL and IM-CURL, the archive of the finished runs) and scripts/gpu_kernels.sh (the
+kernel measurements); few files, at most two folders deep (what a device run brings back)."""
 from __future__ import annotations
 
 import os
@@ -26,3 +26,20 @@ def test_the_prepared_gpu_run_works_on_the_cpu(tmp_path):
     for algo in ("curl", "im-curl"):
         assert f"runs/fp32/cartpole_swingup/{algo}/seed_1/eval.csv" in names
     assert "| 1 | 1 process, loop |" in (out / "sweep" / "bench_seeds.md").read_text()
+
+
+def test_the_prepared_kernel_measurement_works_on_the_cpu(tmp_path):
+    out = tmp_path / "out"
+    env = {**os.environ, "OUT": str(out), "TINY": "1", "DEVICE": "cpu"}
+    proc = subprocess.run(["bash", os.path.join(REPO, "scripts", "gpu_kernels.sh")], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    files = sorted(os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs)
+    assert len(files) <= 8 and all(f.count(os.sep) <= 1 for f in files), files
+    kernels = out / "kernels"
+    assert "stopped" not in proc.stdout and "no time left" not in proc.stdout
+    for name in ("profile_default.txt", "profile_fast.txt"):
+        assert "## 2 seeds, vmap" in (kernels / name).read_text()
+    assert "| 2 | 1 process, vmap |" in (kernels / "seeds_fast.md").read_text()
+    for name in ("gpu_fast.md", "gpu_default.md"):
+        assert "| curl | fp32 | off |" in (kernels / name).read_text()

@@ -263,7 +263,7 @@ class AgentBatch:
         settings, so that its state dict has the single agent's layout."""
         groups = [{**{k: v for k, v in g.items() if k != "params"},
                    "params": [self.stacked[self.name_of[id(p)]] for p in g["params"]]} for g in opt.param_groups]
-        return type(opt)(groups)
+        return type(opt)(groups, **opt.defaults)
 
     def _set_member_optimizer_state(self, stacked_opt: torch.optim.Optimizer, i: int, member_state: dict) -> None:
         params = [p for g in stacked_opt.param_groups for p in g["params"]]

@@ -34,8 +34,8 @@ from imssr.config import AgentConfig, AuxConfig, IntrinsicConfig
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward, IntrinsicSignal, make_signal
 from imssr.networks import Actor, ConvTrunk, Critic, Encoder, ema, weight_init
-from imssr.precision import (autocast, cache_frozen_weights, configure_cuda, full_precision, optimizer_step, upcast,
-                             warn_if_bf16_is_slow)
+from imssr.precision import (adam, autocast, cache_frozen_weights, configure_cuda, full_precision, optimizer_step,
+                             upcast, warn_if_bf16_is_slow)
 from imssr.replay import FrameReplayBuffer
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
@@ -104,16 +104,10 @@ class SACAgent:
         self.nets = SACNetworks(obs_shape[0], action_dim, cfg).to(self.device)
         n = self.nets
         self.target_entropy = -float(action_dim)
-        # torch's default implementation: the foreach kernels on CUDA (a few launches per step, no
-        # host sync), the per-tensor loop on CPU (foreach is bit-identical there and gains nothing).
-        # No optimiser step is captured in a CUDA graph (agent.compile compiles forward passes
-        # only), so Adam needs no capturable=True.
-        self.critic_opt = torch.optim.Adam(n.critic.parameters(), lr=cfg.critic_lr,
-                                           betas=(cfg.critic_beta1, 0.999))
+        self.critic_opt = adam(n.critic.parameters(), cfg.critic_lr, (cfg.critic_beta1, 0.999), cfg.fused_adam)
         # The actor trains its projection and MLP only; the trunk is the critic's.
-        self.actor_opt = torch.optim.Adam(n.actor.parameters(), lr=cfg.actor_lr,
-                                          betas=(cfg.actor_beta1, 0.999))
-        self.alpha_opt = torch.optim.Adam([n.log_alpha], lr=cfg.alpha_lr, betas=(cfg.alpha_beta1, 0.999))
+        self.actor_opt = adam(n.actor.parameters(), cfg.actor_lr, (cfg.actor_beta1, 0.999), cfg.fused_adam)
+        self.alpha_opt = adam([n.log_alpha], cfg.alpha_lr, (cfg.alpha_beta1, 0.999), cfg.fused_adam)
         self.aux: Optional[AuxiliaryTask] = None
         self.fuse_aux = False
         """Whether the task's loss is read from the critic's pass and joins its backward: the fused
@@ -128,7 +122,7 @@ class SACAgent:
             if self.aux.trains:
                 # Fused, the critic's optimiser steps the shared encoder once on the summed gradient.
                 params = self.aux.own_parameters() if self.fuse_aux else self.aux.trained_parameters()
-                self.aux.optimizer = torch.optim.Adam(params, lr=aux_cfg.lr)
+                self.aux.optimizer = adam(params, aux_cfg.lr, fused=cfg.fused_adam)
         self.intrinsic: Optional[IntrinsicReward] = None
         self.signal: Optional[IntrinsicSignal] = None
         if intrinsic_cfg is not None and intrinsic_cfg.enabled:

@@ -133,6 +133,11 @@ class AgentConfig:
     with this mode: ``off``, ``default``, ``reduce-overhead`` or ``max-autotune`` (both CUDA
     graphs on CUDA; each act and update marks a step of them).  The first updates are slow while
     it compiles; needs a C++ compiler on CPU.  Not measured on a GPU."""
+    fused_adam: bool = False
+    """Step the SAC and auxiliary optimisers with torch's fused Adam (one kernel per parameter
+    group on CUDA, instead of the foreach kernels torch uses by default).  The same update rule;
+    the float rounding differs in the last bits (about 1e-7 relative), so it is off in the paper
+    presets.  An intrinsic signal's own optimiser (RND's predictor) keeps torch's default."""
 
     @property
     def precision_label(self) -> str:
