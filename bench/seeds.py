@@ -7,8 +7,8 @@
 For each N the same work is timed in one run: N seeds as one
 :class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), once per
 ``--modes`` (``loop``: member after member; ``vmap``: all members as one vectorised computation),
-and N processes with one single-seed agent each, started together (what a sweep of single-seed
-runs does), the baseline of the ratios.  A step is the agent's part of a training step, for every
+and N processes with one single-seed agent each, timed together (what a sweep of single-seed
+runs does: each warms up, then all start their timed steps at once), the baseline of the ratios.  A step is the agent's part of a training step, for every
 seed: the policy's action for a new observation, then the update of that agent step (the paper's
 preset of ``--algo``, the sequential schedule, fp32), sampling each seed's own replay buffer of
 ``--fill`` random-frame transitions.  The environment is left out: it costs each seed the same in both layouts.
@@ -103,6 +103,11 @@ def worker(args) -> None:
     if cuda:
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
+    # The start barrier: every process of a layout times the same window.  Without it, starts
+    # staggered by tens of seconds (imports, cuDNN's autotuning) let each process time its steps
+    # while the others are still starting, and the sum looks faster than any shared GPU can be.
+    print("ready", flush=True)
+    sys.stdin.readline()
     start = time.perf_counter()
     for step in range(args.warmup, args.warmup + args.steps):
         one_step(step)
@@ -120,11 +125,23 @@ def launch(args, members: int, batched: str, threads: int) -> subprocess.Popen:
     cmd += ["--batched", "--mode", batched] if batched else []
     for item in args.set:
         cmd += ["--set", item]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True,
+    return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                             env={**os.environ, "OMP_NUM_THREADS": str(max(threads, 1))})
 
 
 def collect(procs: list[subprocess.Popen]) -> list[dict]:
+    """The workers' results, timed together: each reports ready after its warm-up, and all are
+    told to go at once."""
+    for p in procs:
+        line = p.stdout.readline()
+        while line and line.strip() != "ready":
+            line = p.stdout.readline()
+        if not line:
+            p.wait()
+            raise SystemExit(f"bench/seeds.py: a worker failed (exit {p.returncode})")
+    for p in procs:
+        p.stdin.write("go\n")
+        p.stdin.flush()
     out = []
     for p in procs:
         stdout, _ = p.communicate()
@@ -140,7 +157,8 @@ def measure(args, n: int) -> list[dict]:
     rows, base = [], float("nan")
     if args.baseline_n is None or n in args.baseline_n:
         separate = collect([launch(args, 1, "", max(1, total // n)) for _ in range(n)])
-        # Separate processes start together; the slowest one's time is the wall time of the N seeds.
+        # Separate processes time one window (collect's barrier); the slowest one's time is the wall
+        # time of the N seeds.
         base = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
         rows.append({"n": n, "layout": f"{n} process{'es' if n > 1 else ''}", "steps_s": base, "ratio": 1.0,
                      "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20})
