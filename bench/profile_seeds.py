@@ -42,9 +42,11 @@ def profile_one(args, n: int, mode: str) -> None:
     wall = (time.perf_counter() - start) / args.steps
     events = prof.key_averages()
     key = "self_device_time_total" if cuda else "self_cpu_time_total"
-    # Only the kernels' own rows (the operators' rows repeat their kernels' device time).
+    # Only the kernels' own rows: the operators' rows repeat their kernels' device time, and so do
+    # user annotations on the device's timeline (``Optimizer.step#Adam.step`` spans Adam's kernels).
     kind = torch.autograd.DeviceType.CUDA if cuda else torch.autograd.DeviceType.CPU
-    busy = sum(getattr(e, key) for e in events if e.device_type == kind) / 1e6 / args.steps
+    busy = sum(getattr(e, key) for e in events
+               if e.device_type == kind and not getattr(e, "is_user_annotation", False)) / 1e6 / args.steps
     print(f"\n## {n} seed{'s' if n > 1 else ''}, {mode}: {wall * 1e3:.1f} ms per agent step (all seeds), "
           f"{n / wall:.1f} agent steps/s; {'device' if cuda else 'CPU operators'} busy "
           f"{busy * 1e3:.1f} ms per step ({busy / wall:.0%}, under the profiler)")
