@@ -7,7 +7,7 @@ from imssr._gl import configure_gl as _configure_gl
 GL_BACKEND = _configure_gl()
 
 from imssr.errors import ImssrError  # noqa: E402
-from imssr.envs import make_env, list_tasks  # noqa: E402
+from imssr.envs import list_tasks  # noqa: E402
 from imssr.envs.gym_ids import register_envs as _register_envs  # noqa: E402
 
 # gymnasium.make("imssr/<task>-v0", mode=..., seed=...): string entry points, no mujoco loaded here.
@@ -21,9 +21,14 @@ _API = ("train", "load_run", "Run")
 
 def __getattr__(name: str):
     # Resolved on first use: imssr.api imports the training loop, which imports modules of this
-    # package, so importing it while `imssr` itself initialises would run them half-built.
+    # package, so importing it while `imssr` itself initialises would run them half-built; and
+    # `import imssr` (the CLI's first step) stays light without torch and dm_control.
     if name in _API:
         from imssr import api
 
         return getattr(api, name)
+    if name == "make_env":
+        from imssr.envs import make_env
+
+        return make_env
     raise AttributeError(f"module 'imssr' has no attribute {name!r}")

@@ -1,5 +1,5 @@
 import sys
 
-from imssr.cli import main
+from imssr.console import main
 
 sys.exit(main())

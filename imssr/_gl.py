@@ -44,6 +44,10 @@ def check_gl() -> None:
         raise ImssrError(
             f"MUJOCO_GL={backend!r} is not supported; use one of {', '.join(SUPPORTED_BACKENDS)}"
         )
+    if backend == "glfw" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        # GLFW opens a window: without a display it fails deep inside dm_control, after warnings.
+        raise ImssrError("MUJOCO_GL=glfw needs a display, and neither DISPLAY nor WAYLAND_DISPLAY is set: "
+                         "render headless with MUJOCO_GL=egl (or osmesa)")
     for lib, package in _BACKEND_LIBS[backend]:
         if ctypes.util.find_library(lib) is None:
             hint = ""

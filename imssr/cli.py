@@ -651,13 +651,21 @@ def _main(argv: Optional[list[str]]) -> int:
         print(f"imssr: {exc}", file=sys.stderr)
         return INTERRUPTED_EXIT
     except KeyboardInterrupt:
-        if args.command == "sweep":
-            print("imssr: interrupted; re-running the same `imssr sweep` resumes every unfinished run "
-                  "from its last checkpoint", file=sys.stderr)
-            return INTERRUPTED_EXIT
-        print("imssr: interrupted; `imssr train --resume --out RUN` continues from the last checkpoint",
-              file=sys.stderr)
+        print(f"imssr: interrupted; {INTERRUPTED_TEXT.get(args.command, 'nothing was changed')}", file=sys.stderr)
         return INTERRUPTED_EXIT
+
+
+INTERRUPTED_TEXT = {
+    "train": "`imssr train --resume --out RUN` continues from the last checkpoint",
+    "demo": "`imssr demo --resume --out RUN` continues from the last checkpoint",
+    "sweep": "re-running the same `imssr sweep` resumes every unfinished run from its last checkpoint",
+    "evaluate": "the evaluations already in the run's evaluate.csv are kept; run `imssr evaluate` again for the rest",
+    "analyze": "files already written are whole; run `imssr analyze` again for the rest",
+    "report": "the report may mix files of this run and an earlier one; run `imssr report` again",
+    "export": "the runs already copied are whole; run `imssr export` again to copy the rest",
+    "plot": "run `imssr plot` again",
+}
+"""What a Ctrl-C (outside a training's own checkpointing stop) leaves, per command."""
 
 
 if __name__ == "__main__":  # pragma: no cover

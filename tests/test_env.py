@@ -137,6 +137,17 @@ def test_missing_gl_library_names_the_debian_package(monkeypatch):
         check_gl()
 
 
+def test_glfw_without_a_display_names_the_display_and_egl(monkeypatch):
+    from imssr._gl import check_gl
+
+    monkeypatch.setenv("MUJOCO_GL", "glfw")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(imssr.ImssrError, match="needs a display.*MUJOCO_GL=egl") as err:
+        check_gl()
+    assert "\n" not in str(err.value) and "libgl1-mesa-dri" not in str(err.value)
+
+
 def test_shadow_map_size_changes_pixels_only_slightly():
     from imssr.envs import make_env
 

@@ -360,3 +360,45 @@ def test_a_signal_where_ray_acts_still_leaves_an_interrupted_status(tmp_path, at
             handle.stop()
     with open(os.path.join(cfg.root, "sweep_status.json")) as fh:
         assert [r["state"] for r in json.load(fh)["runs"]] == ["queued" if at == "start" else "interrupted"]
+
+
+def test_ctrl_c_while_the_command_loads_is_one_line(tmp_path):
+    # A real KeyboardInterrupt where Ctrl-C lands in the first seconds: while the CLI's modules
+    # import.  sitecustomize raises it on the import of imssr.training, which imssr.cli imports.
+    (tmp_path / "sitecustomize.py").write_text(
+        "import sys\n"
+        "class Interrupt:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'imssr.training':\n"
+        "            raise KeyboardInterrupt\n"
+        "sys.meta_path.insert(0, Interrupt())\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, "-m", "imssr", "tasks"], env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == INTERRUPTED_EXIT
+    assert proc.stderr.strip() == "imssr: interrupted while starting; nothing was run"
+    proc = subprocess.run([sys.executable, "-c", "import sys, imssr; print('torch' in sys.modules)"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() == "False"  # what runs before the guard loads no torch
+
+
+@pytest.mark.parametrize("command, interrupted, says", [
+    (["evaluate", "--run", "RUN"], "evaluate_run", "imssr evaluate"),
+    (["report", "ROOT"], "imssr.report.report.write_report", "imssr report"),
+    (["export", "ROOT", "DEST"], "imssr.report.export.export_runs", "imssr export"),
+])
+def test_ctrl_c_in_a_command_says_what_that_command_left(tmp_path, monkeypatch, capsys, command, interrupted, says):
+    import importlib
+
+    import imssr.cli
+
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    module, _, name = interrupted.rpartition(".")
+    monkeypatch.setattr(importlib.import_module(module) if module else imssr.cli, name, ctrl_c)
+    paths = {"RUN": str(tmp_path / "run"), "ROOT": str(tmp_path), "DEST": str(tmp_path / "dest")}
+    assert main([paths.get(a, a) for a in command]) == INTERRUPTED_EXIT
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("imssr: interrupted; ") and says in err and "\n" not in err
+    assert "train --resume" not in err

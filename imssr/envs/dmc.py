@@ -93,7 +93,8 @@ class DMCEnv(gym.Env):
                 f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} "
                 f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); install "
                 + (egl_vendor_hint(nvidia_driver_loaded()) if _gl_backend() == "egl" else
-                   "the Debian package libgl1-mesa-dri for software rendering (apt-get install libgl1-mesa-dri)")
+                   "the Debian package libgl1-mesa-dri for software rendering (apt-get install libgl1-mesa-dri)"
+                   + (", or render headless with MUJOCO_GL=egl" if _gl_backend() == "glfw" else ""))
             ) from None
 
         # Test scenes; their footage comes from the ``footage_split`` pool (the

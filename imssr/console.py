@@ -1,0 +1,21 @@
+"""The ``imssr`` command's entry point (``python -m imssr`` too).
+
+It loads the command-line interface, whose modules take seconds to import (torch, dm_control),
+inside a guard: a Ctrl-C in those seconds is one line and exit status 130, not a traceback.
+``import imssr`` itself loads no torch, so the unguarded part is a fraction of a second.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Optional
+
+from imssr.errors import INTERRUPTED_EXIT
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    try:
+        from imssr.cli import main as cli_main
+    except KeyboardInterrupt:
+        print("imssr: interrupted while starting; nothing was run", file=sys.stderr)
+        return INTERRUPTED_EXIT
+    return cli_main(argv)
