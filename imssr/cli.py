@@ -16,6 +16,7 @@ from imssr.analysis import AnalysisOptions, analyze_run
 from imssr.config import MAX_SEED, SEED_RULE, field_docs, logger_fields
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
+from imssr.memlimit import out_of_memory_text
 from imssr.plots.curves import plot_learning_curve
 from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, make_config, markdown_table, preset_settings, run_config
@@ -650,6 +651,12 @@ def _main(argv: Optional[list[str]]) -> int:
     except TrainingInterrupted as exc:
         print(f"imssr: {exc}", file=sys.stderr)
         return INTERRUPTED_EXIT
+    except (MemoryError, RuntimeError, ValueError) as exc:
+        text = out_of_memory_text(exc)
+        if text is None:
+            raise
+        print(f"imssr: error: {text}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"imssr: interrupted; {INTERRUPTED_TEXT.get(args.command, 'nothing was changed')}", file=sys.stderr)
         return INTERRUPTED_EXIT

@@ -10,9 +10,11 @@ import sys
 from typing import Optional
 
 from imssr.errors import INTERRUPTED_EXIT
+from imssr.memlimit import calm_openblas
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    calm_openblas()  # before anything loads scipy (a sweep's runs inherit it)
     try:
         from imssr.cli import main as cli_main
     except KeyboardInterrupt:

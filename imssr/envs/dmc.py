@@ -18,6 +18,7 @@ Design choices, each for speed or faithfulness:
 from __future__ import annotations
 
 import os
+import sys
 from collections import deque
 from typing import TYPE_CHECKING, Any, Optional
 
@@ -28,6 +29,7 @@ from imssr._gl import check_gl, egl_device_error, egl_vendor_hint, nvidia_driver
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
+from imssr.memlimit import address_space_limit, limit_text
 from imssr.rng import random_state_from_plain, random_state_to_plain
 
 if TYPE_CHECKING:  # the config imports the scene registry of this package
@@ -89,13 +91,17 @@ class DMCEnv(gym.Env):
             refused = egl_device_error(str(exc))
             if refused:
                 raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL=egl: {refused}") from None
-            raise ImssrError(
-                f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} "
-                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); install "
-                + (egl_vendor_hint(nvidia_driver_loaded()) if _gl_backend() == "egl" else
-                   "the Debian package libgl1-mesa-dri for software rendering (apt-get install libgl1-mesa-dri)"
-                   + (", or render headless with MUJOCO_GL=egl" if _gl_backend() == "glfw" else ""))
-            ) from None
+            cause = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            if address_space_limit() is not None:
+                # A limited address space fails the framebuffer's allocation, not a missing package.
+                fix = f"{limit_text()[2:]}: raise it (ulimit -v unlimited)"
+            else:
+                fix = "install " + (egl_vendor_hint(nvidia_driver_loaded()) if _gl_backend() == "egl" else
+                                    "the Debian package libgl1-mesa-dri for software rendering "
+                                    "(apt-get install libgl1-mesa-dri)"
+                                    + (", or render headless with MUJOCO_GL=egl" if _gl_backend() == "glfw" else ""))
+            _drop_half_made_context_errors()
+            raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} ({cause}); {fix}") from None
 
         # Test scenes; their footage comes from the ``footage_split`` pool (the
         # trainer gives evaluation envs the unseen ``test`` pool).
@@ -264,6 +270,20 @@ def _import_dm_control():
             refused = egl_device_error(str(exc))
             raise ImssrError(f"cannot load dm_control/mujoco: {refused or exc}") from None
     raise AssertionError("unreachable")
+
+
+def _drop_half_made_context_errors() -> None:
+    """dm_control's rendering context, when its making failed, raises ``AttributeError`` from its
+    ``__del__`` as it is collected (an "Exception ignored" traceback after imssr's one line): such
+    reports are dropped from here on; any other goes to the hook that was there."""
+    previous = sys.unraisablehook
+
+    def hook(report) -> None:
+        if not (isinstance(report.exc_value, AttributeError) and "_ptr" in str(report.exc_value)
+                and "MjrContext" in repr(report.object)):
+            previous(report)
+
+    sys.unraisablehook = hook
 
 
 def _gl_backend() -> str:

@@ -1,0 +1,63 @@
+"""The process's address-space limit (``ulimit -v``, ``RLIMIT_AS``), which HPC login nodes set,
+and what a run that meets it is told.
+
+Under such a limit two things go wrong deep inside libraries: scipy's bundled OpenBLAS, which
+dm_control loads with its suite, retries a refused ``mmap`` forever while it starts its threads
+(the process spins at 100% CPU with no output), and torch's allocator raises a ``RuntimeError``
+with a C++ traceback.  :func:`calm_openblas` avoids the first; :func:`out_of_memory_text` turns
+the second into one line.
+"""
+from __future__ import annotations
+
+import os
+import re
+from typing import MutableMapping, Optional
+
+try:
+    import resource
+except ImportError:  # not on Unix: no such limit to read
+    resource = None
+
+
+def address_space_limit() -> Optional[int]:
+    """The soft ``RLIMIT_AS`` in bytes, or None when there is none."""
+    if resource is None:
+        return None
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    return None if soft == resource.RLIM_INFINITY else soft
+
+
+def limit_text() -> str:
+    """``"; this process's address-space limit (ulimit -v) is 0.95 GiB"``, or ``""`` without one."""
+    limit = address_space_limit()
+    return "" if limit is None else f"; this process's address-space limit (ulimit -v) is {limit / 2**30:.2f} GiB"
+
+
+def calm_openblas(environ: MutableMapping[str, str] = os.environ) -> None:
+    """Under an address-space limit, one OpenBLAS thread (unless the user chose a number):
+    OpenBLAS starts no thread pool then, so it has no thread buffers whose refused ``mmap`` it
+    would retry forever.  imssr's own arithmetic runs in torch, not in scipy's BLAS."""
+    if address_space_limit() is not None:
+        environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+_TORCH_ALLOC = re.compile(r"can't allocate memory: you tried to allocate (\d+) bytes")
+_MUJOCO_ALLOC = re.compile(r"Could not allocate memory for (\w+)")
+
+
+def out_of_memory_text(exc: BaseException) -> Optional[str]:
+    """One line for an allocation that failed (``MemoryError``, torch's CPU allocator as a
+    ``RuntimeError``, MuJoCo's model compiler as a ``ValueError``), or None when ``exc`` is
+    something else."""
+    torch_alloc, mujoco_alloc = _TORCH_ALLOC.search(str(exc)), _MUJOCO_ALLOC.search(str(exc))
+    if isinstance(exc, MemoryError):
+        what = "out of memory"
+    elif torch_alloc:
+        what = f"out of memory: torch could not allocate {int(torch_alloc.group(1)) / 2**20:.0f} MiB"
+    elif mujoco_alloc:
+        what = f"out of memory: MuJoCo could not allocate its model's {mujoco_alloc.group(1)}"
+    else:
+        return None
+    if address_space_limit() is not None:
+        return f"{what}{limit_text()}: raise it (ulimit -v unlimited)"
+    return f"{what}; lower --batch-size or --replay-capacity, or free memory"
