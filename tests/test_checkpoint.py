@@ -306,17 +306,21 @@ def test_step_schedule_saves_itself_under_the_checkpoint_key_and_resumes():
 
 
 def test_one_resume_rule_for_training_and_the_sweep():
-    """RunConfig.resume_conflicts: what a resume may change (budget, device, precision, what it
-    evaluates and logs) and what it may not (anything that shapes the learning), one list for
-    `imssr train --resume` and for the sweep; a setting the saved config lacks is its default."""
+    """RunConfig.resume_conflicts: what a resume may change (budget, device, TF32, what it
+    evaluates and logs) and what it may not (anything that shapes the learning, and the precision
+    that reports group runs by), one list for `imssr train --resume` and for the sweep; a
+    setting the saved config lacks is its default."""
     from imssr.presets import make_config
 
     cfg = make_config("im-curl", "cartpole_swingup")
     saved = cfg.to_dict()
     later = copy.deepcopy(cfg)
     later.train.steps *= 2
-    later.train.eval_episodes, later.agent.precision, later.train.eval_video_format = 3, "bf16", "mp4"
+    later.train.eval_episodes, later.agent.tf32, later.train.eval_video_format = 3, "true", "mp4"
     assert later.resume_conflicts(saved) == []
+    later.agent.precision = "bf16"
+    assert later.resume_conflicts(saved) == ["agent.precision"]
+    later.agent.precision = "fp32"
     later.agent.critic_lr, later.train.seed = 5e-4, 9
     assert later.resume_conflicts(saved) == ["agent.critic_lr", "train.seed"]
     del saved["agent"]["critic_lr"]  # a config written before the setting existed: its default

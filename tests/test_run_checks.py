@@ -164,6 +164,13 @@ def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_sma
         resumed = Trainer(fast(steps=40, torch_threads=1), out, resume=True)
         resumed.close()
         assert "torch thread" not in capsys.readouterr().out
+        # The numerics are the run's own: reports and exports group runs by them.
+        bf16 = fast(steps=40, torch_threads=1)
+        bf16.agent.precision = "bf16"
+        with pytest.raises(ImssrError, match=r"trains at fp32 and a resume keeps its numerics \(agent.precision "
+                                             r"differ\): reports group runs by them; train bf16 as a new run"):
+            Trainer(bf16, out, resume=True)
+        assert (tmp_path / "run" / "config.json").read_text() == config
     finally:
         torch.set_num_threads(TORCH_THREADS)
 

@@ -36,6 +36,12 @@ def resume_point(run: RunDir, cfg: RunConfig) -> Checkpoint:
     if ckpt.note:
         print(f"imssr: {ckpt.note}", flush=True)
     diff = cfg.resume_conflicts(ckpt.state["config"])
+    numerics = [k for k in diff if k in ("agent.precision", "agent.q_heads_fp32")]
+    if numerics:
+        saved = RunConfig.from_dict(ckpt.state["config"]).agent.precision_label
+        raise ImssrError(f"the run in {run.path} trains at {saved} and a resume keeps its numerics "
+                         f"({', '.join(numerics)} differ): reports group runs by them; train "
+                         f"{cfg.agent.precision_label} as a new run")
     if diff:
         raise ImssrError(f"checkpoint {ckpt.path} was made with a different config ({', '.join(diff[:5])}"
                          f"{', ...' if len(diff) > 5 else ''}); resume with the run's own settings")
