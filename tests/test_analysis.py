@@ -206,6 +206,16 @@ def test_analyze_runs_end_to_end_on_a_tiny_run(tiny_run, capsys):
     assert {c["checkpoint_step"] for c in corr} == {"125", "250"}
 
 
+def test_more_neighbors_than_states_say_why_the_novelty_is_empty(tiny_run, tmp_path, capsys):
+    cfg, run = tiny_run
+    assert main(["analyze", "--run", str(run), "--states", "6", "--modes", "training", "--checkpoint", "250",
+                 "--reps", "20", "--neighbors", "100000", "--out", str(tmp_path / "knn")]) == 0
+    rows = _rows(tmp_path / "knn" / "states.csv")
+    assert rows and all(r["novelty_all"] in ("", "nan") for r in rows)
+    assert "imssr: note: --neighbors 100000 needs more than 100000 states in the pool, which holds" \
+        in capsys.readouterr().out
+
+
 def test_analyze_rolls_out_the_policy_when_the_replay_has_no_physics(tiny_run, tmp_path, capsys):
     cfg, run = tiny_run
     # Rollouts on request: agent steps unknown, still every output.

@@ -372,3 +372,19 @@ def test_a_planned_bf16_run_that_has_not_started_counts_in_its_own_row(tmp_path,
     t = table(out)
     assert (t["training", "curl bf16", "1.0"]["seeds"], t["training", "curl bf16", "1.0"]["expected_seeds"]) == ("1", "2")
     assert ("training", "curl", "1.0") not in t
+
+
+def test_a_non_finite_return_is_left_out_with_a_note(tmp_path, paper_csv):
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    for seed in (1, 2, 3, 4, 5):
+        make_run(root, "curl", seed, curve(0, 100, 100 * seed))
+    make_run(root, "curl", 6, curve(0, float("nan"), float("inf")))
+    write_report(root, out, paper_results=paper_csv, reps=50)
+    t = table(out)
+    assert t["training", "curl", "1.0"]["seeds"] == "5" and float(t["training", "curl", "1.0"]["mean"]) == 300.0
+    for name in ("table.csv", "aggregates.csv"):
+        text = open(os.path.join(out, name)).read().lower()
+        assert "nan" not in text and "inf" not in text, name
+    md = open(os.path.join(out, "report.md")).read()
+    assert (f"{TASK}/curl/seed_6: 2 evaluation(s) with a non-finite return left out: nan at agent step 500 "
+            "(training), inf at agent step 1,000 (training)") in md

@@ -143,6 +143,8 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
                                          footage_split="test")
             shifted[mode] = np.stack([envs[mode].render_stack(s) for s in sample.stack_physics])
         novelty_all, per_step_novelty, first = _novelty(sample, env, steps, opts.neighbors)
+        for note in _novelty_notes(novelty_all, per_step_novelty, opts.neighbors, len(sample.pool_step)):
+            log(f"imssr: note: {note}")
         padding = sample.buffer.gather(sample.buffer.sample_indices(batch_size(agent)))
         rows, corr = [], []
         for step in steps:
@@ -212,6 +214,17 @@ def _novelty(sample: StateSample, env, steps: list[int], k: int):
         seen[~known | (sample.pool_step > step)] = np.nan
         per_step[step] = knn_distance(query, seen, k, exclude=sample.slot)
     return novelty_all, per_step, first
+
+
+def _novelty_notes(novelty_all: np.ndarray, per_step: dict[int, np.ndarray], k: int, pool: int) -> list[str]:
+    """What leaves the novelty columns empty: fewer than ``k`` other states in the pool, or
+    stored by a checkpoint's agent step."""
+    if not np.isfinite(novelty_all).any():
+        return [f"--neighbors {k} needs more than {k} states in the pool, which holds {pool}: the novelty "
+                f"columns are empty; lower --neighbors"]
+    empty = [step for step, x in per_step.items() if not np.isfinite(x).any()]
+    return [f"fewer than {k + 1} states were stored by agent step(s) {', '.join(f'{s:,}' for s in empty)}: "
+            f"the novelty column is empty there (novelty_all is not); lower --neighbors"] if empty else []
 
 
 def _montage(sample: StateSample, signal: np.ndarray, novelty: np.ndarray, k: int, path: str, title: str) -> str:

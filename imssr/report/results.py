@@ -11,6 +11,7 @@ by ``imssr sweep``) adds the runs that were planned but have not written anythin
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -233,15 +234,24 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     except ImssrError as exc:  # one damaged run must not stop a report of the others
         notes.append(f"{rel}: {exc}; skipped")
         return None
+    non_finite: list[str] = []
     for row in rows:
         try:
             frame = int(float(row["frame"]))
             # Every eval.csv has a step column; a hand-made one without it gets the step at which
             # the loop reaches that frame.
             step = int(float(row["step"])) if row.get("step") not in (None, "") else steps_for_frames(frame, repeat)
-            run.evals.append((row["mode"], step, frame, float(row["return_mean"])))
+            value = float(row["return_mean"])
         except (KeyError, TypeError, ValueError):
             continue  # a row cut short by a killed process
+        if not math.isfinite(value):
+            # A mean over seeds with a nan or inf in it says nothing: the point is left out, and said.
+            non_finite.append(f"{value} at agent step {step:,} ({row['mode']})")
+            continue
+        run.evals.append((row["mode"], step, frame, value))
+    if non_finite:
+        notes.append(f"{rel}: {len(non_finite)} evaluation(s) with a non-finite return left out: "
+                     f"{', '.join(non_finite[:3])}{', ...' if len(non_finite) > 3 else ''}")
     if not run.evals:
         notes.append(f"{rel}: no evaluations yet")
     return run
