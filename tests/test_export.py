@@ -147,6 +147,78 @@ def test_keep_results_commits_each_finished_run_once_and_stops_with_the_sweep(tm
     assert "other.txt" not in log  # only the export is committed
 
 
+def _finished_store(root, seed=1):
+    from imssr.presets import make_config
+    from imssr.rundir import RunDir
+
+    run = run_path(str(root), TASK, "curl", seed)
+    os.makedirs(run)
+    cfg = make_config("curl", TASK)
+    cfg.train.seed = seed
+    with open(os.path.join(run, "config.json"), "w") as fh:
+        fh.write(cfg.to_json())
+    for name in ("eval.csv", "train.csv"):
+        with open(os.path.join(run, name), "w") as fh:
+            fh.write("frame,step,mode,return_mean\n8,1,training,1.0\n")
+    RunDir(run).write_status("finished", 1)
+    return run
+
+
+def _keep(repo, root, dest="runs", env=None):
+    script = os.path.join(os.path.dirname(__file__), "..", "scripts", "keep_results.py")
+    return subprocess.run([sys.executable, script, str(root), dest, "--every", "0", "--wait-start", "0"], cwd=repo,
+                          capture_output=True, text=True, env=env, timeout=300)
+
+
+def _committed(repo):
+    return subprocess.run(["git", "-C", str(repo), "log", "--format=%s", "--name-only"], capture_output=True,
+                          text=True, check=True).stdout
+
+
+def test_keep_results_commits_later_what_a_failed_commit_left_and_only_its_own_files(tmp_path):
+    repo, root = tmp_path / "repo", tmp_path / "store"
+    _finished_store(root)
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    subprocess.run(["git", "-C", str(repo), "commit", "-q", "--allow-empty", "-m", "start"], check=True)
+    # No git identity at first: the commit fails in one line, the files stay uncommitted.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
+    env.update(HOME=str(tmp_path / "home"), GIT_CONFIG_NOSYSTEM="1", GIT_CONFIG_GLOBAL=os.devnull)
+    subprocess.run(["git", "-C", str(repo), "config", "user.useConfigOnly", "true"], check=True)
+    proc = _keep(repo, root, env=env)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.startswith("keep_results: git commit failed (") and proc.stderr.count("\n") == 1
+    assert proc.stderr.strip().endswith("the next export tries again")
+    # A draft of the user's in DEST, and a temporary file a killed export left in a run.
+    target = repo / "runs" / "fp32" / TASK / "curl" / "seed_1"
+    (repo / "runs" / "draft.md").write_text("notes\n")
+    (target / ".tmp-0123abcd-eval.csv").write_text("half")
+    # Another git holds the index: the same one line, nothing lost.
+    (repo / ".git" / "index.lock").write_text("")
+    proc = _keep(repo, root)
+    assert proc.returncode == 1 and proc.stderr.startswith("keep_results: git add failed (")
+    os.unlink(repo / ".git" / "index.lock")
+    # The next pass commits what the failed ones left, though the export itself copies nothing.
+    proc = _keep(repo, root)
+    assert proc.returncode == 0, proc.stderr
+    log = _committed(repo)
+    assert log.count("results: ") == 1 and f"runs/fp32/{TASK}/curl/seed_1/eval.csv" in log
+    assert "draft.md" not in log and ".tmp-" not in log
+    assert not (target / ".tmp-0123abcd-eval.csv").exists()  # the export removed its own leftover
+    assert (repo / "runs" / "draft.md").exists()
+
+
+def test_keep_results_refuses_a_dest_outside_a_work_tree(tmp_path):
+    outside = tmp_path / "plain"
+    outside.mkdir()
+    proc = _keep(outside, tmp_path / "store", env={**os.environ, "GIT_CEILING_DIRECTORIES": str(tmp_path)})
+    assert proc.returncode == 2 and proc.stderr.startswith("keep_results: error: ") and "not inside a git work tree" \
+        in proc.stderr and proc.stderr.count("\n") == 1
+    repo = tmp_path / "repo"
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    proc = _keep(repo, tmp_path / "store", dest=str(tmp_path / "elsewhere"))
+    assert proc.returncode == 2 and "is outside the git work tree" in proc.stderr
+
+
 def test_keep_results_refuses_a_dest_that_git_ignores_before_waiting(tmp_path):
     repo = tmp_path / "repo"
     subprocess.run(["git", "init", "-q", str(repo)], check=True)
