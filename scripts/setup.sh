@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up imssr on a fresh Debian machine: headless GL packages (if missing),
 # a virtual environment in .venv, and the package with its sweep, report, wandb, slurm and test
-# extras (the tests run W&B offline and SLURM sweeps through submitit's local executor).
+# extras (the tests run W&B offline and SLURM sweeps through submitit's local executor), at the
+# exact versions of constraints.txt.
 # Idempotent: re-running skips what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -26,10 +27,12 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 if ! .venv/bin/python -c "import imssr, docstring_parser, pytest, xdist, ray, rliable, wandb, submitit" >/dev/null 2>&1 \
-   || [ pyproject.toml -nt .venv/.imssr-installed ]; then
+   || [ pyproject.toml -nt .venv/.imssr-installed ] || [ constraints.txt -nt .venv/.imssr-installed ]; then
   echo "setup: installing imssr with its sweep, report, wandb, slurm and test extras into .venv"
+  # constraints.txt: the exact versions the suite passed with (pyproject.toml has the ranges).
   # (grep drops pip's notes about local wheel folders that this machine lacks)
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[sweep,report,wandb,slurm,test]" 2>&1 \
+  .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt \
+      -e ".[sweep,report,wandb,slurm,test]" 2>&1 \
     | { grep -v "is ignored: it is neither a file nor a directory" || true; }
   [ "${PIPESTATUS[0]}" -eq 0 ] || { echo "setup: pip install failed" >&2; exit 1; }
   touch .venv/.imssr-installed

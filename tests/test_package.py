@@ -52,3 +52,23 @@ def test_a_wheel_installed_elsewhere_prints_the_papers_numbers(tmp_path):
     assert proc.returncode == 0, proc.stderr
     md = (report / "report.md").read_text()
     assert "paper 1.0T" in md and "744.2 ± 23.8 (n = 5)" in md
+
+
+def test_the_package_states_ranges_and_the_lock_pins_them():
+    import re
+    import tomllib
+
+    with open(os.path.join(REPO, "pyproject.toml"), "rb") as fh:
+        project = tomllib.load(fh)["project"]
+    requirements = project["dependencies"] + [r for extra in project["optional-dependencies"].values() for r in extra]
+    assert not [r for r in requirements if "==" in r], "exact versions belong in constraints.txt"
+    assert project["optional-dependencies"]["all"] == ["imssr[sweep,report,wandb,slurm]"]
+    with open(os.path.join(REPO, "constraints.txt")) as fh:
+        pinned = {re.split(r"[=<>]", line)[0].strip().lower().replace("_", "-"): line.strip()
+                  for line in fh if line.strip() and not line.startswith("#")}
+    assert all("==" in line for line in pinned.values())
+    for requirement in requirements:
+        name = re.split(r"[\[=<>!~ ]", requirement)[0].lower().replace("_", "-")
+        assert name == "imssr" or name in pinned, f"{name} has no exact version in constraints.txt"
+    text = open(os.path.join(REPO, "pyproject.toml")).read()
+    assert "development machine" not in text
