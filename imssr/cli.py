@@ -12,22 +12,17 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
-from imssr.analysis import AnalysisOptions, analyze_run
+# What building the parser needs, and nothing that loads torch, dm_control or matplotlib: `imssr
+# --help`, `tasks`, `algos`, `modes` and every `SUBCOMMAND --help` answer without them.  Each
+# command imports its own machinery inside its function.
 from imssr.config import MAX_SEED, SEED_RULE, field_docs, logger_fields
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.memlimit import out_of_memory_text
-from imssr.plots.curves import plot_learning_curve
-from imssr.plots.media import scenes_montage
 from imssr.presets import ALGOS, make_config, markdown_table, preset_settings, run_config
 from imssr.rundir import CONFIG_FILE, RunDir, run_path
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
-from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
-from imssr.training import Trainer
-from imssr.training.seeds import SEED_DIR, SeedsTrainer
 from imssr.training.stop import StopRequest, TrainingInterrupted
-from imssr.training.demo import record_episode, summary
-from imssr.training.evaluate import evaluate_run
 
 
 EXIT_STATUS_TEXT = (f"Exit status: 0 done; 2 error (one line on stderr); {INTERRUPTED_EXIT} interrupted: "
@@ -362,6 +357,8 @@ def _sweep_config(args):
 
 
 def cmd_sweep(args) -> int:
+    from imssr.sweep.sweep import format_plan, plan_runs, run_sweep, summarize
+
     cfg = _sweep_config(args)
     if args.dry_run:
         print(format_plan(plan_runs(cfg), cfg))
@@ -440,6 +437,10 @@ def cmd_train(args, demo: bool = False) -> int:
 
 
 def _train(cfg, run: RunDir, args, refill: bool, demo: bool, stop: StopRequest) -> int:
+    from imssr.plots.curves import plot_learning_curve
+    from imssr.training.demo import record_episode, summary
+    from imssr.training.loop import Trainer
+
     trainer = Trainer(cfg, run, resume=args.resume, refill_buffer=refill, stop=stop)
     print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}",
           flush=True)
@@ -461,6 +462,9 @@ def _train(cfg, run: RunDir, args, refill: bool, demo: bool, stop: StopRequest) 
 def _train_seeds(args, refill: bool) -> int:
     """``imssr train --seeds`` (the seeds of one config) or ``--runs`` (run directories with
     their own config.json) in one process (:class:`SeedsTrainer`)."""
+    from imssr.plots.curves import plot_learning_curve
+    from imssr.training.seeds import SEED_DIR, SeedsTrainer
+
     if refill:
         raise ImssrError("--refill-buffer resumes one run: use it with --out RUN_DIR alone")
     if args.runs:
@@ -512,6 +516,8 @@ def _train_seeds(args, refill: bool) -> int:
 
 
 def cmd_evaluate(args) -> int:
+    from imssr.training.evaluate import evaluate_run
+
     evaluate_run(RunDir(args.run), checkpoint=args.checkpoint, episodes=args.episodes, modes=args.modes,
                  seed=args.seed, device=args.device, video=args.video, montage=args.montage,
                  footage=args.footage)
@@ -519,6 +525,8 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_analyze(args) -> int:
+    from imssr.analysis import AnalysisOptions, analyze_run
+
     _check_out(args.out)
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     opts = AnalysisOptions(checkpoints=list(args.checkpoint or []), states=args.states, modes=modes, out=args.out,
@@ -535,6 +543,8 @@ def cmd_modes(args) -> int:
         for spec in MODES.values():
             print(f"{spec.name}\t{spec.description}")
         return 0
+    from imssr.plots.media import scenes_montage
+
     print(scenes_montage(args.task, args.montage, seed=args.seed, steps=args.steps, footage=args.footage or ""))
     return 0
 
@@ -570,6 +580,8 @@ def cmd_config(args) -> int:
 
 
 def cmd_plot(args) -> int:
+    from imssr.plots.curves import plot_learning_curve
+
     run = RunDir(args.run).require()
     _check_out(args.out)
     print(plot_learning_curve(run, args.out))

@@ -180,3 +180,24 @@ def test_a_missing_extra_is_one_line_naming_it(tmp_path):
     assert lines[0].startswith("imssr: error: ray is not installed") and "pip install 'imssr[sweep]'" in lines[0]
     assert lines[1].startswith("imssr: error: rliable is not installed") and "pip install 'imssr[report]'" in lines[1]
     assert not (tmp_path / "sweep").exists()  # nothing written before the error
+
+
+def test_the_cli_answers_what_needs_no_training_without_torch():
+    # Each in a fresh process: --help, the listings, the preset, every subcommand's --help.
+    commands = [["--help"], ["tasks"], ["algos"], ["modes"], ["config", "--algo", "im-curl", "--task", "walker_walk"],
+                *[[name, "--help"] for name in ("train", "demo", "evaluate", "analyze", "plot", "sweep", "report",
+                                                "export", "config", "modes", "tasks", "algos")]]
+    probe = textwrap.dedent("""
+        import contextlib, io, sys
+        from imssr.console import main
+        with contextlib.redirect_stdout(io.StringIO()) as out:
+            try:
+                code = main(sys.argv[1:])
+            except SystemExit as exc:
+                code = exc.code
+        heavy = sorted(m for m in ("torch", "dm_control", "mujoco", "matplotlib") if m in sys.modules)
+        print(code, len(out.getvalue()) > 0, heavy)
+    """)
+    for argv in commands:
+        proc = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, timeout=120)
+        assert proc.stdout.split("\n")[0] in ("0 True []", "None True []"), (argv, proc.stdout, proc.stderr[-2000:])

@@ -383,7 +383,7 @@ def test_ctrl_c_while_the_command_loads_is_one_line(tmp_path):
 
 
 @pytest.mark.parametrize("command, interrupted, says", [
-    (["evaluate", "--run", "RUN"], "evaluate_run", "imssr evaluate"),
+    (["evaluate", "--run", "RUN"], "imssr.training.evaluate.evaluate_run", "imssr evaluate"),
     (["report", "ROOT"], "imssr.report.report.write_report", "imssr report"),
     (["export", "ROOT", "DEST"], "imssr.report.export.export_runs", "imssr export"),
 ])

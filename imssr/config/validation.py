@@ -17,7 +17,6 @@ from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYT
 from imssr.config.version import CONFIG_VERSION
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
-from imssr.networks.encoder import conv_output_size
 
 if TYPE_CHECKING:
     from imssr.config.runconfig import RunConfig
@@ -30,6 +29,7 @@ def validate_config(cfg: RunConfig) -> None:
     # here, the config imports without them.
     from imssr.auxiliary import AUX_TASKS
     from imssr.intrinsic import INTRINSIC_SIGNALS, IntrinsicReward
+    from imssr.networks.encoder import conv_output_size
 
     _check_types(cfg)
     e, a, x, i, t = cfg.env, cfg.agent, cfg.aux, cfg.intrinsic, cfg.train

@@ -50,8 +50,6 @@ from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
 from imssr.files import atomic_write_text, read_csv
 from imssr.jsonio import dumps
-from imssr.replay import buffer as replay_buffer
-from imssr.rundir.checkpoint import CheckpointDamaged, copy_checkpoint, load_checkpoint, write_checkpoint
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
 
 CONFIG_FILE = "config.json"
@@ -286,6 +284,8 @@ class RunDir:
 
     def replay_files(self, name: str) -> list[str]:
         """The files of the replay buffer ``name``: its ``.npz`` index and the frame files it names."""
+        from imssr.replay import buffer as replay_buffer  # torch: loaded when a run's replay is read
+
         return replay_buffer.replay_files(self.replay_path(name))
 
     def remove_unnamed_replay_files(self, name: Optional[str]) -> None:
@@ -454,6 +454,8 @@ class RunDir:
         """Write ``state`` as ``latest.pt`` and its numbered copy (``keep`` > 0: the ``keep``
         newest copies stay), then remove the replay files ``latest.pt`` no longer names and the
         temporary files of a process killed mid-write.  Returns the path of ``latest.pt``."""
+        from imssr.rundir.checkpoint import copy_checkpoint, write_checkpoint
+
         path = write_checkpoint(self.latest, state)
         if keep > 0:
             # Real copies, not links to latest.pt: a damaged byte spoils one file, not both, and
@@ -483,6 +485,9 @@ class RunDir:
         A checkpoint named by ``spec`` is loaded as it is, with no fall-back.  Every load verifies
         the file (:func:`~imssr.rundir.checkpoint.load_checkpoint`); none of them is a one-line error.
         """
+        # torch reads checkpoints: loaded here, so that a run's layout, logs and status need none.
+        from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
+
         if spec:
             path = self._named_checkpoint(str(spec))
             return Checkpoint(load_checkpoint(path), path, None)
