@@ -13,6 +13,8 @@ import os
 import re
 from typing import MutableMapping, Optional
 
+from imssr.errors import ImssrError
+
 try:
     import resource
 except ImportError:  # not on Unix: no such limit to read
@@ -31,6 +33,32 @@ def limit_text() -> str:
     """``"; this process's address-space limit (ulimit -v) is 0.95 GiB"``, or ``""`` without one."""
     limit = address_space_limit()
     return "" if limit is None else f"; this process's address-space limit (ulimit -v) is {limit / 2**30:.2f} GiB"
+
+
+RENDER_ADDRESS_SPACE = 768 * 2**20
+"""Address space a rendering context needs: Mesa's llvmpipe took 450 MiB for one (a 2-core AMD
+EPYC, torch and dm_control loaded); under a tighter limit it segfaults instead of failing."""
+
+
+def address_space_in_use() -> Optional[int]:
+    """This process's virtual memory size in bytes (Linux ``/proc/self/status``), or None."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmSize:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def check_room_to_render() -> None:
+    """Refuse in one line, before a rendering context is made, when the address-space limit
+    leaves less than :data:`RENDER_ADDRESS_SPACE`: the GL driver would crash the process."""
+    limit, used = address_space_limit(), address_space_in_use()
+    if limit is not None and used is not None and limit - used < RENDER_ADDRESS_SPACE:
+        raise ImssrError(f"rendering needs about {RENDER_ADDRESS_SPACE / 2**30:.2f} GiB more address space, and "
+                         f"{max(limit - used, 0) / 2**30:.2f} GiB are left{limit_text()}: raise it (ulimit -v unlimited)")
 
 
 def calm_openblas(environ: MutableMapping[str, str] = os.environ) -> None:

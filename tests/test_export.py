@@ -118,35 +118,6 @@ def test_the_committed_dmc100k_sweeps_differ_only_in_numerics_and_root():
     assert {s.config.agent.precision_label for s in plan_runs(cfg)} == {"bf16-fp32q"}
 
 
-def test_keep_results_commits_each_finished_run_once_and_stops_with_the_sweep(tmp_path):
-    from imssr.presets import make_config
-    from imssr.rundir import RunDir
-
-    repo, root = tmp_path / "repo", tmp_path / "store"
-    run = run_path(str(root), TASK, "curl", 1)
-    os.makedirs(run)
-    cfg = make_config("curl", TASK)
-    cfg.train.seed = 1
-    with open(os.path.join(run, "config.json"), "w") as fh:
-        fh.write(cfg.to_json())
-    for name in ("eval.csv", "train.csv"):
-        with open(os.path.join(run, name), "w") as fh:
-            fh.write("frame,step,mode,return_mean\n8,1,training,1.0\n")
-    RunDir(run).write_status("finished", 1)
-    subprocess.run(["git", "init", "-q", str(repo)], check=True)
-    subprocess.run(["git", "-C", str(repo), "commit", "-q", "--allow-empty", "-m", "start"], check=True)
-    (repo / "other.txt").write_text("work in progress\n")
-    script = os.path.join(os.path.dirname(__file__), "..", "scripts", "keep_results.py")
-    for _ in range(2):  # no sweep holds the store: one export, then exit
-        proc = subprocess.run([sys.executable, script, str(root), "runs", "--every", "0", "--wait-start", "0"], cwd=repo,
-                              capture_output=True, text=True)
-        assert proc.returncode == 0, proc.stderr
-    log = subprocess.run(["git", "-C", str(repo), "log", "--format=%s", "--name-only"], capture_output=True,
-                         text=True, check=True).stdout
-    assert log.count("results: ") == 1 and f"runs/fp32/{TASK}/curl/seed_1/eval.csv" in log
-    assert "other.txt" not in log  # only the export is committed
-
-
 def _finished_store(root, seed=1):
     from imssr.presets import make_config
     from imssr.rundir import RunDir
@@ -173,6 +144,20 @@ def _keep(repo, root, dest="runs", env=None):
 def _committed(repo):
     return subprocess.run(["git", "-C", str(repo), "log", "--format=%s", "--name-only"], capture_output=True,
                           text=True, check=True).stdout
+
+
+def test_keep_results_commits_each_finished_run_once_and_stops_with_the_sweep(tmp_path):
+    repo, root = tmp_path / "repo", tmp_path / "store"
+    _finished_store(root)
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    subprocess.run(["git", "-C", str(repo), "commit", "-q", "--allow-empty", "-m", "start"], check=True)
+    (repo / "other.txt").write_text("work in progress\n")
+    for _ in range(2):  # no sweep holds the store: one export, then exit
+        proc = _keep(repo, root)
+        assert proc.returncode == 0, proc.stderr
+    log = _committed(repo)
+    assert log.count("results: ") == 1 and f"runs/fp32/{TASK}/curl/seed_1/eval.csv" in log
+    assert "other.txt" not in log  # only the export is committed
 
 
 def test_keep_results_commits_later_what_a_failed_commit_left_and_only_its_own_files(tmp_path):

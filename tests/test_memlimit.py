@@ -61,3 +61,19 @@ def test_allocation_failures_read_as_one_line_and_others_pass():
     assert out_of_memory_text(MemoryError()).startswith("out of memory")
     assert out_of_memory_text(RuntimeError("shape mismatch")) is None
     assert out_of_memory_text(ValueError("bad value")) is None
+
+
+def test_too_little_room_to_render_is_refused_before_the_driver_crashes(monkeypatch):
+    import imssr.memlimit as memlimit
+    from imssr.errors import ImssrError
+
+    monkeypatch.setattr(memlimit, "address_space_limit", lambda: 2**30)
+    monkeypatch.setattr(memlimit, "address_space_in_use", lambda: 2**30 - 2**26)
+    with pytest.raises(ImssrError, match=r"rendering needs about 0.75 GiB more address space, and 0.06 GiB are left; "
+                                         r"this process's address-space limit \(ulimit -v\) is 1.00 GiB"):
+        memlimit.check_room_to_render()
+    monkeypatch.setattr(memlimit, "address_space_in_use", lambda: 2**28)
+    memlimit.check_room_to_render()
+    monkeypatch.setattr(memlimit, "address_space_limit", lambda: None)
+    monkeypatch.setattr(memlimit, "address_space_in_use", lambda: 2**40)
+    memlimit.check_room_to_render()  # no limit: nothing to check

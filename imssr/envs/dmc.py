@@ -29,7 +29,7 @@ from imssr._gl import check_gl, egl_device_error, egl_vendor_hint, nvidia_driver
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
-from imssr.memlimit import address_space_limit, limit_text
+from imssr.memlimit import address_space_limit, check_room_to_render, limit_text
 from imssr.rng import random_state_from_plain, random_state_to_plain
 
 if TYPE_CHECKING:  # the config imports the scene registry of this package
@@ -85,6 +85,7 @@ class DMCEnv(gym.Env):
         # 2048-px shadow map costs a third of a 100x100 frame; 512 px changes
         # pixels by ~0.02/255 on average (bench/render_speed.py).
         self._env.physics.model.vis.quality.shadowsize = shadow_size
+        check_room_to_render()
         try:
             self._camera = Camera(self._env.physics, image_size, image_size, self.camera_id)
         except Exception as exc:  # noqa: BLE001 - GL context failures surface here
