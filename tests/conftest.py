@@ -4,13 +4,18 @@ from __future__ import annotations
 import csv
 import errno
 import os
+import signal
 import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
 import torch
 
 import imssr  # noqa: F401 - configures MUJOCO_GL before dm_control loads
+from imssr.agents import SACAgent
+from imssr.batch import NextObsContext
 from imssr.presets import make_config
 from imssr.training.logger import EVAL_COLUMNS
 from imssr.replay import FrameReplayBuffer
@@ -251,3 +256,72 @@ def curve(r02, r05, r10, mode="training"):
     # T = 1000 agent steps.  0.2T = step 200: the evaluation at step 100 is the last at or
     # before it (300 is after); 0.5T = step 500 and 1.0T = step 1000 have an evaluation each.
     return [(mode, 100, r02), (mode, 300, -1.0), (mode, 500, r05), (mode, 1000, r10)]
+
+
+def small_agent(algo: str, schedule: str = "sequential", precision: str = "fp32", device: str = "cpu",
+                agent_fields: dict | None = None, *, seed: int = 0, dtype: torch.dtype | None = None,
+                intrinsic=None, **aux) -> SACAgent:
+    """The preset of ``algo`` on 60 px frames (9 channels), 4 thin convolutions, batch 8, two
+    action dimensions: ``agent_fields`` sets fields of ``cfg.agent``; ``aux`` sets fields of
+    ``cfg.aux`` (``own_batch``) or ``cfg.intrinsic`` (``form``); ``intrinsic`` replaces the
+    intrinsic config; ``dtype`` casts the networks (float64 for comparisons to rounding)."""
+    cfg = tiny_config(algo)
+    cfg.agent.update_schedule = schedule
+    cfg.agent.precision = precision
+    for field, value in (agent_fields or {}).items():
+        setattr(cfg.agent, field, value)
+    for field, value in aux.items():
+        setattr(cfg.intrinsic if field == "form" else cfg.aux, field, value)
+    cfg.agent.encoder_layers, cfg.agent.encoder_filters, cfg.agent.crop_size = 4, 8, 52
+    cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, 1)
+    cfg.aux.image_pool_size = 8
+    agent = SACAgent((9, 60, 60), 2, cfg.agent, cfg.aux, intrinsic or cfg.intrinsic, seed=seed, device=device)
+    if dtype is not None:
+        for module in (agent.nets, agent.aux, agent.signal):
+            if module is not None:
+                module.to(dtype)
+    return agent
+
+
+def next_obs_context(agent, batch) -> NextObsContext:
+    """What an auxiliary task's per-sample loss on o' reads: the batch, its encoding, the
+    agent's intrinsic generator, independent crops."""
+    return NextObsContext(batch=batch, enc=agent.encode(batch), generator=agent.intrinsic_gen, form="independent")
+
+
+def image_folder(root, n: int = 5) -> None:
+    """``n`` jpg and PNG pictures of several sizes in nested class folders under ``root``, and a
+    text file that is no image."""
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        sub = root / f"class_{i % 2}" / "deeper"
+        sub.mkdir(parents=True, exist_ok=True)
+        size = (40 + 7 * i, 30 + 5 * i)
+        arr = rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
+        Image.fromarray(arr).save(sub / (f"img{i}.jpg" if i % 2 else f"img{i}.PNG"))
+    (root / "notes.txt").write_text("not an image")
+
+
+def kill_when_file_appears(proc: subprocess.Popen, path: str, timeout: float, what: str, poll: float = 0.5) -> None:
+    """SIGKILL ``proc`` as soon as ``path`` exists; fail with ``what`` if it ends or ``timeout``
+    seconds pass first.  The process never outlives the call."""
+    try:
+        deadline = time.time() + timeout
+        while not os.path.exists(path):
+            assert proc.poll() is None and time.time() < deadline, what
+            time.sleep(poll)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def cli_help(*argv: str) -> str:
+    """What ``imssr ARGV --help`` prints, one option to a line (a wide terminal)."""
+    proc = subprocess.run([sys.executable, "-m", "imssr", *argv, "--help"], capture_output=True, text=True,
+                          env={**os.environ, "COLUMNS": "1000"}, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout

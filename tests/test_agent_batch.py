@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from conftest import filled_buffer, tiny_config
+from conftest import filled_buffer, small_agent, tiny_config
 from imssr import draws
 from imssr.agents.batched import AgentBatch
 from imssr.agents.sac import SACAgent
@@ -23,19 +23,9 @@ ALGOS = ["curl", "im-curl", "soda", "im-soda", "pad", "im-pad", "svea", "im-svea
 
 
 def member(algo: str, seed: int, dtype: torch.dtype = torch.float32, **agent_fields) -> SACAgent:
-    """A tiny agent of ``algo`` (60 px frames, 4 thin convolutions, batch 8), cast to ``dtype``."""
-    cfg = tiny_config(algo)
-    cfg.agent.encoder_layers, cfg.agent.encoder_filters, cfg.agent.crop_size = 4, 8, 52
-    cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, 1)
-    cfg.aux.image_pool_size = 8
-    intrinsic = agent_fields.pop("intrinsic", None) or cfg.intrinsic
-    for field, value in agent_fields.items():
-        setattr(cfg.agent, field, value)
-    agent = SACAgent((9, 60, 60), 2, cfg.agent, cfg.aux, intrinsic, seed=seed)
-    for module in (agent.nets, agent.aux, agent.signal):
-        if module is not None:
-            module.to(dtype)
-    return agent
+    """A small agent of ``algo`` (conftest.small_agent) with seed ``seed``, cast to ``dtype``."""
+    intrinsic = agent_fields.pop("intrinsic", None)
+    return small_agent(algo, agent_fields=agent_fields, seed=seed, dtype=dtype, intrinsic=intrinsic)
 
 
 def buffers():

@@ -5,20 +5,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import filled_buffer, tiny_config
+from conftest import filled_buffer, next_obs_context, tiny_config
 from imssr.agents import SACAgent
 from imssr.augmentations import center_crop
-from imssr.batch import NextObsContext
 
 
 def _agent(algo, seed=0, action_dim=2):
     cfg = tiny_config(algo)
     return SACAgent((9, 100, 100), action_dim, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
-
-
-def _ctx(agent, batch):
-    return NextObsContext(batch=batch, enc=agent.encode(batch), generator=agent.intrinsic_gen,
-                          form="independent")
 
 
 @pytest.mark.parametrize("algo", ["soda", "pad"])
@@ -65,7 +59,7 @@ def test_soda_trains_on_its_own_batch_and_moves_its_target_slowly():
 def test_soda_intrinsic_loss_is_per_sample_and_gradient_free():
     agent = _agent("im-soda")
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    loss = agent.aux.intrinsic_loss(_ctx(agent, batch))
+    loss = agent.aux.intrinsic_loss(next_obs_context(agent, batch))
     # The authors' form: log(1 + sum of squares of two unit vectors' difference), in [0, log 5].
     assert loss.shape == (8,) and not loss.requires_grad and torch.all(loss >= 0)
     assert torch.all(loss <= math.log(5.0) + 1e-6)
@@ -98,7 +92,7 @@ def test_pad_learns_the_inverse_dynamics_of_a_fixed_batch():
 def test_pad_intrinsic_loss_is_the_inverse_dynamics_error_of_the_transition():
     agent = _agent("im-pad")
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    got = agent.aux.intrinsic_loss(_ctx(agent, batch))
+    got = agent.aux.intrinsic_loss(next_obs_context(agent, batch))
     with torch.no_grad():
         expected = agent.aux.per_sample_loss(batch)
     assert not got.requires_grad
@@ -142,11 +136,11 @@ def test_im_svea_signal_is_zero_when_online_equals_target():
     agent = _agent("im-svea")
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
     # At initialisation the target encoder is an exact copy: nothing to explain yet.
-    assert torch.all(agent.aux.intrinsic_loss(_ctx(agent, batch)) == 0)
+    assert torch.all(agent.aux.intrinsic_loss(next_obs_context(agent, batch)) == 0)
     with torch.no_grad():
         for p in agent.nets.critic.encoder.projection.parameters():
             p.add_(0.1 * torch.randn_like(p))
-    loss = agent.aux.intrinsic_loss(_ctx(agent, batch))
+    loss = agent.aux.intrinsic_loss(next_obs_context(agent, batch))
     z_hat = agent.nets.critic.encoder(batch.next_obs)
     z_star = agent.nets.critic_target.encoder(batch.next_obs)
     torch.testing.assert_close(loss, (z_hat - z_star).pow(2).sum(1).detach(), rtol=1e-4, atol=1e-6)

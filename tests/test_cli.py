@@ -1,5 +1,6 @@
 """The command line: tiny end-to-end runs per algorithm, evaluate, kill + resume, errors."""
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -7,6 +8,7 @@ import time
 
 import pytest
 
+from conftest import cli_help, image_folder
 from imssr.presets import ALGOS
 from imssr.training.logger import read_csv
 
@@ -28,9 +30,8 @@ def test_train_end_to_end_then_evaluate(algo, tmp_path):
     out = tmp_path / algo
     extra = []
     if algo == "im-soda":  # overlay images from a user folder
-        from test_images import _make_folder
 
-        _make_folder(tmp_path / "images")
+        image_folder(tmp_path / "images")
         extra = ["--image-dir", str(tmp_path / "images"), "--set", "aux.batch_size=8",
                  "--set", "train.burst_updates=0"]
     imssr("train", "--algo", algo, "--task", "cartpole_swingup_sparse", "--seed", "1", "--out", str(out),
@@ -161,27 +162,25 @@ def test_binary_config_file_is_a_one_line_error(tmp_path, capsys):
 
 
 def test_every_option_of_every_subcommand_says_its_default():
-    import argparse
-
-    from imssr.cli import _HelpFormatter, build_parser
-
-    parser = build_parser()
-    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
-    assert set(sub.choices) >= {"train", "demo", "evaluate", "modes", "plot", "sweep", "report", "tasks",
-                                "algos", "config"}
+    # Read from what `--help` prints: "  --flag METAVAR   help text", the help on the next lines when
+    # the option's own text is long.
+    commands = re.findall(r"^    ([a-z]+) ", cli_help(), flags=re.M)
+    assert set(commands) >= {"train", "demo", "evaluate", "analyze", "modes", "plot", "sweep", "report", "export",
+                             "tasks", "algos", "config"}
     missing = []
-    for name, command in sub.choices.items():
-        assert command.formatter_class is _HelpFormatter
-        formatter = command._get_formatter()
-        for action in command._actions:
-            if not action.option_strings or action.nargs == 0 or action.required:
-                continue  # positional arguments, flags (--resume, -h) and required options have no default
-            text = formatter._expand_help(action) if action.help is not None else ""
-            if "default" not in text:
-                missing.append(f"{name} {action.option_strings[0]}: {text!r}")
-        command.format_help()  # renders (no stray % in a help text)
+    for name in commands:
+        text = cli_help(name)
+        usage = text.split("\n\n")[0]
+        entries = re.findall(r"^  (?:-\w, )?(--[\w-]+)( \S+)?(.*(?:\n {5,}\S.*)*)", text, flags=re.M)
+        for flag, metavar, help_text in entries:
+            if not metavar:
+                continue  # a flag (--resume, -h): no value, no default
+            if f"[{flag}" not in usage:
+                continue  # a required option has no default
+            if "default" not in help_text:
+                missing.append(f"{name} {flag}: {help_text!r}")
     assert not missing, missing
-    assert "(default: 10)" in sub.choices["evaluate"].format_help()
+    assert "(default: 10)" in cli_help("evaluate")
 
 
 def test_a_closed_stdout_drops_the_progress_not_the_training(tmp_path):

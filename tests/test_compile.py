@@ -7,9 +7,8 @@ import torch
 import torch._dynamo
 from torch._dynamo.utils import counters
 
-from conftest import filled_buffer
+from conftest import filled_buffer, small_agent
 from imssr.agents.sac import CUDA_GRAPH_MODES, uses_cuda_graphs
-from test_no_sync import small_agent
 
 
 class Recorder:

@@ -14,7 +14,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import filled_buffer, load_script, tiny_config
+from conftest import filled_buffer, load_script, next_obs_context, tiny_config
 from imssr.agents import SACAgent
 from imssr.augmentations import random_crop
 from imssr.config import load_config
@@ -158,9 +158,8 @@ def test_the_training_forms_remain_as_options():
     cfg = tiny_config("im-soda")
     agent = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    from test_bases import _ctx
 
-    ctx = _ctx(agent, batch)
+    ctx = next_obs_context(agent, batch)
     ctx.form, ctx.generator = "training", torch.Generator().manual_seed(0)
     training = agent.aux.intrinsic_loss(ctx)
     aug = agent.aux.overlay(batch.next_obs, torch.Generator().manual_seed(0))

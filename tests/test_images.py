@@ -3,23 +3,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import image_folder
 from imssr.data import IMAGE_DIR_ENV, builtin_photographs, image_pool, load_image_folder
 from imssr.errors import ImssrError
 
 
-def _make_folder(root, n=5):
-    rng = np.random.default_rng(0)
-    for i in range(n):
-        sub = root / f"class_{i % 2}" / "deeper"
-        sub.mkdir(parents=True, exist_ok=True)
-        size = (40 + 7 * i, 30 + 5 * i)
-        arr = rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
-        Image.fromarray(arr).save(sub / (f"img{i}.jpg" if i % 2 else f"img{i}.PNG"))
-    (root / "notes.txt").write_text("not an image")
-
-
 def test_folder_loader_reads_a_tree_of_jpg_and_png(tmp_path):
-    _make_folder(tmp_path)
+    image_folder(tmp_path)
     pool = load_image_folder(str(tmp_path), 16)
     assert pool.shape == (5, 3, 16, 16) and pool.dtype == np.uint8
     assert pool.std() > 10  # real content, not a constant fill
@@ -37,7 +27,7 @@ def test_folder_errors_are_one_line(tmp_path):
 
 
 def test_environment_variable_selects_the_folder(tmp_path, monkeypatch):
-    _make_folder(tmp_path, n=3)
+    image_folder(tmp_path, n=3)
     monkeypatch.setenv(IMAGE_DIR_ENV, str(tmp_path))
     assert image_pool(12).shape == (3, 3, 12, 12)
     monkeypatch.delenv(IMAGE_DIR_ENV)
@@ -71,7 +61,7 @@ def _spoil(root, names):
 
 
 def test_unreadable_images_are_skipped_with_a_count(tmp_path, capsys):
-    _make_folder(tmp_path, n=5)
+    image_folder(tmp_path, n=5)
     _spoil(tmp_path, ["a.jpg", "b.png", "c.jpeg"])
     pool = load_image_folder(str(tmp_path), 16)
     assert pool.shape == (5, 3, 16, 16)
@@ -83,7 +73,7 @@ def test_unreadable_images_are_skipped_with_a_count(tmp_path, capsys):
     from imssr.data.images import _image_files, _read_rgb, _square_resize
 
     clean = tmp_path / "clean"
-    _make_folder(clean, n=6)
+    image_folder(clean, n=6)
     files = _image_files(clean)
     pick = sorted(np.random.default_rng(0).choice(len(files), 3, replace=False))
     before = np.stack([_square_resize(_read_rgb(files[i]), 12) for i in pick])

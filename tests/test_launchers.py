@@ -2,13 +2,13 @@
 path, with real `imssr train` processes on tiny budgets (SLURM through submitit's local executor)."""
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
 
 import pytest
 
+from conftest import kill_when_file_appears
 from imssr.cli import main
 from imssr.sweep.grid import SweepConfig, expand
 from imssr.rundir import DONE_FILE, SWEEP_LOG
@@ -40,16 +40,7 @@ def test_killed_local_driver_rerun_skips_finished_runs(tmp_path):
            *[a for o in TINY for a in ("--set", o)]]
     first, second = expand(SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1, 2]))
     driver = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 240
-        while not os.path.exists(os.path.join(first.dir, DONE_FILE)):
-            assert driver.poll() is None and time.time() < deadline, "the first run did not finish"
-            time.sleep(0.5)
-        driver.send_signal(signal.SIGKILL)
-        driver.wait()
-    finally:
-        if driver.poll() is None:
-            driver.kill()
+    kill_when_file_appears(driver, os.path.join(first.dir, DONE_FILE), 240, "the first run did not finish")
     # The training the driver had started dies with it (its run directory's lock is free).
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -132,16 +123,7 @@ def test_killed_slurm_driver_rerun_skips_finished_runs(tmp_path):
               f"print([s.state for s in run_sweep(cfg, progress=False, poll_s=0.5, submitit_cluster='local')])\n")
     first, second = expand(SweepConfig(root=root, algos=["curl"], tasks=[TASK], seeds=[1, 2]))
     driver = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 300
-        while not os.path.exists(os.path.join(first.dir, DONE_FILE)):
-            assert driver.poll() is None and time.time() < deadline, "the first run did not finish"
-            time.sleep(0.5)
-        driver.send_signal(signal.SIGKILL)
-        driver.wait()
-    finally:
-        if driver.poll() is None:
-            driver.kill()
+    kill_when_file_appears(driver, os.path.join(first.dir, DONE_FILE), 300, "the first run did not finish")
     deadline = time.time() + 300
     while True:  # an orphaned job may still be training the second run
         try:

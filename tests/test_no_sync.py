@@ -12,29 +12,12 @@ import contextlib
 import pytest
 import torch
 
-from conftest import filled_buffer, tiny_config
+from conftest import filled_buffer, small_agent
 from imssr.agents import SACAgent
 from imssr.algos import ALGOS
 
 # What reads a tensor's values on the host (each waits for the device on a GPU).
 HOST_READS = ("item", "__bool__", "__float__", "__int__", "__index__", "cpu", "numpy", "tolist")
-
-
-def small_agent(algo: str, schedule: str, precision: str = "fp32", device: str = "cpu",
-                agent_fields: dict | None = None, **aux) -> SACAgent:
-    """The preset on 60 px frames, 4 thin convolutions, batch 8; ``agent_fields`` sets fields of
-    ``cfg.agent``; ``aux`` sets fields of ``cfg.aux`` (``own_batch``) or ``cfg.intrinsic`` (``form``)."""
-    cfg = tiny_config(algo)
-    cfg.agent.update_schedule = schedule
-    cfg.agent.precision = precision
-    for field, value in (agent_fields or {}).items():
-        setattr(cfg.agent, field, value)
-    for field, value in aux.items():
-        setattr(cfg.intrinsic if field == "form" else cfg.aux, field, value)
-    cfg.agent.encoder_layers, cfg.agent.encoder_filters, cfg.agent.crop_size = 4, 8, 52
-    cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, 1)
-    cfg.aux.image_pool_size = 8
-    return SACAgent((9, 60, 60), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0, device=device)
 
 
 @contextlib.contextmanager

@@ -6,13 +6,12 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import imssr
-from conftest import assert_same_tensors, filled_buffer, load_script, tiny_config, train_run
+from conftest import assert_same_tensors, filled_buffer, load_script, small_agent, tiny_config, train_run
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward
 from imssr.precision import FP32LayerNorm, FrozenBF16, full_precision, native_bf16, warn_if_bf16_is_slow
 from imssr.presets import make_config
-from test_no_sync import small_agent
 
 
 @pytest.mark.parametrize("algo,schedule", [("im-curl", "sequential"), ("im-soda", "sequential"),

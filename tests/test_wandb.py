@@ -3,13 +3,12 @@ the same W&B run continued across a kill -9 and --resume, and a W&B that cannot 
 import glob
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
+from conftest import kill_when_file_appears
 from imssr.cli import main
 from imssr.rundir import WANDB_RUN_FILE as RUN_ID_FILE, RunDir
 from imssr.training.wandb_run import read_run_id
@@ -36,16 +35,8 @@ def test_offline_run_across_kill_and_resume(tmp_path):
     cmd = [sys.executable, "-m", "imssr", "train", *TINY_ARGS, "--logger", "csv,wandb",
            "--set", "train.eval_video_every=1", "--out", run_dir]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 240
-        while not os.path.exists(os.path.join(run_dir, "checkpoints", "latest.pt")):
-            assert proc.poll() is None and time.time() < deadline, "no checkpoint before the kill"
-            time.sleep(0.2)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    kill_when_file_appears(proc, os.path.join(run_dir, "checkpoints", "latest.pt"), 240,
+                           "no checkpoint before the kill", poll=0.2)
     run_id = read_run_id(RunDir(run_dir))
     assert run_id and len(offline_runs(wandb_dir)) == 1
     resumed = subprocess.run([sys.executable, "-m", "imssr", "train", "--resume", "--out", run_dir,

@@ -27,7 +27,7 @@ agent's (:meth:`AgentBatch.member_state_dict`), so every seed's checkpoint is a 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import torch
 from torch import nn
@@ -41,6 +41,9 @@ from imssr.config.batching import agent_refusal
 from imssr.errors import ImssrError
 from imssr.intrinsic.reward import STAT_KEYS, BetaSchedule
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
+
+if TYPE_CHECKING:
+    import numpy as np
 
 GENERATORS = ("gen", "noise_gen", "intrinsic_gen")
 """A single agent's generators, each replaced by the members' own in the batch."""

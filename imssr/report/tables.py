@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Optional
