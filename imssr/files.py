@@ -45,6 +45,18 @@ def atomic_path(path: str, needed: Optional[int] = None) -> Iterator[str]:
             os.unlink(tmp)
 
 
+TEMP_GLOB = ".tmp-*"
+"""The names of :func:`atomic_path`'s temporary files: ``.tmp-<8 hex digits>-<name>``."""
+_TEMP_NAME = re.compile(r"\.tmp-[0-9a-f]{8}-(.+)")
+
+
+def temp_file_target(name: str) -> Optional[str]:
+    """The file name that the temporary file ``name`` of :func:`atomic_path` was to replace, or
+    None when ``name`` is not such a file."""
+    match = _TEMP_NAME.fullmatch(name)
+    return match.group(1) if match else None
+
+
 def _create_temp(directory: str, name: str) -> str:
     """Create an empty ``.tmp-*`` file in ``directory`` (mode 0o666 less the umask)."""
     for _ in range(100):

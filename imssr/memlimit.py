@@ -29,10 +29,25 @@ def address_space_limit() -> Optional[int]:
     return None if soft == resource.RLIM_INFINITY else soft
 
 
-def limit_text() -> str:
-    """``"; this process's address-space limit (ulimit -v) is 0.95 GiB"``, or ``""`` without one."""
+def raise_limit_text() -> Optional[str]:
+    """``"this process's address-space limit (ulimit -v) is 0.95 GiB: raise it (ulimit -v
+    unlimited)"``: what a failure under a limit says, or None when there is no limit."""
     limit = address_space_limit()
-    return "" if limit is None else f"; this process's address-space limit (ulimit -v) is {limit / 2**30:.2f} GiB"
+    return None if limit is None else (f"this process's address-space limit (ulimit -v) is {limit / 2**30:.2f} GiB: "
+                                       "raise it (ulimit -v unlimited)")
+
+
+def proc_bytes(path: str, key: str) -> Optional[int]:
+    """The ``key:`` line of a Linux ``/proc`` file given in kB (``VmSize`` of /proc/self/status,
+    ``MemAvailable`` of /proc/meminfo), in bytes; None where it cannot be read."""
+    try:
+        with open(path) as fh:
+            for line in fh:
+                if line.startswith(f"{key}:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 RENDER_ADDRESS_SPACE = 768 * 2**20
@@ -42,14 +57,7 @@ EPYC, torch and dm_control loaded); under a tighter limit it segfaults instead o
 
 def address_space_in_use() -> Optional[int]:
     """This process's virtual memory size in bytes (Linux ``/proc/self/status``), or None."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("VmSize:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    return proc_bytes("/proc/self/status", "VmSize")
 
 
 def check_room_to_render() -> None:
@@ -58,7 +66,7 @@ def check_room_to_render() -> None:
     limit, used = address_space_limit(), address_space_in_use()
     if limit is not None and used is not None and limit - used < RENDER_ADDRESS_SPACE:
         raise ImssrError(f"rendering needs about {RENDER_ADDRESS_SPACE / 2**30:.2f} GiB more address space, and "
-                         f"{max(limit - used, 0) / 2**30:.2f} GiB are left{limit_text()}: raise it (ulimit -v unlimited)")
+                         f"{max(limit - used, 0) / 2**30:.2f} GiB are left; {raise_limit_text()}")
 
 
 def calm_openblas(environ: MutableMapping[str, str] = os.environ) -> None:
@@ -86,6 +94,4 @@ def out_of_memory_text(exc: BaseException) -> Optional[str]:
         what = f"out of memory: MuJoCo could not allocate its model's {mujoco_alloc.group(1)}"
     else:
         return None
-    if address_space_limit() is not None:
-        return f"{what}{limit_text()}: raise it (ulimit -v unlimited)"
-    return f"{what}; lower --batch-size or --replay-capacity, or free memory"
+    return f"{what}; {raise_limit_text() or 'lower --batch-size or --replay-capacity, or free memory'}"

@@ -29,7 +29,7 @@ from imssr._gl import check_gl, egl_device_error, egl_vendor_hint, nvidia_driver
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
-from imssr.memlimit import address_space_limit, check_room_to_render, limit_text
+from imssr.memlimit import check_room_to_render, raise_limit_text
 from imssr.rng import random_state_from_plain, random_state_to_plain
 
 if TYPE_CHECKING:  # the config imports the scene registry of this package
@@ -93,10 +93,9 @@ class DMCEnv(gym.Env):
             if refused:
                 raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL=egl: {refused}") from None
             cause = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            if address_space_limit() is not None:
-                # A limited address space fails the framebuffer's allocation, not a missing package.
-                fix = f"{limit_text()[2:]}: raise it (ulimit -v unlimited)"
-            else:
+            # A limited address space fails the framebuffer's allocation, not a missing package.
+            fix = raise_limit_text()
+            if fix is None:
                 fix = "install " + (egl_vendor_hint(nvidia_driver_loaded()) if _gl_backend() == "egl" else
                                     "the Debian package libgl1-mesa-dri for software rendering "
                                     "(apt-get install libgl1-mesa-dri)"

@@ -45,6 +45,7 @@ import torch
 from imssr.errors import ImssrError
 from imssr.files import atomic_path
 from imssr.integrity import HashingWriter, check_zip, seal_zip
+from imssr.memlimit import proc_bytes
 
 
 CHUNK_FILE = "replay-frames-{first:012d}-{end:012d}.npy"
@@ -84,14 +85,7 @@ class ReplayMemoryWarning(UserWarning):
 
 def available_memory_bytes() -> Optional[int]:
     """``MemAvailable`` from /proc/meminfo, or None where it cannot be read."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
+    return proc_bytes("/proc/meminfo", "MemAvailable")
 
 
 class FrameReplayBuffer:

@@ -15,11 +15,10 @@ same bytes is left alone, so a loop that exports after every finished run writes
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import dataclass
 
 from imssr.errors import ImssrError
-from imssr.files import atomic_path, open_own
+from imssr.files import atomic_path, open_own, temp_file_target
 from imssr.report.results import collect
 from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, PROVENANCE_FILE, TRAIN_LOG, run_path
 from imssr.sweep.grid import beta_label
@@ -83,10 +82,6 @@ def export_runs(root: str, dest: str) -> list[Exported]:
     return out
 
 
-TEMP_FILE = re.compile(r"\.tmp-[0-9a-f]{8}-(.+)")
-"""The temporary files of :func:`imssr.files.atomic_path`: ``.tmp-<8 hex digits>-<name>``."""
-
-
 def exported_files(target: str) -> list[str]:
     """The files an export keeps in a run's ``target`` directory, that exist there."""
     return [os.path.join(target, name) for name in RESULT_FILES if os.path.isfile(os.path.join(target, name))]
@@ -97,8 +92,7 @@ def _copy_run(source: str, target: str) -> str:
     os.makedirs(target, exist_ok=True)
     # An export killed while writing left its temporary files: they are its own, never a result.
     for name in os.listdir(target):
-        match = TEMP_FILE.fullmatch(name)
-        if match and match.group(1) in RESULT_FILES and os.path.isfile(os.path.join(target, name)):
+        if temp_file_target(name) in RESULT_FILES and os.path.isfile(os.path.join(target, name)):
             os.unlink(os.path.join(target, name))
     changed = False
     for name in RESULT_FILES:

@@ -48,7 +48,7 @@ from typing import Any, Callable, Iterator, NamedTuple, Optional, Union
 
 from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
-from imssr.files import atomic_write_text, read_csv
+from imssr.files import TEMP_GLOB, atomic_write_text, read_csv
 from imssr.jsonio import dumps
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
 
@@ -100,7 +100,7 @@ NUMBERED_CHECKPOINT = "step-{step:09d}.pt"
 REPLAY_FILE = "replay-{step:09d}.npz"
 """The index of the replay buffer saved with the checkpoint of agent step ``step`` (its frame
 files beside it, :func:`imssr.replay.buffer.replay_files`)."""
-CHECKPOINT_GLOB, REPLAY_GLOB, TEMP_GLOB = "step-*.pt", "replay-*", ".tmp-*"
+CHECKPOINT_GLOB, REPLAY_GLOB = "step-*.pt", "replay-*"
 EARLY_PARTS = TRAINING_LOGS + (VIDEOS_DIR,)
 """The parts of a run (:meth:`RunDir.run_parts`) that a training writes before its first
 checkpoint, which :meth:`RunDir.discard_unresumable` may clear (with ``tb/``)."""
