@@ -16,7 +16,7 @@ over ``--steps`` steps after ``--warmup``, and the process's peak RSS.  On
 CUDA every step ends with a synchronisation so that queued kernels are counted.
 ``--bf16 ALGO ...`` runs, for each ALGO, its preset at ``agent.precision=fp32`` and at
 ``bf16`` (after any ``--variants``) and prints the ratio bf16 / fp32 of each pair (median and
-mean: SODA's auxiliary update runs every other step), against issue 20's target of 0.6.
+mean: SODA's auxiliary update runs every other step), against a target of 0.6.
 Each variant samples from the replay store its training would use on ``--device``
 (``train.replay_device`` resolved as the trainer does, for the preset's replay capacity), and
 each line says which.  Timings never go in tests.
@@ -169,7 +169,7 @@ def main() -> None:
               f"{med / base:.3f}  replay: {r.replay_store}")
     by_spec = {r.spec: r for r in runners}
     if pairs:
-        print("bf16 / fp32 of the whole training step, same process (issue 20's target: <= 0.6)")
+        print("bf16 / fp32 of the whole training step, same process (target: <= 0.6)")
     for fp32, bf16 in pairs:
         f, b = by_spec[fp32].times, by_spec[bf16].times
         ratio_med = statistics.median(b) / statistics.median(f)

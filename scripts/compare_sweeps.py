@@ -9,8 +9,8 @@ seeds and mean, the difference of the means in units of the reference's seed sta
 and whether the candidate's mean lies inside the reference's [min, max].  Seeds are listed by
 number, side by side (same seed = same initial weights, environment and replay draws).
 
-Written for issue 20 part 3 (fp32 against bf16 at the same seeds, docs/results/bf16_learning);
-it compares any two sweeps, e.g. two revisions' fixed-seed sweeps.  Exit status 0 when every
+Made to compare fp32 with bf16 at the same seeds (docs/results/bf16_learning); it compares any
+two sweeps, e.g. two revisions' fixed-seed sweeps.  Exit status 0 when every
 candidate mean lies in the reference's spread and the candidate has every step and seed the
 reference has; 1 when a mean leaves the spread, a step or seed is missing (the table says which),
 or a point has fewer than 2 reference seeds (no spread); 2 on unreadable input or no common data.

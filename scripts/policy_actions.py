@@ -10,8 +10,7 @@ and a 5-bin histogram of the actions taken over [-1, 1].  A deterministic return
 sampled one with ``tanh(mu)`` near 0 means the behaviour lives in the noise, which evaluation
 leaves out; ``tanh(mu)`` on one side of 0 in every frame is a constant push.
 
-Written for issue 20 part 8 (why some demo seeds' evaluations do not learn; docs/performance.md,
-"The demo").  Episodes use the run's evaluation environments (``imssr.load_run(...).make_env``).
+Made to see why some demo seeds' evaluations do not learn (docs/performance.md, "The demo").  Episodes use the run's evaluation environments (``imssr.load_run(...).make_env``).
 """
 from __future__ import annotations
 

@@ -30,7 +30,7 @@ if ! .venv/bin/python -c "import imssr, docstring_parser, pytest, xdist, ray, rl
    || [ pyproject.toml -nt .venv/.imssr-installed ] || [ constraints.txt -nt .venv/.imssr-installed ]; then
   echo "setup: installing imssr with its sweep, report, wandb, slurm and test extras into .venv"
   # constraints.txt: the exact versions the suite passed with (pyproject.toml has the ranges).
-  # (grep drops pip's notes about local wheel folders that this machine lacks)
+  # (grep drops pip's notes about configured local wheel folders that do not exist)
   .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt \
       -e ".[sweep,report,wandb,slurm,test]" 2>&1 \
     | { grep -v "is ignored: it is neither a file nor a directory" || true; }
