@@ -22,14 +22,13 @@ from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.files import read_csv
-from imssr.presets import run_config
 from imssr.rundir import (EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir,
-                          as_run_dir, run_path)
+                          as_run_dir)
 from imssr.seeds import evaluation_seed
 from imssr.training.build import load_agent
 from imssr.training.evaluate import eval_row, evaluate
-from imssr.training.loop import Trainer
-from imssr.training.stop import StopRequest, TrainingInterrupted
+from imssr.training.entry import TrainRequest, train as train_request
+from imssr.training.stop import TrainingInterrupted
 
 CURVES = tuple(name.removesuffix(".csv") for name in (EVAL_LOG, TRAIN_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG,
                                                       EVALUATE_EPISODES_LOG))
@@ -119,17 +118,20 @@ def load_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, device: st
 
 def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[str] = None, *,
           steps: Optional[int] = None, frames: Optional[int] = None, seed: Optional[int] = None,
-          device: Optional[str] = None, demo: bool = False, overrides: Sequence[str] = (),
-          resume: bool = False, progress: bool = True) -> Run:
+          seeds: Optional[Sequence[int]] = None, device: Optional[str] = None, demo: bool = False,
+          overrides: Sequence[str] = (), resume: bool = False, progress: bool = True) -> Run | list[Run]:
     """Train a run as ``imssr train`` does and load it (:class:`Run`, latest checkpoint).
 
     Args:
         algo, task: as ``--algo`` / ``--task`` (``imssr algos``, ``imssr tasks``); the run starts
             from their paper preset (``demo``: the demo's settings).
-        out: the run directory; None: ``runs/<task>/<algo>/seed_<seed>``.
+        out: the run directory; None: ``runs/<task>/<algo>/seed_<seed>``.  With ``seeds``: the
+            folder of the seeds' run directories, ``out/seed_<n>``.
         steps: budget in agent steps (``frames``: in environment frames instead); None: the
             preset's (the paper's T = 500,000 agent steps).
         seed: the run's seed; None: the preset's.
+        seeds: train these seeds in one process, in lockstep, as ``--seeds`` does, and return a
+            list of runs, one per seed.
         device: torch device (``cpu``, ``cuda``, ``auto``); None: the preset's (cpu).
         overrides: ``section.field=value`` strings, as ``--set``.
         resume: continue the run in ``out`` from its checkpoint (the saved config, a larger budget
@@ -147,24 +149,17 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
         raise ImssrError("overrides is a list of 'section.field=value' strings, e.g. ['train.eval_episodes=5']")
     if resume and out is None:
         raise ImssrError("resume=True needs out, the run directory to continue")
-    cfg = run_config(None if resume else algo, None if resume else task, demo=demo,
-                     resume_dir=out if resume else None, values=values, frames=frames,
-                     overrides=list(overrides))
-    run = RunDir(out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed))
-    stop = StopRequest().install()
+    request = TrainRequest(algo=None if resume else algo, task=None if resume else task, out=out,
+                           seeds=None if seeds is None else list(seeds), resume=resume, demo=demo, values=values,
+                           frames=frames, overrides=list(overrides))
     try:
-        trainer = Trainer(cfg, run, resume=resume, stop=stop)
-        try:
-            with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
-                trainer.train()
-        finally:
-            trainer.close()
-    except TrainingInterrupted:
-        raise KeyboardInterrupt(f"stopped at agent step {trainer.step} with a checkpoint; continue with "
-                                f"imssr.train(out={run.path!r}, resume=True)") from None
-    finally:
-        stop.uninstall()
-    return load_run(run, device=cfg.train.device)
+        runs = train_request(request)
+    except TrainingInterrupted as exc:
+        again = f"out={out if out is not None else exc.out!r}" + ("" if seeds is None else f", seeds={list(seeds)}")
+        raise KeyboardInterrupt(f"stopped at agent step {exc.step} with a checkpoint; continue with "
+                                f"imssr.train({again}, resume=True)") from None
+    loaded = [load_run(run, device=run.read_config().train.device) for run in runs]
+    return loaded if seeds is not None else loaded[0]
 
 
 def _typed(rows: list[dict]) -> list[dict]:

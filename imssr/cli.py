@@ -8,7 +8,6 @@ import argparse
 import contextlib
 import os
 import sys
-import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
@@ -19,10 +18,10 @@ from imssr.config import MAX_SEED, SEED_RULE, field_docs, logger_fields
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.memlimit import out_of_memory_text
-from imssr.presets import ALGOS, make_config, markdown_table, preset_settings, run_config
-from imssr.rundir import CONFIG_FILE, RunDir, run_path
+from imssr.presets import ALGOS, make_config, markdown_table, preset_settings
+from imssr.rundir import RunDir
 from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
-from imssr.training.stop import StopRequest, TrainingInterrupted
+from imssr.training.stop import TrainingInterrupted
 
 
 EXIT_STATUS_TEXT = (f"Exit status: 0 done; 2 error (one line on stderr); {INTERRUPTED_EXIT} interrupted: "
@@ -370,7 +369,7 @@ def cmd_sweep(args) -> int:
 
 
 def _check_out(out: Optional[str], flag: str = "--out") -> None:
-    """An empty ``--out`` names no directory (it used to fall back to the default silently)."""
+    """An empty ``--out`` names no directory: refused, rather than read as the default."""
     if out is not None and not out.strip():
         raise ImssrError(f"{flag} is empty; give a path, or omit {flag} for the default")
 
@@ -400,11 +399,11 @@ def cmd_export(args) -> int:
     return 0
 
 
-def _run_config(args, demo: bool):
-    """The run's config from ``train`` / ``demo`` arguments (:func:`imssr.presets.run_config`)."""
+def train_request(args, demo: bool = False):
+    """The :class:`~imssr.training.entry.TrainRequest` of ``train`` / ``demo`` arguments."""
+    from imssr.training.entry import TrainRequest
+
     _check_out(args.out)
-    if args.resume and not args.config and not args.out:
-        raise ImssrError("--resume needs --out RUN_DIR")
     values = {}
     for f in FIELD_FLAGS:
         given = getattr(args, f.dest)
@@ -414,104 +413,18 @@ def _run_config(args, demo: bool):
             values[f.field] = given
     if args.logger is not None:
         values.update(logger_fields(args.logger, args.no_tensorboard))
-    return run_config(args.algo, args.task, network=args.network, config_file=args.config,
-                      resume_dir=args.out if args.resume and not args.config else None, demo=demo,
-                      values=values, frames=args.frames, batch_size=args.batch_size, beta0=args.beta0,
-                      overrides=args.set)
+    seeds = getattr(args, "seeds", None)
+    return TrainRequest(algo=args.algo, task=args.task, out=args.out,
+                        seeds=None if seeds is None else parse_seeds(seeds), runs=getattr(args, "runs", None) or (),
+                        resume=args.resume, refill_buffer=getattr(args, "refill_buffer", False), demo=demo,
+                        network=args.network, config_file=args.config, values=values, frames=args.frames,
+                        batch_size=args.batch_size, beta0=args.beta0, overrides=args.set or ())
 
 
 def cmd_train(args, demo: bool = False) -> int:
-    refill = getattr(args, "refill_buffer", False)
-    if refill and not args.resume:
-        raise ImssrError("--refill-buffer goes with --resume")
-    if getattr(args, "seeds", None) is not None or getattr(args, "runs", None):
-        return _train_seeds(args, refill)
-    cfg = _run_config(args, demo)
-    run = RunDir(args.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed))
-    # From here on SIGTERM / SIGINT stop the run after the current agent step, with a checkpoint.
-    stop = StopRequest(run).install()
-    try:
-        return _train(cfg, run, args, refill, demo, stop)
-    finally:
-        stop.uninstall()
+    from imssr.training.entry import train
 
-
-def _train(cfg, run: RunDir, args, refill: bool, demo: bool, stop: StopRequest) -> int:
-    from imssr.plots.curves import plot_learning_curve
-    from imssr.training.demo import record_episode, summary
-    from imssr.training.loop import Trainer
-
-    trainer = Trainer(cfg, run, resume=args.resume, refill_buffer=refill, stop=stop)
-    print(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}",
-          flush=True)
-    started = time.time()
-    try:
-        with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
-            trainer.train()
-        png = plot_learning_curve(run)
-        if demo:
-            gif = record_episode(trainer, run.episode_gif_path)
-            print(summary(cfg, run, (time.time() - started) / 60, gif, png), flush=True)
-        else:
-            print(f"imssr: done; {run.eval_log}, {png}")
-    finally:
-        trainer.close()
-    return 0
-
-
-def _train_seeds(args, refill: bool) -> int:
-    """``imssr train --seeds`` (the seeds of one config) or ``--runs`` (run directories with
-    their own config.json) in one process (:class:`SeedsTrainer`)."""
-    from imssr.plots.curves import plot_learning_curve
-    from imssr.training.seeds import SEED_DIR, SeedsTrainer
-
-    if refill:
-        raise ImssrError("--refill-buffer resumes one run: use it with --out RUN_DIR alone")
-    if args.runs:
-        if args.seeds is not None or args.out or args.config or args.algo or args.task or args.seed is not None:
-            raise ImssrError("--runs takes each run's own config.json: leave out --seeds, --out, --config, "
-                             "--algo, --task and --seed")
-        dirs = list(dict.fromkeys(os.path.normpath(d) for d in args.runs))
-        for d in dirs:
-            if not os.path.isfile(os.path.join(d, CONFIG_FILE)):
-                raise ImssrError(f"--runs {d}: no {CONFIG_FILE} there (write one, or train it with --out)")
-        per_run = [{"config": os.path.join(d, CONFIG_FILE), "out": d} for d in dirs]
-        where = f"{len(dirs)} run directories"
-    else:
-        seeds = parse_seeds(args.seeds)
-        if args.seed is not None:
-            raise ImssrError("--seeds and --seed exclude each other")
-        if not args.out:
-            raise ImssrError("--seeds needs --out DIR: each seed trains into DIR/seed_<n>")
-        if args.config and args.resume:
-            raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
-        per_run = [{"seed": seed, "out": os.path.join(args.out, SEED_DIR.format(seed=seed))} for seed in seeds]
-        where = os.path.join(args.out, SEED_DIR.format(seed="<n>"))
-    cfgs, runs = [], []
-    for fields in per_run:
-        run_args = argparse.Namespace(**{**vars(args), **fields})
-        cfgs.append(_run_config(run_args, demo=False))
-        runs.append(RunDir(run_args.out))
-    stop = StopRequest().install()
-    try:
-        trainer = SeedsTrainer(cfgs, runs, resume=args.resume, stop=stop)
-        try:
-            cfg = cfgs[0]
-            algos = ", ".join(dict.fromkeys(c.algo for c in cfgs))
-            print(f"imssr: {algos} on {cfg.env.task}, seeds {','.join(str(c.train.seed) for c in cfgs)} in one "
-                  f"process: {cfg.budget_text()} -> {where}", flush=True)
-            failed = trainer.train()
-        finally:
-            trainer.close()
-    finally:
-        stop.uninstall()
-    for run, why in zip(runs, failed):
-        if why is None:
-            plot_learning_curve(run)
-    bad = [run.path for run, why in zip(runs, failed) if why is not None]
-    if bad:
-        raise ImssrError(f"{', '.join(bad)} diverged (each run's status.json says where); the others finished")
-    print(f"imssr: done; {len(runs)} runs: {', '.join(run.path for run in runs)}")
+    train(train_request(args, demo), exit_on_second_signal=True)
     return 0
 
 

@@ -82,9 +82,10 @@ def run(out_root: str, only: list[str] | None) -> None:
         # The tree that trained the run reads its own checkpoint (its own loader, its own format).
         sys.path.insert(0, os.getcwd())
         from imssr.rundir.checkpoint import load_checkpoint
-        state = load_checkpoint(os.path.join(out, "checkpoints", "latest.pt"))
+        ckpt = load_checkpoint(os.path.join(out, "checkpoints", "latest.pt"))
         flat: dict = {}
-        _flatten(state["agent"], "agent", flat)
+        # A typed Checkpoint, or the plain dict of a tree from before it.
+        _flatten(ckpt["agent"] if isinstance(ckpt, dict) else ckpt.agent, "agent", flat)
         torch.save(flat, os.path.join(out, "weights.pt"))
 
 

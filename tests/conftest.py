@@ -81,6 +81,26 @@ class StopAtStep:
         return "SIGTERM" if self.trainer.step >= self.step else None
 
 
+def a_checkpoint(**fields):
+    """A :class:`~imssr.rundir.checkpoint.Checkpoint` with ``fields`` and small stand-ins for the
+    rest (no agent, a fresh run's counters): for tests of files and the loop's state."""
+    from imssr.rundir.checkpoint import Checkpoint
+    from imssr.training.state import RunState
+
+    state = RunState.fresh(0, 0, 0, 0).state_dict()
+    base = dict(config=tiny_config("curl").to_dict(), **state, agent={}, env_rng={}, eval_env_rngs={},
+                global_rng={})
+    return Checkpoint(**{**base, **fields})
+
+
+def cli_config(*argv: str):
+    """The config ``imssr train ARGV`` would train (the CLI's request, planned, not trained)."""
+    from imssr.cli import build_parser, train_request
+    from imssr.training.entry import plan
+
+    return plan(train_request(build_parser().parse_args(["train", *argv])))[0].config
+
+
 def train_stopped_at(trainer, step: int) -> None:
     """Train ``trainer`` until a stop requested at agent step ``step``: it checkpoints that step
     (the open episode with it, unless an episode ends there with a checkpoint) and stops, as a

@@ -230,7 +230,7 @@ def test_analyze_rolls_out_the_policy_when_the_replay_has_no_physics(tiny_run, t
 
     copy = tmp_path / "old-run"
     shutil.copytree(run, copy)
-    path = os.path.join(copy, "checkpoints", load_checkpoint(RunDir(str(copy)).latest)["replay_file"])
+    path = os.path.join(copy, "checkpoints", load_checkpoint(RunDir(str(copy)).latest).replay_file)
     full = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, physics_dim=4, warn_memory=False)
     full.load(path)
     old = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, warn_memory=False)

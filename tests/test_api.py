@@ -112,14 +112,27 @@ def test_load_run_errors(tmp_path, tiny_run):
         imssr.train(resume=True)
 
 
+TINY = ["train.seed_steps=20", "train.burst_updates=0", "train.eval_episodes=1", "train.eval_every_steps=20",
+        "agent.batch_size=8", "agent.hidden_dim=32", "agent.encoder_filters=8", "agent.feature_dim=16",
+        "train.tensorboard=false"]
+
+
 def test_train_resumes_to_a_larger_budget(tmp_path):
-    tiny = ["train.seed_steps=20", "train.burst_updates=0", "train.eval_episodes=1", "train.eval_every_steps=20",
-            "agent.batch_size=8", "agent.hidden_dim=32", "agent.encoder_filters=8", "agent.feature_dim=16", "train.tensorboard=false"]
     out = str(tmp_path / "run")
-    run = imssr.train("curl", "cartpole_swingup_sparse", out=out, steps=40, progress=False, overrides=tiny)
+    run = imssr.train("curl", "cartpole_swingup_sparse", out=out, steps=40, progress=False, overrides=TINY)
     assert run.step == 40
     run = imssr.train(out=out, resume=True, steps=60, progress=False)
     assert run.step == 60 and [r["step"] for r in read_csv(os.path.join(out, "eval.csv"))] == ["20", "40", "60"]
+
+
+def test_train_seeds_trains_them_in_one_process_as_the_cli_does(tmp_path):
+    out = str(tmp_path / "seeds")
+    runs = imssr.train("curl", "cartpole_swingup_sparse", out=out, seeds=[3, 5], steps=20, progress=False,
+                       overrides=TINY)
+    assert [(r.config.train.seed, r.dir, r.step) for r in runs] == [
+        (3, os.path.join(out, "seed_3"), 20), (5, os.path.join(out, "seed_5"), 20)]
+    with pytest.raises(ImssrError, match="--seeds and --seed exclude each other"):
+        imssr.train("curl", "cartpole_swingup_sparse", out=out, seeds=[1], seed=2)
 
 
 def test_the_api_is_on_the_package():

@@ -37,3 +37,14 @@ def test_the_module_map_names_every_module_and_nothing_else():
     entries = _map_entries()
     assert sorted(entries - modules) == [], "named in docs/architecture.md but not in imssr/"
     assert sorted(modules - entries) == [], "in imssr/ but not in docs/architecture.md's module map"
+
+
+def test_the_settings_layer_reads_no_run_directory():
+    """Presets and configs build settings; a resumed run's saved config is read by the training's
+    entry point (imssr/training/entry.py), so neither imports the run directory's code."""
+    for folder in ("config", "presets"):
+        for name in os.listdir(os.path.join(REPO, "imssr", folder)):
+            if name.endswith(".py"):
+                with open(os.path.join(REPO, "imssr", folder, name)) as fh:
+                    assert not re.search(r"^\s*(from|import) imssr\.(rundir|training)\b", fh.read(), re.M), \
+                        f"imssr/{folder}/{name} imports the run directory or training code"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_same_tensors, tiny_config, train_run, train_stopped_at, without_timing
+from conftest import a_checkpoint, assert_same_tensors, tiny_config, train_run, train_stopped_at, without_timing
 from imssr.errors import ImssrError
 from imssr.training import Trainer
 from imssr.training.loop import TrainingInterrupted
@@ -60,7 +60,7 @@ def _short(steps, **train):
 def _assert_same_runs(a_dir, b_dir):
     """Two runs' final checkpoints hold the same tensors (agent, optimisers, generators, replay
     state) and counters, and their logs the same rows."""
-    a, b = (load_checkpoint(RunDir(str(d)).latest) for d in (a_dir, b_dir))
+    a, b = (load_checkpoint(RunDir(str(d)).latest).to_state() for d in (a_dir, b_dir))
     for key in ("agent", "replay_state", "global_rng", "env_rng", "eval_env_rngs", "action_rng", "step", "frame",
                 "episode", "eval_history"):
         if key == "eval_history":
@@ -79,9 +79,9 @@ def test_extending_a_run_whose_budget_ended_mid_episode_is_exact(tmp_path):
     train_run(_short(140), extended)
     assert [r["step"] for r in read_csv(extended / "eval.csv")] == ["125", "140"]
     state = load_checkpoint(RunDir(str(extended)).latest)
-    assert state["step"] == 140 and state["episode_state"] is not None
+    assert state.step == 140 and state.episode_state is not None
     again = train_run(_short(140), extended, resume=True)  # the same budget: nothing to do
-    assert again.step == 140 and load_checkpoint(RunDir(str(extended)).latest)["step"] == 140
+    assert again.step == 140 and load_checkpoint(RunDir(str(extended)).latest).step == 140
     train_run(_short(160), extended, resume=True)
     _assert_same_runs(direct, extended)
 
@@ -95,8 +95,8 @@ def test_a_run_stopped_mid_episode_and_resumed_to_that_step_checkpoints_its_fina
     assert [r["step"] for r in read_csv(stopped / "eval.csv")] == ["125"]
     train_run(_short(140), stopped, resume=True)
     state = load_checkpoint(RunDir(str(stopped)).latest)
-    assert [item["row"]["step"] for item in state["eval_history"]] == [125, 140]
-    assert state["before_final_eval"] is not None
+    assert [item["row"]["step"] for item in state.eval_history] == [125, 140]
+    assert state.before_final_eval is not None
     _assert_same_runs(direct, stopped)
 
 
@@ -124,8 +124,8 @@ def test_a_stop_inside_the_burst_of_updates_resumes_exactly(tmp_path):
     finally:
         t.close()
     state = load_checkpoint(RunDir(str(stopped)).latest)
-    assert state["step"] == 60 and state["agent"]["updates"] == 15
-    assert state["burst_state"]["updates_done"] == 15 and state["episode_state"] is not None
+    assert state.step == 60 and state.agent["updates"] == 15
+    assert state.burst_state["updates_done"] == 15 and state.episode_state is not None
     train_run(_short(130, burst_updates=40), stopped, resume=True)
     _assert_same_runs(direct, stopped)
 
@@ -133,8 +133,8 @@ def test_a_stop_inside_the_burst_of_updates_resumes_exactly(tmp_path):
 def test_checkpoint_contents_and_round_trip(full_run):
     full_dir, full = full_run
     state = load_checkpoint(RunDir(str(full_dir)).latest)
-    assert state["frame"] == 3000 and state["step"] == 375 and state["episode"] == 3
-    assert os.path.exists(full_dir / "checkpoints" / state["replay_file"])
+    assert state.frame == 3000 and state.step == 375 and state.episode == 3
+    assert os.path.exists(full_dir / "checkpoints" / state.replay_file)
     cfg = _cfg()
     cfg.train.steps = 375
     t = Trainer(cfg, str(full_dir), resume=True)  # loads everything, nothing left to do
@@ -179,7 +179,7 @@ def test_a_failure_that_is_not_the_files_is_not_called_a_damaged_checkpoint(tmp_
     """Out of memory (or a bug) while loading must not read as a damaged file, which a resume
     would quietly skip for an older checkpoint."""
     run = RunDir(str(tmp_path))
-    run.save_checkpoint({"step": 5, "replay_file": None}, keep=1)
+    run.save_checkpoint(a_checkpoint(step=5), keep=1)
 
     def out_of_memory(*args, **kwargs):
         raise MemoryError()
@@ -281,9 +281,9 @@ def test_checkpoint_from_before_new_settings_still_resumes(full_run, tmp_path):
     full_dir, _ = full_run
     shutil.copytree(full_dir, tmp_path / "old")
     path = RunDir(str(tmp_path / "old")).latest
-    state = load_checkpoint(path)
+    state = load_checkpoint(path).to_state()
     del state["config"]["env"]["footage_dir"], state["config"]["intrinsic"]["source"]
-    torch.save(state, path)
+    torch.save(dict(state, format_version=1), path)
     cfg = _cfg()
     t = Trainer(cfg, str(tmp_path / "old"), resume=True)
     t.close()
@@ -296,10 +296,10 @@ def test_step_schedule_saves_itself_under_the_checkpoint_key_and_resumes():
     s.advance(250)  # checked late (at an episode end): the next one after 250
     assert s.next_step == 300 and s.state_dict() == {"next_eval_step": 300}
     same = StepSchedule("eval", 100)
-    same.load_state_dict({"next_eval_step": 300}, step=260, saved_every=100)
+    same.load(300, step=260, saved_every=100)
     assert same.next_step == 300
     changed = StepSchedule("eval", 40)  # interval changed on resume: the next multiple of it
-    changed.load_state_dict({"next_eval_step": 300}, step=260, saved_every=100)
+    changed.load(300, step=260, saved_every=100)
     assert changed.next_step == 280
     off = StepSchedule("ckpt", 0)
     assert off.next_step is None and not off.due(10**9) and off.state_dict() == {"next_ckpt_step": None}

@@ -5,7 +5,7 @@ import os
 
 import pytest
 
-from conftest import cli_help
+from conftest import cli_config, cli_help
 from imssr.config import RunConfig, apply_overrides
 from imssr.errors import ImssrError
 from imssr.envs import PAPER_TASKS
@@ -182,12 +182,9 @@ def test_binary_and_partial_config_files(tmp_path):
 
 
 def test_train_config_flag_merges_a_partial_file(tmp_path):
-    from imssr.cli import _run_config, build_parser
-
     partial = tmp_path / "p.json"
     partial.write_text('{"algo": "curl", "env": {"task": "walker_walk"}}')
-    args = build_parser().parse_args(["train", "--config", str(partial), "--out", str(tmp_path / "r")])
-    assert _run_config(args, demo=False) == make_config("curl", "walker_walk")
+    assert cli_config("--config", str(partial), "--out", str(tmp_path / "r")) == make_config("curl", "walker_walk")
 
 
 def test_every_field_documents_itself_and_each_field_flag_shows_it():

@@ -14,7 +14,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import filled_buffer, load_script, next_obs_context, tiny_config
+from conftest import cli_config, filled_buffer, load_script, next_obs_context, tiny_config
 from imssr.agents import SACAgent
 from imssr.augmentations import random_crop
 from imssr.config import load_config
@@ -237,12 +237,8 @@ def test_normalize_constant_and_non_finite_batches():
 
 
 def test_cli_budget_in_steps_or_frames(tmp_path):
-    from imssr.cli import _run_config, build_parser
-
     def cfg(*extra):
-        args = build_parser().parse_args(["train", "--algo", "im-curl", "--task", "cartpole_swingup_sparse",
-                                          "--out", str(tmp_path), *extra])
-        return _run_config(args, demo=False)
+        return cli_config("--algo", "im-curl", "--task", "cartpole_swingup_sparse", "--out", str(tmp_path), *extra)
 
     assert cfg("--steps", "3000").train.steps == 3000
     assert cfg("--frames", "24001").train.steps == 3001  # rounded up at action repeat 8

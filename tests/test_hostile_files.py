@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config, train_run
+from conftest import a_checkpoint, tiny_config, train_run
 from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
@@ -74,9 +74,9 @@ def test_imssr_checkpoints_hold_only_tensors_and_plain_values(tmp_path):
     from imssr.rng import rng_states
 
     run = str(tmp_path / "run")
-    RunDir(run).save_checkpoint({"step": 1, "replay_file": None, "global_rng": rng_states()})
+    RunDir(run).save_checkpoint(a_checkpoint(step=1, global_rng=rng_states()))
     assert torch.serialization.get_unsafe_globals_in_checkpoint(RunDir(run).latest) == []
-    assert load_checkpoint(RunDir(run).latest)["global_rng"]["numpy"]["bit_generator"] == "MT19937"
+    assert load_checkpoint(RunDir(run).latest).global_rng["numpy"]["bit_generator"] == "MT19937"
 
 
 def test_a_replay_file_with_pickled_objects_is_refused(tmp_path):
@@ -110,12 +110,12 @@ def test_a_file_that_is_no_checkpoint_is_one_line(run, tmp_path, capsys, content
 
 def test_text_in_latest_falls_back_to_the_newest_valid_step_file(tmp_path):
     run = RunDir(str(tmp_path / "run"))
-    run.save_checkpoint({"step": 5, "replay_file": None}, keep=2)
-    run.save_checkpoint({"step": 9, "replay_file": None}, keep=2)
+    run.save_checkpoint(a_checkpoint(step=5), keep=2)
+    run.save_checkpoint(a_checkpoint(step=9), keep=2)
     with open(run.latest, "w") as fh:
         fh.write("hello world\n")
     state, path, note = run.checkpoint()
-    assert (state["step"], path) == (9, run.numbered(9))
+    assert (state.step, path) == (9, run.numbered(9))
     assert note == ("latest.pt is damaged (not an imssr checkpoint); resuming from step-000000009.pt "
                     "at agent step 9")
 

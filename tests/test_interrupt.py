@@ -74,14 +74,14 @@ def test_a_signal_checkpoints_the_current_step_and_the_resume_is_exact(reference
     assert match[2] == signal.Signals(signum).name and match[3] == str(out)
     assert 125 <= step < 375, err  # after the first episode, before the budget
     state = load_checkpoint(RunDir(str(out)).latest)
-    assert state["step"] == step and state["replay_file"]
+    assert state.step == step and state.replay_file
     assert main([*TRAIN, "--out", str(out), "--resume"]) == 0
     assert f"resuming from agent step {step:,}" in capsys.readouterr().out
     for name in ("train.csv", "eval.csv"):
         assert without_timing(read_csv(os.path.join(str(out), name))) == \
             without_timing(read_csv(os.path.join(reference, name))), name
-    a = load_checkpoint(RunDir(str(out)).latest)["agent"]["nets"]
-    b = load_checkpoint(RunDir(reference).latest)["agent"]["nets"]
+    a = load_checkpoint(RunDir(str(out)).latest).agent["nets"]
+    b = load_checkpoint(RunDir(reference).latest).agent["nets"]
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
@@ -97,7 +97,7 @@ def test_a_second_signal_stops_at_once_and_keeps_the_last_checkpoint(tmp_path):
     proc.communicate(timeout=300)
     # Killed by the second signal, or (if its stop was quicker still) stopped by the first.
     assert proc.returncode in (-signal.SIGTERM, INTERRUPTED_EXIT)
-    assert load_checkpoint(RunDir(str(out)).latest)["step"] >= 125
+    assert load_checkpoint(RunDir(str(out)).latest).step >= 125
 
 
 # `imssr train` whose checkpoint write number WRITE (1: the first) gets two SIGINTs from the
@@ -153,7 +153,7 @@ def test_a_second_signal_during_a_checkpoint_write_exits_130_in_one_line(tmp_pat
     else:
         assert lines[-1] == ("imssr: SIGINT again: stopped at once, keeping the last checkpoint; continue with: "
                              f"imssr train --out {out} --resume")
-        assert load_checkpoint(run.latest)["step"] == 125
+        assert load_checkpoint(run.latest).step == 125
     assert run.status() == ("interrupted" if write == 2 else "new")
 
 
@@ -235,7 +235,7 @@ def test_sigterm_inside_the_burst_of_updates_stops_there(tmp_path):
     last = [line for line in proc.stderr.splitlines() if line.strip()][-1]
     assert last == f"imssr: stopped at agent step 100 by SIGTERM; continue with: imssr train --out {out} --resume"
     state = load_checkpoint(RunDir(str(out)).latest)
-    assert state["agent"]["updates"] == 11 and state["burst_state"]["updates_done"] == 11
+    assert state.agent["updates"] == 11 and state.burst_state["updates_done"] == 11
 
 
 AGAIN = re.compile(r"imssr: (SIGTERM|SIGINT) again: stopped at once, keeping the last checkpoint; "
@@ -258,7 +258,7 @@ def test_a_burst_of_ctrl_c_ends_in_one_line_and_130(tmp_path):
     assert "Traceback" not in err and "Exception ignored" not in err, err
     last = [line for line in err.splitlines() if line.strip()][-1]
     assert STOPPED.fullmatch(last) or AGAIN.fullmatch(last), err
-    assert load_checkpoint(RunDir(str(out)).latest)["step"] >= 125
+    assert load_checkpoint(RunDir(str(out)).latest).step >= 125
 
 
 def _sweep_run(tmp_path, *overrides):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import StopAtStep, tiny_config
+from conftest import StopAtStep, a_checkpoint, tiny_config
 from imssr.errors import DivergedError, NonFiniteError
 from imssr.training import Trainer
 from imssr.rundir.checkpoint import load_checkpoint
@@ -47,8 +47,7 @@ def test_run_state_saves_under_the_checkpoint_keys_and_loads_back():
     assert state["learning_starts"] == 60 and state["action_rng"] == s.action_rng.bit_generator.state
 
     other = RunState.fresh(eval_every=100, ckpt_every=250, seed_steps=60, action_seed=99)
-    counters = {k: state[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
-    other.load(state, counters, saved_eval_every=100, saved_ckpt_every=250)
+    other.load(a_checkpoint(**state), saved_eval_every=100, saved_ckpt_every=250)
     assert other.state_dict() == state
     assert other.eval_history is not s.eval_history  # a copy: the checkpoint's list stays as saved
     assert other.last_return is None  # per process, not saved
@@ -58,11 +57,10 @@ def test_run_state_saves_under_the_checkpoint_keys_and_loads_back():
 def test_run_state_load_restarts_a_schedule_whose_interval_changed_and_keeps_older_defaults():
     saved = RunState.fresh(eval_every=100, ckpt_every=250, seed_steps=60, action_seed=7)
     saved.step = 260
-    state = saved.state_dict()
-    del state["learning_starts"]  # a checkpoint from before the key existed
+    state = dict(saved.state_dict(), next_eval_step=100, next_ckpt_step=250, last_eval_step=-1)
+    state["learning_starts"] = None  # a checkpoint that does not hold it: the seed phase's end
     s = RunState.fresh(eval_every=40, ckpt_every=250, seed_steps=80, action_seed=7)
-    counters = {"next_eval_step": 100, "next_ckpt_step": 250, "last_eval_step": -1}
-    s.load(state, counters, saved_eval_every=100, saved_ckpt_every=250)
+    s.load(a_checkpoint(**state), saved_eval_every=100, saved_ckpt_every=250)
     assert s.eval_schedule.next_step == 280 and s.ckpt_schedule.next_step == 250
     assert s.learning_starts == 80
 
@@ -267,8 +265,8 @@ def test_stop_if_requested_checkpoints_the_open_episode_and_stops(trainer):
                                                   r"imssr train --out \S+ --resume$"):
         trainer._stop_if_requested(episode)
     saved = load_checkpoint(trainer.run_dir.latest)
-    assert saved["step"] == 40 and saved["episode_state"]["return"] == 1.0
-    assert saved["episode_state"]["actions"].tolist() == [[0.25]]
+    assert saved.step == 40 and saved.episode_state["return"] == 1.0
+    assert saved.episode_state["actions"].tolist() == [[0.25]]
 
 
 def test_stop_if_requested_does_not_save_twice_nor_past_the_budget(trainer):

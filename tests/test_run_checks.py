@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import TORCH_THREADS, tiny_config, train_stopped_at
+from conftest import TORCH_THREADS, cli_config, tiny_config, train_stopped_at
 from imssr.errors import DivergedError, ImssrError
 from imssr.training import Trainer
 from imssr.rundir import RunDir
@@ -58,7 +58,7 @@ def test_divergence_stops_in_one_line_and_keeps_the_last_good_checkpoint(tmp_pat
     finally:
         t.close()
     ckpt = load_checkpoint(RunDir(out).latest)
-    assert ckpt["step"] == 20  # nothing saved after the divergence
+    assert ckpt.step == 20  # nothing saved after the divergence
     assert [int(r["step"]) for r in read_csv(f"{out}/train.csv")] == [20]
     resumed = Trainer(fast(), out, resume=True)  # the last good checkpoint loads and resumes
     try:
@@ -77,10 +77,10 @@ def test_a_stop_right_after_a_diverged_update_saves_nothing(tmp_path):
             t.train()
     finally:
         t.close()
-    assert load_checkpoint(RunDir(out).latest)["step"] == 20
+    assert load_checkpoint(RunDir(out).latest).step == 20
     # Nothing of the refused save is left: the replay files are those latest.pt names.
     run = RunDir(out)
-    named = {os.path.basename(p) for p in run.replay_files(load_checkpoint(run.latest)["replay_file"])}
+    named = {os.path.basename(p) for p in run.replay_files(load_checkpoint(run.latest).replay_file)}
     assert {f for f in os.listdir(run.checkpoint_dir) if f.startswith("replay-")} == named
 
 
@@ -123,14 +123,13 @@ def test_a_real_diverging_run_is_one_line_that_the_sweep_records(precision, tmp_
     PhysicsError traceback); a bf16 run (mixed precision) blows up in its first updates too and
     stops with the same line (measured: fp32 "actor loss nan", bf16 "aux loss nan" at agent
     step 11), which the sweep does not retry."""
-    from imssr.cli import _run_config, build_parser
     from imssr.rundir import SWEEP_LOG
     from imssr.sweep.runner import execute_run
 
     run = tmp_path / "run"
     args = ["--algo", "curl", "--task", TASK, "--seed", "1", *FAST, "--set", "agent.critic_lr=1e6",
             "--set", f"agent.precision={precision}"]
-    RunDir(run).write_config(_run_config(build_parser().parse_args(["train", *args, "--out", str(run)]), demo=False))
+    RunDir(run).write_config(cli_config(*args, "--out", str(run)))
     result = execute_run(str(run), 60, attempt=1)
     assert not result["ok"] and result["returncode"] == 2 and result["diverged"]
     assert re.fullmatch(r"imssr: error: diverged at agent step \d+: [a-z ]+ (nan|inf|-inf)", result["error"]), result
@@ -147,7 +146,7 @@ def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_sma
             train_stopped_at(t, 20)
         finally:
             t.close()
-        assert load_checkpoint(RunDir(out).latest)["torch_threads"] == 1
+        assert load_checkpoint(RunDir(out).latest).torch_threads == 1
         capsys.readouterr()
         config = (tmp_path / "run" / "config.json").read_text()
         with pytest.raises(ImssrError, match=r"already at agent step 20, past the budget of 15 steps asked for; "

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import (as_single_file_replay, assert_same_nets, fill_fs, filled_buffer, tiny_config, train_run,
+from conftest import (a_checkpoint, as_single_file_replay, assert_same_nets, fill_fs, filled_buffer, tiny_config, train_run,
                       without_timing)
 from imssr.cli import main
 from imssr.errors import ImssrError
@@ -260,7 +260,7 @@ def test_flipped_bytes_in_latest_are_caught_and_resume_falls_back_exactly(run, f
     _flip(RunDir(run).latest)
     with pytest.raises(CheckpointDamaged, match=r"latest\.pt is damaged \(checksum mismatch\)$"):
         load_checkpoint(RunDir(run).latest)
-    assert load_checkpoint(_ckpt(run, "step-000000250.pt"))["step"] == 250  # the copy is intact
+    assert load_checkpoint(_ckpt(run, "step-000000250.pt")).step == 250  # the copy is intact
     resumed = _train(run, resume=True)
     out = capsys.readouterr().out
     assert ("imssr: latest.pt is damaged (checksum mismatch); resuming from step-000000250.pt "
@@ -277,7 +277,7 @@ def test_an_older_checkpoint_resumes_with_a_refilled_buffer(run, capsys):
     assert ("imssr: latest.pt is damaged (checksum mismatch); resuming from step-000000125.pt "
             "at agent step 125\n") in out
     assert "no replay buffer was kept for step-000000125.pt; refilling it with random actions" in out
-    assert t.step == 375 and load_checkpoint(RunDir(run).latest)["step"] == 375
+    assert t.step == 375 and load_checkpoint(RunDir(run).latest).step == 375
     _flip(RunDir(run).latest)
     _flip(_ckpt(run, "step-000000375.pt"))
     _flip(_ckpt(run, "step-000000250.pt"))
@@ -306,7 +306,7 @@ def test_a_lost_replay_buffer_needs_refill_buffer(run, fault, capsys):
     # Through the CLI, which trains the last episode and saves a buffer again.
     assert main(["train", "--resume", "--refill-buffer", "--out", run, "--no-progress"]) == 0
     state = load_checkpoint(RunDir(run).latest)
-    assert state["step"] == 375 and os.path.exists(_ckpt(run, state["replay_file"]))
+    assert state.step == 375 and os.path.exists(_ckpt(run, state.replay_file))
     assert main(["train", "--refill-buffer", "--out", run]) == 2
     assert "--refill-buffer goes with --resume" in capsys.readouterr().err
 
@@ -387,7 +387,7 @@ def test_two_evaluations_of_one_run_do_not_interleave_their_rows(run):
 
 def _after_failed_save(run_dir):
     """The previous checkpoint is whole and nothing of the failed save is left."""
-    assert load_checkpoint(RunDir(run_dir).latest)["step"] == 250
+    assert load_checkpoint(RunDir(run_dir).latest).step == 250
     assert sorted(os.listdir(os.path.join(run_dir, "checkpoints"))) == [
         "latest.pt", *REPLAY_250, "step-000000125.pt", "step-000000250.pt"]
 
@@ -457,11 +457,11 @@ def test_a_run_on_a_full_file_system_stops_in_one_line_and_resumes(stopped, full
 def test_every_writer_reports_a_full_file_system(tiny_fs):
     mnt = tiny_fs("2m")
     run = os.path.join(mnt, "run")
-    RunDir(run).save_checkpoint({"step": 1, "w": torch.zeros(10), "replay_file": None})
+    RunDir(run).save_checkpoint(a_checkpoint(step=1, agent={"w": torch.zeros(10)}))
     with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {RunDir(run).latest} "
                                          r"\(4\.0 MB needed\)$"):
-        RunDir(run).save_checkpoint({"step": 2, "w": torch.zeros(1_000_000), "replay_file": None})
-    assert load_checkpoint(RunDir(run).latest)["step"] == 1
+        RunDir(run).save_checkpoint(a_checkpoint(step=2, agent={"w": torch.zeros(1_000_000)}))
+    assert load_checkpoint(RunDir(run).latest).step == 1
     assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["latest.pt", "step-000000001.pt"]
     notes = os.path.join(mnt, "notes.json")
     with pytest.raises(ImssrError, match=rf"^no space left on {mnt} while writing {notes} \(3\.0 MB needed\)$"):
@@ -489,8 +489,8 @@ def test_output_files_honour_the_umask(tmp_path, umask):
         atomic_write_text(str(run / "config.json"), "{}\n")
         atomic_write_csv(str(run / "table.csv"), ["a"], [[1]])
         CSVLog(str(run / "train.csv"), ["frame"]).write({"frame": 1})
-        filled_buffer(60, capacity=100, size=8).save(str(run / "checkpoints" / "replay-000000003.npz"))
-        RunDir(str(run)).save_checkpoint({"step": 3, "replay_file": "replay-000000003.npz"}, keep=1)
+        RunDir(str(run)).save_checkpoint(a_checkpoint(step=3, replay_file="replay-000000003.npz"), keep=1,
+                                         replay=filled_buffer(60, capacity=100, size=8))
         lock = DirectoryLock(str(run)).acquire()
         lock_mode = stat.S_IMODE(os.stat(run / LOCK_FILE).st_mode)
         lock.release()
@@ -546,7 +546,7 @@ def test_a_full_tensorboard_disk_at_the_start_is_one_line_and_keeps_the_status(r
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"imssr: error: no space left on {mnt} while writing {mnt}"], err
     assert RunDir(run).read_status()["state"] == "interrupted"
-    assert load_checkpoint(RunDir(run).latest)["step"] == 250
+    assert load_checkpoint(RunDir(run).latest).step == 250
 
 
 def test_a_full_tensorboard_disk_during_the_run_keeps_a_finished_run_finished(run, tiny_fs, capsys):
@@ -569,7 +569,7 @@ def test_a_full_tensorboard_disk_during_the_run_keeps_a_finished_run_finished(ru
     finally:
         t.close()
     assert RunDir(run).read_status()["state"] == "finished"
-    assert load_checkpoint(RunDir(run).latest)["step"] == 375
+    assert load_checkpoint(RunDir(run).latest).step == 375
     warnings = [line for line in capsys.readouterr().out.splitlines() if "TensorBoard" in line]
     assert warnings == [f"imssr: warning: no space left on {mnt} while writing {mnt}: TensorBoard stops here "
                         "(train.csv and eval.csv keep every row)"], warnings
@@ -582,20 +582,22 @@ def test_a_file_size_limit_names_the_file_and_keeps_the_previous_checkpoint(tmp_
     run = str(tmp_path / "run")
     code = (
         "import resource, sys, torch\n"
+        f"sys.path.insert(0, {os.path.dirname(__file__)!r})\n"
+        "from conftest import a_checkpoint\n"
         "from imssr.errors import ImssrError\n"
         "from imssr.rundir import RunDir\n"
         f"run = RunDir({run!r})\n"
-        "run.save_checkpoint({'step': 1, 'w': torch.zeros(10), 'replay_file': None})\n"
+        "run.save_checkpoint(a_checkpoint(step=1, agent={'w': torch.zeros(10)}))\n"
         "resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))\n"
         "try:\n"
-        "    run.save_checkpoint({'step': 2, 'w': torch.zeros(1_000_000), 'replay_file': None})\n"
+        "    run.save_checkpoint(a_checkpoint(step=2, agent={'w': torch.zeros(1_000_000)}))\n"
         "except ImssrError as exc:\n"
         "    print(exc)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == (f"file larger than this process's file-size limit (ulimit -f: 1.0 MB) while "
                                    f"writing {RunDir(run).latest} (4.0 MB needed)")
-    assert load_checkpoint(RunDir(run).latest)["step"] == 1
+    assert load_checkpoint(RunDir(run).latest).step == 1
     assert sorted(os.listdir(os.path.join(run, "checkpoints"))) == ["latest.pt", "step-000000001.pt"]
 
 

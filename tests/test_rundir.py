@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import filled_buffer, tiny_config
+from conftest import a_checkpoint, assert_same_tensors, filled_buffer, tiny_config
 from imssr.errors import ImssrError
 from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir, RunPath,
                           parse_run_path, run_path)
@@ -27,8 +27,8 @@ def _damage(path: str) -> None:
         fh.write(bytes([byte[0] ^ 0xFF]))
 
 
-def _state(step: int, **extra) -> dict:
-    return {"step": step, "frame": step * 8, "replay_file": None, "w": torch.full((4,), float(step)), **extra}
+def _state(step: int, **extra):
+    return a_checkpoint(step=step, frame=step * 8, agent={"w": torch.full((4,), float(step))}, **extra)
 
 
 def test_layout(tmp_path):
@@ -63,9 +63,7 @@ def test_save_keeps_the_newest_copies_and_only_the_replay_files_latest_names(tmp
     for step in (1, 2, 3):
         for _ in range(40):  # 40 frames per save: the third save wraps the ring of 100
             buf.add(np.zeros(1), 0.0, 1.0, np.full((3, 8, 8), step, np.uint8))
-        current = RunDir.replay_name(step)
-        buf.save(run.replay_path(current))
-        run.save_checkpoint(_state(step, replay_file=current), keep=2)
+        run.save_checkpoint(_state(step, replay_file=RunDir.replay_name(step)), keep=2, replay=buf)
     assert run.checkpoint_steps() == [2, 3]
     # Saved: frames 0-80 (the fill's 41 and 40 more), 81-120, 121-160; live: the last 100 (61-160),
     # so the first file stays for its last 20 frames.
@@ -74,7 +72,7 @@ def test_save_keeps_the_newest_copies_and_only_the_replay_files_latest_names(tmp
         "replay-frames-000000000081-000000000121.npy", "replay-frames-000000000121-000000000161.npy",
         "step-000000002.pt", "step-000000003.pt"]
     # Real copies: the numbered file of latest's step is equal to it, not the same file.
-    assert load_checkpoint(run.numbered(3))["step"] == load_checkpoint(run.latest)["step"] == 3
+    assert load_checkpoint(run.numbered(3)).step == load_checkpoint(run.latest).step == 3
     assert os.stat(run.numbered(3)).st_ino != os.stat(run.latest).st_ino
     run.save_checkpoint(_state(4), keep=0)
     assert run.checkpoint_steps() == [2, 3] and not any(n.startswith("replay-") for n in os.listdir(run.checkpoint_dir))
@@ -98,11 +96,11 @@ def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):
     for step in (125, 250):
         run.save_checkpoint(_state(step), keep=2)
     state, path, note = run.checkpoint()
-    assert (state["step"], path, note) == (250, run.latest, None)
+    assert (state.step, path, note) == (250, run.latest, None)
     # By step, by file name inside checkpoints/, by path.
-    assert run.checkpoint("125")[0]["step"] == 125
-    assert run.checkpoint("step-000000125.pt")[0]["step"] == 125
-    assert run.checkpoint(run.numbered(250))[0]["step"] == 250
+    assert run.checkpoint("125").checkpoint.step == 125
+    assert run.checkpoint("step-000000125.pt").checkpoint.step == 125
+    assert run.checkpoint(run.numbered(250)).checkpoint.step == 250
     with pytest.raises(ImssrError, match="no checkpoint at agent step 99 .*; retained steps: 125, 250"):
         run.checkpoint("99")
     with pytest.raises(ImssrError, match="^checkpoint not found: nope.pt$"):
@@ -111,7 +109,7 @@ def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):
     _damage(run.latest)
     _damage(run.numbered(250))
     state, path, note = run.checkpoint()
-    assert (state["step"], path) == (125, run.numbered(125))
+    assert (state.step, path) == (125, run.numbered(125))
     assert note == "latest.pt is damaged (checksum mismatch); resuming from step-000000125.pt at agent step 125"
     assert run.checkpoint(verb="evaluating").note.endswith("evaluating step-000000125.pt at agent step 125")
     # A named checkpoint is that one, damaged or not.
@@ -124,6 +122,52 @@ def test_choosing_a_checkpoint_and_falling_back_to_a_valid_one(tmp_path):
     _damage(run.numbered(125))
     with pytest.raises(ImssrError, match="is missing, and no retained step-\\*.pt checkpoint in .* is valid"):
         run.checkpoint()
+
+
+def test_a_checkpoint_reads_back_as_written_field_by_field(tmp_path):
+    from dataclasses import fields
+
+    from imssr.rundir.checkpoint import Checkpoint
+
+    run = RunDir(tmp_path / "run")
+    ckpt = _state(7, replay_file=None, episode_state={"return": 1.5}, torch_threads=2)
+    run.save_checkpoint(ckpt)
+    back = load_checkpoint(run.latest)
+    assert isinstance(back, Checkpoint) and back.step == 7 and back.episode_state == {"return": 1.5}
+    assert_same_tensors(back.to_state(), ckpt.to_state())
+    # In the file: the fields' names in their order, then the format version.
+    raw = torch.load(run.latest, weights_only=True)
+    assert list(raw) == [f.name for f in fields(Checkpoint)] + ["format_version"]
+
+
+def test_a_file_that_lacks_a_field_of_a_checkpoint_is_one_line(tmp_path):
+    path = str(tmp_path / "x.pt")
+    state = _state(3).to_state()
+    del state["agent"], state["step"]
+    torch.save(dict(state, format_version=1), path)
+    with pytest.raises(CheckpointDamaged, match=r"^\S+x\.pt is not a whole imssr checkpoint: it holds no agent, step$"):
+        load_checkpoint(path)
+
+
+def test_a_failed_save_keeps_the_replay_files_latest_names_and_drops_its_own(tmp_path, monkeypatch):
+    """A full disk while writing latest.pt: the previous latest.pt and its replay files stay, the
+    replay files this save wrote go (no checkpoint names them)."""
+    run = RunDir(tmp_path / "run")
+    buf = filled_buffer(40, capacity=100, size=8)
+    run.save_checkpoint(_state(1, replay_file=RunDir.replay_name(1)), replay=buf)
+    kept = sorted(os.listdir(run.checkpoint_dir))
+    for _ in range(40):
+        buf.add(np.zeros(1), 0.0, 1.0, np.full((3, 8, 8), 2, np.uint8))
+
+    def full_disk(*args, **kwargs):
+        raise ImssrError("no space left on device while writing latest.pt")
+
+    import imssr.rundir.checkpoint as checkpoint_file
+
+    monkeypatch.setattr(checkpoint_file, "write_checkpoint", full_disk)
+    with pytest.raises(ImssrError, match="no space left"):
+        run.save_checkpoint(_state(2, replay_file=RunDir.replay_name(2)), replay=buf)
+    assert sorted(os.listdir(run.checkpoint_dir)) == kept and load_checkpoint(run.latest).step == 1
 
 
 def test_status_transitions(tmp_path):
@@ -201,7 +245,7 @@ def test_load_agent_builds_the_run_at_its_checkpoint_and_refuses_a_mismatch(tmp_
     with torch.no_grad():
         for p in trained.nets.parameters():
             p.add_(0.5)
-    run.save_checkpoint({"step": 125, "frame": 1000, "agent": trained.state_dict(), "replay_file": None})
+    run.save_checkpoint(a_checkpoint(step=125, frame=1000, agent=trained.state_dict()))
     loaded = load_agent(run, device="cpu")
     assert (loaded.step, loaded.frame, loaded.note, loaded.obs_shape) == (125, 1000, None, (9, 100, 100))
     obs = np.random.default_rng(0).integers(0, 255, (9, 100, 100), dtype=np.uint8)

@@ -184,5 +184,5 @@ def test_training_in_a_scene_and_evaluating_in_several(tmp_path):
     rows = read_csv(tmp_path / "eval.csv")
     assert [(r["frame"], r["mode"]) for r in rows] == [("200", "training"), ("200", "video_hard")]
     state = load_checkpoint(RunDir(str(tmp_path)).latest)
-    assert set(state["eval_env_rngs"]) == {"training", "video_hard"}
-    assert "scene" in state["eval_env_rngs"]["video_hard"] and "scene" in state["env_rng"]
+    assert set(state.eval_env_rngs) == {"training", "video_hard"}
+    assert "scene" in state.eval_env_rngs["video_hard"] and "scene" in state.env_rng

@@ -50,7 +50,7 @@ def rows(path: str) -> list[dict]:
 
 
 def final_nets(run: str) -> dict[str, torch.Tensor]:
-    return RunDir(run).checkpoint().state["agent"]["nets"]
+    return RunDir(run).checkpoint().checkpoint.agent["nets"]
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def test_each_seed_is_a_standard_run(uninterrupted):
         assert json.load(open(os.path.join(run, "status.json")))["state"] == "finished"
         assert len(rows(os.path.join(run, "train.csv"))) == 1  # one 125-step episode of 150 steps
         assert [r["step"] for r in rows(os.path.join(run, "eval.csv"))] == ["75", "150"]
-        assert RunDir(run).checkpoint().state["step"] == 150
+        assert RunDir(run).checkpoint().checkpoint.step == 150
     # The seeds learned apart: their own weights.
     a, b = (final_nets(r) for r in runs(uninterrupted))
     assert not torch.equal(a["critic.q.q1.0.weight"], b["critic.q.q1.0.weight"])
@@ -121,7 +121,7 @@ def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad):
     done, other = runs(uninterrupted)[good], runs(tmp_path)[good]
     for log in ("train.csv", "eval.csv"):
         assert rows(os.path.join(other, log)) == rows(os.path.join(done, log))
-    assert RunDir(other).checkpoint().state["step"] == 150
+    assert RunDir(other).checkpoint().checkpoint.step == 150
 
 
 def test_two_evaluation_scenes_in_lockstep_are_each_seeds_own(tmp_path):
@@ -184,7 +184,7 @@ def test_cli_trains_seeds_into_their_directories(tmp_path):
         run = out / f"seed_{seed}"
         assert json.load(open(run / "config.json"))["train"]["seed"] == seed
         assert (run / "learning_curve.png").exists()
-        assert RunDir(str(run)).checkpoint().state["step"] == 70
+        assert RunDir(str(run)).checkpoint().checkpoint.step == 70
 
 
 def test_runs_of_curl_and_im_curl_train_in_one_process(tmp_path):
@@ -201,7 +201,7 @@ def test_runs_of_curl_and_im_curl_train_in_one_process(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "curl, im-curl on cartpole_swingup_sparse, seeds 4,4 in one process" in proc.stdout
     for run in dirs:
-        assert RunDir(run).checkpoint().state["step"] == 70
+        assert RunDir(run).checkpoint().checkpoint.step == 70
     assert [RunDir(run).read_config().intrinsic.enabled for run in dirs] == [False, True]
 
 

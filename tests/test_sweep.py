@@ -10,7 +10,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from conftest import tiny_config, train_stopped_at
+from conftest import a_checkpoint, tiny_config, train_stopped_at
 from imssr.cli import main
 from imssr.contention import autogroup, autogroup_scheduling
 from imssr.rundir import DONE_FILE, SWEEP_LOG, RunDir
@@ -405,7 +405,7 @@ def test_a_diverged_run_is_not_retried_and_the_status_says_so(tmp_path):
 
 def test_a_run_with_only_numbered_checkpoints_resumes(tmp_path):
     cfg, st = _one_run(tmp_path)
-    RunDir(st.run.dir).save_checkpoint({"step": 5, "replay_file": None}, keep=1)
+    RunDir(st.run.dir).save_checkpoint(a_checkpoint(step=5), keep=1)
     os.unlink(RunDir(st.run.dir).latest)  # lost; step-000000005.pt is what --resume falls back to
     assert RunDir(st.run.dir).has_checkpoint()
     from imssr.sweep.sweep import plan_runs

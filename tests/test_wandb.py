@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from conftest import kill_when_file_appears
+from conftest import cli_config, kill_when_file_appears
 from imssr.cli import main
 from imssr.rundir import WANDB_RUN_FILE as RUN_ID_FILE, RunDir
 from imssr.training.wandb_run import read_run_id
@@ -94,10 +94,8 @@ def test_missing_extra_is_one_line(tmp_path, capsys, monkeypatch):
 
 
 def test_logger_flag_sets_the_config_and_keeps_no_tensorboard(tmp_path):
-    from imssr.cli import _run_config, build_parser
-
     def cfg(*args):
-        return _run_config(build_parser().parse_args(["train", *TINY_ARGS, *args]), demo=False).train
+        return cli_config(*TINY_ARGS, *args).train
 
     assert (cfg().tensorboard, cfg().wandb) == (True, False)
     assert (cfg("--no-tensorboard").tensorboard, cfg("--no-tensorboard").wandb) == (False, False)

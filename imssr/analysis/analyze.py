@@ -23,6 +23,7 @@ from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.rundir import RunDir, as_run_dir
+from imssr.rundir.checkpoint import Checkpoint
 from imssr.seeds import ANALYSIS_ENV_SEED_OFFSET, ANALYSIS_ROLLOUT_SEED_OFFSET, ANALYSIS_SCENE_SEED_OFFSET
 from imssr.training.build import agent_at, resolve_device, restore_agent
 
@@ -101,8 +102,8 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
                          "+rnd or +re3 algorithm's run)")
     ckpts = {}
     for spec in opts.checkpoints or run.numbered_checkpoints() or [run.latest]:
-        state = run.checkpoint(str(spec)).state
-        ckpts.setdefault(int(state["step"]), state)
+        ckpt = run.checkpoint(str(spec)).checkpoint
+        ckpts.setdefault(int(ckpt.step), ckpt)
     steps = sorted(ckpts)
     latest, _, warn = run.checkpoint(verb="analysing")
     if warn:
@@ -116,8 +117,8 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
         # The newest analysed checkpoint's agent; every other checkpoint loads into the same one.
         agent = agent_at(ckpts[steps[-1]], cfg, device=opts.device, env=env).agent
 
-        def load(state: dict):
-            return restore_agent(agent, state)
+        def load(ckpt: Checkpoint):
+            return restore_agent(agent, ckpt)
 
         assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
@@ -27,6 +26,7 @@ from imssr.errors import ImssrError
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError
 from imssr.rundir import RunDir
+from imssr.rundir.checkpoint import Checkpoint
 
 SOURCES = ("auto", "replay", "rollouts")
 
@@ -57,12 +57,6 @@ class StateSample:
 
     def __len__(self) -> int:
         return len(self.slot)
-
-
-def replay_path(run: RunDir, ckpt: dict) -> Optional[str]:
-    """The replay file that the run's newest checkpoint names, or None."""
-    name = ckpt.get("replay_file")
-    return run.replay_path(name) if name else None
 
 
 def load_replay(path: str, cfg: RunConfig, env) -> FrameReplayBuffer:
@@ -128,7 +122,7 @@ def rollout_buffer(agent, env, n_states: int) -> FrameReplayBuffer:
     return buf
 
 
-def collect(run: RunDir, cfg: RunConfig, latest: dict, n: int, rng: np.random.Generator, source: str,
+def collect(run: RunDir, cfg: RunConfig, latest: Checkpoint, n: int, rng: np.random.Generator, source: str,
             env, agent_for_rollouts) -> StateSample:
     """States from the run's replay, or from rollouts (``source``: see :data:`SOURCES`).
 
@@ -139,7 +133,7 @@ def collect(run: RunDir, cfg: RunConfig, latest: dict, n: int, rng: np.random.Ge
         raise ImssrError(f"unknown source {source!r}; valid: {', '.join(SOURCES)}")
     why = ""
     if source in ("auto", "replay"):
-        path = replay_path(run, latest)
+        path = run.replay_path(latest.replay_file) if latest.replay_file else None
         if path is None:
             why = "the run saved no replay buffer (train.save_buffer off)"
         else:

@@ -1,17 +1,14 @@
-"""A run's config: a preset (:mod:`imssr.presets.tables`), a partial file or a saved run, then
-the flags and ``section.field=value`` overrides of ``imssr train`` and every sweep run."""
+"""A run's config: a preset (:mod:`imssr.presets.tables`), a partial file or a saved run's
+config, then the flags and ``section.field=value`` overrides of ``imssr train`` and every sweep run."""
 from __future__ import annotations
 
-import os
 from typing import Any, Mapping, Sequence
 
 from imssr.algos import get_algo
-from imssr.config import (RunConfig, apply_overrides, check_version, load_config, read_config_file,
-                          steps_for_frames)
+from imssr.config import RunConfig, apply_overrides, check_version, read_config_file, steps_for_frames
 from imssr.envs.tasks import get_task
 from imssr.errors import ImssrError
 from imssr.presets.tables import DEMO, preset_settings
-from imssr.rundir import RunDir, as_run_dir
 
 
 def set_field(cfg: RunConfig, dotted: str, value) -> None:
@@ -67,7 +64,7 @@ def load_partial_config(path: str, algo: str | None = None, task: str | None = N
 
 
 def run_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
-               config_file: str | None = None, resume_dir: RunDir | str | None = None, demo: bool = False,
+               config_file: str | None = None, base: RunConfig | None = None, demo: bool = False,
                values: Mapping[str, Any] | None = None, frames: int | None = None,
                batch_size: int | None = None, beta0: float | None = None,
                overrides: Sequence[str] = ()) -> RunConfig:
@@ -79,7 +76,7 @@ def run_config(algo: str | None = None, task: str | None = None, *, network: str
     it), ``beta0`` (algos with an intrinsic reward only) and the ``section.field=value``
     ``overrides`` (``--set``).
     """
-    cfg = base_config(algo, task, network=network, config_file=config_file, resume_dir=resume_dir, demo=demo)
+    cfg = base_config(algo, task, network=network, config_file=config_file, base=base, demo=demo)
     values = dict(values or {})
     if frames is not None:
         if values.get("train.steps") is not None:
@@ -99,20 +96,16 @@ def run_config(algo: str | None = None, task: str | None = None, *, network: str
 
 
 def base_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
-                config_file: str | None = None, resume_dir: RunDir | str | None = None, demo: bool = False) -> RunConfig:
+                config_file: str | None = None, base: RunConfig | None = None, demo: bool = False) -> RunConfig:
     """What a run's settings start from, in this order: the file ``config_file`` (a partial one
-    merged onto the preset of its algo and task, :func:`load_partial_config`), the saved
-    ``config.json`` of ``resume_dir``, or the preset of ``algo`` on ``task`` (the demo's with
-    ``demo``).  A given ``algo`` or ``task`` must agree with a loaded file."""
+    merged onto the preset of its algo and task, :func:`load_partial_config`), ``base`` (a
+    resumed run's saved config, :func:`imssr.training.entry.resume_config`), or the preset of
+    ``algo`` on ``task`` (the demo's with ``demo``).  A given ``algo`` or ``task`` must agree
+    with a loaded file or ``base``."""
     if config_file:
         cfg = load_partial_config(config_file, algo, task)
-    elif resume_dir:
-        run = as_run_dir(resume_dir)
-        if not os.path.exists(run.config_path):
-            if not run.has_checkpoint():
-                raise ImssrError(f"nothing to resume: {run.config_path} does not exist")
-            _restore_config(run)
-        cfg = load_config(run.config_path)
+    elif base is not None:
+        cfg = RunConfig.from_dict(base.to_dict())  # a copy: the settings below go on top
     else:
         algo = algo or ("im-curl" if demo else None)
         task = task or ("cartpole_swingup" if demo else None)
@@ -151,16 +144,3 @@ def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup", network: 
     if not cfg.aux.own_batch:
         cfg.aux.batch_size = cfg.agent.batch_size  # the task trains on the RL batch
     return cfg
-
-
-def _restore_config(run: RunDir) -> None:
-    """Write back a run's lost ``config.json`` from the checkpoint a resume would continue from
-    (verified when loaded; it holds the config it was trained with), saying so in one line."""
-    ckpt = run.checkpoint()
-    saved = ckpt.state.get("config")
-    if not isinstance(saved, dict):
-        raise ImssrError(f"nothing to resume: {run.config_path} does not exist, and {ckpt.path} holds no config")
-    cfg = RunConfig.from_dict(saved)
-    run.write_config(cfg)
-    print(f"imssr: {run.config_path} was missing; restored from {ckpt.path} (the config it was trained with)",
-          flush=True)

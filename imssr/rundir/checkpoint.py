@@ -1,8 +1,10 @@
-"""One checkpoint file: its sealed, atomic write and its verified, safe load.
+"""One checkpoint: what it holds (:class:`Checkpoint`), its sealed, atomic write and its
+verified, safe load.
 
 A checkpoint holds the agent, optimisers, RNG states, counters, config, and the name of the
 replay file that goes with it.  Where the files of a run lie, which one to resume or evaluate,
-and the order in which a save writes and removes them is :class:`imssr.rundir.RunDir`'s.
+and the order in which a save writes and removes them (the replay files with it) is
+:class:`imssr.rundir.RunDir`'s.
 
 Checksums: every checkpoint carries the sha256 of its own bytes in its zip comment
 (:mod:`imssr.integrity`), written with the file in the same rename, so a kill never separates
@@ -23,7 +25,8 @@ import os
 import pickle
 import shutil
 import zipfile
-from typing import Any
+from dataclasses import dataclass, field, fields
+from typing import Any, Optional
 
 import numpy as np
 import torch
@@ -45,9 +48,87 @@ class CheckpointDamaged(ImssrError):
         self.path, self.reason = path, reason
 
 
-def write_checkpoint(path: str, state: dict[str, Any]) -> str:
-    """Write ``state`` (with :data:`FORMAT_VERSION`) to ``path``, sealed and atomically."""
-    state = dict(state, format_version=FORMAT_VERSION)
+@dataclass(kw_only=True)
+class Checkpoint:
+    """What one checkpoint file holds: a training's whole state at an agent step, from which a
+    resume continues as the uninterrupted run would (:mod:`imssr.training.checkpointing` makes
+    and restores it).  In the file it is a dict of these names, in this order, and
+    ``format_version``; tensors and plain Python values only."""
+
+    config: dict
+    """The run's config (:meth:`RunConfig.to_dict`), as it trained."""
+    frame: int
+    """Environment frames so far."""
+    step: int
+    """Agent steps so far."""
+    episode: int
+    """Training episodes finished."""
+    next_eval_step: Optional[int]
+    """The agent step at or after which the next periodic evaluation is due (None: none)."""
+    next_ckpt_step: Optional[int]
+    """The agent step at or after which the next periodic checkpoint is due (None: none)."""
+    last_eval_step: int
+    """The agent step of the last evaluation (-1: none yet)."""
+    learning_starts: Optional[int] = None
+    """Agent step from which the agent acts and learns (None in files older than the refill
+    after a lost buffer: the seed phase's end)."""
+    eval_history: list = field(default_factory=list)
+    """Every evaluation's ``eval.csv`` row and episode returns (``{"row", "returns"}``)."""
+    action_rng: dict
+    """The seed-phase actions' generator (numpy bit-generator state)."""
+    agent: dict
+    """The agent's networks, optimisers and generators (``SACAgent.state_dict``)."""
+    env_rng: dict
+    """The training env's generators."""
+    eval_env_rngs: dict
+    """Each evaluated scene's env generators, by scene."""
+    global_rng: dict
+    """Python's, numpy's and torch's global generators (:func:`imssr.rng.rng_states`)."""
+    replay_file: Optional[str] = None
+    """The replay buffer's index file in ``checkpoints/`` saved with it (None: none saved)."""
+    replay_state: Optional[dict] = None
+    """The replay buffer's head and its sampler's generator."""
+    torch_threads: Optional[int] = None
+    """torch's intra-op threads when it was saved (a CPU resume with another count drifts)."""
+    episode_state: Optional[dict] = None
+    """The episode open when it was saved (a stop in its middle), which a resume steps through
+    again; None at an episode end."""
+    burst_state: Optional[dict] = None
+    """The burst of updates a stop interrupted (``updates_done``, the step's ``action``)."""
+    before_final_eval: Optional[dict] = None
+    """The evaluation state from before the off-schedule evaluation where the budget ran out."""
+
+    def to_state(self) -> dict[str, Any]:
+        """The dict the file holds (without ``format_version``)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any], path: str) -> "Checkpoint":
+        """The checkpoint of a loaded file's dict; one that lacks a field it needs is
+        :class:`CheckpointDamaged`."""
+        names = {f.name for f in fields(cls)}
+        values = {k: v for k, v in state.items() if k in names}
+        # Files from before per-scene evaluation envs hold the one scene's generators.
+        if "eval_env_rngs" not in values and "eval_env_rng" in state:
+            mode = state.get("config", {}).get("env", {}).get("mode", "training")
+            values["eval_env_rngs"] = {mode: state["eval_env_rng"]}
+        try:
+            return cls(**values)
+        except TypeError:
+            missing = sorted(f.name for f in fields(cls) if f.name not in values)
+            raise CheckpointDamaged(f"{path} is not a whole imssr checkpoint: it holds no {', '.join(missing)}",
+                                    path, "not an imssr checkpoint") from None
+
+    def run_config(self):
+        """The run's config as it trained (:class:`~imssr.config.RunConfig`)."""
+        from imssr.config import RunConfig
+
+        return RunConfig.from_dict(self.config)
+
+
+def write_checkpoint(path: str, ckpt: Checkpoint) -> str:
+    """Write ``ckpt`` (with :data:`FORMAT_VERSION`) to ``path``, sealed and atomically."""
+    state = dict(ckpt.to_state(), format_version=FORMAT_VERSION)
     with atomic_path(path, needed=_nbytes(state)) as tmp:
         _write_sealed(state, tmp)
     return path
@@ -89,7 +170,7 @@ def _nbytes(obj) -> int:
     return 0
 
 
-def load_checkpoint(path: str) -> dict[str, Any]:
+def load_checkpoint(path: str) -> Checkpoint:
     """Load and verify a checkpoint; :class:`CheckpointDamaged` when it cannot be trusted."""
     if not os.path.exists(path):
         raise ImssrError(f"checkpoint not found: {path}")
@@ -128,7 +209,7 @@ def load_checkpoint(path: str) -> dict[str, Any]:
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
         raise CheckpointDamaged(f"{path} is not an imssr checkpoint of format {FORMAT_VERSION}", path,
                                 "not an imssr checkpoint")
-    return state
+    return Checkpoint.from_state(state, path)
 
 
 def _starts_as_zip(path: str) -> bool:

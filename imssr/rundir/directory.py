@@ -44,13 +44,16 @@ import json
 import os
 import shutil
 import time
-from typing import Any, Callable, Iterator, NamedTuple, Optional, Union
+from typing import TYPE_CHECKING, Callable, Iterator, NamedTuple, Optional, Union
 
 from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
 from imssr.files import TEMP_GLOB, atomic_write_text, read_csv
 from imssr.jsonio import dumps
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
+
+if TYPE_CHECKING:  # torch's: imported where a checkpoint is read or written
+    from imssr.rundir.checkpoint import Checkpoint
 
 CONFIG_FILE = "config.json"
 """The run's resolved config: written before training starts, read by every command on the run."""
@@ -112,6 +115,8 @@ ENDINGS = (INTERRUPTED, FINISHED, FAILED, DIVERGED)
 
 SEED_LEVEL, BETA0_LEVEL = "seed_", "beta0_"
 """The prefixes of a run path's last levels (:func:`run_path`)."""
+SEED_DIR = SEED_LEVEL + "{seed}"
+"""A seed's run directory inside the folder of ``imssr train --seeds``."""
 
 
 def run_path(root: str, task: str, algo: str, seed: int, beta0_label: Optional[str] = None) -> str:
@@ -151,11 +156,11 @@ def parse_run_path(path: str) -> Optional[RunPath]:
     return RunPath(root, task, level, int(seed[len(SEED_LEVEL):]), beta)
 
 
-class Checkpoint(NamedTuple):
-    """A loaded checkpoint (:meth:`RunDir.checkpoint`)."""
+class CheckpointFile(NamedTuple):
+    """A checkpoint file as found and loaded (:meth:`RunDir.checkpoint`)."""
 
-    state: dict
-    """The checkpoint as loaded: the config, the agent, the loop's state and every generator."""
+    checkpoint: "Checkpoint"
+    """What it holds: the config, the agent, the loop's state and every generator."""
     path: str
     """The file it was loaded from."""
     note: Optional[str]
@@ -167,6 +172,8 @@ class RunDir:
 
     def __init__(self, path: str):
         self.path = str(path)
+        self._kept_replay: Optional[str] = None
+        """The replay file ``latest.pt`` names, as far as this object has read or written it."""
 
     def __repr__(self) -> str:
         return f"RunDir({self.path!r})"
@@ -294,6 +301,32 @@ class RunDir:
         for old in glob.glob(os.path.join(self.checkpoint_dir, REPLAY_GLOB)):
             if os.path.basename(old) not in kept:
                 os.unlink(old)
+
+    def load_replay(self, found: CheckpointFile, replay, refill: bool = False) -> Optional[str]:
+        """Load into ``replay`` (a replay buffer) the replay files the checkpoint ``found`` names;
+        returns why the buffer must be refilled instead (None when it loaded).  A missing or
+        damaged buffer is a one-line error, or (``refill``) a reason; an older checkpoint that
+        ``checkpoint()`` fell back to has none kept, and says so."""
+        from imssr.replay.buffer import ReplayFileError  # torch: loaded when a run's replay is read
+
+        ckpt = found.checkpoint
+        if not ckpt.replay_file:
+            return "checkpoint holds no replay buffer"
+        path = self.replay_path(ckpt.replay_file)
+        try:
+            replay.load(path, ckpt.replay_state["rng"])
+        except ReplayFileError as exc:
+            # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
+            if found.path != self.latest and not all(os.path.exists(p) for p in self.replay_files(ckpt.replay_file)):
+                return f"no replay buffer was kept for {os.path.basename(found.path)}"
+            if refill:
+                return str(exc)
+            raise ImssrError(f"{exc}; `imssr train --resume --refill-buffer` continues with an empty "
+                             "buffer refilled by random actions (not an exact resume)") from None
+        if replay.state_dict()["head"] != ckpt.replay_state["head"]:
+            raise ImssrError(f"replay buffer {path} does not match the checkpoint")
+        self._kept_replay = ckpt.replay_file
+        return None
 
     # -- life ----------------------------------------------------------------------------
     @property
@@ -450,29 +483,42 @@ class RunDir:
                 steps.append(int(digits))
         return steps
 
-    def save_checkpoint(self, state: dict[str, Any], keep: int = 1) -> str:
-        """Write ``state`` as ``latest.pt`` and its numbered copy (``keep`` > 0: the ``keep``
-        newest copies stay), then remove the replay files ``latest.pt`` no longer names and the
-        temporary files of a process killed mid-write.  Returns the path of ``latest.pt``."""
+    def save_checkpoint(self, ckpt: "Checkpoint", keep: int = 1, replay=None) -> str:
+        """Write ``ckpt`` as ``latest.pt`` and its numbered copy (``keep`` > 0: the ``keep``
+        newest copies stay), after the replay buffer ``replay`` when ``ckpt`` names a replay file
+        (only the frames that arrived since the previous save are new files); then remove the
+        replay files ``latest.pt`` no longer names and the temporary files of a process killed
+        mid-write.  A save that fails (a full disk) leaves the previous ``latest.pt`` as it was and
+        removes the replay files it wrote, which no checkpoint names.  Returns ``latest.pt``'s path."""
         from imssr.rundir.checkpoint import copy_checkpoint, write_checkpoint
 
-        path = write_checkpoint(self.latest, state)
-        if keep > 0:
-            # Real copies, not links to latest.pt: a damaged byte spoils one file, not both, and
-            # the newest copy holds latest's own step, so a resume that falls back to it still
-            # finds its replay file and stays exact.  The price is one more write of the weights;
-            # the replay buffer, the large part, is written once.
-            copy_checkpoint(path, self.numbered(state["step"]))
-            for old in self.numbered_checkpoints()[:-keep]:
-                os.unlink(old)
+        before = _identity(self.latest)
+        try:
+            if ckpt.replay_file:
+                replay.save(self.replay_path(ckpt.replay_file))
+            path = write_checkpoint(self.latest, ckpt)
+            if keep > 0:
+                # Real copies, not links to latest.pt: a damaged byte spoils one file, not both, and
+                # the newest copy holds latest's own step, so a resume that falls back to it still
+                # finds its replay file and stays exact.  The price is one more write of the weights;
+                # the replay buffer, the large part, is written once.
+                copy_checkpoint(path, self.numbered(ckpt.step))
+                for old in self.numbered_checkpoints()[:-keep]:
+                    os.unlink(old)
+        except ImssrError:
+            if ckpt.replay_file and _identity(self.latest) == before:
+                # latest.pt is the previous one: keep what it names, drop what this save wrote.
+                self.remove_unnamed_replay_files(self._kept_replay)
+            raise
+        self._kept_replay = ckpt.replay_file
         # Numbered checkpoints therefore hold weights for evaluation; exact resume uses latest.
-        self.remove_unnamed_replay_files(state.get("replay_file"))
+        self.remove_unnamed_replay_files(ckpt.replay_file)
         for tmp in glob.glob(os.path.join(self.checkpoint_dir, TEMP_GLOB)):
             os.unlink(tmp)
         return path
 
-    def checkpoint(self, spec: Optional[str] = None, verb: str = "resuming from") -> Checkpoint:
-        """The checkpoint a command continues from or loads: ``(state, path, note)``.  The one rule
+    def checkpoint(self, spec: Optional[str] = None, verb: str = "resuming from") -> CheckpointFile:
+        """The checkpoint a command continues from or loads: ``(checkpoint, path, note)``.  The one rule
         for every command (``imssr train --resume``, ``evaluate``, ``analyze``, ``imssr.load_run``):
 
         - ``spec`` None: ``latest.pt`` when it verifies (``note`` None); else, when it is missing
@@ -490,7 +536,7 @@ class RunDir:
 
         if spec:
             path = self._named_checkpoint(str(spec))
-            return Checkpoint(load_checkpoint(path), path, None)
+            return CheckpointFile(load_checkpoint(path), path, None)
         latest = self.latest
         numbered = self.numbered_checkpoints()
         if not os.path.exists(latest):
@@ -500,19 +546,19 @@ class RunDir:
             problem, error = "missing", f"{latest} is missing"
         else:
             try:
-                return Checkpoint(load_checkpoint(latest), latest, None)
+                return CheckpointFile(load_checkpoint(latest), latest, None)
             except CheckpointDamaged as exc:
                 problem, error = f"damaged ({exc.reason})", str(exc)
                 if not numbered:
                     raise
         for path in reversed(numbered):
             try:
-                state = load_checkpoint(path)
+                ckpt = load_checkpoint(path)
             except CheckpointDamaged:
                 continue
             note = (f"{os.path.basename(latest)} is {problem}; {verb} {os.path.basename(path)} "
-                    f"at agent step {state['step']}")
-            return Checkpoint(state, path, note)
+                    f"at agent step {ckpt.step}")
+            return CheckpointFile(ckpt, path, note)
         raise ImssrError(f"{error}, and no retained step-*.pt checkpoint in {self.checkpoint_dir} is valid")
 
     def _named_checkpoint(self, spec: str) -> str:
@@ -623,6 +669,15 @@ class RunDir:
                 "seconds": seconds, "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
         atomic_write_text(self.done_path, dumps(done, indent=2) + "\n")
         return self.done_path
+
+
+def _identity(path: str) -> Optional[tuple]:
+    """Which file ``path`` is now (None if none): tells whether a save replaced it."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_mtime_ns, st.st_size
 
 
 def as_run_dir(run: Union[RunDir, str, "os.PathLike[str]"]) -> RunDir:

@@ -235,7 +235,9 @@ class Run:
             if values["train.wandb"]:
                 values["train.wandb_group"] = cfg.wandb_group
         resume = self.run_dir.has_checkpoint() and self.run_dir.has_config()
-        return run_config(self.algo, self.task, resume_dir=self.run_dir if resume else None, values=values,
+        from imssr.training.entry import resume_config  # what `imssr train --resume` starts from
+
+        return run_config(self.algo, self.task, base=resume_config(self.run_dir) if resume else None, values=values,
                                 frames=cfg.frames if cfg.steps is None else None, beta0=self.beta0,
                                 overrides=cfg.overrides)
 

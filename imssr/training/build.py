@@ -21,6 +21,7 @@ from imssr.errors import ImssrError
 from imssr.replay import make_replay_buffer
 from imssr.rng import seed_everything
 from imssr.rundir import RunDir
+from imssr.rundir.checkpoint import Checkpoint
 from imssr.seeds import TRAINING_EVAL_SEED_OFFSET, evaluation_seed
 from imssr.training.state import RunState
 
@@ -127,12 +128,12 @@ def close_envs(env, eval_envs: dict) -> None:
             eval_env.close()
 
 
-def restore_agent(agent: SACAgent, state: dict) -> SACAgent:
-    """``agent`` with the networks of the checkpoint ``state`` (a trained run's, to act and be
+def restore_agent(agent: SACAgent, ckpt: Checkpoint) -> SACAgent:
+    """``agent`` with the networks of the checkpoint ``ckpt`` (a trained run's, to act and be
     evaluated: its random streams stay the agent's own); a checkpoint of another config is one
     line."""
     try:
-        agent.load_state_dict(state["agent"], restore_rng=False)
+        agent.load_state_dict(ckpt.agent, restore_rng=False)
     except (RuntimeError, KeyError, ValueError) as exc:
         raise ImssrError(f"checkpoint does not match the run's config: {str(exc).splitlines()[0]}") from None
     return agent
@@ -146,7 +147,7 @@ class LoadedAgent:
     """The agent with the checkpoint's networks."""
     config: RunConfig
     """The run's config."""
-    state: dict
+    checkpoint: Checkpoint
     """The checkpoint as loaded."""
     note: Optional[str] = None
     """Why the checkpoint is not ``latest.pt`` when it fell back to another (None otherwise)."""
@@ -156,12 +157,12 @@ class LoadedAgent:
     @property
     def step(self) -> int:
         """Agent step of the checkpoint."""
-        return int(self.state["step"])
+        return int(self.checkpoint.step)
 
     @property
     def frame(self) -> int:
         """Environment frame of the checkpoint."""
-        return int(self.state["frame"])
+        return int(self.checkpoint.frame)
 
 
 def load_agent(run: RunDir, checkpoint: Optional[str] = None, device: str = "cpu", env=None,
@@ -173,12 +174,12 @@ def load_agent(run: RunDir, checkpoint: Optional[str] = None, device: str = "cpu
     run.require()
     cfg = run.read_config()
     ckpt = run.checkpoint(None if checkpoint is None else str(checkpoint), verb=verb)
-    return agent_at(ckpt.state, cfg, device=device, env=env, note=ckpt.note)
+    return agent_at(ckpt.checkpoint, cfg, device=device, env=env, note=ckpt.note)
 
 
-def agent_at(state: dict[str, Any], cfg: RunConfig, device: str = "cpu", env=None,
+def agent_at(ckpt: Checkpoint, cfg: RunConfig, device: str = "cpu", env=None,
              note: Optional[str] = None) -> LoadedAgent:
-    """The agent of ``cfg`` with the networks of the loaded checkpoint ``state`` (see
+    """The agent of ``cfg`` with the networks of the loaded checkpoint ``ckpt`` (see
     :func:`load_agent`)."""
     torch_device = resolve_device(device)
     own = env is None
@@ -191,5 +192,5 @@ def agent_at(state: dict[str, Any], cfg: RunConfig, device: str = "cpu", env=Non
     finally:
         if own:
             env.close()
-    agent = restore_agent(build_agent(cfg, obs_shape, action_dim, torch_device), state)
-    return LoadedAgent(agent, cfg, state, note, obs_shape)
+    agent = restore_agent(build_agent(cfg, obs_shape, action_dim, torch_device), ckpt)
+    return LoadedAgent(agent, cfg, ckpt, note, obs_shape)

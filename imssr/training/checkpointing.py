@@ -13,7 +13,6 @@ uninterrupted run would have had: the open episode is stepped through again from
 """
 from __future__ import annotations
 
-import os
 from typing import Optional
 
 import numpy as np
@@ -21,31 +20,31 @@ import torch
 
 from imssr.config import RunConfig
 from imssr.errors import ImssrError
-from imssr.replay.buffer import ReplayFileError
 from imssr.rng import rng_states, set_rng_states
-from imssr.rundir import Checkpoint, RunDir
+from imssr.rundir import CheckpointFile, RunDir
+from imssr.rundir.checkpoint import Checkpoint
 from imssr.training.build import TrainingParts
 from imssr.training.state import Episode
 
 
-def resume_point(run: RunDir, cfg: RunConfig) -> Checkpoint:
+def resume_point(run: RunDir, cfg: RunConfig) -> CheckpointFile:
     """The checkpoint a resume of ``run`` with ``cfg`` continues from (:meth:`RunDir.checkpoint`,
     its fall-back said in one line), refused in one line when ``cfg`` changes a setting a resume
     may not change or a budget it is already past; nothing is written before."""
     ckpt = run.checkpoint()
     if ckpt.note:
         print(f"imssr: {ckpt.note}", flush=True)
-    diff = cfg.resume_conflicts(ckpt.state["config"])
+    diff = cfg.resume_conflicts(ckpt.checkpoint.config)
     numerics = [k for k in diff if k in ("agent.precision", "agent.q_heads_fp32")]
     if numerics:
-        saved = RunConfig.from_dict(ckpt.state["config"]).agent.precision_label
+        saved = ckpt.checkpoint.run_config().agent.precision_label
         raise ImssrError(f"the run in {run.path} trains at {saved} and a resume keeps its numerics "
                          f"({', '.join(numerics)} differ): reports group runs by them; train "
                          f"{cfg.agent.precision_label} as a new run")
     if diff:
         raise ImssrError(f"checkpoint {ckpt.path} was made with a different config ({', '.join(diff[:5])}"
                          f"{', ...' if len(diff) > 5 else ''}); resume with the run's own settings")
-    step = ckpt.state["step"]
+    step = ckpt.checkpoint.step
     if step > cfg.train.steps:
         raise ImssrError(f"the run in {run.path} is already at agent step {step:,}, past the budget of "
                          f"{cfg.train.steps:,} steps asked for; resume with --steps {step} or more")
@@ -72,8 +71,6 @@ class Checkpointer:
         """The checkpoint file the training resumed from (None: a fresh start)."""
         self.saved_step = -1
         """The agent step of this process's last checkpoint (that of ``latest.pt`` on resume)."""
-        self.replay_file: Optional[str] = None
-        """The replay file that ``latest.pt`` names."""
         self.before_final: Optional[dict] = None
         """The evaluation state from before the off-schedule evaluation at the end of the budget:
         a checkpoint holds it so that a larger budget goes on as if that evaluation never ran."""
@@ -81,32 +78,29 @@ class Checkpointer:
         self._open_burst: Optional[dict] = None
 
     # -- resume --------------------------------------------------------------------------
-    def restore(self, ckpt: Checkpoint) -> None:
-        """Continue from ``ckpt`` (:func:`resume_point`): the agent, the loop's state, every
+    def restore(self, found: CheckpointFile) -> None:
+        """Continue from ``found`` (:func:`resume_point`): the agent, the loop's state, every
         generator, the replay buffer (or a refill when there is none) and the episode a stop left
         open (rebuilt by :meth:`reopen_episode`)."""
-        state, self.resumed_from = ckpt.state, ckpt.path
-        fallback = ckpt.path != self.run.latest
+        ckpt, self.resumed_from = found.checkpoint, found.path
         try:
-            self.agent.load_state_dict(state["agent"])
+            self.agent.load_state_dict(ckpt.agent)
         except (RuntimeError, KeyError, ValueError) as exc:
             raise ImssrError(f"checkpoint does not match this agent: {str(exc).splitlines()[0]}") from None
-        counters = {k: state[k] for k in ("next_eval_step", "next_ckpt_step", "last_eval_step")}
-        saved_train = RunConfig.from_dict(state["config"]).train
+        saved_train = ckpt.run_config().train
         # Intervals may change on resume: keep the saved schedule only when they did not.
-        self.state.load(state, counters, saved_train.eval_every_steps, saved_train.checkpoint_every_steps)
-        self.env.set_rng_state(state["env_rng"])
-        saved = state.get("eval_env_rngs") or {self.cfg.env.mode: state.get("eval_env_rng")}
+        self.state.load(ckpt, saved_train.eval_every_steps, saved_train.checkpoint_every_steps)
+        self.env.set_rng_state(ckpt.env_rng)
         for mode, env in self.eval_envs.items():
-            if saved.get(mode) is not None:  # a scene added on resume starts from its seed
-                env.set_rng_state(saved[mode])
-        set_rng_states(state["global_rng"])
-        self._restore_before_final(state.get("before_final_eval"))
-        refill = self._load_replay(state, fallback)
-        if state.get("episode_state") is not None and not refill:
+            if ckpt.eval_env_rngs.get(mode) is not None:  # a scene added on resume starts from its seed
+                env.set_rng_state(ckpt.eval_env_rngs[mode])
+        set_rng_states(ckpt.global_rng)
+        self._restore_before_final(ckpt.before_final_eval)
+        refill = self.run.load_replay(found, self.replay, self.refill_buffer)
+        if ckpt.episode_state is not None and not refill:
             # Stopped (or out of budget) mid-episode: the training rebuilds the open episode first.
-            self._open_episode, self._open_burst = state["episode_state"], state.get("burst_state")
-        if not fallback:
+            self._open_episode, self._open_burst = ckpt.episode_state, ckpt.burst_state
+        if found.path == self.run.latest:
             self.saved_step = self.state.step  # latest.pt holds this step already
         if refill:
             self.state.learning_starts = self.state.step + max(self.cfg.train.seed_steps, self.cfg.agent.batch_size)
@@ -129,27 +123,6 @@ class Checkpointer:
         for mode, env in self.eval_envs.items():
             if mode in before["eval_env_rngs"]:
                 env.set_rng_state(before["eval_env_rngs"][mode])
-
-    def _load_replay(self, state: dict, fallback: bool) -> Optional[str]:
-        """Load the replay buffer checkpoint ``state`` names; returns why it must be refilled
-        instead (None when it loaded)."""
-        if not state.get("replay_file"):
-            return "checkpoint holds no replay buffer"
-        path = self.run.replay_path(state["replay_file"])
-        try:
-            self.replay.load(path, state["replay_state"]["rng"])
-        except ReplayFileError as exc:
-            # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
-            if fallback and not all(os.path.exists(p) for p in self.run.replay_files(state["replay_file"])):
-                return f"no replay buffer was kept for {os.path.basename(self.resumed_from)}"
-            if self.refill_buffer:
-                return str(exc)
-            raise ImssrError(f"{exc}; `imssr train --resume --refill-buffer` continues with an empty "
-                             "buffer refilled by random actions (not an exact resume)") from None
-        if self.replay.state_dict()["head"] != state["replay_state"]["head"]:
-            raise ImssrError(f"replay buffer {path} does not match the checkpoint")
-        self.replay_file = state["replay_file"]
-        return None
 
     def reopen_episode(self) -> tuple[Optional[Episode], Optional[np.ndarray]]:
         """The episode a stop left open and its current observation, the env stepped through it
@@ -183,45 +156,28 @@ class Checkpointer:
 
     def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
-        the burst of updates a stop interrupted).  A save that fails (a full disk) leaves the
-        previous checkpoint as it was and removes the replay files it wrote, which no checkpoint
-        names.  The replay buffer writes only the frames that arrived since the previous save."""
-        step, latest = self.state.step, self.run.latest
-        before = _identity(latest)
+        the burst of updates a stop interrupted), with the replay buffer when ``train.save_buffer``
+        (:meth:`RunDir.save_checkpoint`: what a failed save leaves)."""
+        step = self.state.step
         replay_file = self.run.replay_name(step) if self.cfg.train.save_buffer else None
-        try:
-            if replay_file:
-                self.replay.save(self.run.replay_path(replay_file))
-            self.run.save_checkpoint(self._state(replay_file, episode, burst), keep=self.cfg.train.keep_checkpoints)
-        except ImssrError:
-            if replay_file and _identity(latest) == before:
-                # latest.pt is the previous one: keep what it names, drop what this save wrote.
-                self.run.remove_unnamed_replay_files(self.replay_file)
-            raise
-        self.replay_file, self.saved_step = replay_file, step
+        self.run.save_checkpoint(self.checkpoint(replay_file, episode, burst), keep=self.cfg.train.keep_checkpoints,
+                                 replay=self.replay)
+        self.saved_step = step
 
-    def _state(self, replay_file: Optional[str], episode: Optional[Episode], burst: Optional[dict]) -> dict:
-        """What a checkpoint holds (see the module docstring)."""
-        return {
-            "config": self.cfg.to_dict(), **self.state.state_dict(), "agent": self.agent.state_dict(),
-            "env_rng": self.env.get_rng_state(),
-            "eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
-            "global_rng": rng_states(),
-            "replay_file": replay_file, "replay_state": self.replay.state_dict(),
+    def checkpoint(self, replay_file: Optional[str], episode: Optional[Episode] = None,
+                   burst: Optional[dict] = None) -> Checkpoint:
+        """The training's state now, as a checkpoint that names ``replay_file``."""
+        return Checkpoint(
+            config=self.cfg.to_dict(), **self.state.state_dict(), agent=self.agent.state_dict(),
+            env_rng=self.env.get_rng_state(),
+            eval_env_rngs={m: env.get_rng_state() for m, env in self.eval_envs.items()},
+            global_rng=rng_states(),
+            replay_file=replay_file, replay_state=self.replay.state_dict(),
             # A resume with another thread count is valid but not bit-identical (thread_warning).
-            "torch_threads": torch.get_num_threads(),
-            "episode_state": None if episode is None else episode.state_dict(self.env.action_space.shape[0]),
-            "burst_state": burst, "before_final_eval": self.before_final,
-        }
-
-
-def _identity(path: str) -> Optional[tuple]:
-    """Which file ``path`` is now (None if none): tells whether a save replaced it."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        return None
-    return st.st_ino, st.st_mtime_ns, st.st_size
+            torch_threads=torch.get_num_threads(),
+            episode_state=None if episode is None else episode.state_dict(self.env.action_space.shape[0]),
+            burst_state=burst, before_final_eval=self.before_final,
+        )
 
 
 def thread_warning(saved: Optional[int], now: int, device) -> Optional[str]:

@@ -164,18 +164,18 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
             returns = evaluate(agent, env, episodes, record=frames)
         finally:
             env.close()
-        row = eval_row(ckpt["frame"], ckpt["step"], mode, returns)
+        row = eval_row(ckpt.frame, ckpt.step, mode, returns)
         rows.append(row)
         episodes_rows += episode_rows(row, returns)
         log(f"{mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
-            f"episodes (checkpoint at frame {ckpt['frame']}, step {ckpt['step']})")
+            f"episodes (checkpoint at frame {ckpt.frame}, step {ckpt.step})")
         if video:
             log(f"  video: {save_video(frames, run.video_path(f'{mode}.{video}'))}")
         if montage:
             pictures[mode] = frames[min(len(frames) - 1, 20)]
     if pictures:
         path = save_montage(pictures, run.montage_path,
-                            f"{cfg.algo} on {cfg.env.task}, frame {ckpt['frame']}")
+                            f"{cfg.algo} on {cfg.env.task}, frame {ckpt.frame}")
         log(f"montage: {path}")
     # Appended to, one summary row per scene and one row per episode (with the checkpoint's step),
     # each file in one locked append: two evaluations of the run at once never interleave.

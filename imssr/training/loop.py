@@ -83,7 +83,7 @@ class Trainer:
         ckpt = resume_point(self.run_dir, cfg) if resume else None
         if ckpt is None:
             self.run_dir.refuse_fresh_start()
-        _set_threads(cfg.train.torch_threads, self.device, None if ckpt is None else ckpt.state)
+        _set_threads(cfg.train.torch_threads, self.device, None if ckpt is None else ckpt.checkpoint.torch_threads)
         self.parts = parts = build_training(cfg, self.device, self.replay_placement)
         self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
                                                                          parts.replay, parts.state)
@@ -332,13 +332,12 @@ def _checked(cfg: RunConfig, new_run: bool) -> RunConfig:
     return cfg
 
 
-def _set_threads(threads: int, device, ckpt: Optional[dict]) -> None:
+def _set_threads(threads: int, device, saved: Optional[int]) -> None:
     """Apply ``train.torch_threads`` (0: torch's default); warn when the threads would contend
-    with busy cores, and when a CPU run resumes with another thread count than checkpoint
-    ``ckpt`` was saved with."""
+    with busy cores, and when a CPU run resumes with another thread count than the ``saved`` one
+    of its checkpoint."""
     if threads:
         torch.set_num_threads(threads)
-    saved = None if ckpt is None else ckpt.get("torch_threads")
     _warn(contention_warning(torch.get_num_threads()), thread_warning(saved, torch.get_num_threads(), device))
 
 

@@ -26,16 +26,12 @@ from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
 from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
-from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir
+from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, SEED_DIR, RunDir
 from imssr.training.evaluate import evaluate_members, non_finite_text
 from imssr.training.loop import Trainer
 from imssr.training.progress import Progress
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
-
-SEED_DIR = "seed_{seed}"
-"""A seed's run directory inside the ``--out`` of ``imssr train --seeds``."""
-
 
 class MemberAgent:
     """Member ``i`` of an :class:`AgentBatch` as its seed's trainer sees an agent: deterministic
@@ -284,18 +280,25 @@ class SeedsTrainer:
 
     def _interrupted(self) -> TrainingInterrupted:
         return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
-                                   f"{self.resume_command()}")
+                                   f"{self.resume_command()}", self.step, self._seeds_root())
 
     def resume_command(self) -> str:
         """The command that continues these runs: ``--seeds`` when they are ``OUT/seed_<n>`` of
         one ``OUT`` and their seeds, else ``--runs``."""
+        root = self._seeds_root()
+        if root is not None:
+            seeds = ",".join(str(t.cfg.train.seed) for t in self.trainers)
+            return f"imssr train --seeds {seeds} --out {root} --resume"
+        return f"imssr train --runs {' '.join(os.path.normpath(t.run_dir.path) for t in self.trainers)} --resume"
+
+    def _seeds_root(self) -> Optional[str]:
+        """``OUT`` when the runs are ``OUT/seed_<n>`` of one ``OUT`` and their seeds, else None."""
         paths = [os.path.normpath(t.run_dir.path) for t in self.trainers]
         roots = {os.path.dirname(p) for p in paths}
         if len(roots) == 1 and all(os.path.basename(p) == SEED_DIR.format(seed=t.cfg.train.seed)
                                    for p, t in zip(paths, self.trainers)):
-            seeds = ",".join(str(t.cfg.train.seed) for t in self.trainers)
-            return f"imssr train --seeds {seeds} --out {roots.pop()} --resume"
-        return f"imssr train --runs {' '.join(paths)} --resume"
+            return roots.pop()
+        return None
 
     def close(self) -> None:
         """Close every seed's envs and release its run directory."""

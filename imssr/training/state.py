@@ -11,12 +11,13 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
+from imssr.rundir.checkpoint import Checkpoint
+
 
 @dataclass
 class StepSchedule:
     """An event every ``every`` agent steps (0: never): due at the first agent step checked at or
-    past ``next_step``.  It saves itself under ``next_<name>_step``, the checkpoint key imssr has
-    always used, so older checkpoints resume."""
+    past ``next_step``.  It saves itself as the checkpoint's ``next_<name>_step``."""
 
     name: str
     """``eval`` or ``ckpt``: names the checkpoint key."""
@@ -44,10 +45,10 @@ class StepSchedule:
     def state_dict(self) -> dict:
         return {self.key: self.next_step}
 
-    def load_state_dict(self, counters: dict, step: int, saved_every: int) -> None:
-        """Resume at agent step ``step``: the saved next step if the interval is unchanged
-        (``saved_every``), else the first multiple of the new interval after ``step``."""
-        self.next_step = counters[self.key] if saved_every == self.every else _next_multiple(step, self.every)
+    def load(self, saved_next: Optional[int], step: int, saved_every: int) -> None:
+        """Resume at agent step ``step``: the saved next step ``saved_next`` if the interval is
+        unchanged (``saved_every``), else the first multiple of the new interval after ``step``."""
+        self.next_step = saved_next if saved_every == self.every else _next_multiple(step, self.every)
 
 
 def _next_multiple(step: int, every: int) -> Optional[int]:
@@ -96,17 +97,17 @@ class RunState:
                 "last_eval_step": self.last_eval_step, "learning_starts": self.learning_starts,
                 "eval_history": self.eval_history, "action_rng": self.action_rng.bit_generator.state}
 
-    def load(self, ckpt: dict, counters: dict, saved_eval_every: int, saved_ckpt_every: int) -> None:
-        """Continue from checkpoint ``ckpt``.  ``counters``: its schedule counters in agent steps
-        (``next_eval_step``, ``next_ckpt_step``, ``last_eval_step``); ``saved_*_every``: the
-        intervals it was saved with (a schedule whose interval changed restarts from this step)."""
-        self.frame, self.step, self.episode = ckpt["frame"], ckpt["step"], ckpt["episode"]
-        self.learning_starts = ckpt.get("learning_starts", self.learning_starts)
-        self.eval_history = list(ckpt.get("eval_history", []))
-        self.last_eval_step = counters["last_eval_step"]
-        self.eval_schedule.load_state_dict(counters, self.step, saved_eval_every)
-        self.ckpt_schedule.load_state_dict(counters, self.step, saved_ckpt_every)
-        self.action_rng.bit_generator.state = ckpt["action_rng"]
+    def load(self, ckpt: Checkpoint, saved_eval_every: int, saved_ckpt_every: int) -> None:
+        """Continue from checkpoint ``ckpt``, saved with the intervals ``saved_*_every`` (a schedule
+        whose interval changed restarts from this step)."""
+        self.frame, self.step, self.episode = ckpt.frame, ckpt.step, ckpt.episode
+        if ckpt.learning_starts is not None:
+            self.learning_starts = ckpt.learning_starts
+        self.eval_history = list(ckpt.eval_history)
+        self.last_eval_step = ckpt.last_eval_step
+        self.eval_schedule.load(ckpt.next_eval_step, self.step, saved_eval_every)
+        self.ckpt_schedule.load(ckpt.next_ckpt_step, self.step, saved_ckpt_every)
+        self.action_rng.bit_generator.state = ckpt.action_rng
 
 
 @dataclass

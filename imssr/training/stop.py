@@ -15,11 +15,18 @@ class TrainingInterrupted(Exception):
     """Training stopped on a signal after checkpointing its last agent step; the message is the
     line the CLI prints ("stopped at agent step N by SIGTERM; continue with: ...")."""
 
+    def __init__(self, message: str, step: int, out: Optional[str]):
+        super().__init__(message)
+        self.step = step
+        """The agent step every run stopped at."""
+        self.out = out
+        """The ``--out`` a resume names (None: the runs have no one folder, ``--runs`` names them)."""
+
     @classmethod
     def at(cls, step: int, signal_name: Optional[str], run: RunDir) -> "TrainingInterrupted":
         """The training of ``run`` stopped by ``signal_name`` at agent step ``step``."""
         return cls(f"stopped at agent step {step} by {signal_name}; continue with: "
-                   f"imssr train --out {run.path} --resume")
+                   f"imssr train --out {run.path} --resume", step, run.path)
 
 
 class StopRequest:

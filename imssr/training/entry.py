@@ -1,0 +1,207 @@
+"""The one way a training starts: ``imssr train`` and ``imssr demo``, :func:`imssr.train`, and
+every run of ``imssr sweep`` (each an ``imssr train`` process) describe what the user asked for
+as a :class:`TrainRequest`, and :func:`train` does the rest.
+
+:func:`plan` turns a request into each run's config and directory: a new run's config from its
+preset or file (:func:`imssr.presets.run_config`), a resumed run's from its saved
+``config.json`` (:func:`resume_config`), then the request's settings on top.  :func:`train`
+trains one run (:class:`~imssr.training.loop.Trainer`) or many in one process, in lockstep
+(:class:`~imssr.training.seeds.SeedsTrainer`), records how each ended in its ``status.json``,
+plots each finished run's learning curve and, for the demo, records an episode of the trained
+policy.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, NamedTuple, Optional, Sequence
+
+from imssr.config import RunConfig, load_config
+from imssr.errors import ImssrError
+from imssr.presets import run_config
+from imssr.rundir import CONFIG_FILE, SEED_DIR, RunDir, run_path
+from imssr.training.stop import StopRequest, TrainingInterrupted
+
+
+@dataclass
+class TrainRequest:
+    """What a user asks a training for: the run(s), where they go, and the settings on top of
+    the preset, the config file or the resumed run's saved config."""
+
+    algo: Optional[str] = None
+    """Algorithm (``imssr algos``); None: the config file's, or the resumed run's."""
+    task: Optional[str] = None
+    """Task (``imssr tasks``); None: the config file's, or the resumed run's."""
+    out: Optional[str] = None
+    """The run directory; with ``seeds``, the folder that holds ``seed_<n>/`` for each seed.
+    None: ``runs/<task>/<algo>/seed_<seed>``."""
+    seeds: Optional[list[int]] = None
+    """Train these seeds of the config in one process, in lockstep, each into ``out/seed_<n>/``
+    (None: one run, of ``train.seed``)."""
+    runs: Sequence[str] = ()
+    """Train these run directories, each with its own ``config.json``, in one process in lockstep
+    (as ``seeds`` does; they may differ in the seed and the intrinsic reward's scalars)."""
+    resume: bool = False
+    """Continue the run(s) from their checkpoints, with their saved configs."""
+    refill_buffer: bool = False
+    """On resume, when a saved replay buffer is missing or damaged, start with an empty buffer
+    refilled by random actions (not an exact resume) instead of failing.  One run only."""
+    demo: bool = False
+    """Start from the demo's settings (:func:`imssr.presets.demo_config`) and record an episode of
+    the trained policy at the end."""
+    network: Optional[str] = None
+    """The preset's network (``dmcgb`` or ``curl``) of a new run; None: ``dmcgb``."""
+    config_file: Optional[str] = None
+    """A config file (partial: merged onto the preset of its algo and task) to start from."""
+    values: dict[str, Any] = field(default_factory=dict)
+    """``section.field`` -> value: settings of one field each (the CLI's flags)."""
+    frames: Optional[int] = None
+    """The budget in environment frames instead of agent steps."""
+    batch_size: Optional[int] = None
+    """The RL batch, and the auxiliary batch of a task that trains on it."""
+    beta0: Optional[float] = None
+    """The intrinsic reward's beta_0 (algorithms with one only)."""
+    overrides: Sequence[str] = ()
+    """``section.field=value`` strings (``--set``), applied last."""
+
+
+class PlannedRun(NamedTuple):
+    """One run of a request: its validated config and its directory."""
+
+    config: RunConfig
+    run: RunDir
+
+
+def plan(request: TrainRequest) -> list[PlannedRun]:
+    """Each run's config and directory (see the module's doc); nothing is written, except a
+    resumed run's lost ``config.json``, which is restored from its checkpoint."""
+    if request.runs:
+        if request.seeds is not None or request.out or request.config_file or request.algo or request.task \
+                or "train.seed" in request.values:
+            raise ImssrError("--runs takes each run's own config.json: leave out --seeds, --out, --config, "
+                             "--algo, --task and --seed")
+        dirs = list(dict.fromkeys(os.path.normpath(d) for d in request.runs))
+        for d in dirs:
+            if not os.path.isfile(os.path.join(d, CONFIG_FILE)):
+                raise ImssrError(f"--runs {d}: no {CONFIG_FILE} there (write one, or train it with --out)")
+        # Each directory's config.json is its run's own file: the base whether new or resumed.
+        return [PlannedRun(_config(request, config_file=os.path.join(d, CONFIG_FILE)), RunDir(d)) for d in dirs]
+    if request.seeds is not None:
+        if "train.seed" in request.values:
+            raise ImssrError("--seeds and --seed exclude each other")
+        if not request.out:
+            raise ImssrError("--seeds needs --out DIR: each seed trains into DIR/seed_<n>")
+        if request.config_file and request.resume:
+            raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
+        runs = [RunDir(os.path.join(request.out, SEED_DIR.format(seed=seed))) for seed in request.seeds]
+        return [PlannedRun(_config(request, run, {"train.seed": seed}), run)
+                for seed, run in zip(request.seeds, runs)]
+    if request.resume and not request.config_file and not request.out:
+        raise ImssrError("--resume needs --out RUN_DIR")
+    cfg = _config(request, RunDir(request.out) if request.out else None)
+    return [PlannedRun(cfg, RunDir(request.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)))]
+
+
+def _config(request: TrainRequest, run: Optional[RunDir] = None, values: Optional[dict] = None,
+            config_file: Optional[str] = None) -> RunConfig:
+    """The config of one run of ``request`` in ``run`` (the saved one read when resuming without a
+    config file); ``values`` go on top of the request's."""
+    config_file = config_file or request.config_file
+    base = resume_config(run) if request.resume and not config_file and run is not None else None
+    return run_config(request.algo, request.task, network=request.network, config_file=config_file, base=base,
+                      demo=request.demo, values={**request.values, **(values or {})}, frames=request.frames,
+                      batch_size=request.batch_size, beta0=request.beta0, overrides=list(request.overrides))
+
+
+def resume_config(run: RunDir) -> RunConfig:
+    """The saved config a resume of ``run`` continues with; a lost ``config.json`` is written back
+    from the checkpoint the resume would continue from (which holds the config it trained with),
+    said in one line."""
+    if not os.path.exists(run.config_path):
+        if not run.has_checkpoint():
+            raise ImssrError(f"nothing to resume: {run.config_path} does not exist")
+        found = run.checkpoint()
+        if not isinstance(found.checkpoint.config, dict):
+            raise ImssrError(f"nothing to resume: {run.config_path} does not exist, and {found.path} holds no config")
+        run.write_config(found.checkpoint.run_config())
+        print(f"imssr: {run.config_path} was missing; restored from {found.path} (the config it was trained with)",
+              flush=True)
+    return load_config(run.config_path)
+
+
+def train(request: TrainRequest, *, exit_on_second_signal: bool = False,
+          announce: Callable[[str], None] = print) -> list[RunDir]:
+    """Train what ``request`` asks for (see the module's doc); returns the run directories.
+
+    SIGTERM / SIGINT stop every run after the current agent step with a checkpoint and raise
+    :class:`TrainingInterrupted`; a second signal stops at once: with
+    ``exit_on_second_signal`` (the command line, one run) the process exits with one line,
+    otherwise the default handlers act (``KeyboardInterrupt``).  A run of several whose losses
+    turn non-finite stops; the others finish, then a one-line error names it.  ``announce``
+    prints the lines that say what starts and where it ended."""
+    if request.refill_buffer and not request.resume:
+        raise ImssrError("--refill-buffer goes with --resume")
+    if request.refill_buffer and (request.seeds is not None or request.runs):
+        raise ImssrError("--refill-buffer resumes one run: use it with --out RUN_DIR alone")
+    planned = plan(request)
+    if request.seeds is None and not request.runs:
+        cfg, run = planned[0]
+        stop = StopRequest(run if exit_on_second_signal else None).install()
+        try:
+            _train_one(cfg, run, request, stop, announce)
+        finally:
+            stop.uninstall()
+        return [run]
+    return _train_many(planned, request, announce)
+
+
+def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest,
+               announce: Callable[[str], None]) -> None:
+    from imssr.plots.curves import plot_learning_curve
+    from imssr.training.demo import record_episode, summary
+    from imssr.training.loop import Trainer
+
+    trainer = Trainer(cfg, run, resume=request.resume, refill_buffer=request.refill_buffer, stop=stop)
+    announce(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}")
+    started = time.time()
+    try:
+        with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
+            trainer.train()
+        png = plot_learning_curve(run)
+        if request.demo:
+            gif = record_episode(trainer, run.episode_gif_path)
+            announce(summary(cfg, run, (time.time() - started) / 60, gif, png))
+        else:
+            announce(f"imssr: done; {run.eval_log}, {png}")
+    finally:
+        trainer.close()
+
+
+def _train_many(planned: list[PlannedRun], request: TrainRequest, announce: Callable[[str], None]) -> list[RunDir]:
+    from imssr.plots.curves import plot_learning_curve
+    from imssr.training.seeds import SeedsTrainer
+
+    cfgs, runs = [p.config for p in planned], [p.run for p in planned]
+    stop = StopRequest().install()
+    try:
+        trainer = SeedsTrainer(cfgs, runs, resume=request.resume, stop=stop)
+        try:
+            where = (f"{len(runs)} run directories" if request.runs
+                     else os.path.join(request.out, SEED_DIR.format(seed="<n>")))
+            algos = ", ".join(dict.fromkeys(c.algo for c in cfgs))
+            announce(f"imssr: {algos} on {cfgs[0].env.task}, seeds {','.join(str(c.train.seed) for c in cfgs)} in "
+                     f"one process: {cfgs[0].budget_text()} -> {where}")
+            failed = trainer.train()
+        finally:
+            trainer.close()
+    finally:
+        stop.uninstall()
+    for run, why in zip(runs, failed):
+        if why is None:
+            plot_learning_curve(run)
+    bad = [run.path for run, why in zip(runs, failed) if why is not None]
+    if bad:
+        raise ImssrError(f"{', '.join(bad)} diverged (each run's status.json says where); the others finished")
+    announce(f"imssr: done; {len(runs)} runs: {', '.join(run.path for run in runs)}")
+    return runs
