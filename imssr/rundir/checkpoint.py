@@ -70,8 +70,8 @@ class Checkpoint:
     last_eval_step: int
     """The agent step of the last evaluation (-1: none yet)."""
     learning_starts: Optional[int] = None
-    """Agent step from which the agent acts and learns (None in files older than the refill
-    after a lost buffer: the seed phase's end)."""
+    """Agent step from which the agent acts and learns; None where a file does not hold it: the
+    seed phase's end."""
     eval_history: list = field(default_factory=list)
     """Every evaluation's ``eval.csv`` row and episode returns (``{"row", "returns"}``)."""
     action_rng: dict

@@ -12,9 +12,9 @@ from imssr.rundir import RunDir
 from imssr.training.evaluate import evaluate
 from imssr.training.logger import read_csv
 
-# Measured on the development machine (docs/performance.md): one IM-CURL training step of the
-# paper preset (batch 128, sequential updates) takes about 1.2 s on 2 CPU cores.
-CPU_SECONDS_PER_PAPER_STEP = 1.2
+# One IM-CURL training step of the paper preset (batch 128, sequential updates) on 2 CPU cores
+# without AVX-512 (docs/performance.md, "Every base at the paper presets, fp32").
+CPU_SECONDS_PER_PAPER_STEP = 2.37
 PAPER_STEPS = 500_000
 
 
@@ -42,4 +42,4 @@ def summary(cfg: RunConfig, run: RunDir, minutes: float, gif: str, png: str) -> 
             f"Curve: {png}; the trained policy: {gif}. A short run on the dense task, not a result: "
             f"the paper's runs are `imssr train --algo im-curl --task cartpole_swingup_sparse --seeds 1-5 "
             f"--out runs/im-curl --device cuda` ({PAPER_STEPS:,} agent steps each, about {days:.0f} days "
-            f"per seed on 2 CPU cores: use a GPU).")
+            f"per seed on 2 CPU cores without AVX-512: use a GPU).")
