@@ -8,19 +8,20 @@ import argparse
 import contextlib
 import os
 import sys
+import typing
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
 # What building the parser needs, and nothing that loads torch, dm_control or matplotlib: `imssr
 # --help`, `tasks`, `algos`, `modes` and every `SUBCOMMAND --help` answer without them.  Each
 # command imports its own machinery inside its function.
-from imssr.config import MAX_SEED, SEED_RULE, field_docs, logger_fields
+from imssr.config import MAX_SEED, SEED_RULE, dataclass_field_docs, dataclass_field_types, field_docs, logger_fields
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.memlimit import out_of_memory_text
 from imssr.presets import ALGOS, make_config, markdown_table, preset_settings
 from imssr.rundir import RunDir
-from imssr.sweep.grid import LAUNCHERS, SweepConfig, load_sweep_file, parse_floats, parse_names, parse_seeds
+from imssr.sweep.grid import LAUNCHERS, SweepConfig, parse_seeds, setting_key, sweep_config
 from imssr.training.stop import TrainingInterrupted
 
 
@@ -49,6 +50,7 @@ def _number(kind, minimum, label, maximum=None):
 _positive_int = _number(int, 1, "a positive integer")
 _nonneg_int = _number(int, 0, "an integer >= 0")
 _nonneg_float = _number(float, 0.0, "a number >= 0")
+_positive_float = _number(float, 1e-9, "a number > 0")
 _seed = _number(int, 0, f"a seed, {SEED_RULE}", MAX_SEED)
 
 
@@ -126,6 +128,84 @@ FIELD_FLAGS = (
 )
 """The flags of ``train`` and ``demo`` that map onto one field each.  Flags with a rule of their
 own (``--frames``, ``--batch-size``, ``--beta0``) are written out in :func:`build_parser`."""
+
+
+@dataclass(frozen=True)
+class SweepFlag:
+    """An ``imssr sweep`` flag that sets one :class:`~imssr.sweep.grid.SweepConfig` field when given:
+    ``--`` and the field's key in a sweep file (:func:`~imssr.sweep.grid.setting_key`), a value of
+    the field's declared type, the field's docstring as its help."""
+
+    field: str
+    """The SweepConfig field."""
+    metavar: Optional[str] = None
+    default: str = ""
+    """What the help says the default is; empty: the field's default value."""
+    positive: bool = False
+    """A number must be > 0 (else >= 0)."""
+    repeatable: bool = False
+    """Each use adds an item to the list (``--set``); a list flag's text is otherwise ``a,b``."""
+    choices: tuple[str, ...] = ()
+
+    @property
+    def dest(self) -> str:
+        return setting_key(self.field)
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.dest.replace("_", "-")
+
+    def help(self) -> str:
+        doc = _help_text(dataclass_field_docs(SweepConfig).get(self.field, self.field))
+        return f"{doc} (default: {self.default or _value_text(getattr(SweepConfig(), self.field))})"
+
+    def add_to(self, parser: argparse.ArgumentParser) -> None:
+        """Add the flag to ``parser``: not given, its value is None."""
+        if self.repeatable:
+            parser.add_argument(self.flag, action="append", metavar=self.metavar, help=self.help())
+            return
+        kind = dataclass_field_types(SweepConfig)[self.field]
+        if type(None) in typing.get_args(kind):  # Optional[X]: X
+            kind = next(k for k in typing.get_args(kind) if k is not type(None))
+        # Numbers are checked here; a list's text (``a,b``, ``1-5``) is parsed by the sweep's config.
+        number = {int: (_nonneg_int, _positive_int), float: (_nonneg_float, _positive_float)}.get(kind)
+        parser.add_argument(self.flag, type=number and number[self.positive], metavar=self.metavar,
+                            choices=list(self.choices) or None, help=self.help())
+
+
+def _value_text(value: Any) -> str:
+    """A sweep setting's default as the help says it."""
+    if isinstance(value, list):
+        return ",".join(map(str, value)) or "none"
+    if isinstance(value, float):
+        return f"{value:g}"
+    return "empty" if value == "" else "none" if value is None else str(value)
+
+
+SWEEP_FLAGS = (
+    SweepFlag("root"),
+    SweepFlag("algos", "A,B", "none: a sweep needs them, here or in --file"),
+    SweepFlag("tasks", "T1,T2", "none: a sweep needs them, here or in --file"),
+    SweepFlag("seeds", "1,2,3|1-5"),
+    SweepFlag("steps", positive=True),
+    SweepFlag("frames", positive=True),
+    SweepFlag("overrides", "SECTION.FIELD=VALUE", repeatable=True),
+    SweepFlag("beta0", "B1,B2"),
+    SweepFlag("retries"),
+    SweepFlag("cpus_per_run", positive=True),
+    SweepFlag("gpus_per_run"),
+    SweepFlag("max_parallel"),
+    SweepFlag("runs_per_process"),
+    SweepFlag("address"),
+    SweepFlag("launcher", choices=LAUNCHERS),
+    SweepFlag("slurm_partition", "NAME"),
+    SweepFlag("slurm_time", "MINUTES"),
+    SweepFlag("slurm_gpus_per_task", "N"),
+    SweepFlag("slurm_array_parallelism", "N"),
+    SweepFlag("logger", "csv,tensorboard,wandb"),
+)
+"""The flags of ``imssr sweep`` that set its settings, one per :class:`~imssr.sweep.grid.SweepConfig`
+field, in the order ``--help`` lists them."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -254,55 +334,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def add_sweep_parsers(sub) -> None:
     """``imssr sweep`` (a grid of runs on Ray) and ``imssr report`` (paper-style tables)."""
-    _positive_float = _number(float, 1e-9, "a number > 0")
     sw = sub.add_parser("sweep", help="train a grid of runs (algos x tasks x seeds [x beta0]) on Ray, "
                         "SLURM or local subprocesses",
                         description="Runs land in ROOT/<task>/<algo>/seed_<n> (ROOT/<task>/<algo>/"
                         "beta0_<value>/seed_<n> in a beta0 sweep). Finished runs are skipped, "
                         "interrupted ones resume, failed ones are retried; see docs/experiments.md.")
-    sw.add_argument("--root", help="sweep directory (default runs/sweep)")
     sw.add_argument("--file", metavar="SWEEP.json",
-                    help="JSON object with the same keys (algos, tasks, seeds, steps or frames, set, beta0, "
-                         "root, retries, cpus_per_run, gpus_per_run, max_parallel, runs_per_process, address, "
-                         "launcher, slurm_partition, slurm_time, slurm_gpus_per_task, slurm_array_parallelism, "
-                         "logger); flags override it "
-                         "(default: none)")
-    sw.add_argument("--algos", metavar="A,B",
-                    help="algorithms, see imssr algos (default: none: a sweep needs them, here or in --file)")
-    sw.add_argument("--tasks", metavar="T1,T2",
-                    help="tasks, see imssr tasks (default: none: a sweep needs them, here or in --file)")
-    sw.add_argument("--seeds", metavar="1,2,3|1-5", help="seeds: a list, a range or both (default 1)")
-    sw.add_argument("--steps", type=_positive_int,
-                    help="budget T per run in agent steps (default: the preset's, 500000)")
-    sw.add_argument("--frames", type=_positive_int,
-                    help="budget per run in environment frames instead: each run trains frames / its "
-                         "task's action repeat steps, rounded up (default: none, --steps decides)")
-    sw.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE",
-                    help="override for every run, as imssr train --set; repeatable (default: none)")
-    sw.add_argument("--beta0", metavar="B1,B2",
-                    help="beta_0 sensitivity sweep, e.g. 0.001,0.01,0.05,0.1 (default: none, each preset's beta_0)")
-    sw.add_argument("--retries", type=_nonneg_int, help="extra attempts of a failed run (default 1)")
-    sw.add_argument("--cpus-per-run", type=_positive_float, help="CPUs per run (default 1)")
-    sw.add_argument("--gpus-per-run", type=_nonneg_float, help="GPUs per run, fractions allowed (default 0)")
-    sw.add_argument("--max-parallel", type=_nonneg_int, help="runs at once (default: what the cluster holds)")
-    sw.add_argument("--runs-per-process", type=_nonneg_int,
-                    help="runs that can share a batch (seeds, a base and its IM- variant, beta0 values) trained "
-                         "in one process, at most this many; 1: one per process (default 0: all that can share "
-                         "on CUDA, one per process on the CPU)")
-    sw.add_argument("--address", help="existing Ray cluster, e.g. 10.0.0.1:6379 (default: a local Ray)")
-    sw.add_argument("--launcher", choices=list(LAUNCHERS),
-                    help="ray: Ray tasks (a local Ray, or --address); slurm: one SLURM job per run through "
-                         "submitit (the slurm extra); local: subprocesses of the sweep, no Ray (default ray)")
-    sw.add_argument("--slurm-partition", metavar="NAME", help="SLURM partition (default: the cluster's)")
-    sw.add_argument("--slurm-time", type=_nonneg_int, metavar="MINUTES",
-                    help="time limit per SLURM job; a run cut by it is retried from its checkpoint (default 1440)")
-    sw.add_argument("--slurm-gpus-per-task", type=_nonneg_int, metavar="N",
-                    help="GPUs per SLURM job; runs then train on cuda (default 0)")
-    sw.add_argument("--slurm-array-parallelism", type=_nonneg_int, metavar="N",
-                    help="SLURM jobs of the sweep running at once (default: 256)")
-    sw.add_argument("--logger", metavar="csv,tensorboard,wandb",
-                    help="every run's imssr train --logger; with wandb the runs are grouped under the root's "
-                         "name and tagged with algo, task, seed, beta0 (default: train's)")
+                    help=f"JSON object with the same keys ({', '.join(f.dest for f in SWEEP_FLAGS)}); flags "
+                         "override it (default: none)")
+    for flag in SWEEP_FLAGS:
+        flag.add_to(sw)
     sw.add_argument("--dry-run", action="store_true", help="print the expanded grid and exit")
     sw.add_argument("--no-progress", action="store_true", help="no live progress bar")
 
@@ -326,33 +367,8 @@ def add_sweep_parsers(sub) -> None:
 
 
 def _sweep_config(args):
-    if args.steps is not None and args.frames is not None:
-        raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
-    cfg = load_sweep_file(args.file) if args.file else SweepConfig()
-    if args.steps is not None or args.frames is not None:
-        # A budget flag replaces the file's budget, whichever unit the file gave it in.
-        cfg.steps = cfg.frames = None
-    given = {"root": args.root, "steps": args.steps, "frames": args.frames, "retries": args.retries,
-             "cpus_per_run": args.cpus_per_run, "gpus_per_run": args.gpus_per_run,
-             "max_parallel": args.max_parallel, "runs_per_process": args.runs_per_process,
-             "address": args.address, "launcher": args.launcher,
-             "slurm_partition": args.slurm_partition, "slurm_time": args.slurm_time,
-             "slurm_gpus_per_task": args.slurm_gpus_per_task,
-             "slurm_array_parallelism": args.slurm_array_parallelism, "logger": args.logger}
-    for key, value in given.items():
-        if value is not None:
-            setattr(cfg, key, value)
-    if args.algos is not None:
-        cfg.algos = parse_names(args.algos, "algos")
-    if args.tasks is not None:
-        cfg.tasks = parse_names(args.tasks, "tasks")
-    if args.seeds is not None:
-        cfg.seeds = parse_seeds(args.seeds)
-    if args.beta0 is not None:
-        cfg.beta0 = parse_floats(args.beta0, "beta0")
-    if args.set:
-        cfg.overrides = cfg.overrides + args.set
-    return cfg.validate()
+    given = {f.field: getattr(args, f.dest) for f in SWEEP_FLAGS if getattr(args, f.dest) is not None}
+    return sweep_config(given, args.file).validate()
 
 
 def cmd_sweep(args) -> int:

@@ -1,14 +1,18 @@
-"""JSON that every reader accepts: no bare ``NaN`` / ``Infinity`` in the files imssr writes.
+"""JSON that every reader accepts: no bare ``NaN`` / ``Infinity`` in the files imssr writes, and
+JSON files read back with one-line errors.
 
 Python's :mod:`json` writes non-finite floats as ``NaN`` and ``Infinity``, which are not JSON
 (``jq``, JavaScript and strict parsers refuse them).  :func:`dumps` writes them as ``null``
-and refuses anything else that would not be JSON (``allow_nan=False``).
+and refuses anything else that would not be JSON (``allow_nan=False``).  :func:`read_json` reads a
+JSON file; whatever keeps it from being JSON text is one :class:`~imssr.errors.ImssrError` line.
 """
 from __future__ import annotations
 
 import json
 import math
-from typing import Any
+from typing import Any, Optional
+
+from imssr.errors import ImssrError
 
 
 def finite(obj: Any) -> Any:
@@ -25,3 +29,22 @@ def finite(obj: Any) -> Any:
 def dumps(obj: Any, **kwargs) -> str:
     """:func:`json.dumps` with non-finite floats as ``null`` (strict JSON)."""
     return json.dumps(finite(obj), allow_nan=False, **kwargs)
+
+
+def read_json(path: str, what: str, kind: Optional[str] = None) -> Any:
+    """The JSON value of the file ``path``; a missing file, a folder and anything that is not JSON
+    text are one-line errors that name the file as ``what`` ("config file") and, for JSON nested
+    too deeply to mean anything, say it cannot be a ``kind`` (default: ``what``)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return json.load(fh)
+    except FileNotFoundError:
+        raise ImssrError(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise ImssrError(f"{what} {path} is a directory") from None
+    except UnicodeDecodeError:
+        raise ImssrError(f"{what} {path} is not a JSON text file (it is not UTF-8 text)") from None
+    except json.JSONDecodeError as exc:
+        raise ImssrError(f"{what} {path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ImssrError(f"{what} {path} nests its JSON too deeply to be a {kind or what}") from None

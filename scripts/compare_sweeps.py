@@ -29,9 +29,9 @@ def curves(root: str) -> dict[tuple[str, str, str], dict[int, dict[int, float]]]
     """``(task, label, mode) -> step -> seed -> mean evaluation return`` (label: the algo, with
     beta_0 in a beta sweep)."""
     out: dict = {}
-    for run in collect(root).runs:
-        for mode, step, _frame, ret in run.evals:
-            out.setdefault((run.task, run.label, mode), {}).setdefault(step, {})[run.seed] = ret
+    for result in collect(root).runs:
+        for mode, step, _frame, ret in result.evals:
+            out.setdefault((result.run.task, result.label, mode), {}).setdefault(step, {})[result.run.seed] = ret
     return out
 
 

@@ -345,3 +345,23 @@ def cli_help(*argv: str) -> str:
                           env={**os.environ, "COLUMNS": "1000"}, timeout=120)
     assert proc.returncode == 0, proc.stderr
     return proc.stdout
+
+
+# -- sweeps ----------------------------------------------------------------------------------
+
+SWEEP_TINY = ["train.seed_steps=60", "train.burst_updates=0", "agent.batch_size=8", "aux.batch_size=8",
+              "agent.hidden_dim=32", "agent.feature_dim=16", "agent.encoder_filters=8", "train.replay_capacity=3000",
+              "train.eval_every_steps=125", "train.eval_episodes=1", "train.checkpoint_every_steps=125",
+              "train.tensorboard=false"]
+"""The tiny settings of :func:`tiny_config` as the overrides every run of a sweep gets (no
+1000-update burst after the seed phase: the presets' DMC-GB burst would dominate a 250-step run)."""
+
+
+def sweep_status(root) -> dict:
+    """``ROOT/sweep_status.json`` as the sweep wrote it: the file's JSON, for tests of what it says."""
+    import json
+
+    from imssr.sweep.directory import SweepDir
+
+    with open(SweepDir(str(root)).status_path) as fh:
+        return json.load(fh)

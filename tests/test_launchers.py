@@ -1,6 +1,5 @@
 """imssr sweep --launcher local|slurm: the same plan, retries, status file and resume as the Ray
 path, with real `imssr train` processes on tiny budgets (SLURM through submitit's local executor)."""
-import json
 import os
 import subprocess
 import sys
@@ -8,22 +7,15 @@ import time
 
 import pytest
 
-from conftest import kill_when_file_appears
+from conftest import SWEEP_TINY as TINY
+from conftest import cli_config, kill_when_file_appears, sweep_status
 from imssr.cli import main
+from imssr.sweep.directory import SweepDir
 from imssr.sweep.grid import SweepConfig, expand
 from imssr.rundir import DONE_FILE, SWEEP_LOG
 from imssr.sweep.sweep import run_sweep
 
 TASK = "cartpole_swingup_sparse"  # 125 agent steps per episode at action repeat 8
-TINY = ["train.seed_steps=60", "train.burst_updates=0", "agent.batch_size=8", "aux.batch_size=8",
-        "agent.hidden_dim=32", "agent.feature_dim=16", "agent.encoder_filters=8", "train.replay_capacity=3000",
-        "train.eval_every_steps=125", "train.eval_episodes=1", "train.checkpoint_every_steps=125",
-        "train.tensorboard=false"]
-
-
-def status(root):
-    with open(os.path.join(root, "sweep_status.json")) as fh:
-        return json.load(fh)
 
 
 def attempts_in_log(run_dir):
@@ -45,7 +37,7 @@ def test_killed_local_driver_rerun_skips_finished_runs(tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "2 runs, 1 done" in proc.stdout and "(local)" in proc.stdout
-    runs = {r["seed"]: r for r in status(root)["runs"]}
+    runs = {r["seed"]: r for r in sweep_status(root)["runs"]}
     assert (runs[1]["action"], runs[1]["attempts"], runs[1]["state"]) == ("done", 0, "done")
     assert (runs[2]["attempts"], runs[2]["state"], runs[2]["final_step"]) == (1, "done", 125)
     assert len(attempts_in_log(first.dir)) == 1  # never started again
@@ -62,8 +54,8 @@ def test_slurm_launcher_through_submitit_local_executor(tmp_path):
     assert [(s.state, s.attempts, s.final_step) for s in statuses] == [("done", 1, 125)]
     (run,) = expand(cfg)
     assert os.path.exists(os.path.join(run.dir, DONE_FILE))
-    assert status(root)["counts"] == {"queued": 0, "running": 0, "done": 1, "failed": 0, "interrupted": 0}
-    assert os.listdir(os.path.join(root, ".submitit"))  # submitit's job folders
+    assert sweep_status(root)["counts"] == {"queued": 0, "running": 0, "done": 1, "failed": 0, "interrupted": 0}
+    assert os.listdir(SweepDir(root).submitit_dir)  # submitit's job folders
     again = run_sweep(cfg, progress=False, poll_s=0.5, submitit_cluster="local")
     assert [(s.state, s.action, s.attempts) for s in again] == [("done", "done", 0)]
     # A run that fails (no such device) is retried as a new job, then reported.
@@ -96,7 +88,6 @@ def test_slurm_without_sbatch_is_one_line(tmp_path, capsys, monkeypatch):
 
 
 def test_sweep_logger_groups_and_tags_wandb_runs(tmp_path):
-    from imssr.cli import _run_config, build_parser
     from imssr.rundir import RunDir
     from imssr.training.wandb_run import run_tags
 
@@ -104,8 +95,7 @@ def test_sweep_logger_groups_and_tags_wandb_runs(tmp_path):
                       logger="csv,wandb").validate()
     (run,) = expand(cfg)
     built = run.resolved_config(cfg)
-    args = build_parser().parse_args(["train", "--config", RunDir(run.dir).write_config(built), "--out", run.dir])
-    assert built == _run_config(args, demo=False)
+    assert built == cli_config("--config", RunDir(run.dir).write_config(built), "--out", run.dir)
     assert (built.train.wandb, built.train.tensorboard, built.train.wandb_group) == (True, False, "table1")
     assert run_tags(built) == ["im-curl", TASK, "seed_3", "beta0_0.05"]
 
@@ -135,7 +125,7 @@ def test_killed_slurm_driver_rerun_skips_finished_runs(tmp_path):
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert proc.stdout.strip().splitlines()[-1] == "['done', 'done']"
-    runs = {r["seed"]: r for r in status(root)["runs"]}
+    runs = {r["seed"]: r for r in sweep_status(root)["runs"]}
     assert (runs[1]["action"], runs[1]["attempts"], runs[1]["state"]) == ("done", 0, "done")
     assert runs[2]["state"] == "done" and runs[2]["final_step"] == 125
     assert len(attempts_in_log(first.dir)) == 1  # never started again
@@ -160,7 +150,7 @@ def test_a_run_whose_sweep_log_cannot_be_written_fails_in_one_line_and_the_sweep
     assert len(failed) == 2, proc.stdout
     for run, line in zip(runs, sorted(failed)):
         assert f"no space left on {run.dir} while writing {run.dir}/{SWEEP_LOG}" in line, line
-    assert [r["state"] for r in status(root)["runs"]] == ["failed", "failed"]
+    assert [r["state"] for r in sweep_status(root)["runs"]] == ["failed", "failed"]
 
 
 def test_every_launcher_fails_an_attempt_whose_sweep_log_cannot_be_written(tmp_path):

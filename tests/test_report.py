@@ -10,6 +10,8 @@ import pytest
 
 from conftest import REPO, TASK, curve, load_script, make_run
 from imssr.report.report import write_report
+from imssr.sweep.directory import RunStatus, SweepDir
+from imssr.sweep.grid import Run
 from imssr.training.logger import read_csv
 
 
@@ -253,14 +255,15 @@ def test_runs_the_sweep_lists_as_failed_are_reported_as_failed(tmp_path, paper_c
                                    "dir": f"{TASK}/{a}/seed_{s}"} for a in ("curl", "im-curl") for s in (1, 2, 3)]}
     with open(os.path.join(root, "sweep.json"), "w") as fh:
         json.dump(plan, fh)
-    runs = [{"dir": f"{TASK}/curl/seed_3", "state": "failed",
-             "errors": ["imssr: error: diverged at agent step 412: critic loss nan"] * 2},
-            {"dir": f"{TASK}/im-curl/seed_2", "state": "failed",  # failed before writing anything
-             "errors": ["imssr: error: device 'cuda:99' requested but CUDA is not available; use --device cpu"]},
-            {"dir": f"{TASK}/curl/seed_1", "state": "done", "errors": []},
-            {"dir": f"{TASK}/im-curl/seed_3", "state": "queued", "errors": []}]
-    with open(os.path.join(root, "sweep_status.json"), "w") as fh:
-        json.dump({"runs": runs}, fh)
+    def run(algo, seed, state, *errors):
+        return RunStatus(Run(algo, TASK, seed, None, os.path.join(root, TASK, algo, f"seed_{seed}")), 1000, 8000,
+                         state, errors=list(errors))
+
+    SweepDir(root).write_status([
+        run("curl", 3, "failed", *["imssr: error: diverged at agent step 412: critic loss nan"] * 2),
+        run("im-curl", 2, "failed",  # failed before writing anything
+            "imssr: error: device 'cuda:99' requested but CUDA is not available; use --device cpu"),
+        run("curl", 1, "done"), run("im-curl", 3, "queued")], started=0.0, retries=1)
     write_report(root, out, paper_results=paper_csv, reps=200)
     t = table(out)
     cell = t["training", "curl", "1.0"]
@@ -358,6 +361,21 @@ def test_bf16_runs_with_fp32_q_heads_are_rows_of_their_own(tmp_path, paper_csv):
     assert float(t["training", "curl bf16-fp32q", "1.0"]["mean"]) == 650.0
     assert float(t["training", "curl", "1.0"]["mean"]) == 450.0
     assert {r["precision"] for r in read_csv(os.path.join(out, "evaluations.csv"))} == {"fp32", "bf16", "bf16-fp32q"}
+
+
+def test_damaged_sweep_files_are_a_note_not_a_crash(tmp_path, paper_csv):
+    """A sweep.json cut short is a note (the seeds each group should have then come from the runs
+    found); a damaged sweep_status.json lists no failed run."""
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, curve(0, 0, 100))
+    for name in ("sweep.json", "sweep_status.json"):
+        with open(os.path.join(root, name), "w") as fh:
+            fh.write('{"runs": [{"algo": "curl", "state": "failed"')
+    write_report(root, out, paper_results=paper_csv, reps=50)
+    md = open(os.path.join(out, "report.md")).read()
+    assert f"sweep.json: unreadable (sweep plan {root}/sweep.json is not valid JSON: " in md
+    assert "expected seeds come from the runs found" in md
+    assert "## Failed runs" not in md and table(out)["training", "curl", "1.0"]["seeds"] == "1"
 
 
 def test_a_planned_bf16_run_that_has_not_started_counts_in_its_own_row(tmp_path, paper_csv):

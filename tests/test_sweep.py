@@ -2,30 +2,28 @@
 resume of an interrupted run, idempotence, retry accounting, and a report of the result."""
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import pytest
 import torch
 
-from conftest import a_checkpoint, tiny_config, train_stopped_at
-from imssr.cli import main
+from conftest import SWEEP_TINY as TINY
+from conftest import a_checkpoint, cli_config, cli_help, sweep_status, tiny_config, train_stopped_at
+from imssr.cli import _sweep_config, build_parser, main
+from imssr.config import dataclass_field_docs
 from imssr.contention import autogroup, autogroup_scheduling
 from imssr.rundir import DONE_FILE, SWEEP_LOG, RunDir
-from imssr.sweep.grid import SweepConfig, expand, load_sweep_file, parse_seeds
+from imssr.sweep.directory import SweepDir
+from imssr.sweep.grid import SweepConfig, expand, load_sweep_file, parse_seeds, setting_key
 from imssr.sweep.runner import execute_run
-from imssr.sweep.sweep import plan_runs, settle, write_status
+from imssr.sweep.sweep import plan_runs, settle
 from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"  # 1000 frames = 125 agent steps per episode, action repeat 8
-# The tiny settings of tests/conftest.py as overrides every run of a sweep gets (no 1000-update
-# burst after the seed phase: the presets' DMC-GB burst would dominate a 250-step run).
-TINY = ["train.seed_steps=60", "train.burst_updates=0", "agent.batch_size=8", "aux.batch_size=8",
-        "agent.hidden_dim=32", "agent.feature_dim=16", "agent.encoder_filters=8", "train.replay_capacity=3000",
-        "train.eval_every_steps=125", "train.eval_episodes=1", "train.checkpoint_every_steps=125",
-        "train.tensorboard=false"]
 
 
 def sweep_cli(*args, check=True):
@@ -38,11 +36,6 @@ def sweep_cli(*args, check=True):
 
 def set_args(overrides):
     return [a for o in overrides for a in ("--set", o)]
-
-
-def status(root):
-    with open(os.path.join(root, "sweep_status.json")) as fh:
-        return json.load(fh)
 
 
 def test_seed_lists_and_ranges():
@@ -77,8 +70,6 @@ def test_the_worker_trains_the_config_the_sweep_writes(tmp_path):
     """The run's config.json is its one description: `imssr train --config RUN/config.json` builds
     exactly it, and it is what `imssr train` builds from the sweep's settings as flags (seed,
     budget, beta_0, the GPU share as the device, --cpus-per-run as the torch threads)."""
-    from imssr.cli import _run_config, build_parser
-
     flags = {"im-soda": ["--algo", "im-soda", "--task", "finger_spin", "--seed", "4", "--steps", "50", "--beta0",
                          "0.2", "--device", "cuda", "--no-progress", "--set", "train.torch_threads=2",
                          "--set", "agent.batch_size=8", "--set", "train.eval_episodes=2",
@@ -92,10 +83,8 @@ def test_the_worker_trains_the_config_the_sweep_writes(tmp_path):
         for run in expand(cfg.validate()):
             built = run.resolved_config(cfg)
             path = RunDir(run.dir).write_config(built)
-            args = build_parser().parse_args(["train", "--config", path, "--out", run.dir])
-            assert _run_config(args, demo=False) == built
-            by_flags = build_parser().parse_args(["train", *flags[run.algo], "--out", run.dir])
-            assert _run_config(by_flags, demo=False) == built
+            assert cli_config("--config", path, "--out", run.dir) == built
+            assert cli_config(*flags[run.algo], "--out", run.dir) == built
             assert built.train.device == ("cuda" if cfg.gpus_per_run else "cpu")
             assert (built.train.torch_threads, built.train.progress) == (max(1, int(cfg.cpus_per_run)), False)
 
@@ -212,6 +201,42 @@ def test_sweep_file_equals_flags(tmp_path, capsys):
     assert not (tmp_path / "r").exists()  # a dry run creates nothing
 
 
+def test_every_sweep_setting_is_a_flag_made_from_its_field(capsys):
+    """`imssr sweep`'s flags are SweepConfig's fields: each is `--` and its sweep-file key, its help
+    the field's docstring and its default, its value checked as the field's type, and the value
+    given is the field's."""
+    text = cli_help("sweep")
+    entries = {flag: (metavar, help_text) for flag, metavar, help_text in
+               re.findall(r"^  (--[\w-]+)( \S+)?(.*(?:\n {5,}\S.*)*)", text, flags=re.M)}
+    docs = dataclass_field_docs(SweepConfig)
+    for field in fields(SweepConfig):
+        flag = "--" + setting_key(field.name).replace("_", "-")
+        assert flag in entries, f"no flag for SweepConfig.{field.name}"
+        help_text = " ".join(entries[flag][1].split())
+        assert help_text.startswith(docs[field.name].replace("``", "")) and "(default: " in help_text, help_text
+        assert setting_key(field.name) in entries["--file"][1]  # a sweep file's keys
+    assert "0: 24 hours. A run cut by the limit is retried from its last checkpoint. (default: 0)" in \
+        " ".join(entries["--slurm-time"][1].split())
+    for args, message in ((["--slurm-time", "1.5"], "argument --slurm-time: expected an integer >= 0, got '1.5'"),
+                          (["--cpus-per-run", "0"], "argument --cpus-per-run: expected a number > 0, got '0'")):
+        with pytest.raises(SystemExit):
+            main(["sweep", *args])
+        assert capsys.readouterr().err.strip() == f"imssr: error: {message} (see imssr sweep --help)"
+    given = ["--root", "r", "--algos", "im-curl", "--tasks", TASK, "--seeds", "1-2", "--steps", "5", "--set",
+             "agent.batch_size=8", "--beta0", "0.1", "--retries", "2", "--cpus-per-run", "1.5", "--gpus-per-run", "0.5",
+             "--max-parallel", "3", "--runs-per-process", "2", "--launcher", "slurm", "--slurm-partition", "p",
+             "--slurm-time", "9", "--slurm-gpus-per-task", "1", "--slurm-array-parallelism", "4", "--logger", "csv"]
+    cfg = _sweep_config(build_parser().parse_args(["sweep", *given]))
+    assert cfg == SweepConfig(root="r", algos=["im-curl"], tasks=[TASK], seeds=[1, 2], steps=5,
+                              overrides=["agent.batch_size=8"], beta0=[0.1], retries=2, cpus_per_run=1.5,
+                              gpus_per_run=0.5, max_parallel=3, runs_per_process=2, launcher="slurm",
+                              slurm_partition="p", slurm_time=9, slurm_gpus_per_task=1, slurm_array_parallelism=4,
+                              logger="csv")
+    # Every field but the two that exclude another given here (frames: steps; address: slurm).
+    assert [f.name for f in fields(SweepConfig) if getattr(cfg, f.name) == getattr(SweepConfig(), f.name)] == \
+        ["frames", "address"]
+
+
 @pytest.mark.parametrize("args, message", [
     (["--algos", "curl,drq", "--tasks", TASK], "unknown algo 'drq'"),
     (["--algos", "curl", "--tasks", "cartpole_swingup_sparce"], "unknown task 'cartpole_swingup_sparce'"),
@@ -309,8 +334,8 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
 
     proc = sweep_cli(*grid)
     assert "2 runs, 0 done, 1 to resume, 1 new" in proc.stdout
-    runs = {r["algo"]: r for r in status(root)["runs"]}
-    assert status(root)["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0, "interrupted": 0}
+    runs = {r["algo"]: r for r in sweep_status(root)["runs"]}
+    assert sweep_status(root)["counts"] == {"queued": 0, "running": 0, "done": 2, "failed": 0, "interrupted": 0}
     assert (runs["im-curl"]["action"], runs["curl"]["action"]) == ("resume", "fresh")
     assert runs["im-curl"]["attempts"] == runs["curl"]["attempts"] == 1
     assert (runs["curl"]["steps"], runs["curl"]["frames"], runs["curl"]["final_step"]) == (250, 2000, 250)
@@ -320,8 +345,7 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
         with open(os.path.join(run.dir, DONE_FILE)) as fh:
             done = json.load(fh)
         assert (done["steps"], done["frames"], done["final_step"], done["final_frame"]) == (250, 2000, 250, 2000)
-    with open(os.path.join(root, "sweep.json")) as fh:
-        assert {(r["steps"], r["frames"], r["precision"]) for r in json.load(fh)["runs"]} == {(250, 2000, "fp32")}
+    assert {(p.steps, p.frames, p.precision) for p in SweepDir(root).read_plan()} == {(250, 2000, "fp32")}
     # Resumed, not restarted: the episode logged before the interruption is kept as it was.
     assert read_csv(os.path.join(interrupted.dir, "train.csv"))[0] == first_episode
     assert "(resume)" in open(os.path.join(interrupted.dir, SWEEP_LOG)).read()
@@ -331,8 +355,8 @@ def test_sweep_resumes_interrupted_run_skips_finished_and_reports(tmp_path):
     mtimes = {run.dir: os.path.getmtime(os.path.join(run.dir, "eval.csv")) for run in expand(cfg)}
     proc = sweep_cli(*grid)
     assert "all 2 runs are done; nothing to start" in proc.stdout
-    assert {r["state"] for r in status(root)["runs"]} == {"done"}
-    assert all(r["attempts"] == 0 for r in status(root)["runs"])
+    assert {r["state"] for r in sweep_status(root)["runs"]} == {"done"}
+    assert all(r["attempts"] == 0 for r in sweep_status(root)["runs"])
     for run in expand(cfg):
         assert open(os.path.join(run.dir, SWEEP_LOG)).read() == logs[run.dir]
         assert os.path.getmtime(os.path.join(run.dir, "eval.csv")) == mtimes[run.dir]
@@ -355,7 +379,7 @@ def test_failing_run_is_retried_then_reported(tmp_path):
                      "--retries", "2", *set_args(TINY + ["train.device=cuda:99"]), check=False)
     assert proc.returncode == 1
     assert "1 of 1 runs failed after retries (curl cartpole_swingup_sparse seed 4)" in proc.stderr
-    (run,) = status(root)["runs"]
+    (run,) = sweep_status(root)["runs"]
     assert (run["state"], run["attempts"], len(run["errors"])) == ("failed", 3, 3)
     assert all("cuda:99" in e for e in run["errors"]), run["errors"]
     log = open(os.path.join(root, run["log"])).read()
@@ -366,7 +390,7 @@ def test_failing_run_is_retried_then_reported(tmp_path):
 
 def test_status_and_done_files_are_strict_json(tmp_path):
     """No bare NaN / Infinity in the JSON files a sweep writes (strict parsers refuse them)."""
-    from imssr.sweep.sweep import RunStatus, write_status
+    from imssr.sweep.directory import RunStatus
 
     def strict(path):
         with open(path) as fh:
@@ -375,7 +399,7 @@ def test_status_and_done_files_are_strict_json(tmp_path):
     cfg = SweepConfig(root=str(tmp_path), algos=["curl"], tasks=[TASK], seeds=[1]).validate()
     (run,) = expand(cfg)
     st = RunStatus(run, 10, 80, seconds=float("nan"))
-    assert strict(write_status(cfg, [st], started=0.0))["runs"][0]["seconds"] is None
+    assert strict(SweepDir(cfg.root).write_status([st], started=0.0, retries=cfg.retries))["runs"][0]["seconds"] is None
     os.makedirs(run.dir)
     RunDir(run.dir).write_done(10, 10, 1, False, seconds=float("inf"))
     assert strict(os.path.join(run.dir, DONE_FILE))["seconds"] is None
@@ -397,8 +421,8 @@ def test_a_diverged_run_is_not_retried_and_the_status_says_so(tmp_path):
     line = settle(st, result, cfg.retries)
     assert st.state == "failed" and len(st.errors) == 1, line  # with 3 retries left
     assert "not retried: it diverges again" in line
-    write_status(cfg, [st], 0.0)
-    run = status(cfg.root)["runs"][0]
+    SweepDir(cfg.root).write_status([st], 0.0, cfg.retries)
+    run = sweep_status(cfg.root)["runs"][0]
     assert run["state"] == "failed" and run["note"].startswith("diverged; not retried")
     assert "diverged at agent step" in run["errors"][0]
 
@@ -502,7 +526,7 @@ def test_a_packed_sweep_trains_curl_and_im_curl_in_one_process(tmp_path):
     proc = sweep_cli("--algos", "curl,im-curl", "--tasks", TASK, "--seeds", "1", "--steps", "125",
                      "--root", root, "--launcher", "local", "--runs-per-process", "2", *set_args(TINY))
     assert "2 runs in 1 processes" in proc.stdout
-    runs = status(root)["runs"]
+    runs = sweep_status(root)["runs"]
     assert [r["state"] for r in runs] == ["done", "done"]
     second = os.path.join(root, runs[1]["log"])
     assert "trained in one process with 1 other run(s)" in open(second).read()

@@ -11,7 +11,8 @@ T = 500,000 agent steps (Table III, "Number of training steps"), which is
 
 The modules, each name re-exported here:
 
-- ``schema``: the sections' dataclasses, the limits and allowed values, ``FIELD_TYPES``, ``field_docs``;
+- ``schema``: the sections' dataclasses, the limits and allowed values, ``FIELD_TYPES``, ``field_docs``,
+  and ``dataclass_field_types`` / ``dataclass_field_docs``, which read them from any settings dataclass;
 - ``version``: ``CONFIG_VERSION`` and ``check_version``;
 - ``overrides``: values merged onto a config (``apply_overrides``, ``--logger``), through OmegaConf;
 - ``validation``: the rules ``RunConfig.validate`` applies;
@@ -25,7 +26,8 @@ from imssr.config.runconfig import RESUMABLE_CHANGES, RunConfig
 from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
                                  MAX_SEED, PRECISIONS, REPLAY_DEVICES, SECTIONS, SEED_RULE, TF32_MODES,
                                  UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig, AuxConfig, EnvConfig,
-                                 IntrinsicConfig, TrainConfig, field_docs, steps_for_frames)
+                                 IntrinsicConfig, TrainConfig, dataclass_field_docs, dataclass_field_types,
+                                 field_docs, steps_for_frames, type_phrase)
 from imssr.config.version import CONFIG_VERSION, V1_KEYS, check_version
 
 __all__ = [
@@ -33,5 +35,6 @@ __all__ = [
     "IntrinsicConfig", "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED",
     "PRECISIONS", "REPLAY_DEVICES", "RESUMABLE_CHANGES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TYPE_WORDS",
     "TrainConfig", "UPDATE_SCHEDULES", "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_version",
-    "field_docs", "load_config", "logger_fields", "read_config_file", "steps_for_frames",
+    "dataclass_field_docs", "dataclass_field_types", "field_docs", "load_config", "logger_fields",
+    "read_config_file", "steps_for_frames", "type_phrase",
 ]

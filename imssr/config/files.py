@@ -1,29 +1,16 @@
 """Config files: a JSON file's value with one-line errors, and a complete config read from one."""
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from imssr.config.runconfig import RunConfig
 from imssr.config.version import check_version
-from imssr.errors import ImssrError
+from imssr.jsonio import read_json
 
 
 def read_config_file(path: str) -> Any:
     """The JSON value of a config file, with one-line errors for anything that is not JSON text."""
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return json.load(fh)
-    except FileNotFoundError:
-        raise ImssrError(f"config file not found: {path}") from None
-    except IsADirectoryError:
-        raise ImssrError(f"config file {path} is a directory") from None
-    except UnicodeDecodeError:
-        raise ImssrError(f"config file {path} is not a JSON text file (it is not UTF-8 text)") from None
-    except json.JSONDecodeError as exc:
-        raise ImssrError(f"config file {path} is not valid JSON: {exc}") from None
-    except RecursionError:
-        raise ImssrError(f"config file {path} nests its JSON too deeply to be a config") from None
+    return read_json(path, "config file", "config")
 
 
 def load_config(path: str) -> RunConfig:

@@ -4,13 +4,17 @@ Counters count agent steps and replay capacity counts transitions (:mod:`imssr.c
 units).  Besides the sections: the limits and allowed values that the rules of
 :mod:`imssr.config.validation` check, :data:`FIELD_TYPES` (every field's type, which
 :mod:`imssr.config.overrides` converts to) and :func:`field_docs` (the fields' docstrings, the
-CLI's help texts).  :class:`~imssr.config.runconfig.RunConfig` gathers the sections.
+CLI's help texts).  :class:`~imssr.config.runconfig.RunConfig` gathers the sections.  Both tables
+are read from the dataclasses by :func:`dataclass_field_types` and :func:`dataclass_field_docs`,
+which read any settings dataclass so (the sweep's :class:`~imssr.sweep.grid.SweepConfig` too).
 """
 from __future__ import annotations
 
 import functools
 import sys
+import typing
 from dataclasses import dataclass, fields
+from typing import Any
 
 from docstring_parser import parse_from_object
 
@@ -301,8 +305,26 @@ REPLAY_DEVICES = ("cpu", "cuda", "auto")
 SECTIONS = {"env": EnvConfig, "agent": AgentConfig, "aux": AuxConfig, "intrinsic": IntrinsicConfig,
             "train": TrainConfig}
 """Config sections and their dataclasses, in the order of :class:`RunConfig`."""
-FIELD_TYPES = {"algo": str, "version": int, **{f"{name}.{f.name}": type(getattr(cls(), f.name))
-                                                for name, cls in SECTIONS.items() for f in fields(cls)}}
+
+
+@functools.cache
+def dataclass_field_types(cls: type) -> dict[str, Any]:
+    """The fields of the dataclass ``cls`` -> their declared types, resolved (``int``,
+    ``Optional[int]``, ``list[str]``), in the order of the fields."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in fields(cls)}
+
+
+@functools.cache
+def dataclass_field_docs(cls: type) -> dict[str, str]:
+    """The fields of the dataclass ``cls`` -> their docstrings (whitespace collapsed), read once
+    from its source; empty when installed without sources."""
+    return {doc.arg_name: " ".join(doc.description.split()) for doc in parse_from_object(cls).params
+            if doc.args[0] == "attribute" and doc.description}
+
+
+FIELD_TYPES = {"algo": str, "version": int, **{f"{name}.{field}": kind for name, cls in SECTIONS.items()
+                                                for field, kind in dataclass_field_types(cls).items()}}
 """``section.field`` (and the top-level ``algo``, ``version``) -> its type: bool, int, float or str."""
 
 
@@ -318,8 +340,7 @@ def steps_for_frames(frames: int, action_repeat: int) -> int:
 
 @functools.cache
 def field_docs() -> dict[str, str]:
-    """``section.field`` -> the field's docstring (whitespace collapsed), read once from the
-    dataclasses' source: the CLI's help texts use them.  Empty when installed without sources."""
-    return {f"{section}.{doc.arg_name}": " ".join(doc.description.split())
-            for section, cls in SECTIONS.items() for doc in parse_from_object(cls).params
-            if doc.args[0] == "attribute" and doc.description}
+    """``section.field`` -> the field's docstring (:func:`dataclass_field_docs`): the CLI's help
+    texts use them.  Empty when installed without sources."""
+    return {f"{section}.{name}": doc for section, cls in SECTIONS.items()
+            for name, doc in dataclass_field_docs(cls).items()}

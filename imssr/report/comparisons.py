@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 from imssr.files import atomic_write_csv
 from imssr.presets import ALGOS
-from imssr.report.results import group_label
 from imssr.report.stats import Comparison, compare
 from imssr.report.tables import FRACTIONS, Row
+from imssr.sweep.grid import group_label
 
 COLUMNS = ["mode", "task", "fraction", "x", "y", "n_x", "n_y", "mean_x", "mean_y", "difference",
            "p_x_beats_y", "p_value", "exact"]

@@ -52,21 +52,22 @@ def export_runs(root: str, dest: str) -> list[Exported]:
     if _inside(dest, results.root):
         raise ImssrError(f"the export directory {dest} is inside the sweep {results.root}: pick one outside it")
     out = []
-    for run in sorted(results.runs, key=lambda r: r.dir):
+    for result in sorted(results.runs, key=lambda r: r.run.dir):
+        run = result.run
         beta = None if run.beta0 is None else beta_label(run.beta0)
         # Names read from a run's own files become path parts: only plain names, and the target
         # must stay inside DEST (a config naming its task "../../x" must not write elsewhere).
-        unsafe = [f"{what} {name!r}" for what, name in (("precision", run.precision), ("task", run.task),
+        unsafe = [f"{what} {name!r}" for what, name in (("precision", result.precision), ("task", run.task),
                                                         ("algo", run.algo)) if not _plain_name(name)]
         if unsafe:
             out.append(Exported(run.dir, dest, f"skipped (its config.json names {', '.join(unsafe)}: "
                                                "not a plain name)"))
             continue
-        target = run_path(os.path.join(dest, run.precision), run.task, run.algo, run.seed, beta)
-        if run.variant:
+        target = run_path(os.path.join(dest, result.precision), run.task, run.algo, run.seed, beta)
+        if result.variant:
             # Another run shares its algo, task, seed and precision: keep both, each at its own
             # path under the sweep (directories found on disk: plain names), not one over the other.
-            target = os.path.join(dest, run.precision, os.path.relpath(run.dir, results.root))
+            target = os.path.join(dest, result.precision, os.path.relpath(run.dir, results.root))
         if not _inside(target, dest):
             out.append(Exported(run.dir, dest, "skipped (its path would leave the export directory)"))
             continue

@@ -40,9 +40,9 @@ def _save(plt, fig, path: str) -> str:
 def curve_points(results: SweepResults, task: str, mode: str, label: str) -> list[tuple[int, float, float, int]]:
     """``(agent step, mean, std, seeds)`` over the seeds that evaluated at each agent step."""
     by_step: dict[int, list[float]] = {}
-    for run in results.runs:
-        if run.task == task and run.label == label:
-            for m, step, _, ret in run.evals:
+    for result in results.runs:
+        if result.run.task == task and result.label == label:
+            for m, step, _, ret in result.evals:
                 if m == mode:
                     by_step.setdefault(step, []).append(ret)
     return [(s, float(np.mean(v)), float(np.std(v)), len(v)) for s, v in sorted(by_step.items())]
@@ -52,10 +52,10 @@ def plot_curves(results: SweepResults, path: str) -> str:
     """One panel per (task, mode), one line per algo: mean over seeds with a ±std band, against
     agent steps (frames on the top axis when the task's runs share an action repeat)."""
     plt = _pyplot()
-    panels = [(task, mode) for task in sorted({r.task for r in results.runs})
-              for mode in mode_order(m for r in results.runs if r.task == task for m, *_ in r.evals)]
+    panels = [(task, mode) for task in sorted({r.run.task for r in results.runs})
+              for mode in mode_order(m for r in results.runs if r.run.task == task for m, *_ in r.evals)]
     if not panels:
-        panels = [(sorted({r.task for r in results.runs})[0], "training")]
+        panels = [(sorted({r.run.task for r in results.runs})[0], "training")]
     labels = label_order(results)
     colors = {label: plt.cm.tab10(i % 10) for i, label in enumerate(labels)}
     fig, axes = _grid(plt, len(panels))

@@ -47,7 +47,7 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
         notes.append(f"{exc}: no paper column")
     rows, row_notes = tables.build_rows(results, paper)
     notes += row_notes
-    budgets = sorted({results.budget(t) for t in {r.task for r in results.runs}})
+    budgets = sorted({results.budget(t) for t in {r.run.task for r in results.runs}})
     # The IM-SSR paper's tables (shipped, or the spec's CSV naming them "I" and "II") are at its T.
     imssr_paper = paper is not None and any(p.source.startswith("IM-SSR") or p.source in ("I", "II")
                                             for p in paper.values())
@@ -138,9 +138,9 @@ def makers(results) -> dict[tuple[str, str], dict[str, int]]:
     """``(task, label) -> {one line of code and device: runs}`` over every record of every run
     (a run resumed elsewhere counts under both); runs without records under "not recorded"."""
     out: dict[tuple[str, str], dict[str, int]] = {}
-    for run in results.runs:
-        lines = {summary(r) for r in run.provenance} or {"not recorded (a run of imssr before provenance.json)"}
-        group = out.setdefault((run.task, run.label), {})
+    for result in results.runs:
+        lines = {summary(r) for r in result.provenance} or {"not recorded (a run of imssr before provenance.json)"}
+        group = out.setdefault((result.run.task, result.label), {})
         for line in lines:
             group[line] = group.get(line, 0) + 1
     return out
@@ -150,9 +150,10 @@ def mixed_makers(results, made_by: dict[tuple[str, str], dict[str, int]]) -> lis
     """One warning per row whose runs were made by more than one code version or device
     (``made_by``: :func:`makers` of ``results``)."""
     keys: dict[tuple[str, str], set] = {}
-    for run in results.runs:
-        for r in run.provenance:
-            keys.setdefault((run.task, run.label), set()).add(tuple(r.get(f) for f in (*CODE_FIELDS, *DEVICE_FIELDS)))
+    for result in results.runs:
+        for r in result.provenance:
+            keys.setdefault((result.run.task, result.label), set()).add(
+                tuple(r.get(f) for f in (*CODE_FIELDS, *DEVICE_FIELDS)))
     return [f"warning: {task} / {label} mixes code versions or devices: "
             + "; ".join(f"{line} ({n} run{'s' if n > 1 else ''})" for line, n in sorted(made_by[task, label].items()))
             for (task, label), found in sorted(keys.items()) if len(found) > 1]

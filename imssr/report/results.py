@@ -4,13 +4,14 @@ Budgets and evaluation points count agent steps; frames (``step * action_repeat`
 beside them.
 
 Runs are found by their ``config.json`` at any depth below the root, so a report also works
-on hand-assembled directories and on sweeps that are still running.  ``sweep.json`` (written
-by ``imssr sweep``) adds the runs that were planned but have not written anything yet, and
-``sweep_status.json`` the runs that failed every attempt, with their last error.
+on hand-assembled directories and on sweeps that are still running; each is named by a
+:class:`~imssr.sweep.grid.Run`.  The files ``imssr sweep`` writes under the root, read through
+:class:`~imssr.sweep.directory.SweepDir`, add the runs that were planned but have not written
+anything yet (``sweep.json``) and the runs that failed every attempt, with their last error
+(``sweep_status.json``).
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -20,38 +21,28 @@ from imssr.config import steps_for_frames
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_csv, read_csv
 from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir, parse_run_path
-from imssr.sweep.grid import SWEEP_PLAN, beta_label, status_of
+from imssr.sweep.directory import PLAN_FILE, PlannedRun, SweepDir
+from imssr.sweep.grid import Run, beta_label, group_label
 
 EVALUATIONS_COLUMNS = ["algo", "task", "mode", "seed", "step", "frame", "return", "beta0", "precision"]
 
 
 @dataclass
 class RunResult:
-    """One run directory as the report sees it."""
+    """One run directory as the report sees it: which run, and what it holds."""
 
-    algo: str
-    """Algorithm name."""
-    task: str
-    """Task name."""
-    seed: int
-    """Run seed."""
-    beta0: Optional[float]
-    """beta_0 when the run is a point of a beta sweep (a ``beta0_<value>`` directory level)."""
+    run: Run
+    """Which run; its beta_0 only when the run is a point of a beta sweep (a ``beta0_<value>``
+    directory level)."""
     steps: int
     """The run's budget T in agent steps."""
     action_repeat: int
     """Environment frames per agent step."""
-    dir: str
-    """Run directory."""
     precision: str = "fp32"
     """The run's numerics, ``agent.precision_label`` (``fp32``, ``bf16``, ``bf16-fp32q``): a bf16
     run is its own group, never a seed of the fp32 one."""
-    run_dir: Optional[RunDir] = field(default=None, repr=False, compare=False)
-    """The run directory's files and life (None: a run given by hand, not found on disk)."""
     evals: list[tuple[str, int, int, float]] = field(default_factory=list)
     """``(mode, step, frame, return_mean)`` of every evaluation, in file order."""
-    failure: Optional[str] = None
-    """The last error of a run that ``sweep_status.json`` lists as failed; None otherwise."""
     settings: dict[str, Any] = field(default_factory=dict, repr=False)
     """The run's config, flattened (``section.field -> value``): what tells apart two runs that
     share algo, task, seed and precision."""
@@ -72,36 +63,8 @@ class RunResult:
         """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep, the
         precision when it is not the paper's fp32, and the settings that set it apart from runs
         of the same algo, task and seed (:attr:`variant`)."""
-        label = group_label(self.algo, self.beta0, self.precision)
+        label = group_label(self.run.algo, self.run.beta0, self.precision)
         return f"{label} [{self.variant}]" if self.variant else label
-
-
-def group_label(algo: str, beta0: Optional[float], precision: str = "fp32") -> str:
-    """The algo, plus beta_0 for a point of a beta sweep, plus the precision unless fp32
-    (``"im-curl beta0=0.01 bf16"``)."""
-    label = algo if beta0 is None else f"{algo} beta0={beta_label(beta0)}"
-    return label if precision == "fp32" else f"{label} {precision}"
-
-
-@dataclass
-class PlannedRun:
-    """A run that ``sweep.json`` lists (it may not exist yet)."""
-
-    algo: str
-    task: str
-    seed: int
-    beta0: Optional[float]
-    steps: int
-    """Budget in agent steps."""
-    dir: str
-    precision: str = "fp32"
-    """``agent.precision_label`` of the sweep's runs."""
-    failure: Optional[str] = None
-    """The last error when ``sweep_status.json`` lists the run as failed."""
-
-    @property
-    def label(self) -> str:
-        return group_label(self.algo, self.beta0, self.precision)
 
 
 @dataclass
@@ -111,25 +74,30 @@ class SweepResults:
     root: str
     runs: list[RunResult]
     planned: list[PlannedRun]
+    """The runs ``sweep.json`` lists (they may not exist yet)."""
     notes: list[str]
     failures: dict[str, str] = field(default_factory=dict)
     """Run directory (absolute) -> last error, for every run ``sweep_status.json`` lists as failed."""
 
+    def failure(self, run: Run) -> Optional[str]:
+        """The last error of ``run`` when ``sweep_status.json`` lists it as failed; None otherwise."""
+        return self.failures.get(os.path.abspath(run.dir))
+
     @property
     def is_beta_sweep(self) -> bool:
-        return any(r.beta0 is not None for r in self.runs) or any(p.beta0 is not None for p in self.planned)
+        return any(r.run.beta0 is not None for r in self.runs) or any(p.run.beta0 is not None for p in self.planned)
 
     def budget(self, task: str) -> int:
         """The sweep's T for ``task`` in agent steps: the planned budget, else the largest
         budget of its runs."""
-        steps = [p.steps for p in self.planned if p.task == task] or \
-                [r.steps for r in self.runs if r.task == task]
+        steps = [p.steps for p in self.planned if p.run.task == task] or \
+                [r.steps for r in self.runs if r.run.task == task]
         return max(steps)
 
     def action_repeat(self, task: str) -> Optional[int]:
         """The action repeat of ``task``'s runs; None when they differ (then a point in agent
         steps is no single frame count)."""
-        repeats = {r.action_repeat for r in self.runs if r.task == task}
+        repeats = {r.action_repeat for r in self.runs if r.run.task == task}
         return repeats.pop() if len(repeats) == 1 else None
 
     def frames_at(self, task: str, step: int) -> Optional[int]:
@@ -153,16 +121,14 @@ def collect(root: str) -> SweepResults:
             runs.append(run)
     set_apart(runs, root)
     planned = _read_plan(root, notes)
-    failures = read_failures(root)
-    for item in (*runs, *planned):
-        item.failure = failures.get(os.path.abspath(item.dir))
-    found = {os.path.abspath(r.dir) for r in runs}
+    results = SweepResults(root, runs, planned, notes, SweepDir(root).failed_runs())
+    found = {os.path.abspath(r.run.dir) for r in runs}
     for p in planned:
-        if p.dir not in found and p.failure is None:
-            notes.append(f"{os.path.relpath(p.dir, root)}: planned but not started (no config.json)")
+        if p.run.dir not in found and results.failure(p.run) is None:
+            notes.append(f"{os.path.relpath(p.run.dir, root)}: planned but not started (no config.json)")
     if not runs:
         raise ImssrError(f"no runs under {root} (a run directory holds config.json and eval.csv)")
-    return SweepResults(root, runs, planned, notes, failures)
+    return results
 
 
 IDENTITY = ("algo", "env.task", "train.seed")
@@ -178,37 +144,18 @@ def set_apart(runs: list[RunResult], root: str) -> None:
     them as one group's seeds.  Each run of such a (task, label) group gets :attr:`RunResult.variant`:
     its values of the settings in which the group's runs differ."""
     groups: dict[tuple[str, str], list[RunResult]] = {}
-    for run in runs:
-        groups.setdefault((run.task, run.label), []).append(run)
+    for result in runs:
+        groups.setdefault((result.run.task, result.label), []).append(result)
     for group in groups.values():
-        seeds = [r.seed for r in group]
+        seeds = [r.run.seed for r in group]
         if len(seeds) == len(set(seeds)):
             continue
         keys = sorted({k for r in group for k in r.settings if k not in IDENTITY + RUN_ONLY
                        and len({repr(o.settings.get(k)) for o in group}) > 1})
-        for run in group:
+        for result in group:
             # Runs alike in every setting (a copy of a run, the same sweep twice): their directories.
-            run.variant = ", ".join(f"{k}={run.settings.get(k)}" for k in keys) or \
-                os.path.relpath(os.path.dirname(run.dir), root)
-
-
-def read_failures(root: str) -> dict[str, str]:
-    """Runs that the last ``imssr sweep`` over ``root`` gave up on (state ``failed`` in
-    ``sweep_status.json``): absolute run directory -> the last attempt's error line.  A run
-    finished since (it has ``done.json``) is not failed."""
-    status = status_of(root)
-    runs = status.get("runs") if isinstance(status, dict) else None
-    out = {}
-    for run in runs if isinstance(runs, list) else []:
-        if not isinstance(run, dict) or run.get("state") != "failed" or not isinstance(run.get("dir"), str):
-            continue
-        run_dir = os.path.abspath(os.path.join(root, run["dir"]))
-        if RunDir(run_dir).read_done() is not None:
-            continue
-        errors = run.get("errors")
-        last = errors[-1] if isinstance(errors, list) and errors and isinstance(errors[-1], str) else ""
-        out[run_dir] = last.removeprefix("imssr: error: ") or "no error recorded"
-    return out
+            result.variant = ", ".join(f"{k}={result.settings.get(k)}" for k in keys) or \
+                os.path.relpath(os.path.dirname(result.run.dir), root)
 
 
 def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
@@ -222,12 +169,12 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
         return None
     repeat = cfg.env.action_repeat
-    run = RunResult(cfg.algo, cfg.env.task, cfg.train.seed, beta0, cfg.train.steps, repeat, run_dir,
-                    precision=cfg.agent.precision_label, run_dir=run_files, settings=cfg.flat())
+    result = RunResult(Run(cfg.algo, cfg.env.task, cfg.train.seed, beta0, run_dir), cfg.train.steps, repeat,
+                       precision=cfg.agent.precision_label, settings=cfg.flat())
     records = run_files.read_provenance()
     if records is None:
         notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
-    run.provenance = records or []
+    result.provenance = records or []
     path = run_files.eval_log
     try:
         rows = read_csv(path, complete_only=True)
@@ -248,35 +195,28 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
             # A mean over seeds with a nan or inf in it says nothing: the point is left out, and said.
             non_finite.append(f"{value} at agent step {step:,} ({row['mode']})")
             continue
-        run.evals.append((row["mode"], step, frame, value))
+        result.evals.append((row["mode"], step, frame, value))
     if non_finite:
         notes.append(f"{rel}: {len(non_finite)} evaluation(s) with a non-finite return left out: "
                      f"{', '.join(non_finite[:3])}{', ...' if len(non_finite) > 3 else ''}")
-    if not run.evals:
+    if not result.evals:
         notes.append(f"{rel}: no evaluations yet")
-    return run
+    return result
 
 
 def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
-    path = os.path.join(root, SWEEP_PLAN)
-    if not os.path.exists(path):
-        return []
     try:
-        with open(path, encoding="utf-8") as fh:
-            plan = json.load(fh)
-        # Plans written before runs carried their precision: the presets' fp32.
-        return [PlannedRun(r["algo"], r["task"], int(r["seed"]), r.get("beta0"), int(r["steps"]),
-                           os.path.join(root, r["dir"]), str(r.get("precision", "fp32"))) for r in plan["runs"]]
-    except (OSError, ValueError, KeyError, TypeError, RecursionError, ImssrError) as exc:
-        notes.append(f"{SWEEP_PLAN}: unreadable ({type(exc).__name__ if isinstance(exc, RecursionError) else exc}); "
-                     "expected seeds come from the runs found")
+        return SweepDir(root).read_plan()
+    except (OSError, ImssrError) as exc:
+        notes.append(f"{PLAN_FILE}: unreadable ({exc}); expected seeds come from the runs found")
         return []
 
 
 def write_evaluations(results: SweepResults, path: str) -> str:
     """Every evaluation of every run: ``algo,task,mode,seed,step,frame,return,beta0,precision``."""
-    rows = sorted((r.algo, r.task, mode, r.seed, step, frame, ret, "" if r.beta0 is None else beta_label(r.beta0),
-                   r.precision) for r in results.runs for mode, step, frame, ret in r.evals)
+    rows = sorted((r.run.algo, r.run.task, mode, r.run.seed, step, frame, ret,
+                   "" if r.run.beta0 is None else beta_label(r.run.beta0), r.precision)
+                  for r in results.runs for mode, step, frame, ret in r.evals)
     return atomic_write_csv(path, EVALUATIONS_COLUMNS,
                             ([algo, task, mode, seed, step, frame, f"{ret:.6g}", beta, precision]
                              for algo, task, mode, seed, step, frame, ret, beta, precision in rows))

@@ -137,8 +137,8 @@ def label_order(results: SweepResults) -> list[str]:
     """fp32 before other precisions; within each, algos in registry order (curl, im-curl, ...),
     beta sweeps by increasing beta_0."""
     rank = {name: i for i, name in enumerate(ALGOS)}
-    keys = {(r.label, r.algo, r.beta0, r.precision) for r in results.runs} | \
-           {(p.label, p.algo, p.beta0, p.precision) for p in results.planned}
+    keys = {(r.label, r.run.algo, r.run.beta0, r.precision) for r in results.runs} | \
+           {(p.label, p.run.algo, p.run.beta0, p.precision) for p in results.planned}
     ordered = sorted(keys, key=lambda k: (k[3] != "fp32", k[3], rank.get(k[1], len(rank)), k[1],
                                           -1.0 if k[2] is None else k[2]))
     return [k[0] for k in ordered]
@@ -149,41 +149,43 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
     notes: list[str] = []
     labels = label_order(results)
     by_group: dict[tuple[str, str], list[RunResult]] = {}
-    for run in results.runs:
-        by_group.setdefault((run.task, run.label), []).append(run)
+    for result in results.runs:
+        by_group.setdefault((result.run.task, result.label), []).append(result)
     rows = []
-    for task in sorted({r.task for r in results.runs}):
+    for task in sorted({r.run.task for r in results.runs}):
         budget = results.budget(task)
         expected = _expected_seeds(results, task)
-        modes = mode_order(m for r in results.runs if r.task == task for m, *_ in r.evals)
+        modes = mode_order(m for r in results.runs if r.run.task == task for m, *_ in r.evals)
         for mode in modes:
             for label in labels:
                 runs = by_group.get((task, label), [])
-                if not runs and not any(p.task == task and p.label == label for p in results.planned):
+                if not runs and not any(p.run.task == task and p.label == label for p in results.planned):
                     continue
                 first = runs[0] if runs else next(p for p in results.planned if p.label == label)
-                algo, beta0, precision = first.algo, first.beta0, first.precision
+                algo, beta0, precision = first.run.algo, first.run.beta0, first.precision
                 want = expected.get(label, set())
                 cells = []
                 for fraction in FRACTIONS:
                     point = point_step(fraction, budget)
                     cell = Cell(fraction, point, results.frames_at(task, point),
-                                expected=len(want | {r.seed for r in runs}))
+                                expected=len(want | {r.run.seed for r in runs}))
                     late = []
-                    for run in runs:
-                        evals = [(s, v) for m, s, _, v in run.evals if m == mode]
+                    for result in runs:
+                        evals = [(s, v) for m, s, _, v in result.evals if m == mode]
                         value = value_at(evals, point)
+                        failure = results.failure(result.run)
                         if value is None:
-                            why = f"failed: {run.failure}" if run.failure else _why_missing(evals, point)
-                            late.append(f"{run.seed} ({why})")
-                            if run.failure:
-                                cell.failed.add(run.seed)
+                            why = f"failed: {failure}" if failure else _why_missing(evals, point)
+                            late.append(f"{result.run.seed} ({why})")
+                            if failure:
+                                cell.failed.add(result.run.seed)
                         else:
-                            cell.values[run.seed] = value
-                    absent = sorted(want - {r.seed for r in runs})
+                            cell.values[result.run.seed] = value
+                    absent = sorted(want - {r.run.seed for r in runs})
                     # Planned runs that failed before writing their config.json.
-                    failed_early = {p.seed: p.failure for p in results.planned
-                                    if p.task == task and p.label == label and p.failure and p.seed in absent}
+                    failed_early = {p.run.seed: results.failure(p.run) for p in results.planned
+                                    if p.run.task == task and p.label == label and results.failure(p.run)
+                                    and p.run.seed in absent}
                     cell.failed |= set(failed_early)
                     absent = [s for s in absent if s not in failed_early]
                     if late or absent or failed_early:
@@ -202,14 +204,14 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
 
 def _expected_seeds(results: SweepResults, task: str) -> dict[str, set[int]]:
     """Seeds each label should have on ``task``: the plan's, else every seed any label ran."""
-    planned = [p for p in results.planned if p.task == task]
+    planned = [p for p in results.planned if p.run.task == task]
     if planned:
         out: dict[str, set[int]] = {}
         for p in planned:
-            out.setdefault(p.label, set()).add(p.seed)
+            out.setdefault(p.label, set()).add(p.run.seed)
         return out
-    seeds = {r.seed for r in results.runs if r.task == task}
-    return {r.label: seeds for r in results.runs if r.task == task}
+    seeds = {r.run.seed for r in results.runs if r.run.task == task}
+    return {r.label: seeds for r in results.runs if r.run.task == task}
 
 
 def _mark_best(rows: list[Row]) -> None:
@@ -305,10 +307,10 @@ def markdown_points(results: SweepResults) -> str:
     """Where 0.2T, 0.5T and 1.0T fall on each task, in agent steps with the frames beside."""
     lines = ["| task | action repeat | " + " | ".join(f"{f:.1f}T" for f in FRACTIONS) + " |",
              "|---|---:|" + "---:|" * len(FRACTIONS)]
-    for task in sorted({r.task for r in results.runs}):
+    for task in sorted({r.run.task for r in results.runs}):
         budget, repeat = results.budget(task), results.action_repeat(task)
         repeats = str(repeat) if repeat is not None else \
-            ", ".join(map(str, sorted({r.action_repeat for r in results.runs if r.task == task})))
+            ", ".join(map(str, sorted({r.action_repeat for r in results.runs if r.run.task == task})))
         points = [point_text(p, results.frames_at(task, p)) for p in (point_step(f, budget) for f in FRACTIONS)]
         lines.append(f"| `{task}` | {repeats} | " + " | ".join(points) + " |")
     return "\n".join(lines) + "\n"

@@ -1,5 +1,11 @@
 """Sweep grids: what to run (algos x tasks x seeds [x beta_0]) and where each run lives.
 
+:class:`SweepConfig` is a sweep's settings, one typed field each, read as the run's config is
+(:func:`~imssr.config.dataclass_field_types`, :func:`~imssr.config.dataclass_field_docs`): a
+value of a sweep file or a flag becomes its field's declared type (:func:`sweep_config`), and the
+CLI's flags and their help come from the fields.  :class:`Run` names one run of a grid, for the
+sweep that trains it and for the report that reads it back.
+
 A run's directory is a pure function of its grid point, ``ROOT/<task>/<algo>/seed_<n>``
 (``ROOT/<task>/<algo>/beta0_<value>/seed_<n>`` in a beta_0 sweep), so re-running a sweep
 finds its earlier runs again; ``imssr.sweep.sweep`` decides what each one still needs.
@@ -7,69 +13,65 @@ finds its earlier runs again; ``imssr.sweep.sweep`` decides what each one still 
 from __future__ import annotations
 
 import functools
-import json
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields
+import typing
+from dataclasses import dataclass, field, fields
 from typing import Any, Optional
 
-from imssr.config import MAX_SEED, SEED_RULE, RunConfig, logger_fields
+from imssr.config import MAX_SEED, SEED_RULE, RunConfig, dataclass_field_types, logger_fields, type_phrase
 from imssr.envs import get_task
 from imssr.errors import ImssrError
-from imssr.files import atomic_write_text
-from imssr.jsonio import dumps
-from imssr.presets import ALGOS, get_algo, run_config
+from imssr.jsonio import read_json
+from imssr.presets import ALGOS, get_algo
 from imssr.rundir import RunDir, run_path
 
 LAUNCHERS = ("ray", "slurm", "local")
 """What ``imssr sweep --launcher`` takes (:mod:`imssr.sweep.launchers`)."""
 
-SWEEP_PLAN = "sweep.json"
-"""File under ROOT with the expanded grid (the report reads it for T and the expected seeds).
-Each run holds its budget in agent steps (``steps``) and frames (``frames``)."""
-SWEEP_STATUS = "sweep_status.json"
-"""File under ROOT with the state of every run as the last ``imssr sweep`` over it left them
-(:mod:`imssr.sweep.sweep` writes it; the report reads the failures)."""
-
 
 @dataclass
 class SweepConfig:
-    """One sweep: the grid and how its runs are dispatched."""
+    """One sweep: the grid and how its runs are dispatched.  Each field is a key of a sweep file and
+    a flag of ``imssr sweep`` (:func:`setting_key`), whose help is the field's docstring."""
 
     root: str = "runs/sweep"
-    """Directory that holds every run of the sweep, ``sweep.json`` and ``sweep_status.json``; in a
+    """Directory of the sweep: every run of it, ``sweep.json`` and ``sweep_status.json``; in a
     sweep file a leading ``~`` is the home directory, as on the command line."""
     algos: list[str] = field(default_factory=list)
-    """Algorithms (``imssr algos``)."""
+    """Algorithms, see ``imssr algos``: ``a,b``, or a list in a sweep file."""
     tasks: list[str] = field(default_factory=list)
-    """Tasks (``imssr tasks``)."""
+    """Tasks, see ``imssr tasks``: ``t1,t2``, or a list in a sweep file."""
     seeds: list[int] = field(default_factory=lambda: [1])
-    """Seeds, one run each per algo and task."""
+    """Seeds, one run each per algo and task: a list, a range or both (``1,2,3``, ``1-5``,
+    ``1-3,7``)."""
     steps: Optional[int] = None
-    """Budget T of every run in agent steps (the report's T); None (and no ``frames``): the
+    """Budget T of every run in agent steps (the report's T); none (and no ``frames``): the
     preset's, 500,000."""
     frames: Optional[int] = None
     """Alternative to ``steps``: the budget in environment frames, passed on as ``imssr train
-    --frames`` so that each run trains ``ceil(frames / action_repeat)`` steps of its own task's
-    action repeat.  At most one of ``steps`` and ``frames``."""
+    --frames`` so that each run trains ``frames / action_repeat`` agent steps of its own task,
+    rounded up.  At most one of ``steps`` and ``frames``."""
     overrides: list[str] = field(default_factory=list)
-    """``section.field=value`` overrides applied to every run, as ``imssr train --set`` takes them."""
+    """``section.field=value`` overrides applied to every run, as ``imssr train --set`` takes them
+    (``set`` in a sweep file; the flag is repeatable and adds to the file's)."""
     beta0: list[float] = field(default_factory=list)
-    """beta_0 values of a beta sensitivity sweep (one run per value for algos with an intrinsic
-    reward; base algos run once as the beta_0 = 0 reference); empty: each preset's beta_0."""
+    """beta_0 values of a beta sensitivity sweep, e.g. ``0.001,0.01,0.05,0.1`` (one run per value
+    for algos with an intrinsic reward; base algos run once as the beta_0 = 0 reference); empty:
+    each preset's beta_0."""
     retries: int = 1
     """Extra attempts of a failed run (each resumes from the run's checkpoint if it has one)."""
     cpus_per_run: float = 1.0
-    """CPUs Ray reserves per run; also the run's torch/OpenMP threads (``train.torch_threads``, at
-    least 1, unless the overrides set it)."""
+    """CPUs per run: what Ray reserves for it and what the local launcher counts; also the run's
+    torch/OpenMP threads (``train.torch_threads``, at least 1, unless the overrides set it)."""
     gpus_per_run: float = 0.0
     """GPUs (fractions allowed) Ray reserves per run; > 0 trains on ``cuda`` unless
     ``train.device`` is overridden."""
     max_parallel: int = 0
     """Runs in flight at once; 0: as many as the cluster's CPUs and GPUs hold."""
     address: str = ""
-    """Address of an existing Ray cluster (``ray start --head`` prints it); empty: a local Ray
-    started for this sweep and shut down after it."""
+    """Address of an existing Ray cluster, e.g. ``10.0.0.1:6379`` (``ray start --head`` prints it);
+    empty: a local Ray started for this sweep and shut down after it."""
     launcher: str = "ray"
     """How runs are dispatched: ``ray`` (a local Ray or the cluster at ``address``), ``slurm``
     (one SLURM job per run through submitit, the ``slurm`` extra) or ``local`` (subprocesses of
@@ -84,17 +86,17 @@ class SweepConfig:
     slurm_array_parallelism: int = 0
     """SLURM jobs of the sweep's job array running at once; 0: as many as SLURM allows (256)."""
     runs_per_process: int = 0
-    """Runs trained in one process as one batch of agents (``imssr train --runs``: one update for
-    all of them, each the run it would be alone).  Runs that can share a batch, i.e. that differ
-    only in the seed and the intrinsic reward's ``beta_0`` or on/off (the seeds of a grid point, a
-    base algo and its IM- variant, a beta_0 sweep), go in processes of at most this many; 1: one
-    run per process; 0: as many as can share when the runs train on CUDA (what one GPU wants: its
-    time goes to one batched step instead of time-slicing many processes), else 1 (on the CPU
-    separate processes use the cores as well: docs/performance.md).  A process takes the CPUs and
-    GPUs of one run (``cpus_per_run``, ``gpus_per_run``)."""
+    """Runs trained in one process as one batch of agents, at most this many (``imssr train
+    --runs``: one update for all, each the run it would be alone); runs that differ only in the
+    seed and in the intrinsic reward's beta_0 or on/off can share a process (a grid point's seeds, a
+    base algo and its IM- variant, a beta_0 sweep).  1: one run per process; 0: all that can share
+    when the runs train on CUDA (one batched step instead of processes time-slicing the GPU),
+    else 1 (on the CPU separate processes use the cores as well: docs/performance.md).  A process
+    takes the CPUs and GPUs of one run."""
     logger: str = ""
     """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's
-    default.  With ``wandb``, runs are grouped under the root's name in W&B."""
+    default.  With ``wandb``, runs are grouped under the root's name in W&B and tagged with their
+    algo, task, seed and beta_0."""
 
     @property
     def gpus(self) -> float:
@@ -108,20 +110,23 @@ class SweepConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SweepConfig":
-        """A sweep from a JSON object whose keys are the CLI's (``set`` for overrides)."""
+        """A sweep from a JSON object whose keys are the CLI's (:func:`setting_key`: ``set`` for
+        overrides; ``-`` or ``_``); a leading ``~`` of its root is the home directory."""
         if not isinstance(data, dict):
             raise ImssrError(f"a sweep file must hold a JSON object, got {type(data).__name__}")
         data = {k.replace("-", "_"): v for k, v in data.items()}
         if "set" in data:
             data["overrides"] = data.pop("set")
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - names)
+        names = [f.name for f in fields(cls)]
+        unknown = sorted(set(data) - set(names))
         if unknown:
             raise ImssrError(f"unknown sweep setting(s): {', '.join(unknown)}; valid: "
-                             f"{', '.join(sorted(names - {'overrides'} | {'set'}))}")
+                             f"{', '.join(sorted(setting_key(n) for n in names))}")
         cfg = cls()
-        for key, value in data.items():
-            setattr(cfg, key, _coerce(key, value))
+        for name, value in data.items():
+            setattr(cfg, name, _coerce(name, value))
+        # A committed sweep file can keep its runs outside the repository ("~/imssr-runs/...").
+        cfg.root = os.path.expanduser(cfg.root)
         return cfg
 
     def grid_fields(self) -> dict[str, str]:
@@ -187,7 +192,9 @@ class SweepConfig:
 
 @dataclass(frozen=True)
 class Run:
-    """One grid point: a single ``imssr train`` run."""
+    """Which run: one grid point and its directory, a single ``imssr train`` run.  The sweep plans
+    and trains runs by it, its files list them by it (:mod:`imssr.sweep.directory`), and the
+    report names each run it reads back by it."""
 
     algo: str
     """Algorithm name."""
@@ -196,7 +203,8 @@ class Run:
     seed: int
     """Run seed."""
     beta0: Optional[float]
-    """beta_0 of a beta sweep; None: the preset's (and for base algos)."""
+    """beta_0 of a beta sweep; None: the preset's (and for base algos, and runs outside a beta
+    sweep)."""
     dir: str
     """Run directory (absolute)."""
 
@@ -234,17 +242,26 @@ class Run:
             values.update(logger_fields(cfg.logger))
             if values["train.wandb"]:
                 values["train.wandb_group"] = cfg.wandb_group
-        resume = self.run_dir.has_checkpoint() and self.run_dir.has_config()
-        from imssr.training.entry import resume_config  # what `imssr train --resume` starts from
+        # Planned as `imssr train [--resume]` plans it (no torch: the trainer is not loaded).
+        from imssr.training.entry import TrainRequest, plan
 
-        return run_config(self.algo, self.task, base=resume_config(self.run_dir) if resume else None, values=values,
-                                frames=cfg.frames if cfg.steps is None else None, beta0=self.beta0,
-                                overrides=cfg.overrides)
+        resume = self.run_dir.has_checkpoint() and self.run_dir.has_config()
+        request = TrainRequest(algo=self.algo, task=self.task, out=self.run_dir.path, resume=resume, values=values,
+                               frames=cfg.frames if cfg.steps is None else None, beta0=self.beta0,
+                               overrides=cfg.overrides)
+        return plan(request)[0].config
 
 
 def beta_label(value: float) -> str:
     """Directory-safe, round-tripping text of a beta_0 (0.001 -> '0.001', 1e-05 -> '1e-05')."""
     return repr(float(value))
+
+
+def group_label(algo: str, beta0: Optional[float], precision: str = "fp32") -> str:
+    """What reports call the group of a run: the algo, plus beta_0 for a point of a beta sweep, plus
+    the precision unless fp32 (``"im-curl beta0=0.01 bf16"``)."""
+    label = algo if beta0 is None else f"{algo} beta0={beta_label(beta0)}"
+    return label if precision == "fp32" else f"{label} {precision}"
 
 
 def expand(cfg: SweepConfig) -> list[Run]:
@@ -260,19 +277,6 @@ def expand(cfg: SweepConfig) -> list[Run]:
                 for seed in cfg.seeds:
                     runs.append(Run(algo, task, seed, beta, run_path(root, task, algo, seed, label)))
     return runs
-
-
-def save_plan(cfg: SweepConfig, runs: list[Run], resolved: dict[str, dict[str, Any]]) -> str:
-    """Write ``ROOT/sweep.json``: the sweep's settings and every run with what its resolved
-    config says of it; ``resolved`` maps a run's directory to ``steps`` (agent steps),
-    ``frames`` and ``precision``."""
-    root = os.path.abspath(cfg.root)
-    plan = {"sweep": asdict(cfg),
-            "runs": [dict(asdict(r), dir=os.path.relpath(r.dir, root), **resolved[r.dir]) for r in runs]}
-    path = os.path.join(root, SWEEP_PLAN)
-
-    atomic_write_text(path, dumps(plan, indent=2) + "\n")
-    return path
 
 
 # -- parsing -----------------------------------------------------------------------------
@@ -341,55 +345,57 @@ def parse_floats(text: Any, what: str) -> list[float]:
     return list(dict.fromkeys(values))
 
 
-def _coerce(key: str, value: Any) -> Any:
-    """A sweep-file value in the type of its SweepConfig field."""
-    if key == "algos":
-        return parse_names(value, "algos")
-    if key == "tasks":
-        return parse_names(value, "tasks")
-    if key == "seeds":
-        return parse_seeds(value)
-    if key == "beta0":
-        return parse_floats(value, "beta0")
-    if key == "overrides":
+def setting_key(name: str) -> str:
+    """The key of the :class:`SweepConfig` field ``name`` in a sweep file, and its flag without the
+    dashes: the field's name, except ``set`` for the overrides (as ``imssr train --set``)."""
+    return "set" if name == "overrides" else name
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """A value of the :class:`SweepConfig` field ``name`` (a sweep file's, or a flag's) in the
+    field's declared type: text of a list (``a,b``, seeds ``1-5``) is parsed, and a value of the
+    wrong type is a one-line error."""
+    kind = dataclass_field_types(SweepConfig)[name]
+    if name == "overrides":
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise ImssrError('sweep file: "set" must be a list of "section.field=value" strings')
         return list(value)
-    if key in ("root", "address", "launcher", "slurm_partition", "logger"):
+    if type(None) in typing.get_args(kind):  # Optional[X]
+        if value is None:
+            return None
+        kind = next(k for k in typing.get_args(kind) if k is not type(None))
+    if typing.get_origin(kind) is list:
+        item = typing.get_args(kind)[0]
+        if item is int:
+            return parse_seeds(value)
+        return parse_floats(value, name) if item is float else parse_names(value, name)
+    if kind is str:
         if not isinstance(value, str):
-            raise ImssrError(f"sweep file: {key!r} must be a string")
-        # A committed sweep file can keep its runs outside the repository ("~/imssr-runs/...").
-        return os.path.expanduser(value) if key == "root" else value
-    kind = {"steps": int, "frames": int, "retries": int, "max_parallel": int, "runs_per_process": int,
-            "cpus_per_run": float, "gpus_per_run": float, "slurm_time": int, "slurm_gpus_per_task": int,
-            "slurm_array_parallelism": int}[key]
-    if value is None and key in ("steps", "frames"):
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
-            (kind is int and not float(value).is_integer()):
-        raise ImssrError(f"sweep file: {key!r} must be {'an integer' if kind is int else 'a number'}, got {value!r}")
-    return kind(value)
+            raise ImssrError(f"sweep file: {name!r} must be a string")
+        return value
+    try:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                (kind is int and isinstance(value, float) and not value.is_integer()):
+            raise ValueError
+        return kind(value)
+    except (ValueError, OverflowError):  # OverflowError: an integer too large for a float
+        raise ImssrError(f"sweep file: {name!r} must be {type_phrase(kind)}, got {value!r}") from None
 
 
 def load_sweep_file(path: str) -> SweepConfig:
-    if not os.path.exists(path):
-        raise ImssrError(f"sweep file not found: {path}")
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
-    except json.JSONDecodeError as exc:
-        raise ImssrError(f"sweep file {path} is not valid JSON: {exc}") from None
-    except UnicodeDecodeError:
-        raise ImssrError(f"sweep file {path} is not a JSON text file (it is not UTF-8 text)") from None
-    except RecursionError:
-        raise ImssrError(f"sweep file {path} nests its JSON too deeply to be a sweep file") from None
-    return SweepConfig.from_dict(data)
+    return SweepConfig.from_dict(read_json(path, "sweep file"))
 
 
-def status_of(root: str) -> Optional[dict]:
-    """The last sweep status written under ``root`` (None if there is none)."""
-    try:
-        with open(os.path.join(root, SWEEP_STATUS), encoding="utf-8") as fh:
-            return json.load(fh)
-    except (OSError, ValueError, RecursionError):  # ValueError: bad JSON or not UTF-8
-        return None
+def sweep_config(values: dict[str, Any], file: Optional[str] = None) -> SweepConfig:
+    """The sweep ``imssr sweep`` describes, not yet validated: the sweep file's settings (no file:
+    the defaults), then ``values`` over them, a field's name -> the value of its flag for each flag
+    given.  ``overrides`` add to the file's, and a budget in either unit replaces the file's."""
+    if values.get("steps") is not None and values.get("frames") is not None:
+        raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
+    cfg = load_sweep_file(file) if file else SweepConfig()
+    if "steps" in values or "frames" in values:
+        cfg.steps = cfg.frames = None
+    for name, value in values.items():
+        value = _coerce(name, value)
+        setattr(cfg, name, cfg.overrides + value if name == "overrides" else value)
+    return cfg

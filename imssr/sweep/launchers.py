@@ -20,6 +20,7 @@ from typing import Any, Optional
 from imssr.errors import ImssrError
 from imssr.extras import require
 from imssr.rundir.lock import local_holder
+from imssr.sweep.directory import SweepDir
 from imssr.sweep.grid import SweepConfig
 from imssr.sweep.runner import STOP_GRACE_S, RunAttempt, execute_runs
 
@@ -28,8 +29,6 @@ from imssr.sweep.runner import STOP_GRACE_S, RunAttempt, execute_runs
 LOCAL_OBJECT_STORE_BYTES = 150 * 1024 ** 2
 SLURM_DEFAULT_MINUTES = 24 * 60
 """A SLURM job's time limit when ``--slurm-time`` is not given."""
-SUBMITIT_FOLDER = ".submitit"
-"""Under the sweep root: submitit's job scripts, pickled calls and SLURM's output (``%j`` per job)."""
 
 
 @dataclass(frozen=True)
@@ -217,7 +216,7 @@ class SlurmLauncher(Launcher):
     def start(self) -> None:
         submitit = require("submitit", "slurm")
         c = self.cfg
-        folder = os.path.join(os.path.abspath(c.root), SUBMITIT_FOLDER, "%j")
+        folder = os.path.join(SweepDir(c.root).submitit_dir, "%j")
         self.executor = submitit.AutoExecutor(folder=folder, cluster=self.cluster)
         params: dict[str, Any] = dict(name="imssr", timeout_min=c.slurm_time or SLURM_DEFAULT_MINUTES,
                                       cpus_per_task=max(1, math.ceil(c.cpus_per_run)), tasks_per_node=1, nodes=1)

@@ -13,6 +13,8 @@ attempt is retried (resuming from its checkpoint if it wrote one) up to ``retrie
 still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.  A run that
 diverged is not retried (it diverges again from the same checkpoint); one stopped by a signal
 (preemption: ``imssr train`` checkpoints and exits 130) is interrupted, not failed, and resumes.
+The sweep root's own files (``sweep.json``, ``sweep_status.json``, its lock) are written and read
+by :class:`~imssr.sweep.directory.SweepDir`.
 """
 from __future__ import annotations
 
@@ -21,68 +23,20 @@ import signal
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Optional
 
 from tqdm import tqdm
 
 from imssr.config import RunConfig
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
-from imssr.files import atomic_write_text
-from imssr.jsonio import dumps
 from imssr.rundir import SWEEP_LOG, RunDir
-from imssr.sweep.grid import SWEEP_STATUS, Run, SweepConfig, expand, save_plan
+from imssr.sweep.directory import STATES, PlannedRun, RunStatus, SweepDir
+from imssr.sweep.grid import SweepConfig, expand
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
 from imssr.config.batching import agent_refusal, batch_key
-from imssr.rundir.lock import DirectoryLock
 
-STATES = ("queued", "running", "done", "failed", "interrupted")
 MAX_INTERRUPTIONS = 10
 """Signal-stopped attempts of one run that a sweep resumes at once; past them the run is left
 ``interrupted`` (a later sweep resumes it) instead of looping against whatever stops it."""
-
-
-@dataclass
-class RunStatus:
-    """What the sweep knows about one run; a row of ``sweep_status.json``."""
-
-    run: Run
-    """The grid point."""
-    steps: int
-    """The run's budget T in agent steps."""
-    frames: int
-    """The same budget in environment frames (``steps * action_repeat``)."""
-    state: str = "queued"
-    """queued, running, done, failed, or interrupted (stopped by a signal with its checkpoint: the
-    next sweep over the root resumes it)."""
-    action: str = "fresh"
-    """What the sweep found: ``done`` (skipped), ``resume`` (a checkpoint) or ``fresh``."""
-    attempts: int = 0
-    """Attempts started by this invocation of the sweep."""
-    errors: list[str] = field(default_factory=list)
-    """Last output line of each failed attempt."""
-    interruptions: int = 0
-    """Attempts of this invocation stopped by a signal (resumed, not counted as failures)."""
-    note: str = ""
-    """Why the sweep did what it did when it is not plain (a divergence that is not retried)."""
-    final_step: int = 0
-    """Agent step of the run's last evaluation."""
-    final_frame: int = 0
-    """Environment frame of the run's last evaluation."""
-    seconds: float = 0.0
-    """Wall time of this invocation's attempts."""
-    config: Optional[RunConfig] = None
-    """The run's resolved config, which the sweep writes to its ``config.json`` before the first
-    attempt (:meth:`imssr.sweep.grid.Run.resolved_config`)."""
-
-    def to_dict(self, root: str) -> dict:
-        return {"name": self.run.name, "dir": os.path.relpath(self.run.dir, root), "algo": self.run.algo,
-                "task": self.run.task, "seed": self.run.seed, "beta0": self.run.beta0,
-                "steps": self.steps, "frames": self.frames, "state": self.state, "action": self.action,
-                "attempts": self.attempts, "errors": self.errors, "interruptions": self.interruptions,
-                "note": self.note, "final_step": self.final_step,
-                "final_frame": self.final_frame,
-                "seconds": round(self.seconds, 1), "log": os.path.relpath(self.run.run_dir.sweep_log, root)}
 
 
 def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
@@ -126,20 +80,6 @@ def config_conflict(run: RunDir, cfg: RunConfig) -> str:
         return ""
     return (f"{run.path} holds a run made with a different config ({', '.join(diff[:5])}"
             f"{', ...' if len(diff) > 5 else ''}); resume it with its own settings or choose another --root")
-
-
-def write_status(cfg: SweepConfig, statuses: list[RunStatus], started: float, finished: bool = False) -> str:
-    root = os.path.abspath(cfg.root)
-    counts = {s: sum(st.state == s for st in statuses) for s in STATES}
-    data = {"root": root, "started": _iso(started), "updated": _iso(time.time()), "finished": finished,
-            "retries": cfg.retries, "counts": counts, "runs": [s.to_dict(root) for s in statuses]}
-    path = os.path.join(root, SWEEP_STATUS)
-    atomic_write_text(path, dumps(data, indent=2) + "\n")
-    return path
-
-
-def _iso(t: float) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t))
 
 
 def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
@@ -195,25 +135,28 @@ def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0,
     status of each.  ``submitit_cluster``: submitit's executor for ``--launcher slurm``
     (``local`` runs the jobs on this machine).
 
-    The sweep holds a lock on its root (:mod:`imssr.rundir.lock`), so a second sweep over the
+    The sweep holds a lock on its root (:meth:`SweepDir.lock`), so a second sweep over the
     same root fails at once ("ROOT is in use by PID n"); each run's training locks its own
     directory as ``imssr train`` does.
     """
     launcher = make_launcher(cfg, submitit_cluster)
     launcher.check()  # before anything is written
-    with DirectoryLock(cfg.root):
+    with SweepDir(cfg.root).lock():
         return _run_sweep(cfg, launcher, progress, poll_s)
 
 
 def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: float) -> list[RunStatus]:
     statuses = plan_runs(cfg)
-    root = os.path.abspath(cfg.root)
-    os.makedirs(root, exist_ok=True)
-    save_plan(cfg, [s.run for s in statuses],
-              {s.run.dir: {"steps": s.steps, "frames": s.frames, "precision": s.config.agent.precision_label}
-               for s in statuses})
+    sweep_dir = SweepDir(cfg.root)
+    os.makedirs(sweep_dir.path, exist_ok=True)
+    sweep_dir.write_plan(cfg, [PlannedRun(s.run, s.steps, s.frames, s.config.agent.precision_label)
+                               for s in statuses])
     started = time.time()
-    status_path = write_status(cfg, statuses, started)
+
+    def write_status(finished: bool = False) -> str:
+        return sweep_dir.write_status(statuses, started, cfg.retries, finished)
+
+    status_path = write_status()
     queued = [s for s in statuses if s.state == "queued"]
     for st in queued:
         # The one description of the run its worker trains (written before any attempt, and
@@ -226,7 +169,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     if not todo:
         if not refused:
             print(f"imssr: all {len(statuses)} runs are done; nothing to start ({status_path})", flush=True)
-        write_status(cfg, statuses, started, finished=True)
+        write_status(finished=True)
         return statuses
     print(f"imssr: {len(statuses)} runs, {sum(s.state == 'done' for s in statuses)} done, "
           f"{sum(s.action == 'resume' for s in queued)} to resume, {sum(s.action == 'fresh' for s in queued)} new "
@@ -257,7 +200,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
                 handles = launcher.submit([Attempt(tuple(st.run.dir for st in group), group[0].steps,
                                                    max(st.attempts for st in group)) for group in batch])
                 inflight.update(zip(handles, batch))
-                write_status(cfg, statuses, started)
+                write_status()
             ready = launcher.wait(list(inflight), poll_s)
             for handle in ready:
                 group = inflight.pop(handle)
@@ -266,7 +209,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
                 # Regrouped: a run stopped alone, or saved at another step than the rest, moves.
                 todo.extend(pack([st for st in group if st.state == "queued"], cfg.runs_per_process))
             if ready:
-                write_status(cfg, statuses, started)
+                write_status()
             ui.refresh()
     except KeyboardInterrupt:
         # Running trainings get SIGTERM and checkpoint where they are, so re-running the sweep
@@ -280,7 +223,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
             for st in statuses:
                 if st.state == "running":
                     st.state = "interrupted"
-            write_status(cfg, statuses, started)
+            write_status()
         raise
     finally:
         if ui is not None:
@@ -288,7 +231,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
         launcher.shutdown()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-    write_status(cfg, statuses, started, finished=True)
+    write_status(finished=True)
     return statuses
 
 

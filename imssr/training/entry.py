@@ -66,14 +66,14 @@ class TrainRequest:
     """``section.field=value`` strings (``--set``), applied last."""
 
 
-class PlannedRun(NamedTuple):
+class RunPlan(NamedTuple):
     """One run of a request: its validated config and its directory."""
 
     config: RunConfig
     run: RunDir
 
 
-def plan(request: TrainRequest) -> list[PlannedRun]:
+def plan(request: TrainRequest) -> list[RunPlan]:
     """Each run's config and directory (see the module's doc); nothing is written, except a
     resumed run's lost ``config.json``, which is restored from its checkpoint."""
     if request.runs:
@@ -86,7 +86,7 @@ def plan(request: TrainRequest) -> list[PlannedRun]:
             if not os.path.isfile(os.path.join(d, CONFIG_FILE)):
                 raise ImssrError(f"--runs {d}: no {CONFIG_FILE} there (write one, or train it with --out)")
         # Each directory's config.json is its run's own file: the base whether new or resumed.
-        return [PlannedRun(_config(request, config_file=os.path.join(d, CONFIG_FILE)), RunDir(d)) for d in dirs]
+        return [RunPlan(_config(request, config_file=os.path.join(d, CONFIG_FILE)), RunDir(d)) for d in dirs]
     if request.seeds is not None:
         if "train.seed" in request.values:
             raise ImssrError("--seeds and --seed exclude each other")
@@ -95,12 +95,12 @@ def plan(request: TrainRequest) -> list[PlannedRun]:
         if request.config_file and request.resume:
             raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
         runs = [RunDir(os.path.join(request.out, SEED_DIR.format(seed=seed))) for seed in request.seeds]
-        return [PlannedRun(_config(request, run, {"train.seed": seed}), run)
+        return [RunPlan(_config(request, run, {"train.seed": seed}), run)
                 for seed, run in zip(request.seeds, runs)]
     if request.resume and not request.config_file and not request.out:
         raise ImssrError("--resume needs --out RUN_DIR")
     cfg = _config(request, RunDir(request.out) if request.out else None)
-    return [PlannedRun(cfg, RunDir(request.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)))]
+    return [RunPlan(cfg, RunDir(request.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)))]
 
 
 def _config(request: TrainRequest, run: Optional[RunDir] = None, values: Optional[dict] = None,
@@ -178,7 +178,7 @@ def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopReq
         trainer.close()
 
 
-def _train_many(planned: list[PlannedRun], request: TrainRequest, announce: Callable[[str], None]) -> list[RunDir]:
+def _train_many(planned: list[RunPlan], request: TrainRequest, announce: Callable[[str], None]) -> list[RunDir]:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.seeds import SeedsTrainer
 
