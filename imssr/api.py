@@ -27,7 +27,7 @@ from imssr.rundir import (EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EV
 from imssr.seeds import evaluation_seed
 from imssr.training.build import load_agent
 from imssr.training.evaluate import eval_row, evaluate
-from imssr.training.entry import TrainRequest, train as train_request
+from imssr.training import entry
 from imssr.training.stop import TrainingInterrupted
 
 CURVES = tuple(name.removesuffix(".csv") for name in (EVAL_LOG, TRAIN_LOG, EVAL_EPISODES_LOG, EVALUATE_LOG,
@@ -120,7 +120,8 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
           steps: Optional[int] = None, frames: Optional[int] = None, seed: Optional[int] = None,
           seeds: Optional[Sequence[int]] = None, device: Optional[str] = None, demo: bool = False,
           overrides: Sequence[str] = (), resume: bool = False, progress: bool = True) -> Run | list[Run]:
-    """Train a run as ``imssr train`` does and load it (:class:`Run`, latest checkpoint).
+    """Train a run as ``imssr train`` does and load it (:class:`Run`, latest checkpoint; with
+    ``seeds``, a list of them).
 
     Args:
         algo, task: as ``--algo`` / ``--task`` (``imssr algos``, ``imssr tasks``); the run starts
@@ -149,13 +150,21 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
         raise ImssrError("overrides is a list of 'section.field=value' strings, e.g. ['train.eval_episodes=5']")
     if resume and out is None:
         raise ImssrError("resume=True needs out, the run directory to continue")
-    request = TrainRequest(algo=None if resume else algo, task=None if resume else task, out=out,
-                           seeds=None if seeds is None else list(seeds), resume=resume, demo=demo, values=values,
-                           frames=frames, overrides=list(overrides))
+    if seeds is not None:
+        seeds = list(seeds)
+        if not seeds or len(set(seeds)) != len(seeds) or \
+                not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
+            raise ImssrError(f"seeds is a list of different integers, e.g. [1, 2, 3], got {seeds!r}")
+        if out is None:
+            raise ImssrError("seeds needs out, the folder of the seeds' run directories")
+        if seed is not None:
+            raise ImssrError("give seed (one run) or seeds (several), not both")
+    request = entry.TrainRequest(algo=None if resume else algo, task=None if resume else task, out=out, seeds=seeds,
+                                 resume=resume, demo=demo, values=values, frames=frames, overrides=list(overrides))
     try:
-        runs = train_request(request)
+        runs = entry.train(request)
     except TrainingInterrupted as exc:
-        again = f"out={out if out is not None else exc.out!r}" + ("" if seeds is None else f", seeds={list(seeds)}")
+        again = f"out={out if out is not None else exc.out!r}" + ("" if seeds is None else f", seeds={seeds}")
         raise KeyboardInterrupt(f"stopped at agent step {exc.step} with a checkpoint; continue with "
                                 f"imssr.train({again}, resume=True)") from None
     loaded = [load_run(run, device=run.read_config().train.device) for run in runs]

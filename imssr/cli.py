@@ -419,7 +419,9 @@ def train_request(args, demo: bool = False):
     """The :class:`~imssr.training.entry.TrainRequest` of ``train`` / ``demo`` arguments."""
     from imssr.training.entry import TrainRequest
 
-    _check_out(args.out)
+    seeds, runs = getattr(args, "seeds", None), getattr(args, "runs", None) or ()
+    if seeds is None and not runs:
+        _check_out(args.out)  # --seeds and --runs say what they need of --out themselves
     values = {}
     for f in FIELD_FLAGS:
         given = getattr(args, f.dest)
@@ -429,9 +431,8 @@ def train_request(args, demo: bool = False):
             values[f.field] = given
     if args.logger is not None:
         values.update(logger_fields(args.logger, args.no_tensorboard))
-    seeds = getattr(args, "seeds", None)
     return TrainRequest(algo=args.algo, task=args.task, out=args.out,
-                        seeds=None if seeds is None else parse_seeds(seeds), runs=getattr(args, "runs", None) or (),
+                        seeds=None if seeds is None else parse_seeds(seeds), runs=runs,
                         resume=args.resume, refill_buffer=getattr(args, "refill_buffer", False), demo=demo,
                         network=args.network, config_file=args.config, values=values, frames=args.frames,
                         batch_size=args.batch_size, beta0=args.beta0, overrides=args.set or ())

@@ -131,8 +131,10 @@ def test_train_seeds_trains_them_in_one_process_as_the_cli_does(tmp_path):
                        overrides=TINY)
     assert [(r.config.train.seed, r.dir, r.step) for r in runs] == [
         (3, os.path.join(out, "seed_3"), 20), (5, os.path.join(out, "seed_5"), 20)]
-    with pytest.raises(ImssrError, match="--seeds and --seed exclude each other"):
+    with pytest.raises(ImssrError, match="give seed .one run. or seeds .several., not both"):
         imssr.train("curl", "cartpole_swingup_sparse", out=out, seeds=[1], seed=2)
+    with pytest.raises(ImssrError, match=r"seeds is a list of different integers, e.g. \[1, 2, 3\], got \[1, 1\]"):
+        imssr.train("curl", "cartpole_swingup_sparse", out=out, seeds=[1, 1])
 
 
 def test_the_api_is_on_the_package():

@@ -357,3 +357,11 @@ def test_the_training_loop_stays_short():
     body = tree.body[0].body
     start = body[1].lineno if isinstance(body[0], ast.Expr) else body[0].lineno
     assert body[-1].end_lineno - start + 1 <= 50
+
+
+def test_a_training_interrupted_crosses_a_process_boundary_whole():
+    import pickle
+
+    exc = TrainingInterrupted("stopped at agent step 40 by SIGTERM; continue with: ...", 40, "runs/x")
+    back = pickle.loads(pickle.dumps(exc))
+    assert (str(back), back.step, back.out) == (str(exc), 40, "runs/x")

@@ -1,6 +1,7 @@
 """The sweep directory (imssr.sweep.directory.SweepDir): the names of the files it owns, writes that
 are whole or absent, and reads that verify what they read (a damaged file is one line naming it)."""
 import errno
+import json
 import os
 
 import pytest
@@ -52,6 +53,19 @@ def test_the_plan_and_the_status_read_back_as_written(tmp_path):
     os.makedirs(statuses[1].run.dir)
     statuses[1].run.run_dir.write_done(250, 250, attempt=3, resumed=True)
     assert sweep.failed_runs() == {}
+
+
+def test_a_status_row_that_cannot_be_read_hides_only_itself_from_the_failures(tmp_path):
+    sweep = SweepDir(tmp_path)
+    cfg, planned, statuses = a_sweep(tmp_path)
+    sweep.write_status(statuses, started=0.0, retries=1)
+    data = json.loads(open(sweep.status_path).read())
+    data["runs"][0]["seed"] = "one"  # a hand edit: the done run's row no longer reads
+    with open(sweep.status_path, "w") as fh:
+        json.dump(data, fh)
+    with pytest.raises(ImssrError, match="is damaged"):
+        sweep.read_status()
+    assert sweep.failed_runs() == {statuses[1].run.dir: "diverged at agent step 9: critic loss nan"}
 
 
 @pytest.mark.parametrize("which", ["plan", "status"])

@@ -109,8 +109,9 @@ class Checkpoint:
         names = {f.name for f in fields(cls)}
         values = {k: v for k, v in state.items() if k in names}
         # Files from before per-scene evaluation envs hold the one scene's generators.
-        if "eval_env_rngs" not in values and "eval_env_rng" in state:
-            mode = state.get("config", {}).get("env", {}).get("mode", "training")
+        if values.get("eval_env_rngs") is None and "eval_env_rng" in state:
+            env = (state.get("config") or {}).get("env") if isinstance(state.get("config"), dict) else None
+            mode = env.get("mode", "training") if isinstance(env, dict) else "training"
             values["eval_env_rngs"] = {mode: state["eval_env_rng"]}
         try:
             return cls(**values)

@@ -310,6 +310,7 @@ class RunDir:
         from imssr.replay.buffer import ReplayFileError  # torch: loaded when a run's replay is read
 
         ckpt = found.checkpoint
+        self._kept_replay = None  # until this load succeeds, latest.pt's replay files are not known good
         if not ckpt.replay_file:
             return "checkpoint holds no replay buffer"
         path = self.replay_path(ckpt.replay_file)
@@ -492,6 +493,8 @@ class RunDir:
         removes the replay files it wrote, which no checkpoint names.  Returns ``latest.pt``'s path."""
         from imssr.rundir.checkpoint import copy_checkpoint, write_checkpoint
 
+        if ckpt.replay_file and replay is None:
+            raise ValueError("a checkpoint that names a replay file is saved with its replay buffer")
         before = _identity(self.latest)
         try:
             if ckpt.replay_file:

@@ -162,7 +162,9 @@ class SweepDir:
     read back (:mod:`imssr.sweep.directory`)."""
 
     def __init__(self, root: str):
-        self.path = os.path.abspath(os.fspath(root))
+        self.given = os.fspath(root)
+        """The root as the user gave it: what messages about it name."""
+        self.path = os.path.abspath(self.given)
         """The root, absolute."""
         self.plan_path = os.path.join(self.path, PLAN_FILE)
         self.status_path = os.path.join(self.path, STATUS_FILE)
@@ -174,7 +176,7 @@ class SweepDir:
     def lock(self) -> DirectoryLock:
         """The root's lock, one sweep over it at a time (a second fails at once with "ROOT is in use
         by PID n"); taken by ``with``."""
-        return DirectoryLock(self.path)
+        return DirectoryLock(self.given)
 
     # -- sweep.json ----------------------------------------------------------------------
     def write_plan(self, cfg: SweepConfig, planned: list[PlannedRun]) -> str:
@@ -228,13 +230,20 @@ class SweepDir:
     def failed_runs(self) -> dict[str, str]:
         """The runs the last sweep gave up on (state ``failed``): run directory (absolute) -> the
         last attempt's error line.  A run finished since (it has ``done.json``) is not failed; a
-        status file that cannot be read lists none."""
+        status file that cannot be read lists none, and a row that cannot be read is left out
+        (the others' failures still reach the report)."""
+        if not os.path.exists(self.status_path):
+            return {}
         try:
-            statuses = self.read_status()
-        except (ImssrError, OSError):
+            rows = _Fields(read_json(self.status_path, "sweep status"), "the file").get("runs", list)
+        except (ImssrError, OSError, ValueError):
             return {}
         out = {}
-        for st in statuses:
+        for i, row in enumerate(rows):
+            try:
+                st = RunStatus.from_dict(row, self.path, f"run {i + 1}")
+            except ValueError:
+                continue
             if st.state != "failed" or st.run.run_dir.read_done() is not None:
                 continue
             last = st.errors[-1] if st.errors else ""

@@ -1,10 +1,12 @@
-"""A training's checkpoints: what one holds, how it is written, and how a resume restores it.
+"""A training's checkpoints: the :class:`~imssr.rundir.checkpoint.Checkpoint` a training makes of
+its state, and how a resume restores it.
 
 A checkpoint holds the config, the agent (networks, optimisers, its generators), the loop's
 :class:`~imssr.training.state.RunState`, the training and evaluation envs' generators, the
 global generators, the replay buffer's file and sampler state, the torch thread count, and,
 when the training stopped in the middle of one, the open episode and the burst of updates a
-stop interrupted.  Its files and their atomic order are :class:`~imssr.rundir.RunDir`'s.
+stop interrupted.  Writing it with its replay files, in their atomic order, and loading them
+back are :class:`~imssr.rundir.RunDir`'s.
 
 Resuming from one (:func:`resume_point`, :meth:`Checkpointer.restore`) gives the run the
 uninterrupted run would have had: the open episode is stepped through again from its reset
@@ -31,24 +33,24 @@ def resume_point(run: RunDir, cfg: RunConfig) -> CheckpointFile:
     """The checkpoint a resume of ``run`` with ``cfg`` continues from (:meth:`RunDir.checkpoint`,
     its fall-back said in one line), refused in one line when ``cfg`` changes a setting a resume
     may not change or a budget it is already past; nothing is written before."""
-    ckpt = run.checkpoint()
-    if ckpt.note:
-        print(f"imssr: {ckpt.note}", flush=True)
-    diff = cfg.resume_conflicts(ckpt.checkpoint.config)
+    found = run.checkpoint()
+    if found.note:
+        print(f"imssr: {found.note}", flush=True)
+    diff = cfg.resume_conflicts(found.checkpoint.config)
     numerics = [k for k in diff if k in ("agent.precision", "agent.q_heads_fp32")]
     if numerics:
-        saved = ckpt.checkpoint.run_config().agent.precision_label
+        saved = found.checkpoint.run_config().agent.precision_label
         raise ImssrError(f"the run in {run.path} trains at {saved} and a resume keeps its numerics "
                          f"({', '.join(numerics)} differ): reports group runs by them; train "
                          f"{cfg.agent.precision_label} as a new run")
     if diff:
-        raise ImssrError(f"checkpoint {ckpt.path} was made with a different config ({', '.join(diff[:5])}"
+        raise ImssrError(f"checkpoint {found.path} was made with a different config ({', '.join(diff[:5])}"
                          f"{', ...' if len(diff) > 5 else ''}); resume with the run's own settings")
-    step = ckpt.checkpoint.step
+    step = found.checkpoint.step
     if step > cfg.train.steps:
         raise ImssrError(f"the run in {run.path} is already at agent step {step:,}, past the budget of "
                          f"{cfg.train.steps:,} steps asked for; resume with --steps {step} or more")
-    return ckpt
+    return found
 
 
 class Checkpointer:
@@ -160,11 +162,11 @@ class Checkpointer:
         (:meth:`RunDir.save_checkpoint`: what a failed save leaves)."""
         step = self.state.step
         replay_file = self.run.replay_name(step) if self.cfg.train.save_buffer else None
-        self.run.save_checkpoint(self.checkpoint(replay_file, episode, burst), keep=self.cfg.train.keep_checkpoints,
+        self.run.save_checkpoint(self.snapshot(replay_file, episode, burst), keep=self.cfg.train.keep_checkpoints,
                                  replay=self.replay)
         self.saved_step = step
 
-    def checkpoint(self, replay_file: Optional[str], episode: Optional[Episode] = None,
+    def snapshot(self, replay_file: Optional[str], episode: Optional[Episode] = None,
                    burst: Optional[dict] = None) -> Checkpoint:
         """The training's state now, as a checkpoint that names ``replay_file``."""
         return Checkpoint(

@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple, Optional, Sequence
+from typing import Any, NamedTuple, Optional, Sequence
 
 from imssr.config import RunConfig, load_config
 from imssr.errors import ImssrError
@@ -51,7 +51,7 @@ class TrainRequest:
     """Start from the demo's settings (:func:`imssr.presets.demo_config`) and record an episode of
     the trained policy at the end."""
     network: Optional[str] = None
-    """The preset's network (``dmcgb`` or ``curl``) of a new run; None: ``dmcgb``."""
+    """The preset's network of a new run (:data:`imssr.presets.tables.NETWORKS`); None: ``dmcgb``."""
     config_file: Optional[str] = None
     """A config file (partial: merged onto the preset of its algo and task) to start from."""
     values: dict[str, Any] = field(default_factory=dict)
@@ -76,6 +76,10 @@ class RunPlan(NamedTuple):
 def plan(request: TrainRequest) -> list[RunPlan]:
     """Each run's config and directory (see the module's doc); nothing is written, except a
     resumed run's lost ``config.json``, which is restored from its checkpoint."""
+    if request.refill_buffer and not request.resume:
+        raise ImssrError("--refill-buffer goes with --resume")
+    if request.refill_buffer and (request.seeds is not None or request.runs):
+        raise ImssrError("--refill-buffer resumes one run: use it with --out RUN_DIR alone")
     if request.runs:
         if request.seeds is not None or request.out or request.config_file or request.algo or request.task \
                 or "train.seed" in request.values:
@@ -92,6 +96,8 @@ def plan(request: TrainRequest) -> list[RunPlan]:
             raise ImssrError("--seeds and --seed exclude each other")
         if not request.out:
             raise ImssrError("--seeds needs --out DIR: each seed trains into DIR/seed_<n>")
+        if not request.seeds or len(set(request.seeds)) != len(request.seeds):
+            raise ImssrError(f"--seeds needs one or more different seeds, got {request.seeds}")
         if request.config_file and request.resume:
             raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
         runs = [RunDir(os.path.join(request.out, SEED_DIR.format(seed=seed))) for seed in request.seeds]
@@ -125,45 +131,37 @@ def resume_config(run: RunDir) -> RunConfig:
         if not isinstance(found.checkpoint.config, dict):
             raise ImssrError(f"nothing to resume: {run.config_path} does not exist, and {found.path} holds no config")
         run.write_config(found.checkpoint.run_config())
-        print(f"imssr: {run.config_path} was missing; restored from {found.path} (the config it was trained with)",
-              flush=True)
+        _say(f"imssr: {run.config_path} was missing; restored from {found.path} (the config it was trained with)")
     return load_config(run.config_path)
 
 
-def train(request: TrainRequest, *, exit_on_second_signal: bool = False,
-          announce: Callable[[str], None] = print) -> list[RunDir]:
+def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list[RunDir]:
     """Train what ``request`` asks for (see the module's doc); returns the run directories.
 
     SIGTERM / SIGINT stop every run after the current agent step with a checkpoint and raise
     :class:`TrainingInterrupted`; a second signal stops at once: with
     ``exit_on_second_signal`` (the command line, one run) the process exits with one line,
     otherwise the default handlers act (``KeyboardInterrupt``).  A run of several whose losses
-    turn non-finite stops; the others finish, then a one-line error names it.  ``announce``
-    prints the lines that say what starts and where it ended."""
-    if request.refill_buffer and not request.resume:
-        raise ImssrError("--refill-buffer goes with --resume")
-    if request.refill_buffer and (request.seeds is not None or request.runs):
-        raise ImssrError("--refill-buffer resumes one run: use it with --out RUN_DIR alone")
+    turn non-finite stops; the others finish, then a one-line error names it."""
     planned = plan(request)
     if request.seeds is None and not request.runs:
         cfg, run = planned[0]
         stop = StopRequest(run if exit_on_second_signal else None).install()
         try:
-            _train_one(cfg, run, request, stop, announce)
+            _train_one(cfg, run, request, stop)
         finally:
             stop.uninstall()
         return [run]
-    return _train_many(planned, request, announce)
+    return _train_many(planned, request)
 
 
-def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest,
-               announce: Callable[[str], None]) -> None:
+def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest) -> None:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.demo import record_episode, summary
     from imssr.training.loop import Trainer
 
     trainer = Trainer(cfg, run, resume=request.resume, refill_buffer=request.refill_buffer, stop=stop)
-    announce(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}")
+    _say(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}")
     started = time.time()
     try:
         with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
@@ -171,14 +169,14 @@ def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopReq
         png = plot_learning_curve(run)
         if request.demo:
             gif = record_episode(trainer, run.episode_gif_path)
-            announce(summary(cfg, run, (time.time() - started) / 60, gif, png))
+            _say(summary(cfg, run, (time.time() - started) / 60, gif, png))
         else:
-            announce(f"imssr: done; {run.eval_log}, {png}")
+            _say(f"imssr: done; {run.eval_log}, {png}")
     finally:
         trainer.close()
 
 
-def _train_many(planned: list[RunPlan], request: TrainRequest, announce: Callable[[str], None]) -> list[RunDir]:
+def _train_many(planned: list[RunPlan], request: TrainRequest) -> list[RunDir]:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.seeds import SeedsTrainer
 
@@ -190,7 +188,7 @@ def _train_many(planned: list[RunPlan], request: TrainRequest, announce: Callabl
             where = (f"{len(runs)} run directories" if request.runs
                      else os.path.join(request.out, SEED_DIR.format(seed="<n>")))
             algos = ", ".join(dict.fromkeys(c.algo for c in cfgs))
-            announce(f"imssr: {algos} on {cfgs[0].env.task}, seeds {','.join(str(c.train.seed) for c in cfgs)} in "
+            _say(f"imssr: {algos} on {cfgs[0].env.task}, seeds {','.join(str(c.train.seed) for c in cfgs)} in "
                      f"one process: {cfgs[0].budget_text()} -> {where}")
             failed = trainer.train()
         finally:
@@ -203,5 +201,10 @@ def _train_many(planned: list[RunPlan], request: TrainRequest, announce: Callabl
     bad = [run.path for run, why in zip(runs, failed) if why is not None]
     if bad:
         raise ImssrError(f"{', '.join(bad)} diverged (each run's status.json says where); the others finished")
-    announce(f"imssr: done; {len(runs)} runs: {', '.join(run.path for run in runs)}")
+    _say(f"imssr: done; {len(runs)} runs: {', '.join(run.path for run in runs)}")
     return runs
+
+
+def _say(text: str) -> None:
+    """One line on stdout, flushed: a second signal ends the process without flushing it."""
+    print(text, flush=True)

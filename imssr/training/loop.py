@@ -80,10 +80,10 @@ class Trainer:
         self.replay_placement = replay_placement(cfg.train.replay_device, self.device,
                                                  cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2,
                                                  cfg.train.gpu_share)
-        ckpt = resume_point(self.run_dir, cfg) if resume else None
-        if ckpt is None:
+        found = resume_point(self.run_dir, cfg) if resume else None
+        if found is None:
             self.run_dir.refuse_fresh_start()
-        _set_threads(cfg.train.torch_threads, self.device, None if ckpt is None else ckpt.checkpoint.torch_threads)
+        _set_threads(cfg.train.torch_threads, self.device, None if found is None else found.checkpoint.torch_threads)
         self.parts = parts = build_training(cfg, self.device, self.replay_placement)
         self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
                                                                          parts.replay, parts.state)
@@ -91,12 +91,12 @@ class Trainer:
         self.divergence = DivergenceCheck(self.agent.signal)
         self.checkpoints = Checkpointer(self.run_dir, cfg, parts, refill_buffer=refill_buffer)
         os.makedirs(self.run_dir.path, exist_ok=True)
-        if ckpt is not None:
-            self.checkpoints.restore(ckpt)
+        if found is not None:
+            self.checkpoints.restore(found)
         self.run_dir.write_config(cfg)
-        self.run_dir.record_provenance(provenance.record(self.device, "resume" if ckpt else "start", self.step))
-        self.logger = open_logger(self.run_dir, cfg, resume_frame=None if ckpt is None else self.frame)
-        if ckpt is not None:
+        self.run_dir.record_provenance(provenance.record(self.device, "resume" if found else "start", self.step))
+        self.logger = open_logger(self.run_dir, cfg, resume_frame=None if found is None else self.frame)
+        if found is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
             self.logger.rewrite_eval(self.state.eval_history)
             print(f"imssr: resuming from agent step {self.step:,} (frame {self.frame:,}) of "

@@ -22,6 +22,10 @@ class TrainingInterrupted(Exception):
         self.out = out
         """The ``--out`` a resume names (None: the runs have no one folder, ``--runs`` names them)."""
 
+    def __reduce__(self):
+        # Pickled across a process boundary with all three arguments (``args`` holds the message).
+        return type(self), (str(self), self.step, self.out)
+
     @classmethod
     def at(cls, step: int, signal_name: Optional[str], run: RunDir) -> "TrainingInterrupted":
         """The training of ``run`` stopped by ``signal_name`` at agent step ``step``."""
