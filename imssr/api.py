@@ -162,12 +162,12 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
     request = entry.TrainRequest(algo=None if resume else algo, task=None if resume else task, out=out, seeds=seeds,
                                  resume=resume, demo=demo, values=values, frames=frames, overrides=list(overrides))
     try:
-        runs = entry.train(request)
+        trained = entry.train(request)
     except TrainingInterrupted as exc:
         again = f"out={out if out is not None else exc.out!r}" + ("" if seeds is None else f", seeds={seeds}")
         raise KeyboardInterrupt(f"stopped at agent step {exc.step} with a checkpoint; continue with "
                                 f"imssr.train({again}, resume=True)") from None
-    loaded = [load_run(run, device=run.read_config().train.device) for run in runs]
+    loaded = [load_run(run, device=cfg.train.device) for cfg, run in trained]
     return loaded if seeds is not None else loaded[0]
 
 

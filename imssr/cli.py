@@ -8,20 +8,19 @@ import argparse
 import contextlib
 import os
 import sys
-import typing
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NoReturn, Optional
 
 # What building the parser needs, and nothing that loads torch, dm_control or matplotlib: `imssr
 # --help`, `tasks`, `algos`, `modes` and every `SUBCOMMAND --help` answer without them.  Each
 # command imports its own machinery inside its function.
-from imssr.config import MAX_SEED, SEED_RULE, dataclass_field_docs, dataclass_field_types, field_docs, logger_fields
+from imssr.config import MAX_SEED, SEED_RULE, dataclass_field_docs, field_docs, logger_fields
 from imssr.envs import PAPER_TASKS, MODES, get_task, list_tasks
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.memlimit import out_of_memory_text
 from imssr.presets import ALGOS, make_config, markdown_table, preset_settings
 from imssr.rundir import RunDir
-from imssr.sweep.grid import LAUNCHERS, SweepConfig, parse_seeds, setting_key, sweep_config
+from imssr.sweep.grid import LAUNCHERS, SweepConfig, parse_seeds, setting_key, setting_type, sweep_config
 from imssr.training.stop import TrainingInterrupted
 
 
@@ -164,9 +163,7 @@ class SweepFlag:
         if self.repeatable:
             parser.add_argument(self.flag, action="append", metavar=self.metavar, help=self.help())
             return
-        kind = dataclass_field_types(SweepConfig)[self.field]
-        if type(None) in typing.get_args(kind):  # Optional[X]: X
-            kind = next(k for k in typing.get_args(kind) if k is not type(None))
+        kind, _ = setting_type(self.field)
         # Numbers are checked here; a list's text (``a,b``, ``1-5``) is parsed by the sweep's config.
         number = {int: (_nonneg_int, _positive_int), float: (_nonneg_float, _positive_float)}.get(kind)
         parser.add_argument(self.flag, type=number and number[self.positive], metavar=self.metavar,

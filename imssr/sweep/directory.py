@@ -218,12 +218,17 @@ class SweepDir:
     def read_status(self) -> list[RunStatus]:
         """Every run's row as the last sweep wrote it ([] when there is none; without the resolved
         config); a one-line error when the file is damaged."""
+        try:
+            return [RunStatus.from_dict(row, self.path, f"run {i + 1}") for i, row in enumerate(self._status_rows())]
+        except ValueError as exc:
+            raise ImssrError(f"sweep status {self.status_path} is damaged: {exc}") from None
+
+    def _status_rows(self) -> list:
+        """The rows of ``sweep_status.json`` as JSON ([] when there is none), each still to be read."""
         if not os.path.exists(self.status_path):
             return []
-        data = read_json(self.status_path, "sweep status")
         try:
-            rows = _Fields(data, "the file").get("runs", list)
-            return [RunStatus.from_dict(row, self.path, f"run {i + 1}") for i, row in enumerate(rows)]
+            return _Fields(read_json(self.status_path, "sweep status"), "the file").get("runs", list)
         except ValueError as exc:
             raise ImssrError(f"sweep status {self.status_path} is damaged: {exc}") from None
 
@@ -232,11 +237,9 @@ class SweepDir:
         last attempt's error line.  A run finished since (it has ``done.json``) is not failed; a
         status file that cannot be read lists none, and a row that cannot be read is left out
         (the others' failures still reach the report)."""
-        if not os.path.exists(self.status_path):
-            return {}
         try:
-            rows = _Fields(read_json(self.status_path, "sweep status"), "the file").get("runs", list)
-        except (ImssrError, OSError, ValueError):
+            rows = self._status_rows()
+        except (ImssrError, OSError):
             return {}
         out = {}
         for i, row in enumerate(rows):

@@ -351,19 +351,26 @@ def setting_key(name: str) -> str:
     return "set" if name == "overrides" else name
 
 
+def setting_type(name: str) -> tuple[Any, bool]:
+    """The declared type of the :class:`SweepConfig` field ``name`` (``X`` of ``Optional[X]``), and
+    whether None is one of its values."""
+    kind = dataclass_field_types(SweepConfig)[name]
+    if type(None) in typing.get_args(kind):
+        return next(k for k in typing.get_args(kind) if k is not type(None)), True
+    return kind, False
+
+
 def _coerce(name: str, value: Any) -> Any:
     """A value of the :class:`SweepConfig` field ``name`` (a sweep file's, or a flag's) in the
     field's declared type: text of a list (``a,b``, seeds ``1-5``) is parsed, and a value of the
     wrong type is a one-line error."""
-    kind = dataclass_field_types(SweepConfig)[name]
+    kind, optional = setting_type(name)
     if name == "overrides":
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise ImssrError('sweep file: "set" must be a list of "section.field=value" strings')
         return list(value)
-    if type(None) in typing.get_args(kind):  # Optional[X]
-        if value is None:
-            return None
-        kind = next(k for k in typing.get_args(kind) if k is not type(None))
+    if optional and value is None:
+        return None
     if typing.get_origin(kind) is list:
         item = typing.get_args(kind)[0]
         if item is int:

@@ -135,8 +135,9 @@ def resume_config(run: RunDir) -> RunConfig:
     return load_config(run.config_path)
 
 
-def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list[RunDir]:
-    """Train what ``request`` asks for (see the module's doc); returns the run directories.
+def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list[RunPlan]:
+    """Train what ``request`` asks for (see the module's doc); returns each run's config and
+    directory.
 
     SIGTERM / SIGINT stop every run after the current agent step with a checkpoint and raise
     :class:`TrainingInterrupted`; a second signal stops at once: with
@@ -151,7 +152,7 @@ def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list
             _train_one(cfg, run, request, stop)
         finally:
             stop.uninstall()
-        return [run]
+        return planned
     return _train_many(planned, request)
 
 
@@ -176,7 +177,7 @@ def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopReq
         trainer.close()
 
 
-def _train_many(planned: list[RunPlan], request: TrainRequest) -> list[RunDir]:
+def _train_many(planned: list[RunPlan], request: TrainRequest) -> list[RunPlan]:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.seeds import SeedsTrainer
 
@@ -202,7 +203,7 @@ def _train_many(planned: list[RunPlan], request: TrainRequest) -> list[RunDir]:
     if bad:
         raise ImssrError(f"{', '.join(bad)} diverged (each run's status.json says where); the others finished")
     _say(f"imssr: done; {len(runs)} runs: {', '.join(run.path for run in runs)}")
-    return runs
+    return planned
 
 
 def _say(text: str) -> None:
