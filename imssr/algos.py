@@ -1,22 +1,25 @@
 """The algorithms: every base ``X`` (an auxiliary task) and its variants ``im-X`` (IM-SSR),
 ``X+rnd`` and ``X+re3`` (exploration peers that swap only the intrinsic signal).
 
-A registry of names, apart from :mod:`imssr.presets` (their values), so that the config's
-validation can check that ``algo`` agrees with ``aux.name`` and ``intrinsic.*`` without
-importing the presets, which import the config.
+A registry of names, made of the plug-ins' declarations (:data:`~imssr.auxiliary.registry.AUX_PLUGINS`
+and :data:`~imssr.intrinsic.registry.SIGNAL_PLUGINS`) and apart from :mod:`imssr.presets` (their
+values), so that the config's validation can check that ``algo`` agrees with ``aux.name`` and
+``intrinsic.*`` without importing the presets, which import the config.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from imssr.auxiliary.registry import AUX_PLUGINS
 from imssr.errors import ImssrError
+from imssr.intrinsic.registry import SIGNAL_PLUGINS
 
 
 @dataclass(frozen=True)
 class AlgoSpec:
     name: str
     aux: str
-    """Name of the auxiliary task in :data:`imssr.auxiliary.AUX_TASKS`."""
+    """Name of the auxiliary task in :data:`imssr.auxiliary.AUX_PLUGINS`."""
     intrinsic: str
     """Intrinsic signal: ``none`` (the base), ``ssl`` (IM-SSR), ``rnd`` or ``re3`` (peers)."""
     paper_name: str
@@ -36,17 +39,10 @@ class AlgoSpec:
 # Each base is an auxiliary task; every base X has im-X (its own per-sample loss
 # as intrinsic reward) and the exploration peers X+rnd and X+re3, which swap
 # only the signal.
-BASES = {
-    "curl": ("CURL", "SAC + CURL: InfoNCE between two crops, momentum key encoder (Srinivas et al. 2020)"),
-    "soda": ("SODA", "SAC + SODA: BYOL-style consistency of overlay vs clean view (Hansen & Wang 2021)"),
-    "pad": ("PAD", "SAC + PAD's inverse-dynamics task, shared 8 of 11 conv layers (Hansen et al. 2021)"),
-    "svea": ("SVEA", "SAC + SVEA: critic regressed on clean and random-conv views (Hansen et al. 2021)"),
-}
-SIGNALS = {
-    "ssl": ("im-{b}", "IM-{B}", "{B} with its per-sample self-supervised loss of o' as intrinsic reward"),
-    "rnd": ("{b}+rnd", "{B}+RND", "{B} with random network distillation error of o' as intrinsic reward"),
-    "re3": ("{b}+re3", "{B}+RE3", "{B} with RE3's k-NN state entropy (fixed random encoder) as intrinsic reward"),
-}
+BASES = {name: (p.label, p.description) for name, p in AUX_PLUGINS.items()}
+"""Base name -> its paper label and description, in the registry's order."""
+SIGNALS = {name: (p.algo_name, p.label, p.description) for name, p in SIGNAL_PLUGINS.items()}
+"""Signal name -> its algorithm's name, paper label and description over a base (``{b}``, ``{B}``)."""
 
 
 def _algos() -> dict[str, AlgoSpec]:

@@ -34,14 +34,15 @@ def _type_checking_only(tree: ast.AST) -> set[int]:
     return skipped
 
 
-def import_graph() -> dict[str, set[str]]:
-    """Module -> the package's modules it imports, at the top or inside functions."""
+def import_graph(type_checking: bool = False) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports, at the top or inside functions (and under
+    ``if TYPE_CHECKING:`` with ``type_checking``)."""
     modules = _modules()
     graph = {}
     for name, path in modules.items():
         with open(path, encoding="utf-8") as fh:
             tree = ast.parse(fh.read(), path)
-        skipped = _type_checking_only(tree)
+        skipped = set() if type_checking else _type_checking_only(tree)
         package = name if path.endswith("__init__.py") else name.rpartition(".")[0]
         edges = set()
         for node in ast.walk(tree):
@@ -114,6 +115,37 @@ def test_layers_do_not_reach_up(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split("\n")[:3] == ["[]", "[]", "[]"], proc.stdout
+
+
+def test_the_settings_and_the_plugins_declarations_import_nothing_above_them():
+    """settings/ imports nothing of imssr but itself and errors; a plug-in's *_spec.py nothing but
+    settings/; the registries nothing but those and their own package; config/ none of the
+    plug-ins' torch code nor anything that uses a config; ``TYPE_CHECKING`` blocks included."""
+    graph = import_graph(type_checking=True)
+    settings = {m for m in graph if m.startswith("imssr.settings")}
+    specs = {m for m in graph if m.endswith("_spec")}
+    assert {"imssr.auxiliary.curl_spec", "imssr.intrinsic.ssl_spec"} <= specs
+    for name in settings | specs:
+        assert graph[name] <= settings | {"imssr.errors"}, (name, graph[name] - settings)
+    for package in ("imssr.auxiliary", "imssr.intrinsic"):
+        for name in (package, f"{package}.registry"):
+            outside = {m for m in graph[name] if not m.startswith(package + ".")}
+            assert outside <= settings | {"imssr.errors"}, (name, outside)
+    above = ("imssr.agents", "imssr.training", "imssr.rundir", "imssr.presets", "imssr.sweep", "imssr.report",
+             "imssr.analysis", "imssr.plots", "imssr.networks", "imssr.cli", "imssr.api", "imssr.console")
+    torch_code = {m for m in graph if m.startswith(("imssr.auxiliary.", "imssr.intrinsic."))
+                  and not m.endswith(("_spec", ".registry"))}
+    for name in (m for m in graph if m.startswith("imssr.config")):
+        assert not {m for m in graph[name] if m.startswith(above) or m in torch_code}, (name, graph[name])
+
+
+def test_the_settings_load_no_torch():
+    """The config, the presets and the registries read the plug-ins' declarations, not their code."""
+    code = ("import sys, imssr.config, imssr.presets, imssr.auxiliary, imssr.intrinsic; "
+            "imssr.presets.make_config('im-soda', 'walker_walk').validate(); print('torch' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "False"
 
 
 def test_find_cycle_finds_one():

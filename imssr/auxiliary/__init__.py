@@ -1,9 +1,21 @@
-"""Auxiliary self-supervised tasks, one module each, registered by name (:mod:`~imssr.auxiliary.registry`)."""
-from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
-from imssr.auxiliary.curl import CURL
-from imssr.auxiliary.pad import PAD
-from imssr.auxiliary.registry import AUX_TASKS, make_aux
-from imssr.auxiliary.soda import SODA
-from imssr.auxiliary.svea import SVEA
+"""Auxiliary self-supervised tasks, registered by name (:mod:`~imssr.auxiliary.registry`).
 
-__all__ = ["AuxiliaryTask", "SharedNetworks", "CURL", "SODA", "PAD", "SVEA", "AUX_TASKS", "make_aux"]
+Each task is two modules: ``<name>_spec.py`` (its settings, rules and preset rows; no torch),
+which the config reads, and ``<name>.py``, its torch module, which the agent builds.  Importing
+this package imports no torch: the task classes load on first use.
+"""
+import importlib
+
+from imssr.auxiliary.registry import AUX_PLUGINS, AUX_TASKS, make_aux
+
+_LAZY = {"AuxiliaryTask": "imssr.auxiliary.base", "SharedNetworks": "imssr.auxiliary.base",
+         "CURL": "imssr.auxiliary.curl", "SODA": "imssr.auxiliary.soda", "PAD": "imssr.auxiliary.pad",
+         "SVEA": "imssr.auxiliary.svea"}
+
+__all__ = ["AuxiliaryTask", "SharedNetworks", "CURL", "SODA", "PAD", "SVEA", "AUX_PLUGINS", "AUX_TASKS", "make_aux"]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'imssr.auxiliary' has no attribute {name!r}")

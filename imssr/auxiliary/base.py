@@ -6,14 +6,15 @@ losses: the mean of :meth:`~AuxiliaryTask.per_sample_loss` is what it trains on,
 :meth:`~AuxiliaryTask.intrinsic_loss` is the same loss for the next observation, which IM-SSR
 turns into a reward.  A task may also change what the critic regresses
 (:meth:`~AuxiliaryTask.critic_views`, SVEA).  The agent knows only this interface and builds the
-task's optimiser from its declarations, so a new task plugs in by registering a class in
-:data:`imssr.auxiliary.AUX_TASKS`.
+task's optimiser from its declarations, so a new task plugs in by its two modules (this class,
+and its ``*_spec.py``: settings, rules, presets) and its name in
+:data:`imssr.auxiliary.AUX_PLUGINS`.
 """
 from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, Literal, Optional
+from typing import ClassVar, Literal, Optional
 
 import torch
 from torch import nn
@@ -21,9 +22,8 @@ from torch import nn
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.networks.module import ModuleWithOptimizer
 from imssr.precision import optimizer_step
+from imssr.settings import AgentConfig, AuxCore
 
-if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
-    from imssr.config import AgentConfig, AuxConfig, RunConfig
 
 
 @dataclass(kw_only=True)
@@ -53,14 +53,9 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     loss from its pass under ``agent.update_schedule = fused`` when the task trains on the RL
     batch; the task itself never needs to know which schedule runs."""
 
-    @classmethod
-    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
-        """The task's rules on a config, as ``(holds, one-line error)`` pairs, asked by
-        :meth:`RunConfig.validate <imssr.config.RunConfig.validate>` of every task: a config carries
-        every task's settings, chosen or not (a rule on other sections tests ``cfg.aux.name``)."""
-        return []
-
-    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+    def __init__(self, shared: SharedNetworks, cfg: AuxCore, agent_cfg: AgentConfig):
+        """``cfg`` is the ``aux`` section: :class:`AuxCore` and every task's settings, this
+        task's among them (its ``*_spec.py``)."""
         super().__init__()
         self.shared = shared  # a dataclass, not a module: not registered, not saved twice
         self.cfg = cfg

@@ -18,7 +18,7 @@ IM-CURL's signal of o' (``intrinsic.form``):
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -28,16 +28,14 @@ from imssr.augmentations import random_crop
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.precision import full_precision, upcast
-
-if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
-    from imssr.config import AgentConfig, AuxConfig
+from imssr.settings import AgentConfig, AuxCore
 
 
 class CURL(AuxiliaryTask):
     name = "curl"
     reads_critic_pass = "obs"  # the query is the critic's own encoding of the RL crop
 
-    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+    def __init__(self, shared: SharedNetworks, cfg: AuxCore, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
         dim = shared.encoder.out_dim
         self.W = nn.Parameter(torch.rand(dim, dim))

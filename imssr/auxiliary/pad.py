@@ -18,7 +18,7 @@ which is reused instead of being recomputed.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import torch
 from torch import nn
@@ -28,9 +28,7 @@ from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.networks import Projection, mlp, weight_init
 from imssr.networks.encoder import conv_stack
 from imssr.precision import full_precision, upcast
-
-if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
-    from imssr.config import AgentConfig, AuxConfig
+from imssr.settings import AgentConfig, AuxCore
 
 
 class PAD(AuxiliaryTask):
@@ -39,7 +37,7 @@ class PAD(AuxiliaryTask):
     # and the Bellman target alike.
     reads_critic_pass = "obs+next_obs"
 
-    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+    def __init__(self, shared: SharedNetworks, cfg: AuxCore, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
         trunk = shared.encoder.trunk
         # Its own head layers on the shared features, laid out as the critic's head.

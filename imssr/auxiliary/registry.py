@@ -1,24 +1,23 @@
-"""The auxiliary tasks by name: the registry a new task joins (one line), and :func:`make_aux`."""
+"""The auxiliary tasks by name: the registry a new task joins (one name in :data:`AUX_PLUGINS`),
+and :func:`make_aux`.  Importing it imports each task's ``*_spec`` module, not its torch code."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
-from imssr.auxiliary.curl import CURL
-from imssr.auxiliary.pad import PAD
-from imssr.auxiliary.soda import SODA
-from imssr.auxiliary.svea import SVEA
 from imssr.errors import ImssrError
+from imssr.settings import AgentConfig, AuxCore, AuxPlugin, Implementations, plugin_table
 
-if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
-    from imssr.config import AgentConfig, AuxConfig
+if TYPE_CHECKING:  # the tasks' torch code, imported by make_aux when an agent builds one
+    from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 
-AUX_TASKS: dict[str, type[AuxiliaryTask]] = {t.name: t for t in (CURL, SODA, PAD, SVEA)}
-"""The tasks ``aux.name`` names (the bases of :data:`imssr.algos.BASES`, in that order)."""
+AUX_PLUGINS: dict[str, AuxPlugin] = plugin_table("imssr.auxiliary", "curl", "soda", "pad", "svea")
+"""The tasks ``aux.name`` names, in order: each is an algorithm's base (:data:`imssr.algos.BASES`)."""
+AUX_TASKS = Implementations(AUX_PLUGINS)
+"""Their torch classes by name, each imported on first use."""
 
 
-def make_aux(name: str, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig) -> AuxiliaryTask:
+def make_aux(name: str, shared: SharedNetworks, cfg: AuxCore, agent_cfg: AgentConfig) -> AuxiliaryTask:
     """The task ``name`` on the agent's ``shared`` networks."""
-    if name not in AUX_TASKS:
-        raise ImssrError(f"unknown auxiliary task {name!r}; valid: {', '.join(AUX_TASKS)}")
+    if name not in AUX_PLUGINS:
+        raise ImssrError(f"unknown auxiliary task {name!r}; valid: {', '.join(AUX_PLUGINS)}")
     return AUX_TASKS[name](shared, cfg, agent_cfg)

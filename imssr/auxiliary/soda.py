@@ -22,8 +22,7 @@ steps), so IM-SODA's signal is computed on the RL batch's crop of o'
 from __future__ import annotations
 
 import copy
-import os
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -31,13 +30,12 @@ from torch import nn
 
 from imssr.augmentations import random_crop, random_overlay
 from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
+from imssr.auxiliary.soda_spec import SODASettings
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.data import image_pool
 from imssr.networks import ema, weight_init
 from imssr.precision import FP32BatchNorm1d, full_precision, upcast
-
-if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
-    from imssr.config import AgentConfig, AuxConfig, RunConfig
+from imssr.settings import AgentConfig
 
 
 def bn_mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
@@ -51,18 +49,9 @@ def bn_mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
 class SODA(AuxiliaryTask):
     name = "soda"
 
-    @classmethod
-    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
-        x = cfg.aux
-        return [
-            (0.0 < x.tau <= 1.0, "aux.tau must be in (0, 1]"),
-            (0.0 <= x.overlay_alpha <= 1.0, "aux.overlay_alpha must be in [0, 1]"),
-            (x.image_pool_size >= 1, "aux.image_pool_size must be >= 1"),
-            (not x.image_dir or os.path.isdir(os.path.expanduser(x.image_dir)),
-             f"image folder not found: {x.image_dir} (aux.image_dir / --image-dir)"),
-        ]
+    cfg: SODASettings
 
-    def __init__(self, shared: SharedNetworks, cfg: AuxConfig, agent_cfg: AgentConfig):
+    def __init__(self, shared: SharedNetworks, cfg: SODASettings, agent_cfg: AgentConfig):
         super().__init__(shared, cfg, agent_cfg)
         trunk = shared.encoder.trunk
         dim = agent_cfg.feature_dim

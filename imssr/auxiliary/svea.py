@@ -12,28 +12,22 @@ are already computed by the Bellman target, so the signal costs no encoder pass.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import torch
 
 from imssr.augmentations import random_conv
 from imssr.auxiliary.base import AuxiliaryTask
+from imssr.auxiliary.svea_spec import SVEASettings
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.precision import full_precision, upcast
-
-if TYPE_CHECKING:  # annotations only: the config imports the tasks for their rules
-    from imssr.config import RunConfig
 
 
 class SVEA(AuxiliaryTask):
     name = "svea"
     trains = False
 
-    @classmethod
-    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
-        x = cfg.aux
-        return [(x.svea_alpha >= 0.0 and x.svea_beta >= 0.0 and x.svea_alpha + x.svea_beta > 0,
-                 "aux.svea_alpha and aux.svea_beta must be >= 0 and not both 0")]
+    cfg: SVEASettings
 
     def critic_views(self, batch: Batch) -> list[tuple[torch.Tensor, float]]:
         return [(batch.obs, self.cfg.svea_alpha),

@@ -9,13 +9,15 @@ T = 500,000 agent steps (Table III, "Number of training steps"), which is
 ``CONFIG_VERSION`` 2 is the format with budgets in agent steps; imssr 0.1's configs
 (version 1: budgets in frames) are refused in one line (:func:`check_version`).
 
-The modules, each name re-exported here:
+The sections and the rules of a config are :mod:`imssr.settings`'s; the auxiliary tasks and the
+intrinsic signals add theirs (their ``*_spec.py`` modules), and this package assembles them.
+No module here imports torch.  The modules, each name re-exported here:
 
-- ``schema``: the sections' dataclasses, the limits and allowed values, ``FIELD_TYPES``, ``field_docs``,
-  and ``dataclass_field_types`` / ``dataclass_field_docs``, which read them from any settings dataclass;
+- ``schema``: the sections, ``aux`` and ``intrinsic`` composed of the plug-ins' settings
+  (``AuxConfig``, ``IntrinsicConfig``), ``FIELD_TYPES`` and ``field_docs``;
 - ``version``: ``CONFIG_VERSION`` and ``check_version``;
 - ``overrides``: values merged onto a config (``apply_overrides``, ``--logger``), through OmegaConf;
-- ``validation``: the rules ``RunConfig.validate`` applies;
+- ``validation``: the rules ``RunConfig.validate`` applies, the general ones and each plug-in's;
 - ``runconfig``: ``RunConfig``, the sections together, and the one rule of what a resume may
   change (``RESUMABLE_CHANGES``, ``RunConfig.resume_conflicts``);
 - ``files``: ``read_config_file`` and ``load_config``.
@@ -23,12 +25,12 @@ The modules, each name re-exported here:
 from imssr.config.files import load_config, read_config_file
 from imssr.config.overrides import LOGGERS, TYPE_WORDS, apply_overrides, logger_fields
 from imssr.config.runconfig import RESUMABLE_CHANGES, RunConfig
-from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
-                                 MAX_SEED, PRECISIONS, REPLAY_DEVICES, SECTIONS, SEED_RULE, TF32_MODES,
-                                 UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig, AuxConfig, EnvConfig,
-                                 IntrinsicConfig, TrainConfig, dataclass_field_docs, dataclass_field_types,
-                                 field_docs, steps_for_frames, type_phrase)
+from imssr.config.schema import FIELD_TYPES, SECTIONS, AuxConfig, IntrinsicConfig, field_docs
 from imssr.config.version import CONFIG_VERSION, V1_KEYS, check_version
+from imssr.settings import (COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT, MAX_SEED, PRECISIONS,
+                            REPLAY_DEVICES, SEED_RULE, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig,
+                            EnvConfig, TrainConfig, dataclass_field_docs, dataclass_field_types, steps_for_frames,
+                            type_phrase)
 
 __all__ = [
     "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES",

@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Optional, Sequence
 
 from imssr.config.runconfig import RunConfig
+from imssr.intrinsic.registry import SIGNAL_PLUGINS
 
 SHARED_EXCEPT = {("algo",), ("train", "seed"), ("intrinsic",)}
 """What the runs of one lockstep batch may differ in: the seed, and the intrinsic reward (whose
@@ -44,7 +45,7 @@ def batch_key(cfg: RunConfig) -> tuple:
     signal when it has weights of its own (RND, RE3: every member then needs them); ``None`` or
     the intrinsic settings but beta_0 come third (runs without the reward join any group)."""
     i = cfg.intrinsic
-    weighted = i.source if i.enabled and i.source != "ssl" else ""
+    weighted = i.source if i.enabled and i.source in SIGNAL_PLUGINS and SIGNAL_PLUGINS[i.source].own_networks else ""
     own = None if not i.enabled else repr(sorted((k, v) for k, v in cfg.to_dict()["intrinsic"].items()
                                                   if k not in ("beta0", "enabled")))
     return repr(sorted(shared_settings(cfg).items())), weighted, own

@@ -12,17 +12,17 @@ import copy
 import json
 import math
 from dataclasses import fields
-from typing import TYPE_CHECKING, Any
+from typing import Any, TypeVar
 
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from imssr.config.schema import FIELD_TYPES, SECTIONS, type_phrase
+from imssr.config.schema import FIELD_TYPES, SECTIONS
 from imssr.errors import ImssrError
+from imssr.settings import type_phrase
 
-if TYPE_CHECKING:
-    from imssr.config.runconfig import RunConfig
-
+RunConfig = TypeVar("RunConfig")
+"""A run's config (:class:`imssr.config.RunConfig`, which reads and merges through this module)."""
 
 TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 

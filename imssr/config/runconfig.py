@@ -98,7 +98,8 @@ class RunConfig:
 
     def validate(self) -> "RunConfig":
         """Reject bad values with one-line errors: the general rules of :mod:`imssr.config.validation`,
-        each plug-in's beside the plug-in (``config_rules`` of every auxiliary task and intrinsic signal)."""
+        each plug-in's beside the plug-in (the ``rules`` of every auxiliary task's and intrinsic
+        signal's ``*_spec.py``)."""
         validate_config(self)
         return self
 

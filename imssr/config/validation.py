@@ -1,36 +1,31 @@
 """The rules a run's config must keep: :meth:`RunConfig.validate <imssr.config.RunConfig.validate>`.
 
-Each rule is one line of error naming the field.  The general rules are here; each plug-in's are
-beside the plug-in (``config_rules`` of every auxiliary task and intrinsic signal, and of the
-intrinsic reward).
+Each rule is one line of error naming the field.  The general rules are here, with those of the
+intrinsic reward's normalisation and schedule; each plug-in's are beside the plug-in (the
+``rules`` of every auxiliary task's and intrinsic signal's ``*_spec.py``), applied here, where the
+config is assembled of them.
 """
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING
 
 from imssr.algos import get_algo
+from imssr.auxiliary.registry import AUX_PLUGINS
 from imssr.config.overrides import _get, _is_finite, _merged
-from imssr.config.schema import (COMPILE_MODES, FIELD_TYPES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
-                                 MAX_SEED, PRECISIONS, REPLAY_DEVICES, SEED_RULE, TF32_MODES, UPDATE_SCHEDULES,
-                                 VIDEO_FORMATS, type_phrase)
+from imssr.config.schema import FIELD_TYPES
 from imssr.config.version import CONFIG_VERSION
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
+from imssr.intrinsic.registry import SIGNAL_PLUGINS
+from imssr.settings import (COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT, MAX_SEED,
+                            NORMALIZATIONS, PRECISIONS, REPLAY_DEVICES, SCHEDULES, SEED_RULE, TF32_MODES,
+                            UPDATE_SCHEDULES, VIDEO_FORMATS, Sections, conv_output_size, type_phrase)
 
-if TYPE_CHECKING:
-    from imssr.config.runconfig import RunConfig
 
-
-def validate_config(cfg: RunConfig) -> None:
-    """Reject bad values of ``cfg`` with one-line errors: the general rules here, each plug-in's
-    beside the plug-in (``config_rules`` of every auxiliary task and intrinsic signal)."""
-    # The plug-ins are torch modules that import imssr.config for their annotations only: loaded
-    # here, the config imports without them.
-    from imssr.auxiliary import AUX_TASKS
-    from imssr.intrinsic import INTRINSIC_SIGNALS, IntrinsicReward
-    from imssr.networks.encoder import conv_output_size
-
+def validate_config(cfg: Sections) -> None:
+    """Reject bad values of ``cfg`` (a :class:`~imssr.config.RunConfig`) with one-line errors: the
+    general rules here, each plug-in's beside the plug-in (``rules`` of every auxiliary task and
+    intrinsic signal)."""
     _check_types(cfg)
     e, a, x, i, t = cfg.env, cfg.agent, cfg.aux, cfg.intrinsic, cfg.train
     checks = [
@@ -63,11 +58,17 @@ def validate_config(cfg: RunConfig) -> None:
         (a.tf32 in TF32_MODES, f"agent.tf32 must be one of {', '.join(TF32_MODES)}"),
         (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
         (x.update_every >= 1, "aux.update_every must be >= 1"),
-        (i.source in INTRINSIC_SIGNALS, f"intrinsic.source must be one of {', '.join(INTRINSIC_SIGNALS)}"),
-        # Each auxiliary task and signal checks its own settings, the intrinsic reward its
-        # normalisation and schedule.
-        *(rule for plugin in (*AUX_TASKS.values(), *INTRINSIC_SIGNALS.values(), IntrinsicReward)
-          for rule in plugin.config_rules(cfg)),
+        (i.source in SIGNAL_PLUGINS, f"intrinsic.source must be one of {', '.join(SIGNAL_PLUGINS)}"),
+        # Each auxiliary task and signal checks its own settings.
+        *(rule for plugin in (*AUX_PLUGINS.values(), *SIGNAL_PLUGINS.values()) for rule in plugin.rules(cfg)),
+        # The intrinsic reward's normalisation and schedule.
+        (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
+        (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
+        (i.normalization in NORMALIZATIONS, f"intrinsic.normalization must be one of {', '.join(NORMALIZATIONS)}"),
+        (i.norm_eps >= 0.0, "intrinsic.norm_eps must be >= 0"),
+        (i.norm_rtol >= 0.0, "intrinsic.norm_rtol must be >= 0"),
+        (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
+        (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
         (cfg.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION}"),
         (t.steps >= 1, "train.steps must be >= 1"),
         (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
@@ -104,7 +105,7 @@ def validate_config(cfg: RunConfig) -> None:
                          + "; choose the algo instead of overriding these")
 
 
-def _check_upper_bounds(cfg: RunConfig) -> None:
+def _check_upper_bounds(cfg: Sections) -> None:
     """Integers bounded from above: the replay buffer by what a process can address, the image
     by the renderer, every other integer by :data:`MAX_INT` (layer counts are bounded by the
     crop they must leave pixels of, in :func:`validate_config`)."""
@@ -122,7 +123,7 @@ def _check_upper_bounds(cfg: RunConfig) -> None:
             raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(cfg, key)}")
 
 
-def _check_types(cfg: RunConfig) -> None:
+def _check_types(cfg: Sections) -> None:
     """Reject values of the wrong type (e.g. set in code, or from a hand-edited JSON file): a
     value OmegaConf refuses or would have to convert (``"5"`` for an int, ``1`` for a bool), and
     NaN or infinity, which pass every comparison check or break them and end a run only later,

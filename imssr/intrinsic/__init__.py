@@ -1,11 +1,26 @@
-"""Intrinsic rewards: the raw signal of o' (IM-SSR's SSL loss, RND, RE3), then
-in-batch normalisation and the beta schedule (:class:`IntrinsicReward`); the signals by name in
-:mod:`~imssr.intrinsic.registry`."""
-from imssr.intrinsic.base import FORMS, IntrinsicSignal, SSLSignal
-from imssr.intrinsic.re3 import RE3
-from imssr.intrinsic.registry import INTRINSIC_SIGNALS, make_signal
-from imssr.intrinsic.reward import NORMALIZATIONS, SCHEDULES, BetaSchedule, IntrinsicReward, normalize
-from imssr.intrinsic.rnd import RND
+"""Intrinsic rewards: the raw signal of o' (IM-SSR's SSL loss, RND, RE3), then in-batch
+normalisation and the beta schedule (:class:`IntrinsicReward`); the signals by name in
+:mod:`~imssr.intrinsic.registry`.
+
+Each signal is two modules: ``<name>_spec.py`` (its settings, rules and preset rows; no torch),
+which the config reads, and its torch module, which the agent builds.  Importing this package
+imports no torch: the torch classes and functions load on first use.
+"""
+import importlib
+
+from imssr.intrinsic.registry import INTRINSIC_SIGNALS, SIGNAL_PLUGINS, make_signal
+from imssr.intrinsic.ssl_spec import FORMS
+from imssr.settings import NORMALIZATIONS, SCHEDULES
+
+_LAZY = {"IntrinsicSignal": "imssr.intrinsic.base", "SSLSignal": "imssr.intrinsic.base",
+         "RND": "imssr.intrinsic.rnd", "RE3": "imssr.intrinsic.re3", "BetaSchedule": "imssr.intrinsic.reward",
+         "IntrinsicReward": "imssr.intrinsic.reward", "normalize": "imssr.intrinsic.reward"}
 
 __all__ = ["BetaSchedule", "IntrinsicReward", "IntrinsicSignal", "SSLSignal", "RND", "RE3", "INTRINSIC_SIGNALS",
-           "FORMS", "NORMALIZATIONS", "SCHEDULES", "make_signal", "normalize"]
+           "SIGNAL_PLUGINS", "FORMS", "NORMALIZATIONS", "SCHEDULES", "make_signal", "normalize"]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'imssr.intrinsic' has no attribute {name!r}")

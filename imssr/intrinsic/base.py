@@ -8,19 +8,15 @@ and everything else stay the same.
 from __future__ import annotations
 
 import abc
-from typing import TYPE_CHECKING, Callable, ClassVar
+from typing import Any, Callable, ClassVar
 
 import torch
 
 from imssr.batch import Batch, NextObsContext
+from imssr.errors import ImssrError
 from imssr.networks.module import ModuleWithOptimizer
 from imssr.precision import optimizer_step
-
-if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
-    from imssr.config import RunConfig
-
-FORMS = ("authors", "training")
-"""How IM-CURL's and IM-SODA's signal of o' is computed (``intrinsic.form``)."""
+from imssr.settings import AgentConfig, IntrinsicCore
 
 
 class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
@@ -29,16 +25,12 @@ class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
     name: ClassVar[str]
 
     @classmethod
-    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
-        """The signal's rules on a config, as ``(holds, one-line error)`` pairs, asked by
-        :meth:`RunConfig.validate <imssr.config.RunConfig.validate>` of every signal: a config
-        carries every signal's settings, chosen or not (:meth:`chosen` says whether it is)."""
-        return []
-
-    @classmethod
-    def chosen(cls, cfg: RunConfig) -> bool:
-        """Whether ``cfg`` adds this signal to the reward."""
-        return cfg.intrinsic.enabled and cfg.intrinsic.source == cls.name
+    def build(cls, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
+              aux: Any = None) -> "IntrinsicSignal":
+        """The signal for an agent of ``agent_cfg`` on observations of ``obs_shape``, with the
+        ``intrinsic`` section ``cfg`` (which holds the signal's own settings) and the agent's
+        auxiliary task ``aux`` (None without one)."""
+        raise NotImplementedError
 
     @property
     def label(self) -> str:
@@ -69,8 +61,11 @@ class SSLSignal(IntrinsicSignal):
     name = "ssl"
 
     @classmethod
-    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
-        return [(cfg.intrinsic.form in FORMS, f"intrinsic.form must be one of {', '.join(FORMS)}")]
+    def build(cls, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
+              aux: Any = None) -> "SSLSignal":
+        if aux is None:
+            raise ImssrError("intrinsic.source=ssl needs an auxiliary task")
+        return cls(aux.intrinsic_loss, aux.name)
 
     def __init__(self, task_loss: Callable[[NextObsContext], torch.Tensor], task_name: str):
         super().__init__()

@@ -7,31 +7,26 @@ It has no parameters to learn, so it costs one no-grad encoder pass.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from torch import nn
 
 from imssr.batch import NextObsContext
 from imssr.intrinsic.base import IntrinsicSignal
+from imssr.intrinsic.re3_spec import RE3Settings
 from imssr.networks import ConvTrunk, Projection, weight_init
-
-if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
-    from imssr.config import AgentConfig, IntrinsicConfig, RunConfig
+from imssr.settings import AgentConfig
 
 
 class RE3(IntrinsicSignal):
     name = "re3"
 
     @classmethod
-    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
-        i = cfg.intrinsic
-        return [(i.re3_k >= 1 and i.re3_dim >= 1, "intrinsic.re3_k and re3_dim must be >= 1"),
-                # The k-th neighbour within the batch, besides the sample itself.
-                (not cls.chosen(cfg) or cfg.agent.batch_size > i.re3_k,
-                 "agent.batch_size must exceed intrinsic.re3_k")]
+    def build(cls, cfg: RE3Settings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None) -> "RE3":
+        return cls(obs_shape[0], agent_cfg, cfg)
 
-    def __init__(self, channels: int, agent_cfg: AgentConfig, cfg: IntrinsicConfig):
+    def __init__(self, channels: int, agent_cfg: AgentConfig, cfg: RE3Settings):
         super().__init__()
         trunk = ConvTrunk(channels, agent_cfg.crop_size, agent_cfg.encoder_layers, agent_cfg.encoder_filters,
                           channels_last=agent_cfg.channels_last, final_relu=agent_cfg.final_relu)

@@ -1,30 +1,27 @@
-"""The intrinsic signals by name: the registry a new signal joins (one line), and :func:`make_signal`."""
+"""The intrinsic signals by name: the registry a new signal joins (one name in
+:data:`SIGNAL_PLUGINS`), and :func:`make_signal`.  Importing it imports each signal's ``*_spec``
+module, not its torch code."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from imssr.errors import ImssrError
-from imssr.intrinsic.base import IntrinsicSignal, SSLSignal
-from imssr.intrinsic.re3 import RE3
-from imssr.intrinsic.rnd import RND
+from imssr.settings import AgentConfig, IntrinsicCore, Implementations, SignalPlugin, plugin_table
 
-if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
-    from imssr.config import AgentConfig, IntrinsicConfig
+if TYPE_CHECKING:  # the signals' torch code, imported by make_signal when an agent builds one
+    from imssr.intrinsic.base import IntrinsicSignal
 
-INTRINSIC_SIGNALS: dict[str, type[IntrinsicSignal]] = {s.name: s for s in (SSLSignal, RND, RE3)}
-"""The signals ``intrinsic.source`` names, in the order of :data:`imssr.algos.SIGNALS`."""
+SIGNAL_PLUGINS: dict[str, SignalPlugin] = plugin_table("imssr.intrinsic", "ssl", "rnd", "re3")
+"""The signals ``intrinsic.source`` names, in order: each makes an algorithm of every base
+(:data:`imssr.algos.SIGNALS`)."""
+INTRINSIC_SIGNALS = Implementations(SIGNAL_PLUGINS)
+"""Their torch classes by name, each imported on first use."""
 
 
-def make_signal(cfg: IntrinsicConfig, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
-                aux=None) -> IntrinsicSignal:
-    """The signal named by ``cfg.source``; ``ssl`` needs the auxiliary task (anything with a
-    ``name`` and an ``intrinsic_loss(ctx)``)."""
-    if cfg.source == "ssl":
-        if aux is None:
-            raise ImssrError("intrinsic.source=ssl needs an auxiliary task")
-        return SSLSignal(aux.intrinsic_loss, aux.name)
-    if cfg.source == "rnd":
-        return RND(obs_shape[0], agent_cfg.crop_size, cfg)
-    if cfg.source == "re3":
-        return RE3(obs_shape[0], agent_cfg, cfg)
-    raise ImssrError(f"unknown intrinsic source {cfg.source!r}; valid: {', '.join(INTRINSIC_SIGNALS)}")
+def make_signal(cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
+                aux: Any = None) -> IntrinsicSignal:
+    """The signal named by ``cfg.source`` (:meth:`IntrinsicSignal.build
+    <imssr.intrinsic.base.IntrinsicSignal.build>`); ``aux`` is the agent's auxiliary task, if any."""
+    if cfg.source not in SIGNAL_PLUGINS:
+        raise ImssrError(f"unknown intrinsic source {cfg.source!r}; valid: {', '.join(SIGNAL_PLUGINS)}")
+    return INTRINSIC_SIGNALS[cfg.source].build(cfg, obs_shape, agent_cfg, aux)

@@ -9,22 +9,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import torch
 
 from imssr.errors import ImssrError
 from imssr.precision import full_precision, upcast
+from imssr.settings import NORMALIZATIONS, SCHEDULES, IntrinsicCore
 
-if TYPE_CHECKING:  # annotations only: the config imports this module for its rules
-    from imssr.config import IntrinsicConfig, RunConfig
-
-NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
-"""The in-batch normalisations of :func:`normalize` (``intrinsic.normalization``)."""
-SCHEDULES = ("constant", "step")
 STAT_KEYS = ("r_int_mean", "r_int_std", "r_int_raw", "r_int_raw_std", "bonus_std", "beta")
 """The metrics :class:`IntrinsicReward` adds to an update's (a run without it logs none)."""
-"""The beta schedules of :class:`BetaSchedule` (``intrinsic.schedule``)."""
 
 
 def normalize(losses: torch.Tensor, method: str = "zscore", eps: float = 0.0, unbiased: bool = True,
@@ -88,23 +80,7 @@ class BetaSchedule:
 class IntrinsicReward:
     """Turns per-sample losses into ``beta_t * normalize(l)`` and keeps statistics."""
 
-    @staticmethod
-    def config_rules(cfg: RunConfig) -> list[tuple[bool, str]]:
-        """The rules on the ``intrinsic`` section's normalisation and schedule, as ``(holds,
-        one-line error)`` pairs (asked by :meth:`RunConfig.validate <imssr.config.RunConfig.validate>`)."""
-        i = cfg.intrinsic
-        return [
-            (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
-            (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
-            (i.normalization in NORMALIZATIONS,
-             f"intrinsic.normalization must be one of {', '.join(NORMALIZATIONS)}"),
-            (i.norm_eps >= 0.0, "intrinsic.norm_eps must be >= 0"),
-            (i.norm_rtol >= 0.0, "intrinsic.norm_rtol must be >= 0"),
-            (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
-            (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
-        ]
-
-    def __init__(self, cfg: IntrinsicConfig):
+    def __init__(self, cfg: IntrinsicCore):
         self.cfg = cfg
         self.schedule = BetaSchedule(cfg.beta0, cfg.schedule, cfg.decay, cfg.decay_every_steps)
 

@@ -10,20 +10,16 @@ in-batch normalisation as every other source.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from torch import nn
 
 from imssr.batch import Batch, NextObsContext
 from imssr.intrinsic.base import IntrinsicSignal
+from imssr.intrinsic.rnd_spec import RNDSettings
 from imssr.precision import full_precision, upcast
-
-if TYPE_CHECKING:  # annotations only: the config imports the signals for their rules
-    from imssr.config import IntrinsicConfig, RunConfig
-
-MIN_CROP = 36
-"""The smallest crop RND's convolutions (8x8/4, 4x4/2, 3x3/1) leave a pixel of."""
+from imssr.settings import AgentConfig
 
 
 def rnd_convs(channels: int) -> nn.Sequential:
@@ -42,13 +38,10 @@ class RND(IntrinsicSignal):
     name = "rnd"
 
     @classmethod
-    def config_rules(cls, cfg: RunConfig) -> list[tuple[bool, str]]:
-        i = cfg.intrinsic
-        return [(i.rnd_lr > 0 and i.rnd_dim >= 1, "intrinsic.rnd_lr must be > 0 and rnd_dim >= 1"),
-                (not cls.chosen(cfg) or cfg.agent.crop_size >= MIN_CROP,
-                 f"intrinsic.source=rnd needs agent.crop_size >= {MIN_CROP} (RND's 8/4, 4/2, 3/1 convolutions)")]
+    def build(cls, cfg: RNDSettings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None) -> "RND":
+        return cls(obs_shape[0], agent_cfg.crop_size, cfg)
 
-    def __init__(self, channels: int, size: int, cfg: IntrinsicConfig):
+    def __init__(self, channels: int, size: int, cfg: RNDSettings):
         super().__init__()
         conv_t, conv_p = rnd_convs(channels), rnd_convs(channels)
         flat = _flat_dim(conv_t, channels, size)

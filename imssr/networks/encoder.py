@@ -11,12 +11,7 @@ from torch import nn
 
 from imssr import draws
 from imssr.precision import FP32LayerNorm
-
-
-def conv_output_size(size: int, num_layers: int) -> int:
-    # First layer: 3x3, stride 2; the others 3x3, stride 1; no padding.
-    size = (size - 3) // 2 + 1
-    return size - 2 * (num_layers - 1)
+from imssr.settings import conv_output_size
 
 
 def conv_stack(filters: int, num_layers: int) -> nn.Sequential:

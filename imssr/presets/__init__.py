@@ -16,11 +16,12 @@ The modules, each name re-exported here (with the algorithm registry of :mod:`im
 from imssr.algos import ALGOS, BASES, SIGNALS, AlgoSpec, get_algo
 from imssr.presets.build import (base_config, demo_config, load_partial_config, make_config, run_config,
                                  set_field)
-from imssr.presets.tables import (AUTHORS, AUTHORS_CURL, AUTHORS_LOOP, AUTHORS_SIGNAL, BASE_BETA0, BASE_SETTINGS,
-                                  COMMON, CONSTANT_BETA_SCHEDULE, CONSTANT_BETA_TASKS, DECAY, DEFAULT_BETA0, DEMO,
-                                  DMCGB, IMSSR, INTRINSIC, INTRINSIC_LAST, NETWORKS, NORM_EPS, OFFICIAL_CURL, PAPER,
-                                  PAPER_BETA0, RUN, RUN_FIELDS, SCHEDULE, SCRIPT_BETA0, SIGNAL_SETTINGS, TABLE3,
-                                  TABLE5, Setting, markdown_table, paper_beta0, preset_settings, show_value)
+from imssr.presets.tables import (BASE_BETA0, BASE_SETTINGS, COMMON, CONSTANT_BETA_SCHEDULE, CONSTANT_BETA_TASKS,
+                                  DEFAULT_BETA0, DEMO, INTRINSIC, INTRINSIC_LAST, NETWORKS, NORM_EPS, PAPER_BETA0, RUN,
+                                  RUN_FIELDS, SCHEDULE, SCRIPT_BETA0, SIGNAL_SETTINGS, markdown_table, paper_beta0,
+                                  preset_settings, show_value)
+from imssr.settings import (AUTHORS, AUTHORS_CURL, AUTHORS_LOOP, AUTHORS_SIGNAL, DECAY, DMCGB, IMSSR, OFFICIAL_CURL,
+                            PAPER, TABLE3, TABLE5, Setting)
 
 __all__ = [
     "ALGOS", "AUTHORS", "AUTHORS_CURL", "AUTHORS_LOOP", "AUTHORS_SIGNAL", "AlgoSpec", "BASES", "BASE_BETA0",

@@ -4,33 +4,35 @@ Where each value comes from: the authors' code (``duchenzhuang/dmc-disentangle``
 DMC-GB that produced the paper's numbers) where the paper's tables are silent, Table III and
 Table V where they speak.  :func:`preset_settings` gathers the rows of one algorithm on one task
 (docs/provenance.md prints them all, ``imssr config --explain`` one preset's);
-:mod:`imssr.presets.build` makes configs of them.
+:mod:`imssr.presets.build` makes configs of them.  The rows of each base and each intrinsic signal
+are its plug-in's (``PLUGIN`` of its ``*_spec.py``); the rows every algorithm shares are here.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Sequence
 
 from imssr.algos import AlgoSpec, get_algo
+from imssr.auxiliary.registry import AUX_PLUGINS
 from imssr.config import RunConfig
 from imssr.envs.tasks import get_task
 from imssr.errors import ImssrError
+from imssr.intrinsic.registry import SIGNAL_PLUGINS
+from imssr.settings import (AUTHORS, AUTHORS_LOOP, AUTHORS_SIGNAL, DMCGB, IMSSR, OFFICIAL_CURL, PAPER, TABLE3,
+                            TABLE5, Setting)
 
-
-# Table V: beta_0 per task (../shared/spec/paper_beta0.csv; tests check the copy).
-PAPER_BETA0 = {
-    "curl": {"cartpole_swingup_sparse": 0.01, "finger_spin": 0.005, "pendulum_swingup": 0.05,
-             "reacher_easy": 0.005, "walker_walk": 0.005, "walker_walk_sparse": 0.1},
-    "soda": {"cartpole_swingup_sparse": 0.01, "finger_spin": 0.005, "pendulum_swingup": 0.1,
-             "reacher_easy": 0.001, "walker_walk": 0.05, "walker_walk_sparse": 0.1},
-}
-# IM-PAD and IM-SVEA: the paper reports beta_0 = 0.05 (on pendulum_swingup) and no other value.
-BASE_BETA0 = {"pad": 0.05, "svea": 0.05}
 # beta_0 for tasks outside Table V: the paper's most common small value.
 DEFAULT_BETA0 = 0.01
 # The paper's text keeps beta fixed on this task and decays it (x0.8 / 100k steps) elsewhere;
-# the authors' IM-CURL script decays it there too (see SCHEDULE).
+# the authors' IM-CURL script decays it there too (CURL's plug-in says so).
 CONSTANT_BETA_TASKS = ("cartpole_swingup_sparse",)
+
+# Each base's rows are its plug-in's (its auxiliary task's ``*_spec.py``), gathered here by base.
+PAPER_BETA0 = {b: dict(p.beta0.by_task) for b, p in AUX_PLUGINS.items() if p.beta0.by_task}
+"""Table V: beta_0 per base and task (../shared/spec/paper_beta0.csv; tests check the copy)."""
+BASE_BETA0 = {b: p.beta0.every_task for b, p in AUX_PLUGINS.items() if p.beta0.every_task is not None}
+"""beta_0 of the bases for which the paper reports one value (IM-PAD and IM-SVEA: 0.05)."""
+SCRIPT_BETA0 = {(b, task): note for b, p in AUX_PLUGINS.items() for task, note in p.beta0.notes.items()}
+"""Where the authors' scripts pass another in_gamma than Table V (Table V wins)."""
 
 
 def paper_beta0(algo: str, task: str) -> float:
@@ -39,41 +41,10 @@ def paper_beta0(algo: str, task: str) -> float:
     RND and RE3 use the IM- variant's value of the same base, so a comparison
     changes only the signal.
     """
-    base = get_algo(algo).base
-    if base in PAPER_BETA0:
-        return PAPER_BETA0[base].get(task, DEFAULT_BETA0)
-    return BASE_BETA0.get(base, DEFAULT_BETA0)
-
-
-# -- provenance ---------------------------------------------------------------------------
-# Where each preset value comes from.  The authors' code is duchenzhuang/dmc-disentangle
-# (a fork of DMC-GB that produced the paper's numbers); Table III wins where it speaks.
-TABLE3 = "Table III"
-TABLE5 = "Table V"
-PAPER = "paper, Appendix (Implementation Details)"
-AUTHORS = "authors' code (arguments.py default)"
-AUTHORS_LOOP = "authors' code (train.py)"
-AUTHORS_CURL = "authors' scripts/curl/*.sh (DMC-GB CURL)"
-AUTHORS_SIGNAL = "authors' code (intrinsic reward)"
-DMCGB = "DMC-GB"
-OFFICIAL_CURL = "official CURL"
-IMSSR = "imssr"
-
-
-@dataclass(frozen=True)
-class Setting:
-    """One preset value and where it comes from."""
-
-    field: str
-    """Dotted config field, ``section.name``."""
-    value: object
-    source: str
-    note: str = ""
-    """Why, where the value deviates from the authors' code or needs a word."""
-
-    @property
-    def deviation(self) -> bool:
-        return bool(self.note) and self.note.startswith("deviation")
+    beta0 = AUX_PLUGINS[get_algo(algo).base].beta0
+    if task in beta0.by_task:
+        return beta0.by_task[task]
+    return DEFAULT_BETA0 if beta0.every_task is None else beta0.every_task
 
 
 RUN = "run setting"
@@ -143,71 +114,11 @@ COMMON = (
 """Settings every algorithm shares (the SAC core, the loop, the budget), after the algo, the task
 and its action repeat."""
 
-BASE_SETTINGS = {
-    "curl": (
-        Setting("agent.encoder_layers", 4, TABLE3, "num_shared_layers 4 in the authors' scripts"),
-        Setting("agent.encoder_head_layers", 0, AUTHORS_CURL),
-        Setting("aux.name", "curl", "algo"),
-        Setting("aux.lr", 1e-3, AUTHORS, "aux_lr"),
-        Setting("aux.update_every", 1, TABLE3, "aux_update_freq 1 in the authors' scripts"),
-        Setting("aux.own_batch", False, AUTHORS_CURL, "CURL trains on the RL batch (Table III: SSL "
-                "batch 128 = RL batch)"),
-        Setting("aux.batch_size", 128, TABLE3, "unused: CURL trains on the RL batch"),
-        Setting("train.replay_capacity", 100_000, TABLE3, "deviation from the authors' scripts "
-                "(--capacity 200k): Table III wins"),
-    ),
-    "soda": (
-        Setting("agent.encoder_layers", 11, TABLE3),
-        Setting("agent.encoder_head_layers", 0, DMCGB),
-        Setting("aux.name", "soda", "algo"),
-        Setting("aux.lr", 3e-4, TABLE3),
-        Setting("aux.update_every", 2, TABLE3, "also the parser default of the authors' SODA "
-                "with the intrinsic reward (1 in some of their other commits)"),
-        Setting("aux.own_batch", True, DMCGB, "sampled apart from the RL batch"),
-        Setting("aux.batch_size", 256, TABLE3),
-        Setting("aux.tau", 0.005, TABLE3),
-        Setting("aux.overlay_alpha", 0.5, DMCGB),
-        Setting("train.replay_capacity", 500_000, TABLE3),
-    ),
-    "pad": (
-        Setting("agent.encoder_layers", 11, TABLE3),
-        Setting("agent.encoder_head_layers", 3, DMCGB, "8 shared + 3 head layers"),
-        Setting("aux.name", "pad", "algo"),
-        Setting("aux.lr", 1e-3, DMCGB, "aux_lr"),
-        Setting("aux.update_every", 1, TABLE3, "deviation from DMC-GB and the authors' code (every "
-                "2nd agent step, their parser default; their pad.sh sets nothing): Table III wins"),
-        Setting("aux.own_batch", True, TABLE3, "deviation from DMC-GB (PAD on the RL batch of "
-                "128): Table III gives PAD an SSL batch of 256"),
-        Setting("aux.batch_size", 256, TABLE3),
-        Setting("train.replay_capacity", 500_000, TABLE3),
-    ),
-    "svea": (
-        Setting("agent.encoder_layers", 11, TABLE3),
-        Setting("agent.encoder_head_layers", 0, DMCGB),
-        Setting("aux.name", "svea", "algo"),
-        Setting("aux.svea_alpha", 0.5, DMCGB),
-        Setting("aux.svea_beta", 0.5, DMCGB),
-        Setting("train.replay_capacity", 500_000, TABLE3),
-    ),
-}
+BASE_SETTINGS = {b: p.preset for b, p in AUX_PLUGINS.items()}
 """Settings of each base algorithm (its auxiliary task and networks)."""
-
-# The authors' CURL scripts pass --in_decay 0.8 on every task, cartpole included; where text and
-# code differ and no table speaks, their code wins.  No script of the authors' reproduces an
-# IM-SODA (or IM-PAD, IM-SVEA) run of the paper's tables, so the paper's text gives theirs.
-DECAY = "x0.8 every 100k agent steps"
-SCHEDULE = {
-    "curl": Setting("intrinsic.schedule", "step", AUTHORS_CURL, DECAY),
-    **{base: Setting("intrinsic.schedule", "step", PAPER, DECAY) for base in ("soda", "pad", "svea")},
-}
+SCHEDULE = {b: p.schedule for b, p in AUX_PLUGINS.items()}
 """The beta schedule of each base's intrinsic reward, on a task outside :data:`CONSTANT_BETA_TASKS`."""
-CONSTANT_BETA_SCHEDULE = {
-    "curl": Setting("intrinsic.schedule", "step", AUTHORS_CURL, "deviation from the paper's text (beta "
-                    "fixed on cartpole_swingup_sparse): the authors' script decays it; --set "
-                    "intrinsic.schedule=constant gives the text's"),
-    **{base: Setting("intrinsic.schedule", "constant", PAPER, "beta fixed on cartpole_swingup_sparse")
-       for base in ("soda", "pad", "svea")},
-}
+CONSTANT_BETA_SCHEDULE = {b: p.constant_beta_schedule for b, p in AUX_PLUGINS.items()}
 """The beta schedule of each base's intrinsic reward on the tasks of :data:`CONSTANT_BETA_TASKS`."""
 
 INTRINSIC = (
@@ -219,14 +130,9 @@ INTRINSIC = (
 """Settings every intrinsic reward shares, after its signal, beta_0 and schedule (then its
 base's :data:`NORM_EPS`, then :data:`INTRINSIC_LAST`)."""
 
-# Normalisation of the signal per base, as the authors' code computes it (IM-CURL, IM-SODA);
-# IM-PAD and IM-SVEA have no code of the authors and follow IM-CURL's.
-NORM_EPS = {
-    "curl": Setting("intrinsic.norm_eps", 0.0, AUTHORS_SIGNAL, "z-score with the unbiased std, nothing added"),
-    "soda": Setting("intrinsic.norm_eps", 1e-5, AUTHORS_SIGNAL, "z-score with std + 1e-5"),
-    "pad": Setting("intrinsic.norm_eps", 0.0, IMSSR, "no code of the authors: as IM-CURL"),
-    "svea": Setting("intrinsic.norm_eps", 0.0, IMSSR, "no code of the authors: as IM-CURL"),
-}
+NORM_EPS = {b: p.norm_eps for b, p in AUX_PLUGINS.items()}
+"""The normalisation's epsilon of each base's intrinsic reward, as the authors' code computes it
+(IM-CURL, IM-SODA; IM-PAD and IM-SVEA have no code of the authors and follow IM-CURL's)."""
 
 INTRINSIC_LAST = (
     Setting("intrinsic.norm_rtol", 1e-5, IMSSR, "a batch of equal losses gets a zero bonus, not "
@@ -236,38 +142,21 @@ INTRINSIC_LAST = (
 )
 """Settings every intrinsic reward shares, after its base's :data:`NORM_EPS`."""
 
-SIGNAL_SETTINGS = {
-    "ssl": (),
-    "rnd": (Setting("intrinsic.rnd_lr", 1e-4, "RND (Burda et al. 2018)"),
-            Setting("intrinsic.rnd_dim", 128, IMSSR, "RND's output size")),
-    "re3": (Setting("intrinsic.re3_k", 3, "RE3 (Seo et al. 2021)"),
-            Setting("intrinsic.re3_dim", 50, "RE3 (Seo et al. 2021)")),
-}
+SIGNAL_SETTINGS = {name: p.preset for name, p in SIGNAL_PLUGINS.items()}
 """Settings of each intrinsic signal's own networks."""
-
-# Where the authors' scripts pass another in_gamma than Table V (Table V wins).
-SCRIPT_BETA0 = {("curl", "pendulum_swingup"): "deviation from the authors' script (--in_gamma 0.01): "
-                "Table V wins",
-                ("curl", "reacher_easy"): "deviation from the authors' script (--in_gamma 0.001): "
-                "Table V wins",
-                ("curl", "walker_walk"): "deviation from the authors' script (--in_gamma 0.05 in its "
-                "commented-out lines, which also turn the intrinsic reward on): Table V wins",
-                ("soda", "finger_spin"): "deviation from the authors' finger_spin SODA scripts "
-                "(scripts/nips/soda_finger_*.sh run in_gamma 0.001 to 10.0, 1.0 among them): "
-                "Table V wins"}
 
 
 def _beta0(spec: AlgoSpec, task: str) -> Setting:
     """beta_0 of ``spec`` on ``task`` (:func:`paper_beta0`) with its source."""
-    base, value = spec.base, paper_beta0(spec.name, task)
-    if base in PAPER_BETA0 and task in PAPER_BETA0[base]:
+    beta0, value = AUX_PLUGINS[spec.base].beta0, paper_beta0(spec.name, task)
+    if task in beta0.by_task:
         source = TABLE5
-    elif base in BASE_BETA0:
-        source = "paper (beta_0 = 0.05 for IM-PAD / IM-SVEA)"
+    elif beta0.every_task is not None:
+        source = beta0.every_task_source
     else:
         return Setting("intrinsic.beta0", value, IMSSR, f"no value in the paper for {task}: {DEFAULT_BETA0}")
     note = "the IM- variant's value, so that only the signal changes" if spec.intrinsic != "ssl" else \
-        SCRIPT_BETA0.get((base, task), "")
+        beta0.notes.get(task, "")
     return Setting("intrinsic.beta0", value, source, note)
 
 
