@@ -38,10 +38,10 @@ def rules(cfg: Sections) -> list[tuple[bool, str]]:
 
 
 PLUGIN = AuxPlugin(
-    name="toy", implementation="imssr.auxiliary.toy:Toy", label="TOY", description="SAC + a toy task",
+    name="toy", label="TOY", implementation="Toy", description="SAC + a toy task",
     settings=ToySettings, rules=rules,
     preset=(Setting("agent.encoder_layers", 4, TABLE3), Setting("agent.encoder_head_layers", 0, TABLE3),
-            Setting("aux.name", "toy", "algo"), Setting("aux.lr", 1e-3, "test"),
+            Setting("aux.lr", 1e-3, "test"),
             Setting("aux.update_every", 1, "test"), Setting("aux.own_batch", False, "test"),
             Setting("aux.batch_size", 128, "test"), Setting("aux.toy_weight", 2.0, "test", "the toy's own"),
             Setting("train.replay_capacity", 100_000, TABLE3)),
@@ -184,6 +184,6 @@ def test_two_plugins_may_not_declare_one_field():
         lr: float = 1.0
         """Clashes with the core's."""
 
-    plugin = AuxPlugin(name="clash", implementation="x:y", label="C", description="", settings=Clash)
+    plugin = AuxPlugin(name="clash", implementation="Clash", label="C", description="", settings=Clash)
     with pytest.raises(TypeError, match="AuxConfig.lr is declared by both AuxCore and clash"):
         compose_section("AuxConfig", AuxCore, [plugin], __name__, "")

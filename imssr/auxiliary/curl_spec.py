@@ -4,14 +4,11 @@ from imssr.settings import (AUTHORS, AUTHORS_CURL, AUTHORS_SIGNAL, DECAY, TABLE3
                             Setting)
 
 PLUGIN = AuxPlugin(
-    name="curl",
-    implementation="imssr.auxiliary.curl:CURL",
-    label="CURL",
+    name="curl", label="CURL", implementation="CURL",
     description="SAC + CURL: InfoNCE between two crops, momentum key encoder (Srinivas et al. 2020)",
     preset=(
         Setting("agent.encoder_layers", 4, TABLE3, "num_shared_layers 4 in the authors' scripts"),
         Setting("agent.encoder_head_layers", 0, AUTHORS_CURL),
-        Setting("aux.name", "curl", "algo"),
         Setting("aux.lr", 1e-3, AUTHORS, "aux_lr"),
         Setting("aux.update_every", 1, TABLE3, "aux_update_freq 1 in the authors' scripts"),
         Setting("aux.own_batch", False, AUTHORS_CURL, "CURL trains on the RL batch (Table III: SSL "

@@ -3,14 +3,11 @@
 from imssr.settings import DMCGB, TABLE3, AuxPlugin, Beta0, Setting
 
 PLUGIN = AuxPlugin(
-    name="pad",
-    implementation="imssr.auxiliary.pad:PAD",
-    label="PAD",
+    name="pad", label="PAD", implementation="PAD",
     description="SAC + PAD's inverse-dynamics task, shared 8 of 11 conv layers (Hansen et al. 2021)",
     preset=(
         Setting("agent.encoder_layers", 11, TABLE3),
         Setting("agent.encoder_head_layers", 3, DMCGB, "8 shared + 3 head layers"),
-        Setting("aux.name", "pad", "algo"),
         Setting("aux.lr", 1e-3, DMCGB, "aux_lr"),
         Setting("aux.update_every", 1, TABLE3, "deviation from DMC-GB and the authors' code (every "
                 "2nd agent step, their parser default; their pad.sh sets nothing): Table III wins"),

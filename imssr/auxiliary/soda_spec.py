@@ -36,16 +36,11 @@ def rules(cfg: Sections) -> list[tuple[bool, str]]:
 
 
 PLUGIN = AuxPlugin(
-    name="soda",
-    implementation="imssr.auxiliary.soda:SODA",
-    label="SODA",
+    name="soda", label="SODA", implementation="SODA", settings=SODASettings, rules=rules,
     description="SAC + SODA: BYOL-style consistency of overlay vs clean view (Hansen & Wang 2021)",
-    settings=SODASettings,
-    rules=rules,
     preset=(
         Setting("agent.encoder_layers", 11, TABLE3),
         Setting("agent.encoder_head_layers", 0, DMCGB),
-        Setting("aux.name", "soda", "algo"),
         Setting("aux.lr", 3e-4, TABLE3),
         Setting("aux.update_every", 2, TABLE3, "also the parser default of the authors' SODA "
                 "with the intrinsic reward (1 in some of their other commits)"),

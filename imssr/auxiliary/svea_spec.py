@@ -24,16 +24,11 @@ def rules(cfg: Sections) -> list[tuple[bool, str]]:
 
 
 PLUGIN = AuxPlugin(
-    name="svea",
-    implementation="imssr.auxiliary.svea:SVEA",
-    label="SVEA",
+    name="svea", label="SVEA", implementation="SVEA", settings=SVEASettings, rules=rules,
     description="SAC + SVEA: critic regressed on clean and random-conv views (Hansen et al. 2021)",
-    settings=SVEASettings,
-    rules=rules,
     preset=(
         Setting("agent.encoder_layers", 11, TABLE3),
         Setting("agent.encoder_head_layers", 0, DMCGB),
-        Setting("aux.name", "svea", "algo"),
         Setting("aux.svea_alpha", 0.5, DMCGB),
         Setting("aux.svea_beta", 0.5, DMCGB),
         Setting("train.replay_capacity", 500_000, TABLE3),

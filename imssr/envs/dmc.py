@@ -20,7 +20,7 @@ from __future__ import annotations
 import os
 import sys
 from collections import deque
-from typing import TYPE_CHECKING, Any, Optional
+from typing import Any, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -31,9 +31,7 @@ from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
 from imssr.memlimit import check_room_to_render, raise_limit_text
 from imssr.rng import random_state_from_plain, random_state_to_plain
-
-if TYPE_CHECKING:  # the config imports the scene registry of this package
-    from imssr.config import EnvConfig
+from imssr.settings import EnvConfig
 
 
 class DMCEnv(gym.Env):

@@ -12,7 +12,7 @@ from imssr.intrinsic.registry import INTRINSIC_SIGNALS, SIGNAL_PLUGINS, make_sig
 from imssr.intrinsic.ssl_spec import FORMS
 from imssr.settings import NORMALIZATIONS, SCHEDULES
 
-_LAZY = {"IntrinsicSignal": "imssr.intrinsic.base", "SSLSignal": "imssr.intrinsic.base",
+_LAZY = {"IntrinsicSignal": "imssr.intrinsic.base", "SSLSignal": "imssr.intrinsic.ssl",
          "RND": "imssr.intrinsic.rnd", "RE3": "imssr.intrinsic.re3", "BetaSchedule": "imssr.intrinsic.reward",
          "IntrinsicReward": "imssr.intrinsic.reward", "normalize": "imssr.intrinsic.reward"}
 

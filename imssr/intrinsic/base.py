@@ -1,6 +1,6 @@
 """Where the raw intrinsic signal of o' comes from, before normalisation and beta.
 
-IM-SSR's signal is the auxiliary task's per-sample loss of o' (:class:`SSLSignal`);
+IM-SSR's signal is the auxiliary task's per-sample loss of o' (:class:`~imssr.intrinsic.ssl.SSLSignal`);
 RND and RE3 are exploration peers that plug into the same slot, so one setting
 (``intrinsic.source``) swaps the signal while normalisation, the beta schedule
 and everything else stay the same.
@@ -8,12 +8,11 @@ and everything else stay the same.
 from __future__ import annotations
 
 import abc
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import torch
 
 from imssr.batch import Batch, NextObsContext
-from imssr.errors import ImssrError
 from imssr.networks.module import ModuleWithOptimizer
 from imssr.precision import optimizer_step
 from imssr.settings import AgentConfig, IntrinsicCore
@@ -53,30 +52,3 @@ class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
         loss, metrics = self.objective(batch)
         optimizer_step(loss, self.optimizer)
         return metrics
-
-
-class SSLSignal(IntrinsicSignal):
-    """IM-SSR (Algorithm 1): the auxiliary task's per-sample loss of o'."""
-
-    name = "ssl"
-
-    @classmethod
-    def build(cls, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
-              aux: Any = None) -> "SSLSignal":
-        if aux is None:
-            raise ImssrError("intrinsic.source=ssl needs an auxiliary task")
-        return cls(aux.intrinsic_loss, aux.name)
-
-    def __init__(self, task_loss: Callable[[NextObsContext], torch.Tensor], task_name: str):
-        super().__init__()
-        # The task's bound ``intrinsic_loss``, not the task: the agent owns and saves the task.
-        self.task_loss = task_loss
-        self.task_name = task_name
-
-    @property
-    def label(self) -> str:
-        return f"{self.task_name} per-sample loss of o'"
-
-    @torch.no_grad()
-    def forward(self, ctx: NextObsContext) -> torch.Tensor:
-        return self.task_loss(ctx)

@@ -26,13 +26,8 @@ def rules(cfg: Sections) -> list[tuple[bool, str]]:
 
 
 PLUGIN = SignalPlugin(
-    name="re3",
-    implementation="imssr.intrinsic.re3:RE3",
-    algo_name="{b}+re3",
-    label="{B}+RE3",
+    name="re3", algo_name="{b}+re3", label="{B}+RE3", implementation="RE3", settings=RE3Settings, rules=rules,
     description="{B} with RE3's k-NN state entropy (fixed random encoder) as intrinsic reward",
-    settings=RE3Settings,
-    rules=rules,
     preset=(Setting("intrinsic.re3_k", 3, "RE3 (Seo et al. 2021)"),
             Setting("intrinsic.re3_dim", 50, "RE3 (Seo et al. 2021)")),
     own_networks=True,

@@ -29,13 +29,8 @@ def rules(cfg: Sections) -> list[tuple[bool, str]]:
 
 
 PLUGIN = SignalPlugin(
-    name="rnd",
-    implementation="imssr.intrinsic.rnd:RND",
-    algo_name="{b}+rnd",
-    label="{B}+RND",
+    name="rnd", algo_name="{b}+rnd", label="{B}+RND", implementation="RND", settings=RNDSettings, rules=rules,
     description="{B} with random network distillation error of o' as intrinsic reward",
-    settings=RNDSettings,
-    rules=rules,
     preset=(Setting("intrinsic.rnd_lr", 1e-4, "RND (Burda et al. 2018)"),
             Setting("intrinsic.rnd_dim", 128, IMSSR, "RND's output size")),
     own_networks=True,

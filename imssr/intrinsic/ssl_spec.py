@@ -1,6 +1,6 @@
 """IM-SSR's signal's plug-in declaration: the auxiliary task's own per-sample loss of o', and the
 setting of how IM-CURL and IM-SODA compute it (no torch here; the signal is
-:class:`imssr.intrinsic.base.SSLSignal`)."""
+:class:`imssr.intrinsic.ssl.SSLSignal`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -30,11 +30,6 @@ def rules(cfg: Sections) -> list[tuple[bool, str]]:
 
 
 PLUGIN = SignalPlugin(
-    name="ssl",
-    implementation="imssr.intrinsic.base:SSLSignal",
-    algo_name="im-{b}",
-    label="IM-{B}",
+    name="ssl", algo_name="im-{b}", label="IM-{B}", implementation="SSLSignal", settings=SSLSettings, rules=rules,
     description="{B} with its per-sample self-supervised loss of o' as intrinsic reward",
-    settings=SSLSettings,
-    rules=rules,
 )

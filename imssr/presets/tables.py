@@ -115,7 +115,7 @@ COMMON = (
 and its action repeat."""
 
 BASE_SETTINGS = {b: p.preset for b, p in AUX_PLUGINS.items()}
-"""Settings of each base algorithm (its auxiliary task and networks)."""
+"""Settings of each base algorithm (its auxiliary task and networks), after ``aux.name``."""
 SCHEDULE = {b: p.schedule for b, p in AUX_PLUGINS.items()}
 """The beta schedule of each base's intrinsic reward, on a task outside :data:`CONSTANT_BETA_TASKS`."""
 CONSTANT_BETA_SCHEDULE = {b: p.constant_beta_schedule for b, p in AUX_PLUGINS.items()}
@@ -183,7 +183,8 @@ def preset_settings(algo: str, task: str, network: str = "dmcgb") -> list[Settin
     if network not in NETWORKS:
         raise ImssrError(f"unknown network {network!r}; valid: {', '.join(NETWORKS)}")
     rows = [Setting("algo", spec.name, "user"), Setting("env.task", tspec.name, "user"),
-            Setting("env.action_repeat", tspec.action_repeat, TABLE3), *COMMON, *BASE_SETTINGS[spec.base]]
+            Setting("env.action_repeat", tspec.action_repeat, TABLE3), *COMMON,
+            Setting("aux.name", spec.aux, "algo"), *BASE_SETTINGS[spec.base]]
     if spec.intrinsic_enabled:
         schedule = (CONSTANT_BETA_SCHEDULE if tspec.name in CONSTANT_BETA_TASKS else SCHEDULE)[spec.base]
         rows += [Setting("intrinsic.enabled", True, "algo"), Setting("intrinsic.source", spec.intrinsic, "algo"),

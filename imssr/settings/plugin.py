@@ -2,7 +2,8 @@
 
 An auxiliary task (an algorithm's base) or an intrinsic signal is two modules in its package:
 ``<name>.py``, the torch module that computes it, and ``<name>_spec.py``, which imports no torch
-and holds its :class:`AuxPlugin` or :class:`SignalPlugin` as ``PLUGIN``.  A registry is one line,
+and holds its :class:`AuxPlugin` or :class:`SignalPlugin` as ``PLUGIN``, with the settings
+dataclass and the rules it names.  A registry is one line,
 :func:`plugin_table` over the names; the config composes each plug-in's settings dataclass into
 its section (:func:`compose_section`), the presets read its rows, and the agent imports its
 implementation only when it builds one (:meth:`Plugin.implementation_class`).
@@ -80,7 +81,8 @@ class Plugin:
     name: str
     """Its name in the config (``aux.name``, ``intrinsic.source``)."""
     implementation: str
-    """``module:Class`` of its torch implementation, imported when an agent builds it."""
+    """The name of its torch class in ``<package>.<name>``, the module beside its ``*_spec.py``,
+    imported when an agent builds it."""
     settings: Optional[type] = None
     """A dataclass of its own fields, every one with a default and a docstring, composed flat
     into its config section (``aux.overlay_alpha``); None: it has none."""
@@ -89,11 +91,12 @@ class Plugin:
     preset: tuple[Setting, ...] = ()
     """The preset values it sets, with their sources, in the order ``imssr config --explain``
     shows them."""
+    module: str = ""
+    """Its torch module, ``<package>.<name>`` (set by :func:`plugin_table`)."""
 
     def implementation_class(self) -> type:
         """The torch class that computes it (imports torch)."""
-        module, _, name = self.implementation.partition(":")
-        return getattr(importlib.import_module(module), name)
+        return getattr(importlib.import_module(self.module), self.implementation)
 
 
 @dataclass(frozen=True)
@@ -146,13 +149,13 @@ class SignalPlugin(Plugin):
 
 def plugin_table(package: str, *names: str) -> dict[str, Any]:
     """The plug-ins ``names`` of ``package``, in that order: each one's ``<package>.<name>_spec``
-    module's ``PLUGIN`` (no torch is imported)."""
+    module's ``PLUGIN``, its torch code in ``<package>.<name>`` (not imported here)."""
     table = {}
     for name in names:
         plugin = importlib.import_module(f"{package}.{name}_spec").PLUGIN
         if plugin.name != name:
             raise TypeError(f"{package}.{name}_spec declares the plug-in {plugin.name!r}, not {name!r}")
-        table[name] = plugin
+        table[name] = dataclasses.replace(plugin, module=f"{package}.{name}")
     return table
 
 
