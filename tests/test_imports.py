@@ -142,7 +142,9 @@ def test_the_settings_and_the_plugins_declarations_import_nothing_above_them():
 def test_the_settings_load_no_torch():
     """The config, the presets and the registries read the plug-ins' declarations, not their code."""
     code = ("import sys, imssr.config, imssr.presets, imssr.auxiliary, imssr.intrinsic; "
-            "imssr.presets.make_config('im-soda', 'walker_walk').validate(); print('torch' in sys.modules)")
+            "imssr.presets.make_config('im-soda', 'walker_walk').validate(); "
+            "assert 'soda' in imssr.auxiliary.AUX_TASKS and 'rnd' in imssr.intrinsic.INTRINSIC_SIGNALS; "
+            "print('torch' in sys.modules)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "False"

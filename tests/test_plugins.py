@@ -187,3 +187,11 @@ def test_two_plugins_may_not_declare_one_field():
     plugin = AuxPlugin(name="clash", implementation="Clash", label="C", description="", settings=Clash)
     with pytest.raises(TypeError, match="AuxConfig.lr is declared by both AuxCore and clash"):
         compose_section("AuxConfig", AuxCore, [plugin], __name__, "")
+
+
+def test_an_unregistered_plugin_names_what_it_lacks():
+    from imssr.auxiliary.soda_spec import PLUGIN
+
+    assert AUX_PLUGINS["soda"].implementation_class().__name__ == "SODA"
+    with pytest.raises(TypeError, match="the plug-in 'soda' is not registered"):
+        PLUGIN.implementation_class()

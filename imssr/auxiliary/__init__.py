@@ -8,14 +8,14 @@ import importlib
 
 from imssr.auxiliary.registry import AUX_PLUGINS, AUX_TASKS, make_aux
 
-_LAZY = {"AuxiliaryTask": "imssr.auxiliary.base", "SharedNetworks": "imssr.auxiliary.base",
-         "CURL": "imssr.auxiliary.curl", "SODA": "imssr.auxiliary.soda", "PAD": "imssr.auxiliary.pad",
-         "SVEA": "imssr.auxiliary.svea"}
+_LAZY = {"AuxiliaryTask": "base", "SharedNetworks": "base", "CURL": "curl", "SODA": "soda", "PAD": "pad",
+         "SVEA": "svea"}
+"""Name -> the module of this package that defines it."""
 
 __all__ = ["AuxiliaryTask", "SharedNetworks", "CURL", "SODA", "PAD", "SVEA", "AUX_PLUGINS", "AUX_TASKS", "make_aux"]
 
 
 def __getattr__(name: str):
     if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
     raise AttributeError(f"module 'imssr.auxiliary' has no attribute {name!r}")

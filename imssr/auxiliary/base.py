@@ -25,7 +25,6 @@ from imssr.precision import optimizer_step
 from imssr.settings import AgentConfig, AuxCore
 
 
-
 @dataclass(kw_only=True)
 class SharedNetworks:
     """The agent's networks an auxiliary task may read or train (plain references: the agent

@@ -10,7 +10,7 @@ from imssr.settings import AgentConfig, AuxCore, AuxPlugin, Implementations, plu
 if TYPE_CHECKING:  # the tasks' torch code, imported by make_aux when an agent builds one
     from imssr.auxiliary.base import AuxiliaryTask, SharedNetworks
 
-AUX_PLUGINS: dict[str, AuxPlugin] = plugin_table("imssr.auxiliary", "curl", "soda", "pad", "svea")
+AUX_PLUGINS: dict[str, AuxPlugin] = plugin_table(__package__, "curl", "soda", "pad", "svea")
 """The tasks ``aux.name`` names, in order: each is an algorithm's base (:data:`imssr.algos.BASES`)."""
 AUX_TASKS = Implementations(AUX_PLUGINS)
 """Their torch classes by name, each imported on first use."""

@@ -37,6 +37,7 @@ def rules(cfg: Sections) -> list[tuple[bool, str]]:
 
 PLUGIN = AuxPlugin(
     name="soda", label="SODA", implementation="SODA", settings=SODASettings, rules=rules,
+    run_fields=("aux.image_dir", "aux.image_pool_size"),
     description="SAC + SODA: BYOL-style consistency of overlay vs clean view (Hansen & Wang 2021)",
     preset=(
         Setting("agent.encoder_layers", 11, TABLE3),

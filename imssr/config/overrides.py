@@ -19,10 +19,10 @@ from omegaconf.errors import ConfigKeyError, ValidationError
 
 from imssr.config.schema import FIELD_TYPES, SECTIONS
 from imssr.errors import ImssrError
-from imssr.settings import type_phrase
+from imssr.settings import Sections, type_phrase
 
-RunConfig = TypeVar("RunConfig")
-"""A run's config (:class:`imssr.config.RunConfig`, which reads and merges through this module)."""
+RunConfig = TypeVar("RunConfig", bound=Sections)
+"""A run's config, :class:`imssr.config.RunConfig` (which reads and merges through this module)."""
 
 TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 
@@ -133,7 +133,6 @@ def _get(cfg: RunConfig, key: str) -> Any:
 def _set(cfg: RunConfig, key: str, value: Any) -> None:
     section, _, name = key.rpartition(".")
     setattr(getattr(cfg, section) if section else cfg, name, value)
-
 
 
 def _is_finite(value) -> bool:

@@ -12,9 +12,9 @@ from imssr.intrinsic.registry import INTRINSIC_SIGNALS, SIGNAL_PLUGINS, make_sig
 from imssr.intrinsic.ssl_spec import FORMS
 from imssr.settings import NORMALIZATIONS, SCHEDULES
 
-_LAZY = {"IntrinsicSignal": "imssr.intrinsic.base", "SSLSignal": "imssr.intrinsic.ssl",
-         "RND": "imssr.intrinsic.rnd", "RE3": "imssr.intrinsic.re3", "BetaSchedule": "imssr.intrinsic.reward",
-         "IntrinsicReward": "imssr.intrinsic.reward", "normalize": "imssr.intrinsic.reward"}
+_LAZY = {"IntrinsicSignal": "base", "SSLSignal": "ssl", "RND": "rnd", "RE3": "re3", "BetaSchedule": "reward",
+         "IntrinsicReward": "reward", "normalize": "reward"}
+"""Name -> the module of this package that defines it."""
 
 __all__ = ["BetaSchedule", "IntrinsicReward", "IntrinsicSignal", "SSLSignal", "RND", "RE3", "INTRINSIC_SIGNALS",
            "SIGNAL_PLUGINS", "FORMS", "NORMALIZATIONS", "SCHEDULES", "make_signal", "normalize"]
@@ -22,5 +22,5 @@ __all__ = ["BetaSchedule", "IntrinsicReward", "IntrinsicSignal", "SSLSignal", "R
 
 def __getattr__(name: str):
     if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
     raise AttributeError(f"module 'imssr.intrinsic' has no attribute {name!r}")

@@ -11,7 +11,7 @@ from imssr.settings import AgentConfig, IntrinsicCore, Implementations, SignalPl
 if TYPE_CHECKING:  # the signals' torch code, imported by make_signal when an agent builds one
     from imssr.intrinsic.base import IntrinsicSignal
 
-SIGNAL_PLUGINS: dict[str, SignalPlugin] = plugin_table("imssr.intrinsic", "ssl", "rnd", "re3")
+SIGNAL_PLUGINS: dict[str, SignalPlugin] = plugin_table(__package__, "ssl", "rnd", "re3")
 """The signals ``intrinsic.source`` names, in order: each makes an algorithm of every base
 (:data:`imssr.algos.SIGNALS`)."""
 INTRINSIC_SIGNALS = Implementations(SIGNAL_PLUGINS)

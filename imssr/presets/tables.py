@@ -48,8 +48,8 @@ def paper_beta0(algo: str, task: str) -> float:
 
 
 RUN = "run setting"
-RUN_FIELDS = ("env.footage_dir", "aux.image_dir", "aux.image_pool_size", "train.save_buffer",
-              "train.keep_checkpoints", "train.device", "train.replay_device", "train.gpu_share",
+RUN_FIELDS = ("env.footage_dir", *(f for p in (*AUX_PLUGINS.values(), *SIGNAL_PLUGINS.values()) for f in p.run_fields),
+              "train.save_buffer", "train.keep_checkpoints", "train.device", "train.replay_device", "train.gpu_share",
               "train.tensorboard", "train.progress", "train.torch_threads", "train.wandb", "train.wandb_project",
               "train.wandb_group", "train.eval_video_every", "train.eval_video_format", "train.env_workers")
 """Fields that say where data comes from or how a run is kept and shown, not what it learns."""

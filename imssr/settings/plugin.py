@@ -94,8 +94,15 @@ class Plugin:
     module: str = ""
     """Its torch module, ``<package>.<name>`` (set by :func:`plugin_table`)."""
 
+    run_fields: tuple[str, ...] = ()
+    """Those of its settings that say where its data comes from, not what it learns (SODA's
+    image folder): the presets show them as run settings, with the schema's defaults."""
+
     def implementation_class(self) -> type:
         """The torch class that computes it (imports torch)."""
+        if not self.module:
+            raise TypeError(f"the plug-in {self.name!r} is not registered: its registry's plugin_table "
+                            "sets the module of its implementation")
         return getattr(importlib.import_module(self.module), self.implementation)
 
 
@@ -168,6 +175,9 @@ class Implementations(Mapping[str, type]):
 
     def __getitem__(self, name: str) -> type:
         return self._plugins[name].implementation_class()
+
+    def __contains__(self, name: object) -> bool:  # without importing the class
+        return name in self._plugins
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._plugins)
