@@ -19,10 +19,9 @@ class RE3Settings:
 
 def rules(cfg: Sections) -> list[tuple[bool, str]]:
     i: RE3Settings = cfg.intrinsic
-    chosen = cfg.intrinsic.enabled and cfg.intrinsic.source == "re3"
     return [(i.re3_k >= 1 and i.re3_dim >= 1, "intrinsic.re3_k and re3_dim must be >= 1"),
             # The k-th neighbour within the batch, besides the sample itself.
-            (not chosen or cfg.agent.batch_size > i.re3_k, "agent.batch_size must exceed intrinsic.re3_k")]
+            (not PLUGIN.chosen(cfg) or cfg.agent.batch_size > i.re3_k, "agent.batch_size must exceed intrinsic.re3_k")]
 
 
 PLUGIN = SignalPlugin(

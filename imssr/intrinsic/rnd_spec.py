@@ -22,9 +22,8 @@ class RNDSettings:
 
 def rules(cfg: Sections) -> list[tuple[bool, str]]:
     i: RNDSettings = cfg.intrinsic
-    chosen = cfg.intrinsic.enabled and cfg.intrinsic.source == "rnd"
     return [(i.rnd_lr > 0 and i.rnd_dim >= 1, "intrinsic.rnd_lr must be > 0 and rnd_dim >= 1"),
-            (not chosen or cfg.agent.crop_size >= MIN_CROP,
+            (not PLUGIN.chosen(cfg) or cfg.agent.crop_size >= MIN_CROP,
              f"intrinsic.source=rnd needs agent.crop_size >= {MIN_CROP} (RND's 8/4, 4/2, 3/1 convolutions)")]
 
 

@@ -41,10 +41,7 @@ def paper_beta0(algo: str, task: str) -> float:
     RND and RE3 use the IM- variant's value of the same base, so a comparison
     changes only the signal.
     """
-    beta0 = AUX_PLUGINS[get_algo(algo).base].beta0
-    if task in beta0.by_task:
-        return beta0.by_task[task]
-    return DEFAULT_BETA0 if beta0.every_task is None else beta0.every_task
+    return _beta0(get_algo(algo), task).value
 
 
 RUN = "run setting"
@@ -147,14 +144,15 @@ SIGNAL_SETTINGS = {name: p.preset for name, p in SIGNAL_PLUGINS.items()}
 
 
 def _beta0(spec: AlgoSpec, task: str) -> Setting:
-    """beta_0 of ``spec`` on ``task`` (:func:`paper_beta0`) with its source."""
-    beta0, value = AUX_PLUGINS[spec.base].beta0, paper_beta0(spec.name, task)
+    """beta_0 of ``spec`` on ``task`` (:func:`paper_beta0`) with its source: its base's Table V
+    value, else the paper's one value for the base, else :data:`DEFAULT_BETA0`."""
+    beta0 = AUX_PLUGINS[spec.base].beta0
     if task in beta0.by_task:
-        source = TABLE5
+        value, source = beta0.by_task[task], TABLE5
     elif beta0.every_task is not None:
-        source = beta0.every_task_source
+        value, source = beta0.every_task, beta0.every_task_source
     else:
-        return Setting("intrinsic.beta0", value, IMSSR, f"no value in the paper for {task}: {DEFAULT_BETA0}")
+        return Setting("intrinsic.beta0", DEFAULT_BETA0, IMSSR, f"no value in the paper for {task}: {DEFAULT_BETA0}")
     note = "the IM- variant's value, so that only the signal changes" if spec.intrinsic != "ssl" else \
         beta0.notes.get(task, "")
     return Setting("intrinsic.beta0", value, source, note)

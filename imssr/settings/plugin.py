@@ -153,6 +153,10 @@ class SignalPlugin(Plugin):
     """Whether it has networks of its own (RND, RE3), which every member of a batch of agents
     must then have too."""
 
+    def chosen(self, cfg: Sections) -> bool:
+        """Whether ``cfg`` adds this signal to the reward (its rules on other sections ask)."""
+        return cfg.intrinsic.enabled and cfg.intrinsic.source == self.name
+
 
 def plugin_table(package: str, *names: str) -> dict[str, Any]:
     """The plug-ins ``names`` of ``package``, in that order: each one's ``<package>.<name>_spec``
