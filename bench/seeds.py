@@ -1,19 +1,21 @@
 """Seeds in one process against seeds in separate processes: aggregate agent steps per second.
 
     python bench/seeds.py [--device cpu|cuda] [--algo curl] [--task cartpole_swingup]
-        [--n 1 2 4 8 16] [--modes loop vmap] [--steps 20] [--warmup 3] [--threads 0]
-        [--fill 1000] [--baseline-n 1 2 4] [--set SECTION.FIELD=VALUE ...] [--csv PATH]
+        [--n 1 2 4 8 16] [--modes loop vmap vmap+graphs] [--steps 20] [--warmup 3] [--threads 0]
+        [--fill 1000] [--baseline-n 1 2 4] [--baseline-graphs] [--set SECTION.FIELD=VALUE ...] [--csv PATH]
 
 For each N the same work is timed in one run: N seeds as one
 :class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), once per
-``--modes`` (``loop``: member after member; ``vmap``: all members as one vectorised computation),
-and N processes with one single-seed agent each, timed together (what a sweep of single-seed
+``--modes`` (``loop``: member after member; ``vmap``: all members as one vectorised computation;
+``+graphs``: with ``agent.cuda_graphs=true``, each step's update and action recorded once as CUDA
+graphs and replayed), and N processes with one single-seed agent each, timed together (what a sweep of single-seed
 runs does: each warms up, then all start their timed steps at once), the baseline of the ratios.  A step is the agent's part of a training step, for every
 seed: the policy's action for a new observation, then the update of that agent step (the paper's
 preset of ``--algo``, the sequential schedule, fp32), sampling each seed's own replay buffer of
 ``--fill`` random-frame transitions.  The environment is left out: it costs each seed the same in both layouts.
 ``--threads`` torch threads in all (0: torch's default), split evenly among the separate
-processes (at least one each), so both layouts use the same cores.
+processes (at least one each), so both layouts use the same cores.  ``--baseline-graphs`` adds a
+row of N separate processes with ``agent.cuda_graphs=true`` (the single-seed run recorded).
 
 Printed: a Markdown table, one row per N and layout: aggregate agent steps/s, the ratio to the
 separate processes, and the peak memory per seed (CUDA: device memory; CPU: the process's peak
@@ -122,8 +124,9 @@ def launch(args, members: int, batched: str, threads: int) -> subprocess.Popen:
     cmd = [sys.executable, __file__, "--worker", "--members", str(members), "--device", args.device,
            "--algo", args.algo, "--task", args.task, "--steps", str(args.steps), "--warmup", str(args.warmup),
            "--threads", str(threads), "--fill", str(args.fill), "--action-dim", str(args.action_dim)]
-    cmd += ["--batched", "--mode", batched] if batched else []
-    for item in args.set:
+    mode, graphs = batched.split("+")[0], batched.endswith("+graphs")
+    cmd += ["--batched", "--mode", mode] if mode else []
+    for item in [*args.set, *(["agent.cuda_graphs=true"] if graphs else [])]:
         cmd += ["--set", item]
     return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                             env={**os.environ, "OMP_NUM_THREADS": str(max(threads, 1))})
@@ -162,6 +165,11 @@ def measure(args, n: int) -> list[dict]:
         base = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
         rows.append({"n": n, "layout": f"{n} process{'es' if n > 1 else ''}", "steps_s": base, "ratio": 1.0,
                      "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20})
+        if args.baseline_graphs:
+            separate = collect([launch(args, 1, "+graphs", max(1, total // n)) for _ in range(n)])
+            rate = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
+            rows.append({"n": n, "layout": f"{n} process{'es' if n > 1 else ''}, graphs", "steps_s": rate,
+                         "ratio": rate / base, "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20})
     for mode in args.modes:
         (batch,) = collect([launch(args, n, mode, total)])
         rate = batch["steps"] / batch["seconds"]
@@ -176,7 +184,8 @@ def main(argv=None) -> int:
     p.add_argument("--algo", default="curl")
     p.add_argument("--task", default="cartpole_swingup")
     p.add_argument("--n", type=int, nargs="+", default=[1, 2, 4, 8, 16])
-    p.add_argument("--modes", nargs="+", default=["loop", "vmap"], choices=["loop", "vmap"])
+    p.add_argument("--modes", nargs="+", default=["loop", "vmap"],
+                   choices=["loop", "vmap", "loop+graphs", "vmap+graphs"])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=0)
@@ -186,6 +195,8 @@ def main(argv=None) -> int:
     p.add_argument("--baseline-n", type=int, nargs="+", metavar="N",
                    help="run the separate processes only for these N (default: every N); each start "
                         "costs seconds, many on a GPU machine; rows without one show no ratio")
+    p.add_argument("--baseline-graphs", action="store_true",
+                   help="also time N separate processes with agent.cuda_graphs=true")
     p.add_argument("--csv")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--batched", action="store_true", help=argparse.SUPPRESS)

@@ -11,7 +11,7 @@ In order, each item passing or failing on its own (a failure is reported, the ot
    bf16, with the replay frames on the GPU (``train.replay_device=cuda``; the host store on a
    CPU), each in a run directory under a temporary folder;
 3. CURL at fp32 with each ``agent.compile`` mode (``default``, ``reduce-overhead``,
-   ``max-autotune``) for ``--compile-steps`` agent steps;
+   ``max-autotune``), and with ``agent.cuda_graphs=true``, for ``--compile-steps`` agent steps;
 4. ``bench/gpu.py`` with ``--bench-args`` (skipped without the repository's ``bench/``).
 
 The report gives torch, CUDA, cuDNN and driver versions and the GPU, then per item: pass/fail,
@@ -45,7 +45,7 @@ from imssr.presets import make_config
 ROOT = Path(__file__).resolve().parent.parent
 SUBPROCESS_TIMEOUT_S = 600
 """Longest the CUDA tests or the bench may run: a hung one fails its item and the others go on."""
-CUDA_TEST_FILES = ("tests/test_no_sync.py", "tests/test_replay_store.py")
+CUDA_TEST_FILES = ("tests/test_no_sync.py", "tests/test_replay_store.py", "tests/test_cuda_graphs.py")
 """The suite's files with tests that run only on CUDA (selected by ``-k cuda``)."""
 TASK = "cartpole_swingup"
 TINY = ["agent.hidden_dim=32", "agent.feature_dim=16", "agent.encoder_filters=8", "agent.batch_size=8",
@@ -253,6 +253,9 @@ def _main(argv: Optional[list[str]]) -> int:
     trainings += [(f"compile-{mode}", f"train curl fp32 agent.compile={mode}, {compile_steps} steps",
                    training_config("curl", device, compile_steps, [f"agent.compile={mode}"], a.tiny))
                   for mode in (a.compile_modes.split(",") if "compile" not in skip else ())]
+    if "compile" not in skip:
+        trainings.append(("cuda-graphs", f"train curl fp32 agent.cuda_graphs=true, {compile_steps} steps",
+                          training_config("curl", device, compile_steps, ["agent.cuda_graphs=true"], a.tiny)))
     started = time.perf_counter()
     items: list[Item] = []
     with tempfile.TemporaryDirectory(prefix="imssr-gpucheck-") as tmp:

@@ -43,3 +43,20 @@ def test_the_prepared_kernel_measurement_works_on_the_cpu(tmp_path):
     assert "| 2 | 1 process, vmap |" in (kernels / "seeds_fast.md").read_text()
     for name in ("gpu_fast.md", "gpu_default.md"):
         assert "| curl | fp32 | off |" in (kernels / name).read_text()
+
+
+def test_the_prepared_cuda_graphs_check_works_on_the_cpu(tmp_path):
+    out = tmp_path / "out"
+    env = {**os.environ, "OUT": str(out), "TINY": "1", "DEVICE": "cpu"}
+    proc = subprocess.run(["bash", os.path.join(REPO, "scripts", "gpu_graphs.sh")], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    files = sorted(os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs)
+    assert files == ["graphs/check.txt", "graphs/device.txt", "graphs/seeds_graphs.csv", "graphs/seeds_graphs.md"]
+    assert "stopped" not in proc.stdout and "no time left" not in proc.stdout
+    check = (out / "graphs" / "check.txt").read_text()
+    assert "1 passed" in check and "needs a GPU" in check  # the CPU test ran, the GPU ones skipped
+    table = (out / "graphs" / "seeds_graphs.md").read_text()
+    for layout in ("| 1 | 1 process |", "| 1 | 1 process, graphs |", "| 2 | 1 process, loop |",
+                   "| 2 | 1 process, loop+graphs |"):
+        assert layout in table, table

@@ -105,3 +105,10 @@ def test_the_guard_catches_a_host_read(monkeypatch):
         bool(torch.ones(1) > 0)
     with host_reads_raise(monkeypatch, set()), pytest.raises(AssertionError, match="Tensor.__index__"):
         [0, 1][torch.tensor(1)]
+
+
+@pytest.mark.parametrize("algo", ["im-curl", "im-soda", "curl+rnd"])
+def test_an_update_under_cuda_graphs_reads_nothing_back(monkeypatch, algo):
+    """The recordable path (``agent.cuda_graphs``: samples drawn first, ``beta_t`` as a tensor)
+    reads nothing back either: a recording could not hold a host read."""
+    update_without_host_reads(monkeypatch, small_agent(algo, agent_fields={"cuda_graphs": True}))

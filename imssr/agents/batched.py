@@ -34,6 +34,7 @@ from torch import nn
 from torch.func import functional_call, vmap
 
 from imssr import draws
+from imssr.agents.graphs import set_capturable
 from imssr.agents.sac import Eager, Metrics, SACAgent
 from imssr.batch import Batch
 from imssr.config import IntrinsicConfig
@@ -93,8 +94,15 @@ class MemberSchedules:
         self.schedules, self.device = list(schedules), device
 
     def __call__(self, step: int) -> torch.Tensor:
-        betas = [0.0 if s is None else s(step) for s in self.schedules]
-        return draws.member_values(betas, torch.float64, self.device)
+        return draws.member_values(self._values(step), torch.float64, self.device)
+
+    def tensor(self, step: int, device: torch.device) -> torch.Tensor:
+        """The members' ``beta_t`` as one ``(N,)`` float64 tensor (a CUDA graph's input, which the
+        members' vmap maps over)."""
+        return torch.tensor(self._values(step), dtype=torch.float64, device=device)
+
+    def _values(self, step: int) -> list[float]:
+        return [0.0 if s is None else s(step) for s in self.schedules]
 
 
 class _Call(nn.Module):
@@ -247,6 +255,7 @@ class AgentBatch:
                                                     for m in members], t.device)
         t.updates = members[0].updates
         t.run = MemberExecution(self.root, self.stacked, self.optimizers, self.n, self.mode)
+        t.graphs.prepare = lambda: set_capturable(self.optimizers.values(), True)
 
     # -- building -------------------------------------------------------------------
     @staticmethod
@@ -294,8 +303,7 @@ class AgentBatch:
         t = self.template
         t.mark_step()
         x = torch.as_tensor(obs, device=t.device).unsqueeze(1)
-        with torch.no_grad(), t.autocast():
-            return t.run.call(t.policy_action, x, deterministic)[:, 0]
+        return t.graphs(("act", deterministic), lambda inputs: t.act_on(inputs, deterministic), {"obs": x})[:, 0]
 
     @torch.no_grad()
     def member_act(self, i: int, obs) -> "np.ndarray":
@@ -361,6 +369,8 @@ class AgentBatch:
             if module is not None and module.optimizer is not None and key in state:
                 self._set_member_optimizer_state(self.optimizers[id(module.optimizer)], i, state[key]["optimizer"])
         t.updates = state["updates"]
+        set_capturable(self.optimizers.values(), t.graphs.record)
+        t.graphs.reset()
         if restore_rng:
             seed = int(t.gen.generators[i].initial_seed())
             for attr, offset in zip(GENERATORS, (0, NOISE_SEED_OFFSET, INTRINSIC_SEED_OFFSET)):

@@ -27,6 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from imssr import draws
+from imssr.agents.graphs import StepGraphs, set_capturable
 from imssr.augmentations import center_crop, random_crop
 from imssr.auxiliary import AuxiliaryTask, SharedNetworks, make_aux
 from imssr.batch import Batch, Encoding, NextObsContext
@@ -40,6 +42,11 @@ from imssr.replay import FrameReplayBuffer
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
 Metrics = dict[str, "torch.Tensor | float"]
+Inputs = dict[str, "torch.Tensor | dict[str, torch.Tensor]"]
+"""What one update reads besides the agent's own state: ``sample`` (the RL batch from the replay
+buffer), ``aux_sample`` (the auxiliary task's own batch, when it trains on one at this step) and,
+under ``agent.cuda_graphs``, ``beta`` (``beta_t`` as a float64 tensor; otherwise the intrinsic
+reward reads its schedule)."""
 
 CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
 """The ``agent.compile`` modes that replay compiled code as CUDA graphs on CUDA."""
@@ -141,6 +148,10 @@ class SACAgent:
         """Runs the update's pieces (:class:`Eager`; a batch of members swaps in its own)."""
         warn_if_bf16_is_slow(self.device, cfg.precision)
         configure_cuda(self.device, cfg.tf32)
+        self.graphs = StepGraphs(self.device, cfg.cuda_graphs, generators=self.generators,
+                                 prepare=lambda: set_capturable(self.optimizers(), True))
+        """Runs :meth:`update_on` and :meth:`act_on`: directly, or recorded as CUDA graphs under
+        ``agent.cuda_graphs`` (:mod:`imssr.agents.graphs`)."""
         self.cuda_graphs = uses_cuda_graphs(self.device, cfg.compile)
         """Whether compiled code runs as CUDA graphs: :meth:`act` and :meth:`update` each start a
         step of them (:meth:`mark_step`)."""
@@ -161,6 +172,19 @@ class SACAgent:
             encoder.projection.compile(mode=mode, backend=backend)
         for module in (n.critic.q, n.critic_target.q, n.actor):
             module.compile(mode=mode, backend=backend)
+
+    def generators(self) -> list[torch.Generator]:
+        """Every generator an update or action draws from (a batch's members' own included):
+        what a CUDA graph registers."""
+        gens = []
+        for g in (self.gen, self.noise_gen, self.intrinsic_gen):
+            gens += g.generators if isinstance(g, draws.MemberGenerators) else [g]
+        return gens
+
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        """The agent's optimisers, SAC's then the auxiliary task's and the signal's."""
+        opts = [self.critic_opt, self.actor_opt, self.alpha_opt]
+        return opts + [m.optimizer for m in (self.aux, self.signal) if m is not None and m.optimizer is not None]
 
     def mark_step(self) -> None:
         """Start a new step of CUDA graphs (under :attr:`cuda_graphs`).  An update calls the same
@@ -187,9 +211,13 @@ class SACAgent:
         """Action in [-1, 1] for one stacked uint8 observation (centre crop)."""
         self.mark_step()
         x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
-        with self.autocast():
-            action = self.run.call(self.policy_action, x, deterministic)
+        action = self.graphs(("act", deterministic), lambda inputs: self.act_on(inputs, deterministic), {"obs": x})
         return action[0].cpu().numpy().astype(np.float32)
+
+    def act_on(self, inputs: dict[str, torch.Tensor], deterministic: bool) -> torch.Tensor:
+        """:meth:`policy_action` on ``inputs["obs"]`` (what :meth:`act` runs or records)."""
+        with torch.no_grad(), self.autocast():
+            return self.run.call(self.policy_action, inputs["obs"], deterministic)
 
     def policy_action(self, obs: torch.Tensor, deterministic: bool) -> torch.Tensor:
         """Actions ``(B, |A|)`` for a batch of uint8 observation stacks (centre crop); a sample
@@ -217,25 +245,47 @@ class SACAgent:
 
     def update(self, replay: FrameReplayBuffer, step: int) -> Metrics:
         """All updates of one agent step; ``step`` counts agent steps.  Metrics stay on the
-        device (the training loop reads them once per episode): no host sync in an update."""
+        device (the training loop reads them once per episode): no host sync in an update.
+        The replay samples are drawn here, the RL batch's first, and the update proper
+        (:meth:`update_on`) reads them: one recording per :meth:`update_key` under CUDA graphs."""
         self.mark_step()
-        batch = self.to_batch(replay.sample_batch(self.cfg.batch_size, self.device))
-        with self.autocast():
-            if self.cfg.update_schedule == "fused":
-                metrics = self.update_fused(replay, batch, step)
-            else:
-                metrics = self.update_sequential(replay, batch, step)
-            if self.signal is not None:
-                metrics.update(self.update_signal(batch, step))
+        inputs: Inputs = {"sample": replay.sample_batch(self.cfg.batch_size, self.device)}
+        if self.aux_due(step) and self.aux.cfg.own_batch:
+            inputs["aux_sample"] = replay.sample_batch(self.aux.cfg.batch_size, self.device)
+        if self.graphs.enabled and self.intrinsic is not None:
+            inputs["beta"] = self.intrinsic.schedule.tensor(step, self.device)
+        metrics = self.graphs(("update", *self.update_key(step)), lambda x: self.update_on(x, step), inputs)
         self.updates += 1
         return metrics
 
-    def update_sequential(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
+    def update_key(self, step: int) -> tuple[bool, ...]:
+        """Which parts of the update run at agent step ``step``: the critic, the actor and
+        temperature, the target EMA, the auxiliary task.  Everything else an update does is the
+        same at every step."""
+        c = self.cfg
+        return (step % c.critic_update_every == 0, step % c.actor_update_every == 0,
+                step % c.target_update_every == 0, self.aux_due(step))
+
+    def update_on(self, inputs: Inputs, step: int) -> Metrics:
+        """The update of agent step ``step`` on its replay samples (:data:`Inputs`)."""
+        batch = self.to_batch(inputs["sample"])
+        beta = inputs.get("beta")
+        with self.autocast():
+            if self.cfg.update_schedule == "fused":
+                metrics = self.update_fused(inputs, batch, step, beta)
+            else:
+                metrics = self.update_sequential(inputs, batch, step, beta)
+            if self.signal is not None:
+                metrics.update(self.update_signal(batch, step))
+        return metrics
+
+    def update_sequential(self, inputs: Inputs, batch: Batch, step: int,
+                          beta: Optional[torch.Tensor] = None) -> Metrics:
         """The CURL / DMC-GB order: critic; actor on a fresh encoding of o after the critic's
         step; target EMA; the auxiliary task on passes of its own."""
         c, metrics, run = self.cfg, {}, self.run
         if step % c.critic_update_every == 0:
-            loss, critic_metrics = run.call(self.critic_objective, batch, step)
+            loss, critic_metrics = run.call(self.critic_objective, batch, step, beta)
             run.step(loss, self.critic_opt)
             metrics.update(critic_metrics)
         if step % c.actor_update_every == 0:
@@ -244,30 +294,32 @@ class SACAgent:
         if step % c.target_update_every == 0:
             run.read(self.soft_update_targets)
         if self.aux_due(step):
-            metrics.update(self.update_aux(replay, batch, step))
+            metrics.update(self.update_aux(inputs, batch, step))
         return metrics
 
-    def update_fused(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
+    def update_fused(self, inputs: Inputs, batch: Batch, step: int,
+                     beta: Optional[torch.Tensor] = None) -> Metrics:
         """One online pass over o serves the critic, the actor (the encoding from before the
         critic's step, detached, as DrQ-v2) and a task that reads it (CURL, PAD): its loss
         joins the critic's backward.  Needs ``critic_update_every = 1`` (validated)."""
         c = self.cfg
         fuse = self.fuse_aux and self.aux_due(step)
         enc = self.encode(batch, with_task_loss=fuse)
-        metrics = self.update_critic(batch, enc, step)
+        metrics = self.update_critic(batch, enc, step, beta)
         if step % c.actor_update_every == 0:
             metrics.update(self.update_actor_and_alpha(enc.obs_trunk.detach()))
         if step % c.target_update_every == 0:
             self.soft_update_targets()
         if self.aux_due(step) and not fuse:
-            metrics.update(self.update_aux(replay, batch, step))
+            metrics.update(self.update_aux(inputs, batch, step))
         return metrics
 
-    def critic_objective(self, batch: Batch, step: int) -> tuple[torch.Tensor, Metrics]:
+    def critic_objective(self, batch: Batch, step: int,
+                         beta: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, Metrics]:
         """The sequential schedule's critic loss (:meth:`critic_loss` on a fresh :meth:`encode`
         of ``batch`` and its :meth:`bellman_target`) and its metrics."""
         enc = self.encode(batch)
-        target_q, metrics = self.bellman_target(batch, enc, step)
+        target_q, metrics = self.bellman_target(batch, enc, step, beta)
         loss, q_mean = self.critic_loss(batch, enc, target_q)
         metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
         return loss, metrics
@@ -307,16 +359,18 @@ class SACAgent:
         return enc
 
     @torch.no_grad()
-    def bellman_target(self, batch: Batch, enc: Encoding, step: int) -> tuple[torch.Tensor, Metrics]:
+    def bellman_target(self, batch: Batch, enc: Encoding, step: int,
+                       beta: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, Metrics]:
         """``y = r + beta_t * r_int + gamma * d * (min_i Q*_i(z*', a') - alpha log pi(a'|o'))``,
         ``a' ~ pi(. | o')``, and the intrinsic reward's statistics.  The reward is the paper's
-        Eq. (1) with Algorithm 1's ``r_int``: the signal of o', normalised in the batch."""
+        Eq. (1) with Algorithm 1's ``r_int``: the signal of o', normalised in the batch.
+        ``beta``: ``beta_t`` as a tensor (CUDA graphs), else the schedule's value at ``step``."""
         n = self.nets
         next_policy = n.actor(enc.next_trunk, generator=self.noise_gen)
         tq1, tq2 = n.critic_target.q(enc.next_latent, next_policy.action)
         reward, stats = batch.reward, {}
         if self.intrinsic is not None:
-            bonus, stats = self.intrinsic(self.intrinsic_signal(batch, enc), step)
+            bonus, stats = self.intrinsic(self.intrinsic_signal(batch, enc), step, beta)
             reward = reward + bonus
         with full_precision(tq1):
             # y in float32: r + beta r_int + gamma V' adds terms of different scales, and every
@@ -347,11 +401,11 @@ class SACAgent:
                 loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
             return loss, q1_all[:len(batch)].detach().mean()
 
-    def update_critic(self, batch: Batch, enc: Encoding, step: int) -> Metrics:
+    def update_critic(self, batch: Batch, enc: Encoding, step: int, beta: Optional[torch.Tensor] = None) -> Metrics:
         """One critic step on :meth:`critic_loss`.  With the task's loss in ``enc`` (fused), one
         backward serves both: each optimiser steps its own parameters, the shared encoder's
         once (the critic's) on the summed gradient."""
-        target_q, metrics = self.bellman_target(batch, enc, step)
+        target_q, metrics = self.bellman_target(batch, enc, step, beta)
         loss, q_mean = self.critic_loss(batch, enc, target_q)
         if enc.aux_loss is None:
             optimizer_step(loss, self.critic_opt)
@@ -396,10 +450,11 @@ class SACAgent:
         """Whether the auxiliary task trains at agent step ``step``."""
         return self.aux is not None and self.aux.trains and step % self.aux.cfg.update_every == 0
 
-    def update_aux(self, replay: FrameReplayBuffer, batch: Batch, step: int) -> Metrics:
-        """The task's own step, on the RL batch or on a batch of its own (``aux.own_batch``)."""
+    def update_aux(self, inputs: Inputs, batch: Batch, step: int) -> Metrics:
+        """The task's own step, on the RL batch or on a batch of its own (``aux.own_batch``:
+        ``inputs["aux_sample"]``, drawn after the RL batch)."""
         if self.aux.cfg.own_batch:
-            batch = self.to_batch(replay.sample_batch(self.aux.cfg.batch_size, self.device))
+            batch = self.to_batch(inputs["aux_sample"])
         loss = self.run.call(self.aux.objective, batch)
         self.run.step(loss, self.aux.optimizer)
         self.run.read(lambda: self.aux.after_step(step))
@@ -462,4 +517,7 @@ class SACAgent:
             self.aux.load_full_state_dict(state["aux"])
         if self.signal is not None:
             self.signal.load_full_state_dict(state["signal"])
+        # A state saved under CUDA graphs holds capturable optimisers; one saved without, not.
+        set_capturable(self.optimizers(), self.graphs.record)
+        self.graphs.reset()
 

@@ -114,15 +114,23 @@ class AgentConfig:
     both.  No effect on CPU."""
     compile: str = "off"
     """``torch.compile`` the conv trunks' passes, projections, Q heads and the actor's layers
-    with this mode: ``off``, ``default``, ``reduce-overhead`` or ``max-autotune`` (both CUDA
-    graphs on CUDA; each act and update marks a step of them).  The first updates are slow while
-    it compiles; needs a C++ compiler on CPU.  On one H100, ``reduce-overhead`` ran a CURL seed at
-    1.02x of eager (docs/performance.md)."""
+    with this mode: ``off``, ``default``, ``reduce-overhead`` or ``max-autotune`` (the last two
+    replay the compiled forward passes as CUDA graphs on CUDA; each act and update marks a step
+    of them).  The first updates are slow while it compiles; needs a C++ compiler on CPU.  On one
+    H100, ``reduce-overhead`` ran a CURL seed at 1.02x of eager (docs/performance.md).  For CUDA
+    graphs of whole steps, use :attr:`cuda_graphs` (with ``off``) instead."""
     fused_adam: bool = False
     """Step the SAC and auxiliary optimisers with torch's fused Adam (one kernel per parameter
     group on CUDA, instead of the foreach kernels torch uses by default).  The same update rule;
     the float rounding differs in the last bits (about 1e-7 relative), so it is off in the paper
     presets.  An intrinsic signal's own optimiser (RND's predictor) keeps torch's default."""
+    cuda_graphs: bool = False
+    """On CUDA, record each kind of update (forward, backward and every optimiser step) and the
+    action pass once as a CUDA graph and replay it at every agent step: one launch instead of
+    hundreds of kernels issued from Python (``imssr.agents.graphs``).  The same update rule;
+    Adam then computes its bias correction on the device (``capturable``), which rounds the
+    last bits differently, so it is off in the paper presets.  Needs ``compile = off``.  On CPU
+    the steps run eagerly, with the same numbers as without it."""
 
     @property
     def precision_label(self) -> str:

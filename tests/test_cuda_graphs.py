@@ -1,0 +1,190 @@
+"""``agent.cuda_graphs``: each agent step through static buffers, recorded as CUDA graphs on CUDA.
+
+On CPU nothing is recorded, but every other part of the path runs: the replay samples drawn
+before the update, ``beta_t`` as an input tensor, one set of static buffers per update path, the
+outputs copied out.  So on CPU a run with it must be the run without it, bit for bit, for a single
+agent and for a batch of members.  The tests marked ``cuda`` record real graphs and compare them
+with eager updates; they run only where a GPU is (the prepared ``scripts/gpu_graphs.sh``).
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from conftest import filled_buffer, small_agent
+from imssr.agents.batched import AgentBatch
+from imssr.agents.graphs import StepGraphs, set_capturable, tree_map
+from imssr.config.validation import validate_config
+from imssr.errors import ImssrError
+from test_agent_batch import flat
+
+ALGOS = ["curl", "im-curl", "soda", "im-soda", "pad", "im-pad", "svea", "im-svea", "curl+rnd", "soda+re3"]
+STEPS = 5  # both update paths (actor and targets every second step), each warmed up and replayed
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="records CUDA graphs: needs a GPU")
+
+
+def run(agent, steps: int = STEPS, seed: int = 0, acts: int = 1):
+    """``steps`` updates, then ``acts`` deterministic and ``acts`` sampled actions."""
+    replay = filled_buffer(action_dim=2, seed=seed, size=60)
+    metrics = [agent.update(replay, step) for step in range(steps)]
+    actions = [agent.act(replay.sample(1)["obs"][0], deterministic=d) for d in (True, False) for _ in range(acts)]
+    return metrics, actions
+
+
+def assert_same_run(a, b, metrics_a, metrics_b, rtol: float = 0.0) -> None:
+    sa, sb = flat(a.state_dict()), flat(b.state_dict())
+    assert sa.keys() == sb.keys()
+    for key, x in sa.items():
+        y = sb[key]
+        if isinstance(x, torch.Tensor):
+            x, y = x.cpu(), y.cpu()
+            if rtol == 0.0:
+                assert torch.equal(x, y.to(x.dtype)), key
+            elif x.numel():
+                assert float((x.double() - y.double()).abs().max()) <= rtol * max(float(x.abs().max()), 1.0), key
+        else:
+            assert x == y, key
+    for ma, mb in zip(metrics_a, metrics_b, strict=True):
+        assert ma.keys() == mb.keys()
+        for k in ma:
+            assert float(ma[k]) == pytest.approx(float(mb[k]), rel=rtol, abs=rtol), k
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_a_single_agent_with_cuda_graphs_on_cpu_is_the_run_without(algo):
+    plain, graphed = small_agent(algo, seed=3), small_agent(algo, seed=3, agent_fields={"cuda_graphs": True})
+    assert graphed.graphs.enabled and not graphed.graphs.record  # CPU: nothing recorded
+    metrics_plain, actions_plain = run(plain)
+    metrics_graphed, actions_graphed = run(graphed)
+    assert_same_run(plain, graphed, metrics_plain, metrics_graphed)
+    for x, y in zip(actions_plain, actions_graphed):
+        assert (x == y).all()
+    # One set of static buffers per update path (the actor and targets every second step) and
+    # per action pass, nothing more.
+    paths = {("update", *graphed.update_key(step)) for step in range(STEPS)}
+    assert len(paths) == 2 and set(graphed.graphs.steps) == paths | {("act", True), ("act", False)}
+
+
+@pytest.mark.parametrize("algo", ["im-curl", "im-soda", "curl+rnd"])
+def test_a_batch_with_cuda_graphs_on_cpu_is_the_batch_without(algo):
+    def batch(graphs: bool) -> AgentBatch:
+        # A base member beside an IM- member: beta_t enters per member.
+        first = algo.removeprefix("im-")
+        return AgentBatch([small_agent(a, seed=s, agent_fields={"cuda_graphs": graphs})
+                           for a, s in ((first, 1), (algo, 2))], mode="loop")
+
+    plain, graphed = batch(False), batch(True)
+    replays = [[filled_buffer(action_dim=2, seed=s, size=60) for s in (1, 2)] for _ in range(2)]
+    for step in range(STEPS):
+        mp = plain.update(replays[0], step)
+        mg = graphed.update(replays[1], step)
+        for k in mp:
+            assert torch.equal(mp[k], mg[k]), (step, k)
+    obs = torch.stack([torch.as_tensor(r.sample(1)["obs"][0]) for r in replays[0]]).numpy()
+    assert torch.equal(plain.act(obs, True), graphed.act(obs, True))
+    for i in range(2):
+        a, b = flat(plain.member_state_dict(i)), flat(graphed.member_state_dict(i))
+        for key, x in a.items():
+            assert torch.equal(x, b[key]) if isinstance(x, torch.Tensor) else x == b[key], (i, key)
+
+
+def test_static_buffers_are_reused_and_outputs_are_the_callers():
+    graphs = StepGraphs(torch.device("cpu"), enabled=True)
+    seen = []
+
+    def fn(inputs):
+        seen.append(inputs["x"])
+        return {"y": inputs["x"] * 2}
+
+    out1 = graphs("k", fn, {"x": torch.tensor([1.0, 2.0])})
+    out2 = graphs("k", fn, {"x": torch.tensor([3.0, 4.0])})
+    assert seen[0] is seen[1]  # the same static buffer, refilled
+    assert out1["y"].tolist() == [2.0, 4.0] and out2["y"].tolist() == [6.0, 8.0]  # copies: not overwritten
+    graphs.reset()
+    assert not graphs.steps
+    assert StepGraphs(torch.device("cpu"), enabled=False)("k", fn, {"x": torch.ones(1)})["y"].tolist() == [2.0]
+
+
+def test_tree_map_keeps_structure_and_non_tensors():
+    tree = {"a": torch.ones(2), "b": (torch.zeros(1), 3), "c": [torch.ones(1)]}
+    out = tree_map(lambda t: t + 1, tree)
+    assert out["b"][1] == 3 and out["a"].tolist() == [2.0, 2.0] and isinstance(out["c"], list)
+
+
+def test_set_capturable_switches_the_flag_and_keeps_cpu_steps_on_cpu():
+    p = torch.nn.Parameter(torch.ones(3))
+    opt = torch.optim.Adam([p])
+    p.grad = torch.ones(3)
+    opt.step()
+    set_capturable([opt], False)  # already off: untouched
+    assert opt.param_groups[0]["capturable"] is False and opt.state[p]["step"].device.type == "cpu"
+    set_capturable([opt], True)
+    assert opt.param_groups[0]["capturable"] is True and opt.defaults["capturable"] is True
+    set_capturable([opt], False)
+    assert opt.param_groups[0]["capturable"] is False and opt.state[p]["step"].dtype == torch.float32
+
+
+def test_cuda_graphs_needs_compile_off():
+    from conftest import tiny_config
+    cfg = tiny_config("curl")
+    cfg.agent.cuda_graphs, cfg.agent.compile = True, "default"
+    with pytest.raises(ImssrError, match="agent.cuda_graphs records eager kernels"):
+        validate_config(cfg)
+
+
+def test_a_checkpoint_loads_into_an_agent_with_or_without_cuda_graphs():
+    graphed = small_agent("im-curl", seed=4, agent_fields={"cuda_graphs": True})
+    run(graphed, steps=3)
+    state = graphed.state_dict()
+    plain = small_agent("im-curl", seed=4)
+    plain.load_state_dict(state)
+    again = small_agent("im-curl", seed=4, agent_fields={"cuda_graphs": True})
+    again.load_state_dict(state)
+    assert not again.graphs.steps  # loading forgets every recording
+    m1, _ = run(plain, steps=2, seed=9)
+    m2, _ = run(again, steps=2, seed=9)
+    assert_same_run(plain, again, m1, m2)
+
+
+# -- on a GPU -------------------------------------------------------------------------------------
+@CUDA
+@pytest.mark.parametrize("algo", ["curl", "im-curl", "im-soda", "curl+rnd"])
+def test_recorded_updates_follow_the_eager_ones_on_cuda(algo):
+    """Ten updates and two actions recorded and replayed against eager ones, strict float32: the
+    same weights but for the last bits of capturable Adam's bias correction."""
+    fields = {"tf32": "false"}
+    eager = small_agent(algo, seed=5, device="cuda", agent_fields=fields)
+    graphed = small_agent(algo, seed=5, device="cuda", agent_fields={**fields, "cuda_graphs": True})
+    me, ae = run(eager, steps=10, acts=4)  # each path and action pass: two warm-ups, then recorded
+    mg, ag = run(graphed, steps=10, acts=4)
+    assert graphed.graphs.record and len(graphed.graphs.steps) == 4
+    assert all(graph is not None for graph, _, _ in graphed.graphs.steps.values())
+    assert_same_run(eager, graphed, me, mg, rtol=1e-4)
+    for x, y in zip(ae, ag):
+        assert abs(x - y).max() < 1e-3
+
+
+@CUDA
+def test_a_recorded_batch_follows_the_eager_batch_on_cuda():
+    def batch(graphs: bool) -> AgentBatch:
+        return AgentBatch([small_agent("im-curl", seed=s, device="cuda",
+                                       agent_fields={"tf32": "false", "cuda_graphs": graphs}) for s in (1, 2, 3)],
+                          mode="vmap")
+
+    eager, graphed = batch(False), batch(True)
+    replays = [[filled_buffer(action_dim=2, seed=s, size=60) for s in (1, 2, 3)] for _ in range(2)]
+    for step in range(10):
+        me = eager.update(replays[0], step)
+        mg = graphed.update(replays[1], step)
+    for k in me:
+        assert torch.allclose(me[k].double(), mg[k].double(), rtol=1e-4, atol=1e-4), k
+    obs = torch.stack([torch.as_tensor(r.sample(1)["obs"][0]) for r in replays[0]]).numpy()
+    for deterministic in (True, False, True, False, True, False):
+        assert torch.allclose(eager.act(obs, deterministic), graphed.act(obs, deterministic), atol=1e-3)
+    assert len(graphed.template.graphs.steps) == 4
+    for i in range(3):
+        a, b = flat(eager.member_state_dict(i)), flat(graphed.member_state_dict(i))
+        for key, x in a.items():
+            if isinstance(x, torch.Tensor) and x.dtype.is_floating_point and x.numel():
+                assert float((x.double() - b[key].double().to(x.device)).abs().max()) <= \
+                    1e-4 * max(float(x.abs().max()), 1.0), (i, key)
