@@ -1,9 +1,9 @@
-"""Agent steps per second on a GPU: fp32 and bf16, eager and compiled, and the hours of a run.
+"""Agent steps per second on a GPU: fp32 and bf16, eager, compiled and recorded, and the hours of a run.
 
     python bench/gpu.py [--device cuda] [--algos curl im-curl soda im-soda pad svea]
         [--task cartpole_swingup_sparse] [--steps 200] [--warmup 10] [--seed-steps 300]
-        [--batch 0] [--threads 0] [--variants fp32/off bf16/off fp32/reduce-overhead
-        bf16/reduce-overhead] [--set SECTION.FIELD=VALUE ...] [--total-steps 500000]
+        [--batch 0] [--threads 0] [--variants fp32/off bf16/off fp32/off+graphs
+        bf16/off+graphs] [--set SECTION.FIELD=VALUE ...] [--total-steps 500000]
         [--csv PATH]
 
 A CPU smoke run (checks that everything runs; its figures mean nothing for a GPU):
@@ -14,7 +14,8 @@ A CPU smoke run (checks that everything runs; its figures mean nothing for a GPU
         --set aux.batch_size=8
 
 Each variant is ``PRECISION/COMPILE``: ``agent.precision`` (fp32, bf16) and ``agent.compile``
-(off, default, reduce-overhead, max-autotune) on top of the paper's preset of each algorithm,
+(off, default, max-autotune), ``+graphs`` for ``agent.cuda_graphs=true`` (``off+graphs``: eager
+kernels recorded as CUDA graphs), on top of the paper's preset of each algorithm,
 with the ``--set`` overrides applied to all.  ``fp32/off`` is always measured: it is the
 baseline of each algorithm's ratios.  ``agent.tf32`` and cuDNN's autotuning are process-wide
 switches, so TF32 is a ``--set agent.tf32=true`` for the whole run, not a variant.
@@ -59,7 +60,7 @@ from imssr.presets import make_config  # noqa: E402
 from imssr.training.build import resolve_device  # noqa: E402
 
 DEFAULT_ALGOS = ["curl", "im-curl", "soda", "im-soda", "pad", "svea"]
-DEFAULT_VARIANTS = ["fp32/off", "bf16/off", "fp32/reduce-overhead", "bf16/reduce-overhead"]
+DEFAULT_VARIANTS = ["fp32/off", "bf16/off", "fp32/off+graphs", "bf16/off+graphs"]
 BASELINE = "fp32/off"
 COLUMNS = ["algo", "precision", "compile", "steps/s", "median ms/step", "x fp32 eager",
            "hours for T", "warm-up s", "peak GiB"]
@@ -68,9 +69,10 @@ COLUMNS = ["algo", "precision", "compile", "steps/s", "median ms/step", "x fp32 
 def parse_variant(text: str) -> tuple[str, str]:
     precision, _, mode = text.partition("/")
     mode = mode or "off"
-    if precision not in PRECISIONS or mode not in COMPILE_MODES:
+    if precision not in PRECISIONS or mode.removesuffix("+graphs") not in COMPILE_MODES:
         raise ImssrError(f"variant {text!r} must be PRECISION/COMPILE with PRECISION one of "
-                         f"{', '.join(PRECISIONS)} and COMPILE one of {', '.join(COMPILE_MODES)}")
+                         f"{', '.join(PRECISIONS)} and COMPILE one of {', '.join(COMPILE_MODES)}, "
+                         "each optionally +graphs")
     return precision, mode
 
 
@@ -94,7 +96,9 @@ class Variant(Runner):
         self.error = None
         self.resident = self.peak = 0
         before = self._allocated(device)
-        spec = ",".join([f"agent.precision={precision}", f"agent.compile={mode}", *overrides])
+        graphs = ["agent.cuda_graphs=true"] if mode.endswith("+graphs") else []
+        spec = ",".join([f"agent.precision={precision}", f"agent.compile={mode.removesuffix('+graphs')}",
+                         *graphs, *overrides])
         super().__init__(f"{algo}:{spec}", a.task, a.seed_steps, device, a.batch)
         self.resident = self.peak = self._allocated(device) - before
 
@@ -209,7 +213,7 @@ def main() -> int:
         return 2
     if a.threads:
         torch.set_num_threads(a.threads)
-    compiled = len(a.algos) * sum(mode != "off" for _, mode in specs)
+    compiled = len(a.algos) * sum(mode.removesuffix("+graphs") != "off" for _, mode in specs)
     if compiled > 1:
         # torch.compile's recompile limit counts per function, and every agent of this process
         # runs the same forward functions: without this, the later compiled variants would

@@ -10,8 +10,8 @@ In order, each item passing or failing on its own (a failure is reported, the ot
 2. a training of ``--steps`` agent steps of each base (CURL, SODA, PAD, SVEA) at fp32 and at
    bf16, with the replay frames on the GPU (``train.replay_device=cuda``; the host store on a
    CPU), each in a run directory under a temporary folder;
-3. CURL at fp32 with each ``agent.compile`` mode (``default``, ``reduce-overhead``,
-   ``max-autotune``), and with ``agent.cuda_graphs=true``, for ``--compile-steps`` agent steps;
+3. CURL at fp32 with each ``agent.compile`` mode (``default``, ``max-autotune``), and with
+   ``agent.cuda_graphs=true``, for ``--compile-steps`` agent steps;
 4. ``bench/gpu.py`` with ``--bench-args`` (skipped without the repository's ``bench/``).
 
 The report gives torch, CUDA, cuDNN and driver versions and the GPU, then per item: pass/fail,

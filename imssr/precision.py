@@ -104,9 +104,9 @@ def cache_frozen_weights(*modules: nn.Module) -> int:
 def adam(params, lr: float, betas: tuple[float, float] = (0.9, 0.999), fused: bool = False) -> torch.optim.Adam:
     """torch's Adam, fused (``agent.fused_adam``: one kernel per group on CUDA, the last bits of
     rounding differ) or torch's default implementation (the foreach kernels on CUDA, the
-    per-tensor loop on CPU; foreach is bit-identical there and gains nothing).  No optimiser
-    step is captured in a CUDA graph (``agent.compile`` compiles forward passes only), so
-    neither needs ``capturable=True``."""
+    per-tensor loop on CPU; foreach is bit-identical there and gains nothing).  Under
+    ``agent.cuda_graphs`` the agent switches its optimisers to ``capturable`` before recording
+    (:func:`imssr.agents.graphs.set_capturable`)."""
     return torch.optim.Adam(params, lr=lr, betas=betas, fused=True if fused else None)
 
 

@@ -89,7 +89,7 @@ def test_rows_ratio_hours_and_failed_variants():
                                warmup_times=list(warmup), peak=peak)
 
     table = gpu.rows([variant("curl", "fp32", "off", [0.1, 0.1]),
-                      variant("curl", "bf16", "reduce-overhead", [0.05, 0.05], warmup=(40.0, 2.0)),
+                      variant("curl", "bf16", "off+graphs", [0.05, 0.05], warmup=(40.0, 2.0)),
                       variant("soda", "fp32", "off", [], error="RuntimeError: boom"),
                       variant("soda", "bf16", "off", [0.2])], total_steps=36_000, cuda=True)
     assert table[0]["steps/s"] == "10.00" and table[0]["x fp32 eager"] == "1.00"

@@ -1,6 +1,6 @@
 """``agent.compile`` compiles the work: Dynamo captures the conv trunks, the projections, the Q
 heads and the actor's layers (a recording backend counts the convolutions it was handed), and
-the CUDA-graph modes mark each step.  On CPU with Dynamo's ``eager`` backend: what is captured
+leaves CUDA graphs to ``agent.cuda_graphs``.  On CPU with Dynamo's ``eager`` backend: what is captured
 does not depend on the backend, and no C++ compiler is needed."""
 import pytest
 import torch
@@ -8,7 +8,8 @@ import torch._dynamo
 from torch._dynamo.utils import counters
 
 from conftest import filled_buffer, small_agent
-from imssr.agents.sac import CUDA_GRAPH_MODES, uses_cuda_graphs
+from imssr.agents.sac import INDUCTOR_MODES, SACAgent
+from imssr.config import COMPILE_MODES
 
 
 class Recorder:
@@ -67,24 +68,26 @@ def test_act_runs_compiled_layers(dynamo):
     assert recorder.count(*CONVS) >= agent.cfg.encoder_layers and recorder.count(*LINEARS) >= 4
 
 
-def test_cuda_graph_modes_mark_every_act_and_update(monkeypatch):
-    marks = []
-    monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: marks.append(1))
-    agent = small_agent("curl", "sequential")
-    assert agent.cuda_graphs is False  # CPU: no CUDA graphs, nothing marked
-    agent.update(filled_buffer(60, action_dim=2, size=60), 0)
-    assert marks == []
-    agent.cuda_graphs = True  # what a CUDA agent with a CUDA-graph mode sets
-    agent.update(filled_buffer(60, action_dim=2, size=60), 1)
-    agent.act(torch.zeros(9, 60, 60, dtype=torch.uint8).numpy(), deterministic=True)
-    assert len(marks) == 2
-    assert CUDA_GRAPH_MODES == ("reduce-overhead", "max-autotune")
+def test_compile_never_asks_inductor_for_cuda_graphs(monkeypatch):
+    """``agent.compile`` makes kernels; CUDA graphs are ``agent.cuda_graphs``'s alone (inductor's
+    own would nest inside its recordings)."""
+    modes = []
+    monkeypatch.setattr(SACAgent, "_compile", lambda self, mode, backend="inductor": modes.append(mode))
+    for mode in ("default", "max-autotune"):
+        small_agent("curl", agent_fields={"compile": mode})
+    assert modes == [None, "max-autotune-no-cudagraphs"]
+    assert set(INDUCTOR_MODES) == set(COMPILE_MODES) - {"off"}
 
 
-def test_cuda_graphs_only_on_cuda_in_the_cuda_graph_modes():
-    """The rule the agent's :attr:`cuda_graphs` comes from: CUDA and reduce-overhead or
-    max-autotune; never on a CPU, never in the default mode or eager."""
-    for mode in ("off", "default", "reduce-overhead", "max-autotune"):
-        assert uses_cuda_graphs(torch.device("cpu"), mode) is False
-        for cuda in (torch.device("cuda"), torch.device("cuda:1")):
-            assert uses_cuda_graphs(cuda, mode) is (mode in ("reduce-overhead", "max-autotune"))
+def test_compiled_kernels_recorded_with_the_step_change_no_number(dynamo):
+    """``agent.compile`` with ``agent.cuda_graphs``: on CPU the compiled update through the static
+    buffers gives the eager update's numbers."""
+    replays = [filled_buffer(60, action_dim=2, size=60) for _ in range(2)]
+    eager = small_agent("im-curl")
+    both = small_agent("im-curl", agent_fields={"cuda_graphs": True})
+    both._compile(None, backend="eager")
+    for step in range(3):
+        expected, got = eager.update(replays[0], step), both.update(replays[1], step)
+        for key in expected:  # beta_t enters a recordable step as a float64 tensor: compare values
+            f64 = torch.float64
+            assert torch.equal(torch.as_tensor(got[key], dtype=f64), torch.as_tensor(expected[key], dtype=f64)), key

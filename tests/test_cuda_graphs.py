@@ -14,8 +14,6 @@ import torch
 from conftest import filled_buffer, small_agent
 from imssr.agents.batched import AgentBatch
 from imssr.agents.graphs import StepGraphs, set_capturable, tree_map
-from imssr.config.validation import validate_config
-from imssr.errors import ImssrError
 from test_agent_batch import flat
 
 ALGOS = ["curl", "im-curl", "soda", "im-soda", "pad", "im-pad", "svea", "im-svea", "curl+rnd", "soda+re3"]
@@ -122,14 +120,6 @@ def test_set_capturable_switches_the_flag_and_keeps_cpu_steps_on_cpu():
     assert opt.param_groups[0]["capturable"] is True and opt.defaults["capturable"] is True
     set_capturable([opt], False)
     assert opt.param_groups[0]["capturable"] is False and opt.state[p]["step"].dtype == torch.float32
-
-
-def test_cuda_graphs_needs_compile_off():
-    from conftest import tiny_config
-    cfg = tiny_config("curl")
-    cfg.agent.cuda_graphs, cfg.agent.compile = True, "default"
-    with pytest.raises(ImssrError, match="agent.cuda_graphs records eager kernels"):
-        validate_config(cfg)
 
 
 def test_a_checkpoint_loads_into_an_agent_with_or_without_cuda_graphs():

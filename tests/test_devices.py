@@ -41,10 +41,13 @@ def test_tf32_default_is_pytorchs_and_false_is_strict_float32():
 def test_compile_is_opt_in_and_validated():
     agent = make_config("im-curl", "cartpole_swingup").agent
     assert agent.compile == "off"
-    cfg = apply_overrides(make_config("curl", "cartpole_swingup"), ["agent.compile=reduce-overhead", "agent.tf32=true"])
-    assert cfg.validate().agent.compile == "reduce-overhead" and cfg.agent.tf32 == "true"
-    with pytest.raises(ImssrError, match="agent.compile must be one of off, default, reduce-overhead"):
+    cfg = apply_overrides(make_config("curl", "cartpole_swingup"), ["agent.compile=max-autotune", "agent.tf32=true"])
+    assert cfg.validate().agent.compile == "max-autotune" and cfg.agent.tf32 == "true"
+    with pytest.raises(ImssrError, match="agent.compile must be one of off, default, max-autotune$"):
         apply_overrides(make_config("curl", "cartpole_swingup"), ["agent.compile=fast"]).validate()
+    with pytest.raises(ImssrError, match="agent.compile=reduce-overhead is retired: CUDA graphs of whole agent "
+                                         "steps are agent.cuda_graphs=true"):
+        apply_overrides(make_config("curl", "cartpole_swingup"), ["agent.compile=reduce-overhead"]).validate()
 
 
 def test_software_rendering_beside_a_gpu_is_one_line_with_the_fix():

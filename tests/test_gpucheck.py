@@ -12,7 +12,7 @@ def test_the_gpu_check_runs_every_item_and_writes_one_report(monkeypatch, tmp_pa
     monkeypatch.setattr(SACAgent, "_compile", lambda self, mode, backend="inductor": compile_(self, mode, "eager"))
     out = tmp_path / "gpucheck.md"
     status = gpucheck.main(["--tiny", "--device", "cpu", "--out", str(out), "--bases", "curl",
-                            "--compile-modes", "reduce-overhead", "--skip", "bench"])
+                            "--compile-modes", "default", "--skip", "bench"])
     report = out.read_text()
     assert status == 0, report
     assert report.startswith("# imssr GPU check\n") and f"torch {torch.__version__}" in report
@@ -20,7 +20,7 @@ def test_the_gpu_check_runs_every_item_and_writes_one_report(monkeypatch, tmp_pa
     rows = [line for line in report.splitlines() if line.startswith("| ") and "---" not in line][1:]
     assert [r.split("|")[1].strip() for r in rows] == [
         "CUDA tests (pytest -k cuda)", "train curl fp32, 8 steps", "train curl bf16, 8 steps",
-        "train curl fp32 agent.compile=reduce-overhead, 4 steps", "train curl fp32 agent.cuda_graphs=true, 4 steps"]
+        "train curl fp32 agent.compile=default, 4 steps", "train curl fp32 agent.cuda_graphs=true, 4 steps"]
     assert [r.split("|")[2].strip() for r in rows] == ["skipped", "pass", "pass", "pass", "pass"]
     assert all(float(r.split("|")[3]) > 0 for r in rows[1:])  # steps/s of each training
 

@@ -301,7 +301,6 @@ class AgentBatch:
     def act(self, obs, deterministic: bool) -> torch.Tensor:
         """Each member's action ``(N, |A|)`` for its own observation stack ``obs[i]``."""
         t = self.template
-        t.mark_step()
         x = torch.as_tensor(obs, device=t.device).unsqueeze(1)
         return t.graphs(("act", deterministic), lambda inputs: t.act_on(inputs, deterministic), {"obs": x})[:, 0]
 

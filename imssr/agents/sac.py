@@ -48,14 +48,9 @@ buffer), ``aux_sample`` (the auxiliary task's own batch, when it trains on one a
 under ``agent.cuda_graphs``, ``beta`` (``beta_t`` as a float64 tensor; otherwise the intrinsic
 reward reads its schedule)."""
 
-CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
-"""The ``agent.compile`` modes that replay compiled code as CUDA graphs on CUDA."""
-
-
-def uses_cuda_graphs(device: torch.device, mode: str) -> bool:
-    """Whether an agent on ``device`` compiled with ``agent.compile = mode`` runs its compiled
-    code as CUDA graphs: only on CUDA, and only in :data:`CUDA_GRAPH_MODES`."""
-    return device.type == "cuda" and mode in CUDA_GRAPH_MODES
+INDUCTOR_MODES = {"default": None, "max-autotune": "max-autotune-no-cudagraphs"}
+"""``torch.compile``'s mode for each ``agent.compile`` but ``off``: kernels only, never inductor's
+own CUDA graphs (``agent.cuda_graphs`` records whole steps, the compiled kernels included)."""
 
 
 class Eager:
@@ -152,11 +147,8 @@ class SACAgent:
                                  prepare=lambda: set_capturable(self.optimizers(), True))
         """Runs :meth:`update_on` and :meth:`act_on`: directly, or recorded as CUDA graphs under
         ``agent.cuda_graphs`` (:mod:`imssr.agents.graphs`)."""
-        self.cuda_graphs = uses_cuda_graphs(self.device, cfg.compile)
-        """Whether compiled code runs as CUDA graphs: :meth:`act` and :meth:`update` each start a
-        step of them (:meth:`mark_step`)."""
         if cfg.compile != "off":
-            self._compile(None if cfg.compile == "default" else cfg.compile)
+            self._compile(INDUCTOR_MODES[cfg.compile])
         elif cfg.precision == "bf16":
             # Compiled, the casts are in the graphs; eager, the frozen networks' weights would be
             # cast to bfloat16 again at every call.
@@ -186,16 +178,6 @@ class SACAgent:
         opts = [self.critic_opt, self.actor_opt, self.alpha_opt]
         return opts + [m.optimizer for m in (self.aux, self.signal) if m is not None and m.optimizer is not None]
 
-    def mark_step(self) -> None:
-        """Start a new step of CUDA graphs (under :attr:`cuda_graphs`).  An update calls the same
-        compiled module several times without a backward between (the target encoder, the online
-        trunk on o', the actor, the target Q heads), and torch would otherwise start a new step at
-        each such call under ``no_grad``, reusing the memory of outputs still to be read.  Marked,
-        every output lives until the next :meth:`act` or :meth:`update`; what outlives that
-        (metrics) is computed by eager ops from them, never a graph's output itself."""
-        if self.cuda_graphs:
-            torch.compiler.cudagraph_mark_step_begin()
-
     def autocast(self):
         """The context of the agent's forward passes: bfloat16 autocast under
         ``agent.precision = bf16`` (:mod:`imssr.precision`), else none."""
@@ -209,7 +191,6 @@ class SACAgent:
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool) -> np.ndarray:
         """Action in [-1, 1] for one stacked uint8 observation (centre crop)."""
-        self.mark_step()
         x = torch.as_tensor(obs, device=self.device).unsqueeze(0)
         action = self.graphs(("act", deterministic), lambda inputs: self.act_on(inputs, deterministic), {"obs": x})
         return action[0].cpu().numpy().astype(np.float32)
@@ -248,7 +229,6 @@ class SACAgent:
         device (the training loop reads them once per episode): no host sync in an update.
         The replay samples are drawn here, the RL batch's first, and the update proper
         (:meth:`update_on`) reads them: one recording per :meth:`update_key` under CUDA graphs."""
-        self.mark_step()
         inputs: Inputs = {"sample": replay.sample_batch(self.cfg.batch_size, self.device)}
         if self.aux_due(step) and self.aux.cfg.own_batch:
             inputs["aux_sample"] = replay.sample_batch(self.aux.cfg.batch_size, self.device)

@@ -56,9 +56,10 @@ def validate_config(cfg: Sections) -> None:
          "agent.update_schedule=fused needs agent.critic_update_every=1"),
         (a.precision in PRECISIONS, f"agent.precision must be one of {', '.join(PRECISIONS)}"),
         (a.tf32 in TF32_MODES, f"agent.tf32 must be one of {', '.join(TF32_MODES)}"),
+        (a.compile != "reduce-overhead",
+         "agent.compile=reduce-overhead is retired: CUDA graphs of whole agent steps are agent.cuda_graphs=true "
+         "(with agent.compile=off or default)"),
         (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
-        (not a.cuda_graphs or a.compile == "off",
-         "agent.cuda_graphs records eager kernels: set agent.compile=off (or agent.cuda_graphs=false)"),
         (x.update_every >= 1, "aux.update_every must be >= 1"),
         (i.source in SIGNAL_PLUGINS, f"intrinsic.source must be one of {', '.join(SIGNAL_PLUGINS)}"),
         # Each auxiliary task and signal checks its own settings.

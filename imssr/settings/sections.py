@@ -114,11 +114,10 @@ class AgentConfig:
     both.  No effect on CPU."""
     compile: str = "off"
     """``torch.compile`` the conv trunks' passes, projections, Q heads and the actor's layers
-    with this mode: ``off``, ``default``, ``reduce-overhead`` or ``max-autotune`` (the last two
-    replay the compiled forward passes as CUDA graphs on CUDA; each act and update marks a step
-    of them).  The first updates are slow while it compiles; needs a C++ compiler on CPU.  On one
-    H100, ``reduce-overhead`` ran a CURL seed at 1.02x of eager (docs/performance.md).  For CUDA
-    graphs of whole steps, use :attr:`cuda_graphs` (with ``off``) instead."""
+    with inductor in this mode: ``off``, ``default`` or ``max-autotune`` (inductor's
+    ``max-autotune-no-cudagraphs``).  It makes kernels only; CUDA graphs are :attr:`cuda_graphs`,
+    which records the compiled kernels too.  The first updates are slow while it compiles; needs
+    a C++ compiler on CPU."""
     fused_adam: bool = False
     """Step the SAC and auxiliary optimisers with torch's fused Adam (one kernel per parameter
     group on CUDA, instead of the foreach kernels torch uses by default).  The same update rule;
@@ -129,8 +128,8 @@ class AgentConfig:
     action pass once as a CUDA graph and replay it at every agent step: one launch instead of
     hundreds of kernels issued from Python (``imssr.agents.graphs``).  The same update rule;
     Adam then computes its bias correction on the device (``capturable``), which rounds the
-    last bits differently, so it is off in the paper presets.  Needs ``compile = off``.  On CPU
-    the steps run eagerly, with the same numbers as without it."""
+    last bits differently, so it is off in the paper presets.  With :attr:`compile`, the compiled
+    kernels are recorded.  On CPU the steps run eagerly, with the same numbers as without it."""
 
     @property
     def precision_label(self) -> str:
@@ -263,7 +262,7 @@ class TrainConfig:
 UPDATE_SCHEDULES = ("sequential", "fused")
 PRECISIONS = ("fp32", "bf16")
 TF32_MODES = ("default", "true", "false")
-COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune")
+COMPILE_MODES = ("off", "default", "max-autotune")
 VIDEO_FORMATS = ("gif", "mp4")
 REPLAY_DEVICES = ("cpu", "cuda", "auto")
 
