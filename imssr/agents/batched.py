@@ -98,8 +98,12 @@ class MemberSchedules:
 
     def tensor(self, step: int, device: torch.device) -> torch.Tensor:
         """The members' ``beta_t`` as one ``(N,)`` float64 tensor (a CUDA graph's input, which the
-        members' vmap maps over)."""
-        return torch.tensor(self._values(step), dtype=torch.float64, device=device)
+        members' vmap maps over).  From pinned memory on CUDA: a copy from pageable memory would
+        wait for the device."""
+        values = torch.tensor(self._values(step), dtype=torch.float64)
+        if torch.device(device).type == "cuda":
+            values = values.pin_memory()
+        return values.to(device, non_blocking=True)
 
     def _values(self, step: int) -> list[float]:
         return [0.0 if s is None else s(step) for s in self.schedules]

@@ -52,13 +52,16 @@ def tree_map(fn: Callable[..., Any], tree: Tree, *others: Tree) -> Tree:
 def set_capturable(optimizers: Iterable[torch.optim.Optimizer], on: bool) -> None:
     """Switch Adam's ``capturable`` flag on (its step count on the weights' device, its bias
     correction computed there: what a recording needs) or off, and move the step counts where
-    the flag wants them.  A checkpoint keeps the flag it was saved with, so a resumed or
-    evaluated agent sets it again after loading."""
+    the flag wants them.  A checkpoint keeps the flag it was saved with, and a loaded step count
+    sits where the checkpoint was mapped (the CPU), so a resumed or evaluated agent sets both
+    again after loading."""
     for opt in optimizers:
         opt.defaults["capturable"] = on
+        if on:
+            # Warm-up steps run capturable Adam outside a recording on purpose: torch's warning
+            # that this may be slow is for optimisers that are never recorded.
+            opt._warned_capturable_if_run_uncaptured = True
         for group in opt.param_groups:
-            if group.get("capturable", False) == on:
-                continue
             group["capturable"] = on
             for p in group["params"]:
                 state = opt.state.get(p, {})
@@ -84,12 +87,17 @@ class StepGraphs:
         """Per key: the recording (None off CUDA), its static inputs and its outputs."""
         self.prepare: Callable[[], None] = prepare
         """Called before each warm-up and recording: readies the optimisers (:func:`set_capturable`)."""
+        self.failed: Optional[str] = None
+        """Why a recording failed: a failed capture can leave CUDA's state unusable, so no step of
+        this process records or runs again."""
 
     def __call__(self, key: Hashable, fn: Callable[[Tree], Tree], inputs: Tree) -> Tree:
         """``fn(inputs)``: directly when disabled; else through ``key``'s static buffers (and
         recording).  The outputs are the caller's own (copies of the recording's)."""
         if not self.enabled:
             return fn(inputs)
+        if self.failed is not None:
+            raise ImssrError(self.failed)
         if key not in self.steps:
             calls = self.calls.get(key, 0)
             self.calls[key] = calls + 1
@@ -128,18 +136,19 @@ class StepGraphs:
         return out
 
     def _capture(self, fn, static: Tree) -> tuple[torch.cuda.CUDAGraph, Tree, Tree]:
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.device(self.device):
-            for generator in self.generators():
-                graph.register_generator_state(generator)
         try:
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.device(self.device):
+                for generator in self.generators():
+                    graph.register_generator_state(generator)
             with torch.cuda.graph(graph, capture_error_mode="thread_local"):
                 outputs = fn(static)
-        except RuntimeError as e:
+        except Exception as e:  # the step ran eagerly in the warm-up: what fails here is the recording
             # When the step fails inside the recording, ending the capture fails too: the step's
             # own error is then the context of the one raised.
             cause = e.__context__ if isinstance(e.__context__, Exception) else e
             reason = (str(cause).strip().splitlines() or [type(cause).__name__])[0]
-            raise ImssrError(f"agent.cuda_graphs: recording an agent step failed ({reason}); "
-                             "set agent.cuda_graphs=false to run it eagerly") from e
+            self.failed = (f"agent.cuda_graphs: recording an agent step failed ({reason}); start a new process "
+                           "with agent.cuda_graphs=false to run the steps eagerly")
+            raise ImssrError(self.failed) from e
         return graph, static, outputs

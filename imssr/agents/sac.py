@@ -149,9 +149,10 @@ class SACAgent:
         ``agent.cuda_graphs`` (:mod:`imssr.agents.graphs`)."""
         if cfg.compile != "off":
             self._compile(INDUCTOR_MODES[cfg.compile])
-        elif cfg.precision == "bf16":
+        elif cfg.precision == "bf16" and not cfg.cuda_graphs:
             # Compiled, the casts are in the graphs; eager, the frozen networks' weights would be
-            # cast to bfloat16 again at every call.
+            # cast to bfloat16 again at every call.  Not under CUDA graphs: the cache decides in
+            # Python when to cast again, which a recording would freeze (each recording casts).
             cache_frozen_weights(*(m for m in (self.nets, self.aux, self.signal) if m is not None))
 
     def _compile(self, mode: Optional[str], backend: str = "inductor") -> None:

@@ -78,8 +78,9 @@ class BetaSchedule:
         return self.beta0 * self.decay ** math.floor(step / self.every_steps)
 
     def tensor(self, step: int, device: torch.device) -> torch.Tensor:
-        """``beta_t`` at ``step`` as a float64 tensor on ``device`` (a CUDA graph's input)."""
-        return torch.tensor(self(step), dtype=torch.float64, device=device)
+        """``beta_t`` at ``step`` as a float64 tensor on ``device`` (a CUDA graph's input): a fill,
+        not a copy from the host, which would wait for the device."""
+        return torch.full((), self(step), dtype=torch.float64, device=device)
 
 
 class IntrinsicReward:
