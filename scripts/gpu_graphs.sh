@@ -12,6 +12,10 @@
 #   seeds_graphs.md   bench/seeds.py: one seed as a process, eager and recorded; 4 and 16 seeds in
 #                     vmap, eager and recorded; agent steps/s and the ratio to the eager processes
 #   seeds_graphs.csv  the same rows as CSV
+# On a lent machine whose image lacks dm_control, MuJoCo, omegaconf and docstring-parser, carry
+# them as wheels (.whl/, the device README's recipe) and start the call with
+#   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+#     --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site || exit; OUT=$OUT bash scripts/gpu_graphs.sh
 # Each item has its own share of BUDGET_S (default 480 s) and is cut, not the script, when it runs
 # over.  DEVICE (cuda) and TINY=1 (tiny networks, a few steps: the CPU test in
 # tests/test_gpu_script.py) as in scripts/gpu_kernels.sh; on the CPU the check's GPU tests skip.
