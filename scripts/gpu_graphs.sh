@@ -24,27 +24,8 @@ cd "$(dirname "$0")/.."
 OUT_DIR="${OUT:-/tmp/gpu-out}/graphs"
 DEVICE="${DEVICE:-cuda}"
 BUDGET_S="${BUDGET_S:-480}"
-PY="${PYTHON:-python}"
-[ -x .venv/bin/python ] && PY=.venv/bin/python
-export MUJOCO_GL="${MUJOCO_GL:-egl}" PYTHONUNBUFFERED=1
-START=$(date +%s)
-mkdir -p "$OUT_DIR"
-left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
-# run SHARE NAME CMD...: at most SHARE seconds (less if the budget has less), output to NAME.
-run() {
-  local share=$1 name=$2; shift 2
-  local limit=$(( share < $(left) ? share : $(left) ))
-  if [ "$limit" -lt 10 ]; then echo "gpu_graphs: no time left for $name" | tee -a "$OUT_DIR/$name"; return; fi
-  echo "gpu_graphs: $name ($limit s at most, $(( $(date +%s) - START )) s in)"
-  timeout --kill-after=10 "$limit" "$@" > "$OUT_DIR/$name" 2>&1
-  local rc=$?
-  [ $rc -eq 0 ] || echo "gpu_graphs: $name stopped (exit $rc)" | tee -a "$OUT_DIR/$name"
-  tail -n 25 "$OUT_DIR/$name"
-}
-
-{ nvidia-smi 2>&1 || echo "no nvidia-smi"
-  "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"
-} > "$OUT_DIR/device.txt" 2>&1
+SCRIPT=gpu_graphs
+source scripts/gpu_common.sh
 
 SEEDS=(--device "$DEVICE" --n 1 4 16 --modes vmap vmap+graphs --baseline-n 1 --baseline-graphs --steps 20 --warmup 6
        --fill 1000)

@@ -22,27 +22,8 @@ cd "$(dirname "$0")/.."
 OUT_DIR="${OUT:-/tmp/gpu-out}/kernels"
 DEVICE="${DEVICE:-cuda}"
 BUDGET_S="${BUDGET_S:-520}"
-PY="${PYTHON:-python}"
-[ -x .venv/bin/python ] && PY=.venv/bin/python
-export MUJOCO_GL="${MUJOCO_GL:-egl}" PYTHONUNBUFFERED=1
-START=$(date +%s)
-mkdir -p "$OUT_DIR"
-left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
-# run SHARE NAME CMD...: at most SHARE seconds (less if the budget has less), output to NAME.
-run() {
-  local share=$1 name=$2; shift 2
-  local limit=$(( share < $(left) ? share : $(left) ))
-  if [ "$limit" -lt 10 ]; then echo "gpu_kernels: no time left for $name" | tee -a "$OUT_DIR/$name"; return; fi
-  echo "gpu_kernels: $name ($limit s at most, $(( $(date +%s) - START )) s in)"
-  timeout --kill-after=10 "$limit" "$@" > "$OUT_DIR/$name" 2>&1
-  local rc=$?
-  [ $rc -eq 0 ] || echo "gpu_kernels: $name stopped (exit $rc)" | tee -a "$OUT_DIR/$name"
-  tail -n 25 "$OUT_DIR/$name"
-}
-
-{ nvidia-smi 2>&1 || echo "no nvidia-smi"
-  "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"
-} > "$OUT_DIR/device.txt" 2>&1
+SCRIPT=gpu_kernels
+source scripts/gpu_common.sh
 
 FAST=(--set agent.tf32=true --set agent.fused_adam=true)
 GPU=(--device "$DEVICE" --algos curl --steps 150 --warmup 20 --seed-steps 300)

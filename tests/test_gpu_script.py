@@ -10,16 +10,24 @@ import tarfile
 from conftest import REPO
 
 
-def test_the_prepared_gpu_run_works_on_the_cpu(tmp_path):
-    out, root = tmp_path / "out", tmp_path / "runs"
-    env = {**os.environ, "OUT": str(out), "ROOT": str(root), "TINY": "1", "DEVICE": "cpu", "SEEDS": "1",
-           "PROCESSES": "1", "RUNS_PER_PROCESS": "2", "CPUS_PER_PROCESS": "1", "BENCH_S": "120"}
-    proc = subprocess.run(["bash", os.path.join(REPO, "scripts", "gpu_dmc100k.sh")], env=env,
+def run_script(name: str, out, **env) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """``scripts/NAME`` on the CPU at tiny sizes; it must succeed and leave what a device run
+    brings back: at most 8 files under ``out``, at most one folder deep.  Returns the process and
+    those files' paths relative to ``out``, sorted."""
+    proc = subprocess.run(["bash", os.path.join(REPO, "scripts", name)],
+                          env={**os.environ, "OUT": str(out), "TINY": "1", "DEVICE": "cpu", **env},
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "2 runs in 1 processes" in proc.stdout
-    files = [os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs]
+    files = sorted(os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs)
     assert len(files) <= 8 and all(f.count(os.sep) <= 1 for f in files), files
+    return proc, files
+
+
+def test_the_prepared_gpu_run_works_on_the_cpu(tmp_path):
+    out, root = tmp_path / "out", tmp_path / "runs"
+    proc, files = run_script("gpu_dmc100k.sh", out, ROOT=str(root), SEEDS="1", PROCESSES="1", RUNS_PER_PROCESS="2",
+                             CPUS_PER_PROCESS="1", BENCH_S="120")
+    assert "2 runs in 1 processes" in proc.stdout
     assert {"sweep/bench_seeds.md", "sweep/runs.tar.gz", "sweep/sweep_status.json"} <= set(files)
     with tarfile.open(out / "sweep" / "runs.tar.gz") as tar:
         names = tar.getnames()
@@ -30,12 +38,7 @@ def test_the_prepared_gpu_run_works_on_the_cpu(tmp_path):
 
 def test_the_prepared_kernel_measurement_works_on_the_cpu(tmp_path):
     out = tmp_path / "out"
-    env = {**os.environ, "OUT": str(out), "TINY": "1", "DEVICE": "cpu"}
-    proc = subprocess.run(["bash", os.path.join(REPO, "scripts", "gpu_kernels.sh")], env=env,
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    files = sorted(os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs)
-    assert len(files) <= 8 and all(f.count(os.sep) <= 1 for f in files), files
+    proc, _ = run_script("gpu_kernels.sh", out)
     kernels = out / "kernels"
     assert "stopped" not in proc.stdout and "no time left" not in proc.stdout
     for name in ("profile_default.txt", "profile_fast.txt"):
@@ -47,11 +50,7 @@ def test_the_prepared_kernel_measurement_works_on_the_cpu(tmp_path):
 
 def test_the_prepared_cuda_graphs_check_works_on_the_cpu(tmp_path):
     out = tmp_path / "out"
-    env = {**os.environ, "OUT": str(out), "TINY": "1", "DEVICE": "cpu"}
-    proc = subprocess.run(["bash", os.path.join(REPO, "scripts", "gpu_graphs.sh")], env=env,
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    files = sorted(os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs)
+    proc, files = run_script("gpu_graphs.sh", out)
     assert files == ["graphs/check.txt", "graphs/device.txt", "graphs/seeds_graphs.csv", "graphs/seeds_graphs.md"]
     assert "stopped" not in proc.stdout and "no time left" not in proc.stdout
     check = (out / "graphs" / "check.txt").read_text()
