@@ -219,8 +219,8 @@ def test_bf16_members_with_float32_q_heads(mode):
 def test_fused_adam_is_opt_in_the_same_rule_and_kept_by_a_batch():
     assert tiny_config("im-curl").agent.fused_adam is False
     plain, fused = member("im-curl", 1), member("im-curl", 1, fused_adam=True)
-    assert all(not o.defaults["fused"] for o in AgentBatch._optimizers_of(plain))
-    assert all(o.defaults["fused"] for o in AgentBatch._optimizers_of(fused))
+    assert all(not o.defaults["fused"] for o in plain.optimizers())
+    assert all(o.defaults["fused"] for o in fused.optimizers())
     for agent in (plain, fused):
         replay = buffers()[0]
         for step in range(STEPS):

@@ -39,9 +39,7 @@ def host_reads_raise(monkeypatch, allowed: set[int]):
 def optimizer_step_counters(agent: SACAgent) -> set[int]:
     """Adam's step counters: torch keeps them on the host by design (without ``capturable``),
     and its per-tensor and foreach Adam read them there: not a device sync."""
-    opts = [agent.critic_opt, agent.actor_opt, agent.alpha_opt]
-    opts += [m.optimizer for m in (agent.aux, agent.signal) if m is not None and m.optimizer is not None]
-    return {id(s["step"]) for opt in opts for s in opt.state.values()}
+    return {id(s["step"]) for opt in agent.optimizers() for s in opt.state.values()}
 
 
 # Update paths the presets do not take: PAD on the RL batch (the fused schedule's joint o + o'

@@ -248,9 +248,9 @@ class AgentBatch:
         for name, like in template_buffers.items():
             self.stacked[name] = _stacked_like([_member_value(b, name, template_buffers) for b in member_buffers], like)
         self.name_of = {id(p): name for name, p in template_params.items()}
-        self.optimizers = {id(opt): self._stacked_optimizer(opt) for opt in self._optimizers_of(t)}
+        self.optimizers = {id(opt): self._stacked_optimizer(opt) for opt in t.optimizers()}
         for i, m in enumerate(members):
-            for opt, member_opt in zip(self._optimizers_of(t), self._optimizers_of(m)):
+            for opt, member_opt in zip(t.optimizers(), m.optimizers()):
                 self._set_member_optimizer_state(self.optimizers[id(opt)], i, member_opt.state_dict())
         for attr in GENERATORS:
             setattr(t, attr, draws.MemberGenerators([getattr(m, attr) for m in members]))
@@ -266,13 +266,6 @@ class AgentBatch:
     def _modules_of(agent: SACAgent) -> dict[str, nn.Module]:
         return {"nets": agent.nets, **({"aux": agent.aux} if agent.aux is not None else {}),
                 **({"signal": agent.signal} if agent.signal is not None else {})}
-
-    @staticmethod
-    def _optimizers_of(agent: SACAgent) -> list[torch.optim.Optimizer]:
-        """``agent``'s optimisers, in one order for every agent of the configuration."""
-        opts = [agent.critic_opt, agent.actor_opt, agent.alpha_opt]
-        opts += [m.optimizer for m in (agent.aux, agent.signal) if m is not None and m.optimizer is not None]
-        return opts
 
     def _stacked_optimizer(self, opt: torch.optim.Optimizer) -> torch.optim.Optimizer:
         """The template's optimiser rebuilt over the stacked weights: same class, groups and

@@ -175,7 +175,8 @@ class SACAgent:
         return gens
 
     def optimizers(self) -> list[torch.optim.Optimizer]:
-        """The agent's optimisers, SAC's then the auxiliary task's and the signal's."""
+        """The agent's optimisers, SAC's then the auxiliary task's and the signal's: one order for
+        every agent of a configuration (a batch of members pairs them by it)."""
         opts = [self.critic_opt, self.actor_opt, self.alpha_opt]
         return opts + [m.optimizer for m in (self.aux, self.signal) if m is not None and m.optimizer is not None]
 
@@ -250,23 +251,21 @@ class SACAgent:
     def update_on(self, inputs: Inputs, step: int) -> Metrics:
         """The update of agent step ``step`` on its replay samples (:data:`Inputs`)."""
         batch = self.to_batch(inputs["sample"])
-        beta = inputs.get("beta")
         with self.autocast():
             if self.cfg.update_schedule == "fused":
-                metrics = self.update_fused(inputs, batch, step, beta)
+                metrics = self.update_fused(inputs, batch, step)
             else:
-                metrics = self.update_sequential(inputs, batch, step, beta)
+                metrics = self.update_sequential(inputs, batch, step)
             if self.signal is not None:
                 metrics.update(self.update_signal(batch, step))
         return metrics
 
-    def update_sequential(self, inputs: Inputs, batch: Batch, step: int,
-                          beta: Optional[torch.Tensor] = None) -> Metrics:
+    def update_sequential(self, inputs: Inputs, batch: Batch, step: int) -> Metrics:
         """The CURL / DMC-GB order: critic; actor on a fresh encoding of o after the critic's
         step; target EMA; the auxiliary task on passes of its own."""
         c, metrics, run = self.cfg, {}, self.run
         if step % c.critic_update_every == 0:
-            loss, critic_metrics = run.call(self.critic_objective, batch, step, beta)
+            loss, critic_metrics = run.call(self.critic_objective, batch, step, inputs.get("beta"))
             run.step(loss, self.critic_opt)
             metrics.update(critic_metrics)
         if step % c.actor_update_every == 0:
@@ -278,15 +277,14 @@ class SACAgent:
             metrics.update(self.update_aux(inputs, batch, step))
         return metrics
 
-    def update_fused(self, inputs: Inputs, batch: Batch, step: int,
-                     beta: Optional[torch.Tensor] = None) -> Metrics:
+    def update_fused(self, inputs: Inputs, batch: Batch, step: int) -> Metrics:
         """One online pass over o serves the critic, the actor (the encoding from before the
         critic's step, detached, as DrQ-v2) and a task that reads it (CURL, PAD): its loss
         joins the critic's backward.  Needs ``critic_update_every = 1`` (validated)."""
         c = self.cfg
         fuse = self.fuse_aux and self.aux_due(step)
         enc = self.encode(batch, with_task_loss=fuse)
-        metrics = self.update_critic(batch, enc, step, beta)
+        metrics = self.update_critic(batch, enc, step, inputs.get("beta"))
         if step % c.actor_update_every == 0:
             metrics.update(self.update_actor_and_alpha(enc.obs_trunk.detach()))
         if step % c.target_update_every == 0:
