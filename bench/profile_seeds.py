@@ -8,7 +8,9 @@ The agents, replay buffers and agent step (the policy's action, then the update)
 :class:`~imssr.agents.batched.AgentBatch` in each of ``--modes``.  For each it prints the wall
 time per agent step (all seeds), the device's busy time per step (the sum of its kernels' times;
 CPU: the operators' self time) and the operators that take most of it.  Busy time near the wall
-time means the device is the limit; far below, the host (Python, dispatch, launches).
+time means the device is the limit; far below, the host (Python, dispatch, launches); above it
+(a ratio over 100%), kernels ran at the same time (members on streams).  A mode ``LAYOUT+graphs``
+records the steps as CUDA graphs (``agent.cuda_graphs``).
 """
 from __future__ import annotations
 
@@ -25,8 +27,12 @@ from seeds import agent_step  # noqa: E402  (bench/seeds.py: the same agents, bu
 
 
 def profile_one(args, n: int, mode: str) -> None:
-    args.batched, args.mode = mode != "single", mode
+    layout, graphs = mode.split("+")[0], mode.endswith("+graphs")
+    args.batched, args.mode = layout != "single", layout
+    base_set = list(args.set)
+    args.set = base_set + (["agent.cuda_graphs=true"] if graphs else [])
     one_step = agent_step(args, n)
+    args.set = base_set
     cuda = args.device.startswith("cuda")
     for step in range(args.warmup):
         one_step(step)
@@ -50,6 +56,7 @@ def profile_one(args, n: int, mode: str) -> None:
     print(f"\n## {n} seed{'s' if n > 1 else ''}, {mode}: {wall * 1e3:.1f} ms per agent step (all seeds), "
           f"{n / wall:.1f} agent steps/s; {'device' if cuda else 'CPU operators'} busy "
           f"{busy * 1e3:.1f} ms per step ({busy / wall:.0%}, under the profiler)")
+    print(f"overlap: kernel time / wall time = {busy / wall:.2f} (above 1: kernels ran together)")
     print(events.table(sort_by=key, row_limit=args.rows, max_name_column_width=60))
 
 
@@ -59,7 +66,10 @@ def main(argv=None) -> int:
     p.add_argument("--algo", default="curl")
     p.add_argument("--task", default="cartpole_swingup")
     p.add_argument("--n", type=int, default=5)
-    p.add_argument("--modes", nargs="+", default=["vmap", "loop"], choices=["vmap", "loop"])
+    p.add_argument("--modes", nargs="+", default=["vmap", "loop"],
+                   choices=[f"{m}{g}" for m in ("loop", "vmap", "streams") for g in ("", "+graphs")])
+    p.add_argument("--single", choices=["single", "single+graphs", "none"], default="single",
+                   help="the single-seed agent profiled first (none: skip it)")
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=0)
@@ -72,7 +82,8 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     print(f"# bench/profile_seeds.py: {args.algo} on {args.device}, torch {torch.__version__}, "
           f"{args.steps} profiled agent steps after {args.warmup}")
-    profile_one(args, 1, "single")
+    if args.single != "none":
+        profile_one(args, 1, args.single)
     for mode in args.modes:
         profile_one(args, args.n, mode)
     return 0

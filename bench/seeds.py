@@ -4,9 +4,10 @@
         [--n 1 2 4 8 16] [--modes loop vmap vmap+graphs] [--steps 20] [--warmup 3] [--threads 0]
         [--fill 1000] [--baseline-n 1 2 4] [--baseline-graphs] [--set SECTION.FIELD=VALUE ...] [--csv PATH]
 
-For each N the same work is timed in one run: N seeds as one
-:class:`~imssr.agents.batched.AgentBatch` in one process (``imssr train --seeds``), once per
-``--modes`` (``loop``: member after member; ``vmap``: all members as one vectorised computation;
+For each N the same work is timed in one run: N seeds as one batch in one process (``imssr
+train --seeds``), once per ``--modes`` (``agent.batch_layout``: ``loop``: member after member;
+``vmap``: all members as one vectorised computation; ``streams``: each member's own agent, on a
+CUDA stream of its own;
 ``+graphs``: with ``agent.cuda_graphs=true``, each step's update and action recorded once as CUDA
 graphs and replayed), and N processes with one single-seed agent each, timed together (what a sweep of single-seed
 runs does: each warms up, then all start their timed steps at once), the baseline of the ratios.  A step is the agent's part of a training step, for every
@@ -42,7 +43,7 @@ import numpy as np
 import torch
 
 from imssr.agents import SACAgent
-from imssr.agents.batched import AgentBatch
+from imssr.agents.batched import make_batch
 from imssr.algos import get_algo
 from imssr.config import apply_overrides
 from imssr.presets import make_config
@@ -61,7 +62,7 @@ def build(args, seeds: list[int]):
         agents.append(SACAgent(obs_shape, action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
                                cfg.intrinsic, device=args.device, seed=seed))
         replays.append(filled(args.fill, e.image_size, e.frame_stack, action_dim, seed))
-    agent = AgentBatch(agents, mode=args.mode) if args.batched else agents[0]
+    agent = make_batch(agents, args.mode) if args.batched else agents[0]
     return agent, replays, obs_shape
 
 
@@ -185,7 +186,7 @@ def main(argv=None) -> int:
     p.add_argument("--task", default="cartpole_swingup")
     p.add_argument("--n", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     p.add_argument("--modes", nargs="+", default=["loop", "vmap"],
-                   choices=["loop", "vmap", "loop+graphs", "vmap+graphs"])
+                   choices=[f"{m}{g}" for m in ("loop", "vmap", "streams") for g in ("", "+graphs")])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=0)

@@ -1,10 +1,11 @@
-"""Seeds as a batch axis: each member of an :class:`AgentBatch` is the run it would be alone.
+"""Seeds as a batch axis: each member of a batch of agents is the run it would be alone.
 
 Three single-seed agents and a batch of three members built the same way see the same replay
 samples (identical buffers with identical sampler seeds) and draw from the same generators; after
 K updates their weights, Adam moments, generator states and metrics agree: bit for bit when the
-batch runs its members one after another (``loop``, the CPU's default), to float64 rounding
-(float64 agents) or closely (float32) when it maps them with vmap (CUDA's default).
+batch runs its members one after another (``loop``, the CPU's default, and ``streams``, whose
+members are agents of their own), to float64 rounding (float64 agents) or closely (float32) when
+it maps them with vmap (CUDA's default).
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import torch
 
 from conftest import filled_buffer, small_agent, tiny_config
 from imssr import draws
-from imssr.agents.batched import AgentBatch
+from imssr.agents.batched import AgentBatch, make_batch
+from imssr.agents.streams import MemberStreams
 from imssr.agents.sac import SACAgent
 from imssr.errors import ImssrError
 
@@ -78,10 +80,11 @@ def assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol: fl
             assert float(metrics[key]) == pytest.approx(float(value), rel=rtol, abs=1e3 * atol), (i, key)
 
 
+@pytest.mark.parametrize("mode", ["loop", "streams"])
 @pytest.mark.parametrize("algo", ALGOS)
-def test_members_are_their_single_runs_bit_for_bit_in_loop_mode(algo):
+def test_members_are_their_single_runs_bit_for_bit_in_turn(algo, mode):
     singles = [member(algo, s) for s in SEEDS]
-    batch = AgentBatch([member(algo, s) for s in SEEDS], mode="loop")
+    batch = make_batch([member(algo, s) for s in SEEDS], mode)
     single_metrics, batch_metrics = train_both(singles, batch)
     assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=0.0, atol=0.0)
 
@@ -119,7 +122,7 @@ def test_soda_float32_weights_close_as_a_whole():
         assert float((x - y).norm() / x.norm()) < 1e-4
 
 
-@pytest.mark.parametrize("mode", ["loop", "vmap"])
+@pytest.mark.parametrize("mode", ["loop", "vmap", "streams"])
 def test_base_and_im_variant_and_betas_in_one_batch(mode):
     """CURL (intrinsic off), IM-CURL and IM-CURL with another beta_0 train as one batch, each as
     alone; the base logs no intrinsic metrics."""
@@ -132,21 +135,21 @@ def test_base_and_im_variant_and_betas_in_one_batch(mode):
         return member(algo, SEEDS[i], torch.float64, **({"intrinsic": intrinsic} if intrinsic else {}))
 
     singles = [build(i) for i in range(3)]
-    batch = AgentBatch([build(i) for i in range(3)], mode=mode)
+    batch = make_batch([build(i) for i in range(3)], mode)
     assert batch.intrinsic_on == [False, True, True]
     single_metrics, batch_metrics = train_both(singles, batch)
-    exact = mode == "loop"
+    exact = mode != "vmap"
     assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=0.0 if exact else 1e-10,
                          atol=0.0 if exact else 1e-12)
     assert "beta" not in batch.member_metrics(batch_metrics, 0)
     assert float(batch.member_metrics(batch_metrics, 2)["beta"]) == pytest.approx(0.3)
 
 
-@pytest.mark.parametrize("mode", ["loop", "vmap"])
+@pytest.mark.parametrize("mode", ["loop", "vmap", "streams"])
 @pytest.mark.parametrize("deterministic", [False, True])
 def test_act_draws_each_members_own_noise(deterministic, mode):
     singles = [member("im-curl", s) for s in SEEDS]
-    batch = AgentBatch([member("im-curl", s) for s in SEEDS], mode=mode)
+    batch = make_batch([member("im-curl", s) for s in SEEDS], mode)
     obs = torch.randint(0, 256, (3, 9, 60, 60), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
     for _ in range(2):
         expected = [a.act(obs[i].numpy(), deterministic) for i, a in enumerate(singles)]
@@ -156,11 +159,12 @@ def test_act_draws_each_members_own_noise(deterministic, mode):
             torch.testing.assert_close(got[i], torch.as_tensor(expected[i]), rtol=1e-5, atol=1e-6)
 
 
-def test_member_state_round_trip():
+@pytest.mark.parametrize("mode", ["loop", "streams"])
+def test_member_state_round_trip(mode):
     """A member loaded from a single agent's state dict saves that state again."""
     single = member("im-curl", 5)
     single.update(filled_buffer(action_dim=2, seed=5, size=60), 0)
-    batch = AgentBatch([member("im-curl", s) for s in SEEDS])
+    batch = make_batch([member("im-curl", s) for s in SEEDS], mode)
     batch.load_member_state_dict(1, single.state_dict())
     expected, got = flat(single.state_dict()), flat(batch.member_state_dict(1))
     assert expected.keys() == got.keys()
@@ -194,19 +198,35 @@ def test_a_torch_random_call_with_member_generators_fails_loudly():
 
 
 def test_unknown_mode_is_one_line():
-    with pytest.raises(ImssrError, match="unknown seed-batch mode 'grouped'; valid: auto, vmap, loop"):
-        AgentBatch([member("curl", 1)], mode="grouped")
+    with pytest.raises(ImssrError, match="unknown seed-batch layout 'grouped'; valid: auto, vmap, loop, streams"):
+        make_batch([member("curl", 1)], "grouped")
 
 
-@pytest.mark.parametrize("mode", ["loop", "vmap"])
+def test_streams_keep_each_members_own_agent_and_refuse_stacking():
+    """The streams layout steps the members' own agents (a signal with weights may sit beside a
+    member without it: nothing is stacked); AgentBatch, which stacks, refuses that layout."""
+    members = [member("curl", 1), member("curl+rnd", 2)]
+    batch = make_batch(members, "streams")
+    assert isinstance(batch, MemberStreams) and batch.members == members and batch.streams is None
+    assert batch.intrinsic_on == [False, True]
+    replays = buffers()[:2]
+    metrics = batch.update(replays, 0)
+    assert "r_int_mean" in batch.member_metrics(metrics, 1) and "r_int_mean" not in batch.member_metrics(metrics, 0)
+    with pytest.raises(ImssrError, match="make_batch"):
+        AgentBatch([member("curl", 1)], mode="streams")
+    with pytest.raises(ImssrError, match="share the agent's settings"):
+        make_batch([member("curl", 1), member("curl", 2, hidden_dim=16)], "streams")
+
+
+@pytest.mark.parametrize("mode", ["loop", "vmap", "streams"])
 def test_bf16_members_with_float32_q_heads(mode):
-    """bf16 autocast with float32 Q heads (the bf16-fp32q runs): bit for bit in loop mode, close
+    """bf16 autocast with float32 Q heads (the bf16-fp32q runs): bit for bit in turn, close
     under vmap."""
     fields = {"precision": "bf16", "q_heads_fp32": True}
     singles = [member("im-curl", s, **fields) for s in SEEDS]
-    batch = AgentBatch([member("im-curl", s, **fields) for s in SEEDS], mode=mode)
+    batch = make_batch([member("im-curl", s, **fields) for s in SEEDS], mode)
     single_metrics, batch_metrics = train_both(singles, batch, steps=2)
-    if mode == "loop":
+    if mode != "vmap":
         assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=0.0, atol=0.0)
         return
     # Grouped and single convolutions round differently in bfloat16 (8 significant bits: 0.4%).

@@ -4,7 +4,7 @@ On CPU nothing is recorded, but every other part of the path runs: the replay sa
 before the update, ``beta_t`` as an input tensor, one set of static buffers per update path, the
 outputs copied out.  So on CPU a run with it must be the run without it, bit for bit, for a single
 agent and for a batch of members.  The tests marked ``cuda`` record real graphs and compare them
-with eager updates; they run only where a GPU is (the prepared ``scripts/gpu_graphs.sh``).
+with eager updates; they run only where a GPU is (the prepared ``scripts/gpu_seeds.sh``).
 """
 from __future__ import annotations
 
@@ -278,3 +278,41 @@ def test_a_recorded_batch_follows_the_eager_batch_on_cuda(deterministic_cudnn, a
                     1e-4 * max(float(x.abs().max()), 1.0), (i, key)
             elif isinstance(x, torch.Tensor):
                 assert torch.equal(x.cpu(), b[key].cpu()), (i, key)  # generator states: the same draws
+
+
+@CUDA
+@pytest.mark.parametrize("n", [3, 16])
+def test_a_member_among_many_on_streams_is_its_run_alone_on_cuda(deterministic_cudnn, n):
+    """``agent.batch_layout=streams``: every member's recorded update replays on its own stream,
+    beside the others; with deterministic cuDNN algorithms, member 1 (IM-CURL) and the last
+    member are the very runs of the same seeds alone, bit for bit, and the actions of all come
+    back as one tensor."""
+    from imssr.agents.batched import make_batch
+
+    fields = {"tf32": "false", "cuda_graphs": True}
+
+    def agent(i: int):
+        return small_agent("curl" if i == 0 else "im-curl", seed=i + 1, device="cuda", agent_fields=fields)
+
+    batch = make_batch([agent(i) for i in range(n)], "streams")
+    assert len(batch.streams) == n
+    alone = {i: agent(i) for i in (1, n - 1)}
+    replays = [filled_buffer(action_dim=2, seed=i + 1, size=60) for i in range(n)]
+    replays_alone = {i: filled_buffer(action_dim=2, seed=i + 1, size=60) for i in alone}
+    for step in range(STEPS):
+        metrics = batch.update(replays, step)
+        expected = {i: a.update(replays_alone[i], step) for i, a in alone.items()}
+        for i, m in expected.items():
+            for k, v in m.items():
+                assert torch.equal(v, batch.member_metrics(metrics, i)[k]), (i, k)
+    obs = torch.stack([torch.as_tensor(r.sample(1)["obs"][0]) for r in replays_alone.values()])
+    full = torch.zeros((n, *obs.shape[1:]), dtype=obs.dtype)
+    for row, i in zip(obs, alone):
+        full[i] = row
+    for deterministic in (True, False, True):
+        actions = batch.act(full.numpy(), deterministic)
+        assert actions.shape == (n, 2)
+        for row, (i, a) in zip(obs, alone.items()):
+            assert torch.equal(actions[i].cpu(), torch.as_tensor(a.act(row.numpy(), deterministic))), (i, deterministic)
+    for i, a in alone.items():
+        assert_same_run(a, batch.members[i], [], [])

@@ -48,14 +48,18 @@ def test_the_prepared_kernel_measurement_works_on_the_cpu(tmp_path):
         assert "| curl | fp32 | off |" in (kernels / name).read_text()
 
 
-def test_the_prepared_cuda_graphs_check_works_on_the_cpu(tmp_path):
+def test_the_prepared_seeds_command_works_on_the_cpu(tmp_path):
     out = tmp_path / "out"
-    proc, files = run_script("gpu_graphs.sh", out)
-    assert files == ["graphs/check.txt", "graphs/device.txt", "graphs/seeds_graphs.csv", "graphs/seeds_graphs.md"]
+    proc, files = run_script("gpu_seeds.sh", out)
+    assert files == ["seeds/alone.txt", "seeds/check.txt", "seeds/device.txt", "seeds/profile.txt",
+                     "seeds/seeds_fast.csv", "seeds/seeds_fast.md", "seeds/seeds_paper.csv", "seeds/seeds_paper.md"]
     assert "stopped" not in proc.stdout and "no time left" not in proc.stdout
-    check = (out / "graphs" / "check.txt").read_text()
+    seeds = out / "seeds"
+    check = (seeds / "check.txt").read_text()
     assert "1 passed" in check and "needs a GPU" in check  # the CPU test ran, the GPU ones skipped
-    table = (out / "graphs" / "seeds_graphs.md").read_text()
-    for layout in ("| 1 | 1 process |", "| 1 | 1 process, graphs |", "| 2 | 1 process, loop |",
-                   "| 2 | 1 process, loop+graphs |"):
+    table = (seeds / "seeds_paper.md").read_text()
+    for layout in ("| 2 | 2 processes |", "| 1 | 1 process, loop |", "| 2 | 1 process, streams+graphs |"):
         assert layout in table, table
+    assert "| 2 | 1 process, streams+graphs |" in (seeds / "seeds_fast.md").read_text()
+    assert "overlap: kernel time / wall time = " in (seeds / "profile.txt").read_text()
+    assert "curl:agent.cuda_graphs=true" in (seeds / "alone.txt").read_text()

@@ -101,6 +101,29 @@ def test_a_stopped_batch_resumes_exactly(uninterrupted, tmp_path):
             assert torch.equal(value, final_nets(resumed)[key]), key
 
 
+def streams_configs(steps: int = 150):
+    cfgs = configs(steps)
+    for cfg in cfgs:
+        cfg.agent.batch_layout = "streams"
+    return cfgs
+
+
+def test_seeds_as_agents_of_their_own_train_and_resume_across_layouts(uninterrupted, tmp_path):
+    """``agent.batch_layout=streams`` (each seed's own agent; on the CPU, in turn) leaves the
+    logs and weights of the stacked batch; a run stopped in one layout resumes in the other."""
+    with pytest.raises(TrainingInterrupted):
+        train_seeds(tmp_path, stop_at=100, cfgs=streams_configs())
+    assert train_seeds(tmp_path, resume=True) == [None, None]
+    again = tmp_path / "streams"
+    assert train_seeds(again, cfgs=streams_configs()) == [None, None]
+    for done in (runs(tmp_path), runs(again)):
+        for expected, got in zip(runs(uninterrupted), done):
+            for log in ("train.csv", "eval.csv"):
+                assert rows(os.path.join(got, log)) == rows(os.path.join(expected, log))
+            for key, value in final_nets(expected).items():
+                assert torch.equal(value, final_nets(got)[key]), key
+
+
 @pytest.mark.parametrize("bad", [0, 1])
 def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad):
     """The seed whose critic turns to NaN stops at its first episode's end; the other trains on,

@@ -42,6 +42,7 @@ from imssr.config.batching import agent_refusal
 from imssr.errors import ImssrError
 from imssr.intrinsic.reward import STAT_KEYS, BetaSchedule
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
+from imssr.settings import BATCH_LAYOUTS
 
 if TYPE_CHECKING:
     import numpy as np
@@ -49,21 +50,38 @@ if TYPE_CHECKING:
 GENERATORS = ("gen", "noise_gen", "intrinsic_gen")
 """A single agent's generators, each replaced by the members' own in the batch."""
 
-MODES = ("auto", "vmap", "loop")
-"""How a batch runs its members' computation (see the module's doc)."""
+MODES = BATCH_LAYOUTS
+"""How a batch runs its members' computation (``agent.batch_layout``; see the module's doc;
+``streams``: :class:`~imssr.agents.streams.MemberStreams`)."""
 
 
 def resolve_mode(mode: str, device: torch.device) -> str:
     """``mode`` with ``auto`` resolved for ``device``: ``vmap`` on CUDA, ``loop`` elsewhere."""
     if mode not in MODES:
-        raise ImssrError(f"unknown seed-batch mode {mode!r}; valid: {', '.join(MODES)}")
+        raise ImssrError(f"unknown seed-batch layout {mode!r}; valid: {', '.join(MODES)}")
     if mode == "auto":
         return "vmap" if device.type == "cuda" else "loop"
     return mode
 
 
-def batch_refusal(members: Sequence[SACAgent]) -> Optional[str]:
-    """Why ``members`` cannot train as one :class:`AgentBatch` (one line), or None."""
+def make_batch(members: Sequence[SACAgent], mode: str = "auto"):
+    """The members as one batch in layout ``mode`` (:data:`MODES`): an :class:`AgentBatch` of
+    stacked weights (``vmap``, ``loop``), or agents of their own on streams
+    (:class:`~imssr.agents.streams.MemberStreams`)."""
+    if not members:
+        raise ImssrError("a batch of agents needs at least one member")
+    mode = resolve_mode(mode, members[0].device)
+    if mode == "streams":
+        from imssr.agents.streams import MemberStreams
+
+        return MemberStreams(members)
+    return AgentBatch(members, mode)
+
+
+def batch_refusal(members: Sequence[SACAgent], stacked: bool = True) -> Optional[str]:
+    """Why ``members`` cannot train as one batch (one line), or None; ``stacked``: as one
+    :class:`AgentBatch` of stacked weights, which also needs every member to hold the same
+    tensors."""
     first = members[0]
     if agent_refusal(first.cfg):
         return agent_refusal(first.cfg)
@@ -76,7 +94,7 @@ def batch_refusal(members: Sequence[SACAgent]) -> Optional[str]:
     for m in enabled[1:]:
         if _without_beta(m.intrinsic.cfg) != _without_beta(enabled[0].intrinsic.cfg):
             return "the members of one batch may differ in intrinsic.beta0 and intrinsic.enabled only"
-    if enabled and len(enabled) < len(members) and any(True for _ in enabled[0].signal.parameters()):
+    if stacked and enabled and len(enabled) < len(members) and any(True for _ in enabled[0].signal.parameters()):
         return (f"the {enabled[0].signal.name} signal has weights of its own: members with and without it "
                 "train in separate batches")
     return None
@@ -234,6 +252,8 @@ class AgentBatch:
             raise ImssrError(reason)
         self.n = len(members)
         self.mode = resolve_mode(mode, members[0].device)
+        if self.mode == "streams":
+            raise ImssrError("the streams layout keeps each member's own agent: build it with make_batch")
         self.intrinsic_on = [m.intrinsic is not None for m in members]
         self.template = t = next((m for m in members if m.intrinsic is not None), members[0])
         self.root = _Call(self._modules_of(t))

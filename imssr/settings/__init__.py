@@ -16,13 +16,13 @@ from imssr.settings.plugin import (AUTHORS, AUTHORS_CURL, AUTHORS_LOOP, AUTHORS_
                                    OFFICIAL_CURL, PAPER, TABLE3, TABLE5, AuxPlugin, Beta0, Implementations, Plugin,
                                    Sections,
                                    Setting, SignalPlugin, compose_section, plugin_table)
-from imssr.settings.sections import (COMPILE_MODES, NORMALIZATIONS, PRECISIONS, REPLAY_DEVICES, SCHEDULES,
+from imssr.settings.sections import (BATCH_LAYOUTS, COMPILE_MODES, NORMALIZATIONS, PRECISIONS, REPLAY_DEVICES, SCHEDULES,
                                      TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig, AuxCore, EnvConfig,
                                      IntrinsicCore, TrainConfig, conv_output_size, steps_for_frames)
 
 __all__ = [
     "AUTHORS", "AUTHORS_CURL", "AUTHORS_LOOP", "AUTHORS_SIGNAL", "AgentConfig", "AuxCore", "AuxPlugin", "Beta0",
-    "COMPILE_MODES", "DECAY", "DMCGB", "EnvConfig", "IMSSR", "Implementations", "IntrinsicCore", "MAX_ADDRESSABLE_BYTES",
+    "BATCH_LAYOUTS", "COMPILE_MODES", "DECAY", "DMCGB", "EnvConfig", "IMSSR", "Implementations", "IntrinsicCore", "MAX_ADDRESSABLE_BYTES",
     "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "NORMALIZATIONS", "OFFICIAL_CURL", "PAPER", "PRECISIONS", "Plugin",
     "REPLAY_DEVICES", "SCHEDULES", "SEED_RULE", "Sections", "Setting", "SignalPlugin", "TABLE3", "TABLE5",
     "TF32_MODES", "TrainConfig", "UPDATE_SCHEDULES", "VIDEO_FORMATS", "compose_section", "conv_output_size",

@@ -130,6 +130,16 @@ class AgentConfig:
     Adam then computes its bias correction on the device (``capturable``), which rounds the
     last bits differently, so it is off in the paper presets.  With :attr:`compile`, the compiled
     kernels are recorded.  On CPU the steps run eagerly, with the same numbers as without it."""
+    batch_layout: str = "auto"
+    """How the seeds of one process (``imssr train --seeds`` / ``--runs``, a sweep's packed runs)
+    share the device.  ``vmap``: the members' weights stacked and each piece of the update mapped
+    over them with ``torch.vmap`` (grouped convolutions, batched matmuls: few kernels; each
+    member within float32 rounding of its run alone).  ``loop``: stacked weights, member after
+    member, the very ops of each run alone.  ``streams``: each member an agent of its own whose
+    work goes to a CUDA stream of its own, so that the members' kernels run side by side (with
+    :attr:`cuda_graphs`, one replay per member and agent step); bit for bit each run alone on
+    the CPU (``imssr.agents.streams``).  ``auto``: ``vmap`` on CUDA, ``loop`` on the CPU.  No
+    effect on a run alone."""
 
     @property
     def precision_label(self) -> str:
@@ -263,6 +273,8 @@ UPDATE_SCHEDULES = ("sequential", "fused")
 PRECISIONS = ("fp32", "bf16")
 TF32_MODES = ("default", "true", "false")
 COMPILE_MODES = ("off", "default", "max-autotune")
+BATCH_LAYOUTS = ("auto", "vmap", "loop", "streams")
+"""How a batch of seeds runs (``agent.batch_layout``)."""
 VIDEO_FORMATS = ("gif", "mp4")
 REPLAY_DEVICES = ("cpu", "cuda", "auto")
 

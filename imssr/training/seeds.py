@@ -3,9 +3,9 @@
 Each seed is a run of its own: a :class:`~imssr.training.loop.Trainer` with its run directory
 (``DIR/seed_<n>/``: config, CSV logs, checkpoints), envs, replay buffer, seed-phase generator and
 loop state, so ``evaluate``, ``plot``, ``report``, ``export`` and ``--resume`` see standard runs.
-Only the agent is shared: the seeds' agents become the members of one
-:class:`~imssr.agents.batched.AgentBatch`, which acts for all seeds at once and makes every
-seed's update as one computation.  Each seed still draws, samples and steps what its run alone
+Only the agent is shared: the seeds' agents become the members of one batch
+(:func:`~imssr.agents.batched.make_batch`, in the layout ``agent.batch_layout`` names), which
+acts for all seeds at once and makes every seed's update in one go.  Each seed still draws, samples and steps what its run alone
 would (:mod:`imssr.agents.batched`).
 
 The seeds share the agent step: they start, take the seed phase, burst, evaluate and checkpoint
@@ -21,7 +21,8 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from imssr.agents.batched import AgentBatch
+from imssr.agents.batched import AgentBatch, make_batch
+from imssr.agents.streams import MemberStreams
 from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
 from imssr.envs.worker import EnvWorker
@@ -37,7 +38,7 @@ class MemberAgent:
     """Member ``i`` of an :class:`AgentBatch` as its seed's trainer sees an agent: deterministic
     actions for evaluation, and the member's state in a single agent's layout for checkpoints."""
 
-    def __init__(self, batch: AgentBatch, i: int, agent):
+    def __init__(self, batch: Union[AgentBatch, MemberStreams], i: int, agent):
         self.batch, self.i = batch, i
         self.signal = agent.signal  # what the divergence check names
         self.cfg = agent.cfg
@@ -92,7 +93,7 @@ class SeedsTrainer:
             if len({t.state.learning_starts for t in self.trainers}) > 1:
                 raise ImssrError("the seeds' seed phases end at different agent steps (a refilled replay buffer): "
                                  "resume them one by one")
-            self.batch = AgentBatch([t.agent for t in self.trainers])
+            self.batch = make_batch([t.agent for t in self.trainers], cfgs[0].agent.batch_layout)
             for i, t in enumerate(self.trainers):
                 t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
                 t.episodes_of = self._episodes_of(i)

@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# The prepared GPU command for seeds side by side: first that recorded steps and members on streams
+# compute what the runs alone compute, then every layout's rate for 1, 8 and 16 seeds, one profile
+# that shows whether the members' kernels overlap, and one seed alone with its environment.
+#
+#   OUT=/path/for/results bash scripts/gpu_seeds.sh
+#
+# What comes back, under $OUT/seeds/ (8 files, one folder deep), in the order they are made:
+#   device.txt       nvidia-smi; Python, torch, CUDA, cuDNN, numpy and dm_control versions
+#   check.txt        pytest on the GPU of tests/test_cuda_graphs.py and tests/test_no_sync.py:
+#                    recorded updates and actions against eager ones (single agents, a vmap batch),
+#                    a member among 3 and among 16 on streams against its run alone (bit for bit
+#                    with deterministic cuDNN), the eager update under CUDA's sync detector
+#   seeds_paper.md   bench/seeds.py at the paper's numerics (fp32, torch's default TF32 use, foreach
+#                    Adam): 1, 8 and 16 seeds in each layout (vmap eager and recorded, members in
+#                    turn recorded, members on streams recorded) and 16 separate processes
+#   seeds_paper.csv  the same rows as CSV
+#   seeds_fast.md    the same for 16 seeds with agent.tf32=true and agent.fused_adam=true
+#   seeds_fast.csv   the same rows as CSV
+#   profile.txt      bench/profile_seeds.py, 16 seeds on streams and in turn, both recorded: kernel
+#                    time / wall time per agent step (above 1: kernels ran at the same time)
+#   alone.txt        bench/step_time.py: one seed with its environment (render and step included),
+#                    eager and recorded
+# On a lent machine whose image lacks dm_control, MuJoCo, omegaconf and docstring-parser, carry
+# them as wheels (.whl/, the device README's recipe) and start the call with
+#   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+#     --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site || exit; OUT=$OUT bash scripts/gpu_seeds.sh
+# Each item has its own share of BUDGET_S (default 470 s) and is cut, not the script, when it runs
+# over.  DEVICE (cuda) and TINY=1 (tiny networks, a few steps: the CPU test in
+# tests/test_gpu_script.py); on the CPU the check's GPU tests skip.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT_DIR="${OUT:-/tmp/gpu-out}/seeds"
+DEVICE="${DEVICE:-cuda}"
+BUDGET_S="${BUDGET_S:-470}"
+SCRIPT=gpu_seeds
+source scripts/gpu_common.sh
+
+LAYOUTS=(vmap vmap+graphs loop+graphs streams+graphs)
+PAPER=(--device "$DEVICE" --n 1 8 16 --modes "${LAYOUTS[@]}" --baseline-n 16 --steps 20 --warmup 6 --fill 1000)
+FAST=(--device "$DEVICE" --n 16 --modes vmap+graphs streams+graphs --baseline-n 0 --steps 20 --warmup 6 --fill 1000
+      --set agent.tf32=true --set agent.fused_adam=true)
+PROFILE=(--device "$DEVICE" --n 16 --modes streams+graphs loop+graphs --single none --steps 5 --warmup 6 --fill 1000
+         --rows 12)
+ALONE=(--device "$DEVICE" --task cartpole_swingup --variants curl "curl:agent.cuda_graphs=true" --steps 60 --warmup 6
+       --seed-steps 300)
+CHECK=(tests/test_cuda_graphs.py tests/test_no_sync.py -k "on_cuda or never_synchronizes" -p no:cacheprovider -n 0 -q -rs)
+if [ "${TINY:-0}" = 1 ]; then
+  SMALL=(--set agent.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8
+         --set aux.batch_size=8)
+  PAPER=(--device "$DEVICE" --n 1 2 --modes loop streams+graphs --baseline-n 2 --steps 1 --warmup 3 --fill 100
+         --threads 1 "${SMALL[@]}")
+  FAST=(--device "$DEVICE" --n 2 --modes streams+graphs --baseline-n 0 --steps 1 --warmup 3 --fill 100 --threads 1
+        "${SMALL[@]}" --set agent.fused_adam=true)
+  PROFILE=(--device "$DEVICE" --n 2 --modes streams+graphs --single none --steps 1 --warmup 3 --fill 100 --rows 5
+           "${SMALL[@]}")
+  ALONE=(--device "$DEVICE" --task cartpole_swingup --variants curl "curl:agent.cuda_graphs=true" --steps 2 --warmup 1
+         --seed-steps 20 --batch 8 --threads 1)
+  CHECK=(tests/test_cuda_graphs.py -k "on_cuda or static_buffers" -p no:cacheprovider -n 0 -q -rs)
+fi
+
+run 80 check.txt "$PY" -m pytest "${CHECK[@]}"
+run 190 seeds_paper.md "$PY" bench/seeds.py "${PAPER[@]}" --csv "$OUT_DIR/seeds_paper.csv"
+run 80 seeds_fast.md "$PY" bench/seeds.py "${FAST[@]}" --csv "$OUT_DIR/seeds_fast.csv"
+run 60 profile.txt "$PY" bench/profile_seeds.py "${PROFILE[@]}"
+run 60 alone.txt "$PY" bench/step_time.py "${ALONE[@]}"
+echo "gpu_seeds: done in $(( $(date +%s) - START )) s; $(ls "$OUT_DIR" | tr '\n' ' ')"
