@@ -118,8 +118,12 @@ def optimizer_step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> No
     forward passes and losses only)."""
     for opt in optimizers:
         opt.zero_grad(set_to_none=True)
+    # Only the stepped parameters' gradients: autograd then skips the weight gradients that no
+    # optimiser here reads (the actor's loss goes through the critic's Q heads for dQ/da, not for
+    # the heads' weights), and each stepped gradient is computed as a full backward computes it.
+    stepped = [p for opt in optimizers for group in opt.param_groups for p in group["params"] if p.requires_grad]
     with full_precision(loss):
-        loss.backward()
+        loss.backward(inputs=stepped)
         for opt in optimizers:
             opt.step()
     # Autocast keeps its bfloat16 casts of the weights until the outermost autocast region ends,

@@ -111,3 +111,21 @@ def test_intrinsic_signal_is_the_raw_per_sample_signal_of_the_next_observation()
     torch.testing.assert_close(signal, agent.aux.intrinsic_loss(ctx))
     with pytest.raises(ImssrError, match="no intrinsic signal"):
         _agent(algo="curl").intrinsic_signal(batch, enc)
+
+
+@pytest.mark.parametrize("algo", ["curl", "im-soda"])
+def test_each_backward_computes_only_the_gradients_its_optimisers_step(algo):
+    """The actor's loss reads the critic's Q heads for dQ/da: its backward leaves the heads'
+    weights alone (a weight gradient nothing steps is work thrown away), so an agent step on
+    which critic and actor both train accumulates each Q-head weight's gradient once."""
+    from conftest import small_agent
+
+    agent = small_agent(algo, seed=1)
+    assert agent.update_key(0)[:2] == (True, True)  # critic and actor both train at step 0
+    accumulated = []
+    weight = agent.nets.critic.q.q1[0].weight
+    weight.register_post_accumulate_grad_hook(lambda p: accumulated.append(1))
+    actor_weight = next(agent.nets.actor.parameters())
+    actor_weight.register_post_accumulate_grad_hook(lambda p: accumulated.append(2))
+    agent.update(filled_buffer(action_dim=2, seed=1, size=60), 0)
+    assert accumulated.count(1) == 1 and accumulated.count(2) == 1
