@@ -129,3 +129,26 @@ def test_each_backward_computes_only_the_gradients_its_optimisers_step(algo):
     actor_weight.register_post_accumulate_grad_hook(lambda p: accumulated.append(2))
     agent.update(filled_buffer(action_dim=2, seed=1, size=60), 0)
     assert accumulated.count(1) == 1 and accumulated.count(2) == 1
+
+
+def test_pixels_convert_each_distinct_input_once():
+    """An update passes the same frames through several trunks: the float copy is made once per
+    distinct uint8 input (and version of it), with the values of ``obs.float() / 255``, and
+    forgotten with its frames."""
+    import gc
+
+    from imssr.networks import encoder
+
+    obs = torch.randint(0, 256, (2, 9, 12, 12), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
+    first = encoder.pixels(obs, torch.float32, torch.channels_last)
+    assert torch.equal(first, obs.float() / 255) and first.is_contiguous(memory_format=torch.channels_last)
+    assert encoder.pixels(obs, torch.float32, torch.channels_last) is first
+    assert encoder.pixels(obs, torch.float32, torch.contiguous_format) is not first
+    assert encoder.pixels(obs, torch.float32, torch.channels_last, reuse=False) is not first
+    obs[0, 0, 0, 0] = 255 - obs[0, 0, 0, 0]  # changed in place: a new version, converted again
+    again = encoder.pixels(obs, torch.float32, torch.channels_last)
+    assert again is not first and torch.equal(again, obs.float() / 255)
+    entries = len(encoder._PIXELS)
+    del obs
+    gc.collect()
+    assert len(encoder._PIXELS) == entries - 3

@@ -6,6 +6,8 @@ gradients stopped and trains only its own projection.
 """
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import nn
 
@@ -29,6 +31,33 @@ def conv_stack(filters: int, num_layers: int) -> nn.Sequential:
         # same shared features).
         layers += [nn.ReLU(inplace=i > 0), nn.Conv2d(filters, filters, 3, stride=1)]
     return nn.Sequential(*layers)
+
+
+_PIXELS: dict[tuple, torch.Tensor] = {}
+"""uint8 frames already converted by :func:`pixels`, by (the frames' id, version, dtype, layout);
+an entry lives as long as its frames (a finaliser removes it)."""
+
+
+def pixels(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format, reuse: bool = True) -> torch.Tensor:
+    """uint8 pixels -> floats in [0, 1] in layout ``fmt``: the same values as ``obs.float() /
+    255``, computed once per distinct input.  An update passes the same frames through several
+    trunks (o through the critic's and, after its step, the actor's; o' through the online and
+    the target trunk), and each conversion writes four bytes per pixel; the float copy is only
+    ever read (the first layer is a convolution, whose input nothing changes in place), so every
+    trunk may read the same one.  ``reuse=False`` (inside vmap or torch.compile, where a tensor's
+    identity means nothing) converts afresh."""
+    key = (id(obs), obs._version, dtype, fmt)
+    if reuse:
+        hit = _PIXELS.get(key)
+        if hit is not None:
+            return hit
+    # Relayout the 1-byte pixels, not the 4-byte floats, and divide in place in the fresh float
+    # copy (same values as ``obs.float() / 255``).
+    out = obs.contiguous(memory_format=fmt).to(dtype).div_(255.0)
+    if reuse:
+        _PIXELS[key] = out
+        weakref.finalize(obs, _PIXELS.pop, key, None)
+    return out
 
 
 class ConvTrunk(nn.Module):
@@ -73,16 +102,15 @@ class ConvTrunk(nn.Module):
             self.to(memory_format=torch.channels_last)
 
     def prepare(self, obs: torch.Tensor) -> torch.Tensor:
-        """Pixels in [0, 255] -> floats in [0, 1], in the trunk's memory layout."""
+        """Pixels in [0, 255] -> floats in [0, 1], in the trunk's memory layout; once per
+        distinct uint8 input (:func:`pixels`)."""
         # A member of a batch of agents (torch.func.vmap) keeps the standard layout: vmap cannot
         # lay out one member's view, and its convolutions run grouped over the members anyway.
-        nhwc = self.channels_last and not draws.is_member_batched(obs)
-        fmt = torch.channels_last if nhwc else torch.contiguous_format
+        batched = draws.is_member_batched(obs)
+        fmt = torch.channels_last if self.channels_last and not batched else torch.contiguous_format
         dtype = self.convs[0].weight.dtype  # float32; float64 for an agent cast to it
         if obs.dtype == torch.uint8:
-            # Relayout the 1-byte pixels, not the 4-byte floats, and divide in place
-            # in the fresh float copy (same values as ``obs.float() / 255``).
-            return obs.contiguous(memory_format=fmt).to(dtype).div_(255.0)
+            return pixels(obs, dtype, fmt, reuse=not batched and not torch.compiler.is_compiling())
         return (obs.to(dtype) / 255.0).contiguous(memory_format=fmt)
 
     def shared_features(self, obs: torch.Tensor) -> torch.Tensor:
