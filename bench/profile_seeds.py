@@ -77,11 +77,18 @@ def main(argv=None) -> int:
     p.add_argument("--action-dim", type=int, default=1)
     p.add_argument("--rows", type=int, default=20)
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    p.add_argument("--floor", action="store_true",
+                   help="first print bench/floor.py's FLOPs, bytes and time floor of one seed's agent step")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"# bench/profile_seeds.py: {args.algo} on {args.device}, torch {torch.__version__}, "
           f"{args.steps} profiled agent steps after {args.warmup}")
+    if args.floor:
+        import floor
+
+        floor.main(["--algo", args.algo, "--task", args.task, "--device", args.device,
+                    "--action-dim", str(args.action_dim), *(x for item in args.set for x in ("--set", item))])
     if args.single != "none":
         profile_one(args, 1, args.single)
     for mode in args.modes:

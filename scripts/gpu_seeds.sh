@@ -17,8 +17,10 @@
 #   seeds_paper.csv  the same rows as CSV
 #   seeds_fast.md    the same for 16 seeds with agent.tf32=true and agent.fused_adam=true
 #   seeds_fast.csv   the same rows as CSV
-#   profile.txt      bench/profile_seeds.py, 16 seeds on streams and in turn, both recorded: kernel
-#                    time / wall time per agent step (above 1: kernels ran at the same time)
+#   profile.txt      bench/floor.py's floor of one seed's agent step at the device's own measured
+#                    copy bandwidth and matmul rate, then bench/profile_seeds.py, 16 seeds on
+#                    streams and in turn, both recorded: kernel time / wall time per agent step
+#                    (above 1: kernels ran at the same time)
 #   alone.txt        bench/step_time.py: one seed with its environment (render and step included),
 #                    eager and recorded
 # On a lent machine whose image lacks dm_control, MuJoCo, omegaconf and docstring-parser, carry
@@ -41,7 +43,7 @@ PAPER=(--device "$DEVICE" --n 1 8 16 --modes "${LAYOUTS[@]}" --baseline-n 16 --s
 FAST=(--device "$DEVICE" --n 16 --modes vmap+graphs streams+graphs --baseline-n 0 --steps 20 --warmup 6 --fill 1000
       --set agent.tf32=true --set agent.fused_adam=true)
 PROFILE=(--device "$DEVICE" --n 16 --modes streams+graphs loop+graphs --single none --steps 5 --warmup 6 --fill 1000
-         --rows 12)
+         --rows 12 --floor)
 ALONE=(--device "$DEVICE" --task cartpole_swingup --variants curl "curl:agent.cuda_graphs=true" --steps 60 --warmup 6
        --seed-steps 300)
 CHECK=(tests/test_cuda_graphs.py tests/test_no_sync.py -k "on_cuda or never_synchronizes" -p no:cacheprovider -n 0 -q -rs)
@@ -53,15 +55,15 @@ if [ "${TINY:-0}" = 1 ]; then
   FAST=(--device "$DEVICE" --n 2 --modes streams+graphs --baseline-n 0 --steps 1 --warmup 3 --fill 100 --threads 1
         "${SMALL[@]}" --set agent.fused_adam=true)
   PROFILE=(--device "$DEVICE" --n 2 --modes streams+graphs --single none --steps 1 --warmup 3 --fill 100 --rows 5
-           "${SMALL[@]}")
+           --floor "${SMALL[@]}")
   ALONE=(--device "$DEVICE" --task cartpole_swingup --variants curl "curl:agent.cuda_graphs=true" --steps 2 --warmup 1
          --seed-steps 20 --batch 8 --threads 1)
   CHECK=(tests/test_cuda_graphs.py -k "on_cuda or static_buffers" -p no:cacheprovider -n 0 -q -rs)
 fi
 
 run 80 check.txt "$PY" -m pytest "${CHECK[@]}"
-run 190 seeds_paper.md "$PY" bench/seeds.py "${PAPER[@]}" --csv "$OUT_DIR/seeds_paper.csv"
+run 175 seeds_paper.md "$PY" bench/seeds.py "${PAPER[@]}" --csv "$OUT_DIR/seeds_paper.csv"
 run 80 seeds_fast.md "$PY" bench/seeds.py "${FAST[@]}" --csv "$OUT_DIR/seeds_fast.csv"
-run 60 profile.txt "$PY" bench/profile_seeds.py "${PROFILE[@]}"
+run 75 profile.txt "$PY" bench/profile_seeds.py "${PROFILE[@]}"
 run 60 alone.txt "$PY" bench/step_time.py "${ALONE[@]}"
 echo "gpu_seeds: done in $(( $(date +%s) - START )) s; $(ls "$OUT_DIR" | tr '\n' ' ')"
