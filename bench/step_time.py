@@ -17,6 +17,9 @@ CUDA every step ends with a synchronisation so that queued kernels are counted.
 ``--bf16 ALGO ...`` runs, for each ALGO, its preset at ``agent.precision=fp32`` and at
 ``bf16`` (after any ``--variants``) and prints the ratio bf16 / fp32 of each pair (median and
 mean: SODA's auxiliary update runs every other step), against a target of 0.6.
+Each variant's line is followed by its step's split (medians): the action, the update's issue,
+the environment's step and the wait for the device after it; on CUDA the environment steps while
+the device runs the update, so a wait near zero means the device is not the limit.
 Each variant samples from the replay store its training would use on ``--device``
 (``train.replay_device`` resolved as the trainer does, for the preset's replay capacity), and
 each line says which.  Timings never go in tests.
@@ -106,6 +109,10 @@ class Runner:
         self.step = seed_steps
         self.times: list[float] = []
         self.warmup_times: list[float] = []
+        self.splits: list[tuple[float, float, float, float]] = []
+        """Per recorded step: the action (its copy to the host waits for the device), the
+        update's issue (on CUDA the host queues its kernels and goes on), the environment's
+        step (on CUDA while the device runs the update), the wait for the device after it."""
 
     def _env_step(self, action) -> None:
         self.obs, reward, terminated, truncated, info = self.env.step(action)
@@ -117,12 +124,18 @@ class Runner:
     def train_step(self, record: bool) -> None:
         t0 = time.perf_counter()
         action = self.agent.act(self.obs, deterministic=False)
+        t1 = time.perf_counter()
         self.agent.update(self.replay, self.step)
+        t2 = time.perf_counter()
         self._env_step(action)
+        t3 = time.perf_counter()
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
+        t4 = time.perf_counter()
         self.step += 1
-        (self.times if record else self.warmup_times).append(time.perf_counter() - t0)
+        (self.times if record else self.warmup_times).append(t4 - t0)
+        if record:
+            self.splits.append((t1 - t0, t2 - t1, t3 - t2, t4 - t3))
 
 
 def replay_store_text(device: torch.device) -> str:
@@ -167,6 +180,9 @@ def main() -> None:
         med, mean = statistics.median(r.times), statistics.fmean(r.times)
         print(f"{r.spec:45s} median {med:.3f} s/step  mean {mean:.3f}  ratio to {runners[0].spec}: "
               f"{med / base:.3f}  replay: {r.replay_store}")
+        act, issue, env, wait = (statistics.median(part) * 1e3 for part in zip(*r.splits))
+        print(f"{'':45s} split (median ms): act {act:.1f}, update issued {issue:.1f}, environment {env:.1f}, "
+              f"wait for the device {wait:.1f}")
     by_spec = {r.spec: r for r in runners}
     if pairs:
         print("bf16 / fp32 of the whole training step, same process (target: <= 0.6)")
