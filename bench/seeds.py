@@ -44,6 +44,7 @@ import torch
 
 from imssr.agents import SACAgent
 from imssr.agents.batched import make_batch
+from imssr.agents.streams import allow_concurrent_streams
 from imssr.algos import get_algo
 from imssr.config import apply_overrides
 from imssr.presets import make_config
@@ -97,6 +98,8 @@ def agent_step(args, n: int):
 
 def worker(args) -> None:
     """Time ``--steps`` agent steps of ``--members`` seeds; print one JSON line."""
+    if args.batched:
+        allow_concurrent_streams()  # as imssr train does for a batch
     if args.threads:
         torch.set_num_threads(args.threads)
     one_step = agent_step(args, args.members)

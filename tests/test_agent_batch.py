@@ -9,6 +9,8 @@ it maps them with vmap (CUDA's default).
 """
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 
@@ -258,3 +260,17 @@ def test_fused_adam_is_opt_in_the_same_rule_and_kept_by_a_batch():
     assert all(g["fused"] for o in batch.optimizers.values() for g in o.param_groups)
     single_metrics, batch_metrics = train_both(singles, batch)
     assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=1e-5, atol=1e-9)
+
+
+def test_a_batch_raises_cudas_work_queues_unless_the_user_set_them(monkeypatch):
+    """CUDA reads CUDA_DEVICE_MAX_CONNECTIONS when it starts: a batch asks for 32 queues (CUDA's
+    default 8 would queue several members' streams behind each other); a value the user set
+    stands."""
+    from imssr.agents.streams import allow_concurrent_streams
+
+    monkeypatch.delenv("CUDA_DEVICE_MAX_CONNECTIONS", raising=False)
+    allow_concurrent_streams()
+    assert os.environ["CUDA_DEVICE_MAX_CONNECTIONS"] == "32"
+    monkeypatch.setenv("CUDA_DEVICE_MAX_CONNECTIONS", "4")
+    allow_concurrent_streams()
+    assert os.environ["CUDA_DEVICE_MAX_CONNECTIONS"] == "4"

@@ -25,6 +25,7 @@ each member's stream waits for the current stream before it is given new work.
 """
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING, Callable, Optional, Sequence, TypeVar
 
 import torch
@@ -36,6 +37,19 @@ if TYPE_CHECKING:
     import numpy as np
 
 T = TypeVar("T")
+
+
+CONCURRENT_STREAMS = "32"
+"""CUDA's hardware work queues per process for a batch of seeds (``CUDA_DEVICE_MAX_CONNECTIONS``;
+CUDA's default is 8, its maximum 32): with fewer queues than the members' streams, the work of
+independent members can wait in one queue behind each other."""
+
+
+def allow_concurrent_streams() -> None:
+    """Raise CUDA's work queues for a batch of seeds, unless the user set them or CUDA has
+    already started in this process (CUDA reads the variable once, when it starts)."""
+    if not torch.cuda.is_initialized():
+        os.environ.setdefault("CUDA_DEVICE_MAX_CONNECTIONS", CONCURRENT_STREAMS)
 
 
 class MemberStreams:

@@ -13,7 +13,6 @@ policy.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Optional, Sequence
@@ -146,7 +145,9 @@ def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list
     otherwise the default handlers act (``KeyboardInterrupt``).  A run of several whose losses
     turn non-finite stops; the others finish, then a one-line error names it."""
     if request.seeds is not None or request.runs:
-        _allow_concurrent_streams()
+        from imssr.agents.streams import allow_concurrent_streams
+
+        allow_concurrent_streams()
     planned = plan(request)
     if request.seeds is None and not request.runs:
         cfg, run = planned[0]
@@ -207,21 +208,6 @@ def _train_many(planned: list[RunPlan], request: TrainRequest) -> list[RunPlan]:
         raise ImssrError(f"{', '.join(bad)} diverged (each run's status.json says where); the others finished")
     _say(f"imssr: done; {len(runs)} runs: {', '.join(run.path for run in runs)}")
     return planned
-
-
-CONCURRENT_STREAMS = "32"
-"""CUDA's hardware work queues per process for a batch of seeds (``CUDA_DEVICE_MAX_CONNECTIONS``;
-CUDA's default is 8): with fewer queues than the members' streams, work of independent members
-queues behind each other (``agent.batch_layout=streams``, :mod:`imssr.agents.streams`)."""
-
-
-def _allow_concurrent_streams() -> None:
-    """Raise CUDA's work queues for a batch, unless the user set them or CUDA is already
-    initialised in this process (CUDA reads the variable once, when it initialises)."""
-    torch = sys.modules.get("torch")
-    if torch is not None and torch.cuda.is_initialized():
-        return
-    os.environ.setdefault("CUDA_DEVICE_MAX_CONNECTIONS", CONCURRENT_STREAMS)
 
 
 def _say(text: str) -> None:
