@@ -22,7 +22,7 @@ def test_training_loss_is_the_mean_of_the_per_sample_loss(algo):
     state = agent.gen.get_state()
     per_sample = agent.aux.per_sample_loss(batch)
     agent.gen.set_state(state)  # the same overlay images for the update
-    metrics = agent.aux.update(batch, step=0)
+    metrics = agent.step_aux(batch, step=0)
     assert per_sample.shape == (8,) and per_sample.requires_grad
     torch.testing.assert_close(metrics["aux_loss"], per_sample.mean().detach())
 
@@ -83,9 +83,9 @@ def test_pad_shares_only_the_first_layers_and_predicts_actions():
 def test_pad_learns_the_inverse_dynamics_of_a_fixed_batch():
     agent = _agent("pad")
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    first = float(agent.aux.update(batch, 0)["aux_loss"])
+    first = float(agent.step_aux(batch, 0)["aux_loss"])
     for s in range(1, 40):
-        last = float(agent.aux.update(batch, s)["aux_loss"])
+        last = float(agent.step_aux(batch, s)["aux_loss"])
     assert last < 0.5 * first
 
 

@@ -30,7 +30,7 @@ def test_training_loss_is_mean_of_per_sample_loss():
     state = agent.gen.get_state()
     per_sample = agent.aux.per_sample_loss(batch)
     agent.gen.set_state(state)  # same positive crops for the update
-    metrics = agent.aux.update(batch, step=0)
+    metrics = agent.step_aux(batch, step=0)
     assert per_sample.shape == (8,) and per_sample.requires_grad
     torch.testing.assert_close(metrics["aux_loss"], per_sample.mean().detach())
 

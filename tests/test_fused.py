@@ -161,5 +161,5 @@ def test_pad_on_its_own_batch_is_not_fused_and_still_trains_the_shared_layers():
     owned = {id(p) for g in agent.aux.optimizer.param_groups for p in g["params"]}
     assert all(id(p) in owned for p in convs.parameters())
     before = [p.clone() for p in convs.parameters()]
-    agent.aux.update(agent.to_batch(filled_buffer(action_dim=2).sample(8)), 0)
+    agent.step_aux(agent.to_batch(filled_buffer(action_dim=2).sample(8)), 0)
     assert any(not torch.equal(a, b) for a, b in zip(before, convs.parameters()))

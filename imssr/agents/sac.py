@@ -434,6 +434,11 @@ class SACAgent:
         ``inputs["aux_sample"]``, drawn after the RL batch)."""
         if self.aux.cfg.own_batch:
             batch = self.to_batch(inputs["aux_sample"])
+        return self.step_aux(batch, step)
+
+    def step_aux(self, batch: Batch, step: int) -> Metrics:
+        """One step of the task's optimiser on its objective over ``batch``, then its own
+        targets' momentum update (:meth:`AuxiliaryTask.after_step`)."""
         loss = self.run.call(self.aux.objective, batch)
         self.run.step(loss, self.aux.optimizer)
         self.run.read(lambda: self.aux.after_step(step))

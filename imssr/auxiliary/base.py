@@ -21,7 +21,6 @@ from torch import nn
 
 from imssr.batch import Batch, Encoding, NextObsContext
 from imssr.networks.module import ModuleWithOptimizer
-from imssr.precision import optimizer_step
 from imssr.settings import AgentConfig, AuxCore
 
 
@@ -92,14 +91,6 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     def objective(self, batch: Batch) -> torch.Tensor:
         """What the task's optimiser minimises on ``batch``: the mean of :meth:`per_sample_loss`."""
         return self.per_sample_loss(batch).mean()
-
-    def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
-        """One step of the task's optimiser (built by the agent) on :meth:`objective`, then
-        :meth:`after_step`."""
-        loss = self.objective(batch)
-        optimizer_step(loss, self.optimizer)
-        self.after_step(step)
-        return {"aux_loss": loss.detach()}
 
     def load_data(self, device) -> None:
         """Load what the task reads from disk (SODA: its overlay images) onto ``device``.  The

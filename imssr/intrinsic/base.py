@@ -14,7 +14,6 @@ import torch
 
 from imssr.batch import Batch, NextObsContext
 from imssr.networks.module import ModuleWithOptimizer
-from imssr.precision import optimizer_step
 from imssr.settings import AgentConfig, IntrinsicCore
 
 
@@ -44,11 +43,3 @@ class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
         """What the signal's own optimiser (:attr:`optimizer`, if it has networks to train)
         minimises on ``batch``, and its metrics."""
         raise NotImplementedError(f"the {self.name} signal trains no networks")
-
-    def update(self, batch: Batch, step: int) -> dict[str, torch.Tensor]:
-        """Train the signal's own networks, if any, once per agent update (:meth:`objective`)."""
-        if self.optimizer is None:
-            return {}
-        loss, metrics = self.objective(batch)
-        optimizer_step(loss, self.optimizer)
-        return metrics
