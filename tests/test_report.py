@@ -406,3 +406,80 @@ def test_a_non_finite_return_is_left_out_with_a_note(tmp_path, paper_csv):
     md = open(os.path.join(out, "report.md")).read()
     assert (f"{TASK}/curl/seed_6: 2 evaluation(s) with a non-finite return left out: nan at agent step 500 "
             "(training), inf at agent step 1,000 (training)") in md
+
+
+class PassCounting(list):
+    """A list that counts the passes made over it."""
+
+    passes = 0
+
+    def __iter__(self):
+        self.passes += 1
+        return super().__iter__()
+
+
+class ReadCounting(dict):
+    """A dict that counts the reads of its keys and values."""
+
+    reads = 0
+
+    def get(self, key, default=None):
+        self.reads += 1
+        return super().get(key, default)
+
+    def __getitem__(self, key):
+        self.reads += 1
+        return super().__getitem__(key)
+
+    def __iter__(self):
+        self.reads += 1
+        return super().__iter__()
+
+    def items(self):
+        self.reads += 1
+        return super().items()
+
+
+def test_telling_apart_runs_of_one_seed_reads_each_run_a_fixed_number_of_times():
+    """Thousands of runs sharing algo, task and seed (copies of one run, sweeps repeated under one
+    root): the settings that set them apart are found in linear work, not by comparing every run
+    with every other."""
+    from imssr.presets import make_config
+    from imssr.report.results import RunResult, set_apart
+
+    flat = make_config("curl", TASK).flat()
+    reads = []
+    for n in (20, 40):
+        runs = [RunResult(Run("curl", TASK, 1, None, f"/sweeps/{i}/{TASK}/curl/seed_1"), 1000, 8,
+                          settings=ReadCounting(flat, **{"agent.hidden_dim": 64 + i % 2})) for i in range(n)]
+        set_apart(runs, "/sweeps")
+        assert {r.label for r in runs} == {"curl [agent.hidden_dim=64]", "curl [agent.hidden_dim=65]"}
+        reads.append(sum(r.settings.reads for r in runs))
+    assert reads[1] == 2 * reads[0]
+
+
+def test_a_report_passes_over_the_runs_a_fixed_number_of_times(tmp_path, monkeypatch):
+    """Each run its own row (copies of one run of one seed): tables, points and curves take a
+    fixed number of passes over the runs, not one per row or curve."""
+    import shutil
+
+    from imssr.report import report
+
+    collected = []
+
+    def collect(root):
+        results = real_collect(root)
+        results.runs = PassCounting(results.runs)
+        collected.append(results)
+        return results
+
+    real_collect = report.collect
+    monkeypatch.setattr(report, "collect", collect)
+    for n in (3, 6):
+        root = tmp_path / f"copies_{n}"
+        first = make_run(str(root / "copy_0"), "curl", 1, curve(10, 100, 100))
+        for i in range(1, n):
+            shutil.copytree(first, root / f"copy_{i}" / TASK / "curl" / "seed_1")
+        write_report(str(root), str(tmp_path / f"report_{n}"), reps=20)
+        assert len(table(str(tmp_path / f"report_{n}"))) == 3 * n  # a row of its own per copy
+    assert collected[0].runs.passes == collected[1].runs.passes

@@ -78,6 +78,9 @@ class SweepResults:
     notes: list[str]
     failures: dict[str, str] = field(default_factory=dict)
     """Run directory (absolute) -> last error, for every run ``sweep_status.json`` lists as failed."""
+    _tasks: Optional[dict[str, tuple[int, Optional[int]]]] = field(default=None, init=False, repr=False,
+                                                                    compare=False)
+    """Task -> ``(budget, action repeat)`` (:meth:`_per_task`), made when first asked."""
 
     def failure(self, run: Run) -> Optional[str]:
         """The last error of ``run`` when ``sweep_status.json`` lists it as failed; None otherwise."""
@@ -90,15 +93,30 @@ class SweepResults:
     def budget(self, task: str) -> int:
         """The sweep's T for ``task`` in agent steps: the planned budget, else the largest
         budget of its runs."""
-        steps = [p.steps for p in self.planned if p.run.task == task] or \
-                [r.steps for r in self.runs if r.run.task == task]
-        return max(steps)
+        return self._per_task()[task][0]
 
     def action_repeat(self, task: str) -> Optional[int]:
         """The action repeat of ``task``'s runs; None when they differ (then a point in agent
         steps is no single frame count)."""
-        repeats = {r.action_repeat for r in self.runs if r.run.task == task}
-        return repeats.pop() if len(repeats) == 1 else None
+        return self._per_task()[task][1]
+
+    def _per_task(self) -> dict[str, tuple[int, Optional[int]]]:
+        """Task -> ``(budget, action repeat)``, from one pass over the plan and the runs when first
+        asked (they are complete once :func:`collect` returns): tables ask it per row and per
+        point, which must not cost a pass over thousands of runs each time."""
+        if self._tasks is None:
+            planned: dict[str, int] = {}
+            for p in self.planned:
+                planned[p.run.task] = max(p.steps, planned.get(p.run.task, p.steps))
+            ran: dict[str, int] = {}
+            repeats: dict[str, set[int]] = {}
+            for r in self.runs:
+                ran[r.run.task] = max(r.steps, ran.get(r.run.task, r.steps))
+                repeats.setdefault(r.run.task, set()).add(r.action_repeat)
+            self._tasks = {task: (planned.get(task, ran.get(task)),
+                                  next(iter(repeats[task])) if len(repeats.get(task, ())) == 1 else None)
+                           for task in {*planned, *ran}}
+        return self._tasks
 
     def frames_at(self, task: str, step: int) -> Optional[int]:
         """Agent step ``step`` of ``task`` in environment frames (None: mixed action repeats)."""
@@ -150,8 +168,17 @@ def set_apart(runs: list[RunResult], root: str) -> None:
         seeds = [r.run.seed for r in group]
         if len(seeds) == len(set(seeds)):
             continue
-        keys = sorted({k for r in group for k in r.settings if k not in IDENTITY + RUN_ONLY
-                       and len({repr(o.settings.get(k)) for o in group}) > 1})
+        # Each setting's values over the group in one pass over its runs, so that thousands of
+        # runs of one seed cost linear work, not a comparison of every run with every other.
+        values: dict[str, set[str]] = {}
+        for result in group:
+            for k in result.settings:
+                if k not in IDENTITY + RUN_ONLY:
+                    values.setdefault(k, set())
+        for result in group:
+            for k, seen in values.items():
+                seen.add(repr(result.settings.get(k)))
+        keys = sorted(k for k, seen in values.items() if len(seen) > 1)
         for result in group:
             # Runs alike in every setting (a copy of a run, the same sweep twice): their directories.
             result.variant = ", ".join(f"{k}={result.settings.get(k)}" for k in keys) or \

@@ -29,6 +29,7 @@ from imssr.files import atomic_write_csv
 from imssr.presets import ALGOS
 from imssr.report.results import RunResult, SweepResults
 from imssr.report.stats import sample_std, welch_interval
+from imssr.sweep.directory import PlannedRun
 
 FRACTIONS = (0.2, 0.5, 1.0)
 TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",
@@ -151,6 +152,9 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
     by_group: dict[tuple[str, str], list[RunResult]] = {}
     for result in results.runs:
         by_group.setdefault((result.run.task, result.label), []).append(result)
+    planned_groups: dict[tuple[str, str], list[PlannedRun]] = {}
+    for p in results.planned:
+        planned_groups.setdefault((p.run.task, p.label), []).append(p)
     rows = []
     for task in sorted({r.run.task for r in results.runs}):
         budget = results.budget(task)
@@ -159,9 +163,9 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
         for mode in modes:
             for label in labels:
                 runs = by_group.get((task, label), [])
-                if not runs and not any(p.run.task == task and p.label == label for p in results.planned):
+                if not runs and (task, label) not in planned_groups:
                     continue
-                first = runs[0] if runs else next(p for p in results.planned if p.label == label)
+                first = runs[0] if runs else planned_groups[task, label][0]
                 algo, beta0, precision = first.run.algo, first.run.beta0, first.precision
                 want = expected.get(label, set())
                 cells = []
@@ -183,9 +187,8 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
                             cell.values[result.run.seed] = value
                     absent = sorted(want - {r.run.seed for r in runs})
                     # Planned runs that failed before writing their config.json.
-                    failed_early = {p.run.seed: results.failure(p.run) for p in results.planned
-                                    if p.run.task == task and p.label == label and results.failure(p.run)
-                                    and p.run.seed in absent}
+                    failed_early = {p.run.seed: results.failure(p.run) for p in planned_groups.get((task, label), ())
+                                    if p.run.seed in absent and results.failure(p.run)}
                     cell.failed |= set(failed_early)
                     absent = [s for s in absent if s not in failed_early]
                     if late or absent or failed_early:
