@@ -483,3 +483,27 @@ def test_a_report_passes_over_the_runs_a_fixed_number_of_times(tmp_path, monkeyp
         write_report(str(root), str(tmp_path / f"report_{n}"), reps=20)
         assert len(table(str(tmp_path / f"report_{n}"))) == 3 * n  # a row of its own per copy
     assert collected[0].runs.passes == collected[1].runs.passes
+
+
+@pytest.mark.parametrize("step", ["inf", "1e30", "-5", "nan", "2.5"])
+def test_an_evaluation_at_no_agent_step_is_left_out_with_a_note(tmp_path, paper_csv, step):
+    """A step or frame that is no count (a hand-edited or damaged eval.csv) leaves its row out of
+    the report and the export, with a note, instead of an OverflowError or matplotlib's TypeError."""
+    from imssr.report.export import export_runs
+
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, curve(10, 100, 100))
+    run = make_run(root, "curl", 2, curve(20, 200, 200))
+    path = os.path.join(run, "eval.csv")
+    header, first, second, *rest = open(path).read().splitlines()
+    cells = second.split(",")
+    for column in ("step", "frame"):
+        cells[header.split(",").index(column)] = step
+    with open(path, "w") as fh:
+        fh.write("\n".join([header, first, ",".join(cells), *rest]) + "\n")
+    write_report(root, out, paper_results=paper_csv, reps=20)
+    assert float(table(out)["training", "curl", "1.0"]["mean"]) == 150.0
+    md = open(os.path.join(out, "report.md")).read()
+    assert (f"{TASK}/curl/seed_2: 1 evaluation(s) with a step or frame that is no whole number of agent steps or "
+            f"frames left out: step {step}, frame {step}") in md
+    assert [e.state for e in export_runs(root, str(tmp_path / "export"))] == ["skipped (new)"] * 2

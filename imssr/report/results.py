@@ -17,7 +17,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
-from imssr.config import steps_for_frames
+from imssr.config import MAX_INT, steps_for_frames
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_csv, read_csv
 from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir, parse_run_path
@@ -209,15 +209,22 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         notes.append(f"{rel}: {exc}; skipped")
         return None
     non_finite: list[str] = []
+    not_counts: list[str] = []
     for row in rows:
         try:
-            frame = int(float(row["frame"]))
+            frame = _count(row["frame"], MAX_INT * MAX_INT)
             # Every eval.csv has a step column; a hand-made one without it gets the step at which
             # the loop reaches that frame.
-            step = int(float(row["step"])) if row.get("step") not in (None, "") else steps_for_frames(frame, repeat)
+            has_step = row.get("step") not in (None, "")
+            step = _count(row["step"], MAX_INT) if has_step else \
+                None if frame is None else steps_for_frames(frame, repeat)
             value = float(row["return_mean"])
         except (KeyError, TypeError, ValueError):
             continue  # a row cut short by a killed process
+        if step is None or frame is None:
+            # inf, 1e30 or -5 is no agent step: such a point would break every table and plot.
+            not_counts.append(f"step {row['step']}, frame {row['frame']}" if has_step else f"frame {row['frame']}")
+            continue
         if not math.isfinite(value):
             # A mean over seeds with a nan or inf in it says nothing: the point is left out, and said.
             non_finite.append(f"{value} at agent step {step:,} ({row['mode']})")
@@ -226,9 +233,20 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     if non_finite:
         notes.append(f"{rel}: {len(non_finite)} evaluation(s) with a non-finite return left out: "
                      f"{', '.join(non_finite[:3])}{', ...' if len(non_finite) > 3 else ''}")
+    if not_counts:
+        notes.append(f"{rel}: {len(not_counts)} evaluation(s) with a step or frame that is no whole number of agent "
+                     f"steps or frames left out: {'; '.join(not_counts[:3])}{'; ...' if len(not_counts) > 3 else ''}")
     if not result.evals:
         notes.append(f"{rel}: no evaluations yet")
     return result
+
+
+def _count(text: str, most: int) -> Optional[int]:
+    """``text`` as a count of agent steps or frames, an integer in ``[0, most]`` (``most``: the
+    bound of ``train.steps``, or of its frames); None for any other number (``inf``, ``nan``,
+    ``1e30``, ``-5``, ``2.5``); ValueError when it is no number at all."""
+    number = float(text)
+    return int(number) if math.isfinite(number) and number.is_integer() and 0 <= number <= most else None
 
 
 def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
