@@ -388,7 +388,7 @@ def _check_out(out: Optional[str], flag: str = "--out") -> None:
 
 
 def cmd_report(args) -> int:
-    # Imported here, not at the top: the report imports rliable, the report extra.
+    # Imported here, not at the top, as every command's machinery: `imssr --help` loads none of it.
     from imssr.report.report import write_report
 
     _check_out(args.out)
