@@ -405,7 +405,10 @@ def cmd_export(args) -> int:
         raise ImssrError("DEST is empty; give the export directory")
     exported = export_runs(args.root, args.dest)
     for item in exported:
-        print(f"{item.state}: {os.path.join(args.dest, os.path.relpath(item.dest, os.path.abspath(args.dest)))}")
+        # A run skipped before it has a place in DEST (an unreadable config.json) is named by its source.
+        where = item.source if item.dest == os.path.abspath(args.dest) else \
+            os.path.join(args.dest, os.path.relpath(item.dest, os.path.abspath(args.dest)))
+        print(f"{item.state}: {where}")
     copied = sum(item.state in ("new", "updated") for item in exported)
     print(f"imssr: {copied} run(s) copied, {sum(item.state == 'unchanged' for item in exported)} unchanged, "
           f"{sum(item.state.startswith('skipped') for item in exported)} skipped")

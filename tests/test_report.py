@@ -271,7 +271,7 @@ def test_runs_the_sweep_lists_as_failed_are_reported_as_failed(tmp_path, paper_c
     assert t["training", "curl", "0.2"]["failed_seeds"] == "0"  # it had a value there
     assert (t["training", "im-curl", "1.0"]["seeds"], t["training", "im-curl", "1.0"]["failed_seeds"]) == ("1", "1")
     md = open(os.path.join(out, "report.md")).read()
-    assert "4 runs, 14 evaluations. **2 failed** in the sweep (see Failed runs)." in md
+    assert "4 runs, 14 evaluations. **2 failed** (see Failed runs)." in md
     assert "150.0 ± 70.7 (2/3, 1 failed)" in md and "| 2/3, 1 failed |" in md
     assert "## Failed runs" in md
     assert f"- `{TASK}/curl/seed_3`: diverged at agent step 412: critic loss nan" in md
@@ -507,3 +507,50 @@ def test_an_evaluation_at_no_agent_step_is_left_out_with_a_note(tmp_path, paper_
     assert (f"{TASK}/curl/seed_2: 1 evaluation(s) with a step or frame that is no whole number of agent steps or "
             f"frames left out: step {step}, frame {step}") in md
     assert [e.state for e in export_runs(root, str(tmp_path / "export"))] == ["skipped (new)"] * 2
+
+
+def test_a_run_whose_config_cannot_be_read_is_named_and_the_others_reported(tmp_path, paper_csv, capsys):
+    """A config.json with an unknown key: the report and the export name that run and say why,
+    and go on with the others; with no other run, the one-line error names it."""
+    from imssr.cli import main
+    from imssr.report.export import export_runs
+
+    root = str(tmp_path / "sweep")
+    bad = make_run(root, "curl", 1, curve(10, 100, 100))
+    cfg = json.load(open(os.path.join(bad, "config.json")))
+    cfg["agent"]["nope"] = 1
+    with open(os.path.join(bad, "config.json"), "w") as fh:
+        json.dump(cfg, fh)
+    why = f"{TASK}/curl/seed_1: unreadable config.json (unknown setting 'agent.nope'; agent has: "
+    for command in (["report", root], ["export", root, str(tmp_path / "dest")]):
+        assert main(command) == 2
+        [line] = capsys.readouterr().err.splitlines()
+        assert line.startswith(f"imssr: error: no readable runs under {root}: {why}")
+    make_run(root, "curl", 2, curve(20, 200, 200))
+    write_report(root, str(tmp_path / "report"), paper_results=paper_csv, reps=20)
+    assert table(str(tmp_path / "report"))["training", "curl", "1.0"]["seeds"] == "1"
+    assert f"- {why}" in open(str(tmp_path / "report" / "report.md")).read()
+    states = [e.state for e in export_runs(root, str(tmp_path / "dest"))]
+    assert states[0].startswith("skipped (unreadable config.json (unknown setting 'agent.nope'") and \
+        states[1:] == ["skipped (new)"]
+
+
+def test_a_seed_that_diverged_on_its_own_is_reported_as_failed(tmp_path, paper_csv):
+    """A seed of `imssr train --seeds` that diverged (its status.json, no sweep around it) is
+    failed in the report, as in the export, not "not reached"."""
+    from imssr.report.export import export_runs
+    from imssr.rundir import DIVERGED, FINISHED, RunDir
+
+    root, out = str(tmp_path / "seeds"), str(tmp_path / "report")
+    for seed in (1, 2):
+        RunDir(make_run(root, "curl", seed, curve(10 * seed, 100 * seed, 100 * seed))).write_status(FINISHED, 1000)
+    diverged = make_run(root, "curl", 3, curve(30, 300, 300)[:2])
+    RunDir(diverged).write_status(DIVERGED, 412, "diverged at agent step 412: critic loss nan")
+    write_report(root, out, paper_results=paper_csv, reps=20)
+    cell = table(out)["training", "curl", "1.0"]
+    assert (cell["seeds"], cell["expected_seeds"], cell["failed_seeds"]) == ("2", "3", "1")
+    md = open(os.path.join(out, "report.md")).read()
+    assert "**1 failed** (see Failed runs)" in md and "(2/3, 1 failed)" in md
+    assert f"- `{TASK}/curl/seed_3`: diverged at agent step 412: critic loss nan" in md
+    assert "no value for seed(s) 3 (failed: diverged at agent step 412: critic loss nan)" in md
+    assert export_runs(root, str(tmp_path / "dest"))[-1].state == "skipped (diverged)"

@@ -8,7 +8,8 @@ on hand-assembled directories and on sweeps that are still running; each is name
 :class:`~imssr.sweep.grid.Run`.  The files ``imssr sweep`` writes under the root, read through
 :class:`~imssr.sweep.directory.SweepDir`, add the runs that were planned but have not written
 anything yet (``sweep.json``) and the runs that failed every attempt, with their last error
-(``sweep_status.json``).
+(``sweep_status.json``).  How each run stands (finished, failed, diverged, ...) is its own
+:meth:`RunDir.outcome <imssr.rundir.RunDir.outcome>`, read once here for the report and the export.
 """
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from typing import Any, Optional
 from imssr.config import MAX_INT, steps_for_frames
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_csv, read_csv
-from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir, parse_run_path
+from imssr.rundir import (CHECKPOINT_DIR, CONFIG_FILE, DIVERGED, FAILED, TB_DIR, VIDEOS_DIR, RunDir,
+                          parse_run_path)
 from imssr.sweep.directory import PLAN_FILE, PlannedRun, SweepDir
 from imssr.sweep.grid import Run, beta_label, group_label
 
@@ -52,6 +54,12 @@ class RunResult:
     provenance: list[dict] = field(default_factory=list)
     """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] for a run of imssr
     before them or one whose file cannot be read."""
+    state: str = ""
+    """How the run stands when read (:meth:`RunDir.outcome <imssr.rundir.RunDir.outcome>`):
+    ``new``, ``running``, ``interrupted``, ``finished``, ``failed`` or ``diverged``."""
+    error: str = ""
+    """The error line of a run whose last training failed or diverged (``status.json``); ""
+    otherwise."""
 
     @property
     def frames(self) -> int:
@@ -77,13 +85,18 @@ class SweepResults:
     """The runs ``sweep.json`` lists (they may not exist yet)."""
     notes: list[str]
     failures: dict[str, str] = field(default_factory=dict)
-    """Run directory (absolute) -> last error, for every run ``sweep_status.json`` lists as failed."""
+    """Run directory (absolute) -> last error, for every run that failed: listed as failed in
+    ``sweep_status.json``, or whose own last training failed or diverged (``status.json``; a
+    member of ``imssr train --seeds``, a run trained by hand)."""
+    skipped: dict[str, str] = field(default_factory=dict)
+    """Run directory (absolute) -> why it is left out: a ``config.json`` or ``eval.csv`` that
+    cannot be read."""
     _tasks: Optional[dict[str, tuple[int, Optional[int]]]] = field(default=None, init=False, repr=False,
                                                                     compare=False)
     """Task -> ``(budget, action repeat)`` (:meth:`_per_task`), made when first asked."""
 
     def failure(self, run: Run) -> Optional[str]:
-        """The last error of ``run`` when ``sweep_status.json`` lists it as failed; None otherwise."""
+        """The last error of ``run`` when it failed (:attr:`failures`); None otherwise."""
         return self.failures.get(os.path.abspath(run.dir))
 
     @property
@@ -130,22 +143,31 @@ def collect(root: str) -> SweepResults:
     root = os.path.abspath(root)
     notes: list[str] = []
     runs = []
+    skipped: dict[str, str] = {}
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if d not in (CHECKPOINT_DIR, TB_DIR, VIDEOS_DIR))
         if CONFIG_FILE not in filenames:
             continue
-        run = _read_run(dirpath, root, notes)
+        run = _read_run(dirpath, root, notes, skipped)
         if run is not None:
             runs.append(run)
+    if not runs:
+        # Say which runs were found and why none can be read, not that there are none.
+        why = [f"{os.path.relpath(d, root)}: {reason}" for d, reason in skipped.items()]
+        raise ImssrError(f"no readable runs under {root}: " + "; ".join(why[:3])
+                         + (f"; and {len(why) - 3} more" if len(why) > 3 else "") if why else
+                         f"no runs under {root} (a run directory holds config.json and eval.csv)")
     set_apart(runs, root)
     planned = _read_plan(root, notes)
-    results = SweepResults(root, runs, planned, notes, SweepDir(root).failed_runs())
+    failures = SweepDir(root).failed_runs()
+    for result in runs:
+        if result.state in (FAILED, DIVERGED):
+            failures.setdefault(os.path.abspath(result.run.dir), result.error)
+    results = SweepResults(root, runs, planned, notes, failures, skipped)
     found = {os.path.abspath(r.run.dir) for r in runs}
     for p in planned:
         if p.run.dir not in found and results.failure(p.run) is None:
             notes.append(f"{os.path.relpath(p.run.dir, root)}: planned but not started (no config.json)")
-    if not runs:
-        raise ImssrError(f"no runs under {root} (a run directory holds config.json and eval.csv)")
     return results
 
 
@@ -185,7 +207,8 @@ def set_apart(runs: list[RunResult], root: str) -> None:
                 os.path.relpath(os.path.dirname(result.run.dir), root)
 
 
-def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
+def _read_run(run_dir: str, root: str, notes: list[str], skipped: dict[str, str]) -> Optional[RunResult]:
+    """The run in ``run_dir``; None when it cannot be read, with why in ``skipped`` and ``notes``."""
     rel = os.path.relpath(run_dir, root)
     run_files = RunDir(run_dir)
     try:
@@ -193,11 +216,13 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         where = parse_run_path(rel)
         beta0 = float(cfg.intrinsic.beta0) if where is not None and where.beta0_label is not None else None
     except (ImssrError, OSError, ValueError, KeyError, TypeError) as exc:
-        notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
+        skipped[run_dir] = f"unreadable config.json ({exc})"
+        notes.append(f"{rel}: {skipped[run_dir]}; skipped")
         return None
     repeat = cfg.env.action_repeat
     result = RunResult(Run(cfg.algo, cfg.env.task, cfg.train.seed, beta0, run_dir), cfg.train.steps, repeat,
                        precision=cfg.agent.precision_label, settings=cfg.flat())
+    result.state, result.error = run_files.outcome()
     records = run_files.read_provenance()
     if records is None:
         notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
@@ -206,6 +231,7 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     try:
         rows = read_csv(path, complete_only=True)
     except ImssrError as exc:  # one damaged run must not stop a report of the others
+        skipped[run_dir] = str(exc)
         notes.append(f"{rel}: {exc}; skipped")
         return None
     non_finite: list[str] = []

@@ -10,9 +10,10 @@ is the same step.  A seed whose evaluations stop before ``p`` (an unfinished run
 there, and the cell says how many of the expected seeds it averages.  Std is the sample standard
 deviation over seeds (ddof 1, :func:`imssr.report.stats.sample_std`), so one seed has none.  A
 published number comes with its seeds where the source says them, and a cell beside one gets the
-difference of means with its 95% Welch interval.  A seed whose run
-``sweep_status.json`` lists as failed and that has no value at a point is counted as failed
-there ("(2/3, 1 failed)"), not as merely missing.
+difference of means with its 95% Welch interval.  A seed whose run failed
+(:attr:`SweepResults.failures <imssr.report.results.SweepResults.failures>`: ``sweep_status.json``
+or the run's own ``status.json``) and that has no value at a point is counted as failed there
+("(2/3, 1 failed)"), not as merely missing.
 """
 from __future__ import annotations
 
@@ -64,7 +65,7 @@ class Cell:
     expected: int = 0
     """Seeds the sweep planned (or that any algo of the task ran) for this group."""
     failed: set[int] = field(default_factory=set)
-    """Seeds without a value here whose run failed (``sweep_status.json``)."""
+    """Seeds without a value here whose run failed (``sweep_status.json`` or its ``status.json``)."""
     best: bool = False
     """Highest mean of its (mode, task) row group at this fraction."""
     paper: Optional[PaperNumber] = None
