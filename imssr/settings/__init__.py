@@ -22,9 +22,10 @@ from imssr.settings.sections import (COMPILE_MODES, NORMALIZATIONS, PRECISIONS, 
                                      IntrinsicCore, TrainConfig, conv_output_size, steps_for_frames)
 
 __all__ = [
-    "ADAM_BETA_RULE", "AUTHORS", "AUTHORS_CURL", "AUTHORS_LOOP", "AUTHORS_SIGNAL", "AgentConfig", "AuxCore", "AuxPlugin", "Beta0",
-    "COMPILE_MODES", "DECAY", "DMCGB", "EnvConfig", "IMSSR", "Implementations", "IntrinsicCore", "MAX_ADDRESSABLE_BYTES",
-    "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "MAX_SHADOW_SIZE", "MAX_TORCH_THREADS", "MIN_CROP_SIZE", "NORMALIZATIONS", "OFFICIAL_CURL", "PAPER", "PRECISIONS", "Plugin",
+    "ADAM_BETA_RULE", "AUTHORS", "AUTHORS_CURL", "AUTHORS_LOOP", "AUTHORS_SIGNAL", "AgentConfig", "AuxCore",
+    "AuxPlugin", "Beta0", "COMPILE_MODES", "DECAY", "DMCGB", "EnvConfig", "IMSSR", "Implementations", "IntrinsicCore",
+    "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "MAX_SHADOW_SIZE", "MAX_TORCH_THREADS",
+    "MIN_CROP_SIZE", "NORMALIZATIONS", "OFFICIAL_CURL", "PAPER", "PRECISIONS", "Plugin",
     "REPLAY_DEVICES", "SCHEDULES", "SEED_RULE", "Sections", "Setting", "SignalPlugin", "TABLE3", "TABLE5",
     "TF32_MODES", "TrainConfig", "UPDATE_SCHEDULES", "VIDEO_FORMATS", "compose_section", "conv_output_size",
     "dataclass_field_docs", "dataclass_field_types", "plugin_table", "steps_for_frames", "type_phrase",
