@@ -388,7 +388,7 @@ def _check_out(out: Optional[str], flag: str = "--out") -> None:
 
 
 def cmd_report(args) -> int:
-    # Imported here, not at the top: the report imports rliable, the report extra.
+    # Imported here, not at the top, as every command's machinery: `imssr --help` loads none of it.
     from imssr.report.report import write_report
 
     _check_out(args.out)
@@ -405,7 +405,10 @@ def cmd_export(args) -> int:
         raise ImssrError("DEST is empty; give the export directory")
     exported = export_runs(args.root, args.dest)
     for item in exported:
-        print(f"{item.state}: {os.path.join(args.dest, os.path.relpath(item.dest, os.path.abspath(args.dest)))}")
+        # A run skipped before it has a place in DEST (an unreadable config.json) is named by its source.
+        where = item.source if item.dest == os.path.abspath(args.dest) else \
+            os.path.join(args.dest, os.path.relpath(item.dest, os.path.abspath(args.dest)))
+        print(f"{item.state}: {where}")
     copied = sum(item.state in ("new", "updated") for item in exported)
     print(f"imssr: {copied} run(s) copied, {sum(item.state == 'unchanged' for item in exported)} unchanged, "
           f"{sum(item.state.startswith('skipped') for item in exported)} skipped")

@@ -2,6 +2,8 @@
 import csv
 import json
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -110,10 +112,47 @@ def test_wrong_types_and_inconsistent_settings_are_one_line_errors(tmp_path):
     ("train.steps=99999999999", r"^train.steps must be at most 2,147,483,647, got 99999999999$"),
     ("env.image_size=100000", r"^env.image_size must be at most 480 \(the offscreen framebuffer"),
     ("agent.encoder_layers=1e9", r"^agent.encoder_layers=1000000000 leaves no pixels of a 84px crop$"),
+    # What the libraries take: convolutions, OpenMP's threads, OpenGL's textures, torch's Adam.
+    ("agent.crop_size=1", r"^agent.crop_size must be at least 3 \(the encoder's first convolution is 3x3\), got 1$"),
+    ("agent.crop_size=2", r"^agent.crop_size must be at least 3 \(the encoder's first convolution is 3x3\), got 2$"),
+    ("agent.crop_size=5", r"^agent.encoder_layers=4 leaves no pixels of a 5px crop$"),
+    ("train.torch_threads=2147483647", r"^train.torch_threads must be in \[0, 1024\] \(0: torch's default; OpenMP "
+                                       r"aborts the process when it cannot start a thread, and no CPU runs more at "
+                                       r"once\), got 2147483647$"),
+    ("train.torch_threads=100000", r"^train.torch_threads must be in \[0, 1024\] .*, got 100000$"),
+    ("env.shadow_size=2147483647", r"^env.shadow_size must be in \[1, 16384\] \(MuJoCo's shadow map is an OpenGL "
+                                   r"texture, and 16384 px is the largest side every renderer takes\), got 2147483647$"),
+    ("env.shadow_size=65536", r"^env.shadow_size must be in \[1, 16384\] .*, got 65536$"),
+    ("agent.critic_beta1=1.5", r"^agent.critic_beta1 must be in \[0, 1\) \(torch's Adam\), got 1.5$"),
+    ("agent.actor_beta1=-0.1", r"^agent.actor_beta1 must be in \[0, 1\) \(torch's Adam\), got -0.1$"),
+    ("agent.alpha_beta1=1.0", r"^agent.alpha_beta1 must be in \[0, 1\) \(torch's Adam\), got 1.0$"),
 ])
 def test_non_finite_and_huge_numbers_are_refused_up_front_in_one_line(override, message):
     with pytest.raises(ImssrError, match=message):
         apply_overrides(make_config("im-curl", "walker_walk"), [override]).validate()
+
+
+def test_the_bounds_are_what_the_libraries_take():
+    """The bounds themselves are valid, and the libraries take them: a 3 px crop through one 3x3
+    convolution, Adam's beta1 up to below 1, 1024 OpenMP threads (in a process of its own)."""
+    import torch
+
+    from imssr.networks import ConvTrunk
+
+    cfg = apply_overrides(make_config("curl", "walker_walk"), [
+        "agent.crop_size=3", "agent.encoder_layers=1", "train.torch_threads=1024", "env.shadow_size=16384",
+        "agent.critic_beta1=0", "agent.actor_beta1=0.999999", "agent.alpha_beta1=0.5"])
+    cfg.validate()
+    assert ConvTrunk(9, 3, 1, 4)(torch.zeros(2, 9, 3, 3)).shape == (2, 4)
+    with pytest.raises(RuntimeError, match="Kernel size can't be greater than actual input size"):
+        torch.nn.Conv2d(9, 4, 3, stride=2)(torch.zeros(2, 9, 2, 2))
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)], betas=(0.999999, 0.999))
+    with pytest.raises(ValueError, match="Invalid beta parameter"):
+        torch.optim.Adam([torch.zeros(1, requires_grad=True)], betas=(1.0, 0.999))
+    code = ("import torch; torch.set_num_threads(1024); x = torch.randn(64, 3, 32, 32); "
+            "print(torch.get_num_threads(), float(torch.nn.Conv2d(3, 8, 3)(x).abs().sum() > 0))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.split() == ["1024", "1.0"], proc.stderr[-2000:]
 
 
 def test_non_finite_numbers_in_a_config_file_are_refused(tmp_path):

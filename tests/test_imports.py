@@ -7,6 +7,7 @@ import textwrap
 
 import pytest
 
+from conftest import curve, make_run
 import imssr
 
 PACKAGE_DIR = os.path.dirname(imssr.__file__)
@@ -193,9 +194,17 @@ def test_every_module_imports_on_its_own():
     assert proc.stdout.strip() == "FAILED:"
 
 
+def _seeds(root, n: int) -> str:
+    """A sweep root with ``n`` seeds of one algo on one task."""
+    for seed in range(1, n + 1):
+        make_run(str(root), "curl", seed, curve(0, 100, 100 * seed))
+    return str(root)
+
+
 def test_a_missing_extra_is_one_line_naming_it(tmp_path):
     """Without Ray, `imssr sweep` fails in one line naming the sweep extra; without rliable,
-    the report module does so for the report extra."""
+    a report with an IQM to compute (5 seeds) does so for the report extra."""
+    five = _seeds(tmp_path / "five", 5)
     code = textwrap.dedent(f"""
         import sys
         sys.modules["ray"] = None  # as if Ray were not installed
@@ -204,7 +213,7 @@ def test_a_missing_extra_is_one_line_naming_it(tmp_path):
         code = main(["sweep", "--algos", "curl", "--tasks", "walker_walk", "--steps", "10",
                      "--root", {str(tmp_path / "sweep")!r}, "--no-progress"])
         assert code == 2, code
-        code = main(["report", {str(tmp_path)!r}])
+        code = main(["report", {five!r}, "--reps", "20"])
         assert code == 2, code
     """)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -214,6 +223,20 @@ def test_a_missing_extra_is_one_line_naming_it(tmp_path):
     assert lines[0].startswith("imssr: error: ray is not installed") and "pip install 'imssr[sweep]'" in lines[0]
     assert lines[1].startswith("imssr: error: rliable is not installed") and "pip install 'imssr[report]'" in lines[1]
     assert not (tmp_path / "sweep").exists()  # nothing written before the error
+
+
+def test_a_report_without_an_iqm_needs_no_report_extra(tmp_path):
+    """Fewer than 5 seeds give no IQM or bootstrap interval: the report is made without rliable."""
+    four = _seeds(tmp_path / "four", 4)
+    code = textwrap.dedent(f"""
+        import sys
+        sys.modules["rliable"] = None  # as if the report extra were not installed
+        from imssr.cli import main
+        assert main(["report", {four!r}, "--reps", "20"]) == 0
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "no IQM or bootstrap interval: curl has 4 seeds" in (tmp_path / "four" / "report" / "report.md").read_text()
 
 
 def test_the_cli_answers_what_needs_no_training_without_torch():

@@ -271,7 +271,7 @@ def test_runs_the_sweep_lists_as_failed_are_reported_as_failed(tmp_path, paper_c
     assert t["training", "curl", "0.2"]["failed_seeds"] == "0"  # it had a value there
     assert (t["training", "im-curl", "1.0"]["seeds"], t["training", "im-curl", "1.0"]["failed_seeds"]) == ("1", "1")
     md = open(os.path.join(out, "report.md")).read()
-    assert "4 runs, 14 evaluations. **2 failed** in the sweep (see Failed runs)." in md
+    assert "4 runs, 14 evaluations. **2 failed** (see Failed runs)." in md
     assert "150.0 ± 70.7 (2/3, 1 failed)" in md and "| 2/3, 1 failed |" in md
     assert "## Failed runs" in md
     assert f"- `{TASK}/curl/seed_3`: diverged at agent step 412: critic loss nan" in md
@@ -406,3 +406,151 @@ def test_a_non_finite_return_is_left_out_with_a_note(tmp_path, paper_csv):
     md = open(os.path.join(out, "report.md")).read()
     assert (f"{TASK}/curl/seed_6: 2 evaluation(s) with a non-finite return left out: nan at agent step 500 "
             "(training), inf at agent step 1,000 (training)") in md
+
+
+class PassCounting(list):
+    """A list that counts the passes made over it."""
+
+    passes = 0
+
+    def __iter__(self):
+        self.passes += 1
+        return super().__iter__()
+
+
+class ReadCounting(dict):
+    """A dict that counts the reads of its keys and values."""
+
+    reads = 0
+
+    def get(self, key, default=None):
+        self.reads += 1
+        return super().get(key, default)
+
+    def __getitem__(self, key):
+        self.reads += 1
+        return super().__getitem__(key)
+
+    def __iter__(self):
+        self.reads += 1
+        return super().__iter__()
+
+    def items(self):
+        self.reads += 1
+        return super().items()
+
+
+def test_telling_apart_runs_of_one_seed_reads_each_run_a_fixed_number_of_times():
+    """Thousands of runs sharing algo, task and seed (copies of one run, sweeps repeated under one
+    root): the settings that set them apart are found in linear work, not by comparing every run
+    with every other."""
+    from imssr.presets import make_config
+    from imssr.report.results import RunResult, set_apart
+
+    flat = make_config("curl", TASK).flat()
+    reads = []
+    for n in (20, 40):
+        runs = [RunResult(Run("curl", TASK, 1, None, f"/sweeps/{i}/{TASK}/curl/seed_1"), 1000, 8,
+                          settings=ReadCounting(flat, **{"agent.hidden_dim": 64 + i % 2})) for i in range(n)]
+        set_apart(runs, "/sweeps")
+        assert {r.label for r in runs} == {"curl [agent.hidden_dim=64]", "curl [agent.hidden_dim=65]"}
+        reads.append(sum(r.settings.reads for r in runs))
+    assert reads[1] == 2 * reads[0]
+
+
+def test_a_report_passes_over_the_runs_a_fixed_number_of_times(tmp_path, monkeypatch):
+    """Each run its own row (copies of one run of one seed): tables, points and curves take a
+    fixed number of passes over the runs, not one per row or curve."""
+    import shutil
+
+    from imssr.report import report
+
+    collected = []
+
+    def collect(root):
+        results = real_collect(root)
+        results.runs = PassCounting(results.runs)
+        collected.append(results)
+        return results
+
+    real_collect = report.collect
+    monkeypatch.setattr(report, "collect", collect)
+    for n in (3, 6):
+        root = tmp_path / f"copies_{n}"
+        first = make_run(str(root / "copy_0"), "curl", 1, curve(10, 100, 100))
+        for i in range(1, n):
+            shutil.copytree(first, root / f"copy_{i}" / TASK / "curl" / "seed_1")
+        write_report(str(root), str(tmp_path / f"report_{n}"), reps=20)
+        assert len(table(str(tmp_path / f"report_{n}"))) == 3 * n  # a row of its own per copy
+    assert collected[0].runs.passes == collected[1].runs.passes
+
+
+@pytest.mark.parametrize("step", ["inf", "1e30", "-5", "nan", "2.5"])
+def test_an_evaluation_at_no_agent_step_is_left_out_with_a_note(tmp_path, paper_csv, step):
+    """A step or frame that is no count (a hand-edited or damaged eval.csv) leaves its row out of
+    the report and the export, with a note, instead of an OverflowError or matplotlib's TypeError."""
+    from imssr.report.export import export_runs
+
+    root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
+    make_run(root, "curl", 1, curve(10, 100, 100))
+    run = make_run(root, "curl", 2, curve(20, 200, 200))
+    path = os.path.join(run, "eval.csv")
+    header, first, second, *rest = open(path).read().splitlines()
+    cells = second.split(",")
+    for column in ("step", "frame"):
+        cells[header.split(",").index(column)] = step
+    with open(path, "w") as fh:
+        fh.write("\n".join([header, first, ",".join(cells), *rest]) + "\n")
+    write_report(root, out, paper_results=paper_csv, reps=20)
+    assert float(table(out)["training", "curl", "1.0"]["mean"]) == 150.0
+    md = open(os.path.join(out, "report.md")).read()
+    assert (f"{TASK}/curl/seed_2: 1 evaluation(s) with a step or frame that is no whole number of agent steps or "
+            f"frames left out: step {step}, frame {step}") in md
+    assert [e.state for e in export_runs(root, str(tmp_path / "export"))] == ["skipped (new)"] * 2
+
+
+def test_a_run_whose_config_cannot_be_read_is_named_and_the_others_reported(tmp_path, paper_csv, capsys):
+    """A config.json with an unknown key: the report and the export name that run and say why,
+    and go on with the others; with no other run, the one-line error names it."""
+    from imssr.cli import main
+    from imssr.report.export import export_runs
+
+    root = str(tmp_path / "sweep")
+    bad = make_run(root, "curl", 1, curve(10, 100, 100))
+    cfg = json.load(open(os.path.join(bad, "config.json")))
+    cfg["agent"]["nope"] = 1
+    with open(os.path.join(bad, "config.json"), "w") as fh:
+        json.dump(cfg, fh)
+    why = f"{TASK}/curl/seed_1: unreadable config.json (unknown setting 'agent.nope'; agent has: "
+    for command in (["report", root], ["export", root, str(tmp_path / "dest")]):
+        assert main(command) == 2
+        [line] = capsys.readouterr().err.splitlines()
+        assert line.startswith(f"imssr: error: no readable runs under {root}: {why}")
+    make_run(root, "curl", 2, curve(20, 200, 200))
+    write_report(root, str(tmp_path / "report"), paper_results=paper_csv, reps=20)
+    assert table(str(tmp_path / "report"))["training", "curl", "1.0"]["seeds"] == "1"
+    assert f"- {why}" in open(str(tmp_path / "report" / "report.md")).read()
+    states = [e.state for e in export_runs(root, str(tmp_path / "dest"))]
+    assert states[0].startswith("skipped (unreadable config.json (unknown setting 'agent.nope'") and \
+        states[1:] == ["skipped (new)"]
+
+
+def test_a_seed_that_diverged_on_its_own_is_reported_as_failed(tmp_path, paper_csv):
+    """A seed of `imssr train --seeds` that diverged (its status.json, no sweep around it) is
+    failed in the report, as in the export, not "not reached"."""
+    from imssr.report.export import export_runs
+    from imssr.rundir import DIVERGED, FINISHED, RunDir
+
+    root, out = str(tmp_path / "seeds"), str(tmp_path / "report")
+    for seed in (1, 2):
+        RunDir(make_run(root, "curl", seed, curve(10 * seed, 100 * seed, 100 * seed))).write_status(FINISHED, 1000)
+    diverged = make_run(root, "curl", 3, curve(30, 300, 300)[:2])
+    RunDir(diverged).write_status(DIVERGED, 412, "diverged at agent step 412: critic loss nan")
+    write_report(root, out, paper_results=paper_csv, reps=20)
+    cell = table(out)["training", "curl", "1.0"]
+    assert (cell["seeds"], cell["expected_seeds"], cell["failed_seeds"]) == ("2", "3", "1")
+    md = open(os.path.join(out, "report.md")).read()
+    assert "**1 failed** (see Failed runs)" in md and "(2/3, 1 failed)" in md
+    assert f"- `{TASK}/curl/seed_3`: diverged at agent step 412: critic loss nan" in md
+    assert "no value for seed(s) 3 (failed: diverged at agent step 412: critic loss nan)" in md
+    assert export_runs(root, str(tmp_path / "dest"))[-1].state == "skipped (diverged)"

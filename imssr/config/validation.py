@@ -17,9 +17,10 @@ from imssr.config.version import CONFIG_VERSION
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.intrinsic.registry import SIGNAL_PLUGINS
-from imssr.settings import (BATCH_LAYOUTS, COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT, MAX_SEED,
-                            NORMALIZATIONS, PRECISIONS, REPLAY_DEVICES, SCHEDULES, SEED_RULE, TF32_MODES,
-                            UPDATE_SCHEDULES, VIDEO_FORMATS, Sections, conv_output_size, type_phrase)
+from imssr.settings import (ADAM_BETA_RULE, BATCH_LAYOUTS, COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
+                            MAX_SEED, MAX_SHADOW_SIZE, MAX_TORCH_THREADS, MIN_CROP_SIZE, NORMALIZATIONS, PRECISIONS,
+                            REPLAY_DEVICES, SCHEDULES, SEED_RULE, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS,
+                            Sections, conv_output_size, type_phrase)
 
 
 def validate_config(cfg: Sections) -> None:
@@ -31,19 +32,27 @@ def validate_config(cfg: Sections) -> None:
     checks = [
         (e.action_repeat >= 1, "env.action_repeat must be >= 1"),
         (e.frame_stack >= 1, "env.frame_stack must be >= 1"),
-        (e.shadow_size >= 1, "env.shadow_size must be >= 1"),
+        (1 <= e.shadow_size <= MAX_SHADOW_SIZE,
+         f"env.shadow_size must be in [1, {MAX_SHADOW_SIZE}] (MuJoCo's shadow map is an OpenGL texture, and "
+         f"{MAX_SHADOW_SIZE} px is the largest side every renderer takes), got {e.shadow_size}"),
         (0 < a.crop_size <= e.image_size, "agent.crop_size must be in (0, env.image_size]"),
+        (a.crop_size >= MIN_CROP_SIZE,
+         f"agent.crop_size must be at least {MIN_CROP_SIZE} (the encoder's first convolution is "
+         f"{MIN_CROP_SIZE}x{MIN_CROP_SIZE}), got {a.crop_size}"),
         (a.encoder_layers >= 1, "agent.encoder_layers must be >= 1"),
         (a.encoder_filters >= 1, "agent.encoder_filters must be >= 1"),
         (0 <= a.encoder_head_layers < a.encoder_layers,
          "agent.encoder_head_layers must be in [0, agent.encoder_layers)"),
-        (a.crop_size < 3 or conv_output_size(a.crop_size, a.encoder_layers) >= 1,
+        (conv_output_size(a.crop_size, a.encoder_layers) >= 1,
          f"agent.encoder_layers={a.encoder_layers} leaves no pixels of a {a.crop_size}px crop"),
         (a.feature_dim >= 1, "agent.feature_dim must be >= 1"),
         (a.hidden_dim >= 1, "agent.hidden_dim must be >= 1"),
         (a.log_std_min < a.log_std_max, "agent.log_std_min must be < agent.log_std_max"),
         (0.0 < a.critic_tau <= 1.0 and 0.0 < a.encoder_tau <= 1.0, "agent taus must be in (0, 1]"),
         (min(a.critic_lr, a.actor_lr, a.alpha_lr, x.lr) > 0, "learning rates must be > 0"),
+        *((0.0 <= beta < 1.0, f"agent.{name} must be {ADAM_BETA_RULE}, got {beta}")
+          for name, beta in (("critic_beta1", a.critic_beta1), ("actor_beta1", a.actor_beta1),
+                             ("alpha_beta1", a.alpha_beta1))),
         (a.init_temperature > 0, "agent.init_temperature must be > 0"),
         (min(a.actor_update_every, a.critic_update_every, a.target_update_every) >= 1,
          "agent update intervals must be >= 1"),
@@ -77,7 +86,9 @@ def validate_config(cfg: Sections) -> None:
         (t.steps >= 1, "train.steps must be >= 1"),
         (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
         (t.burst_updates >= 0, "train.burst_updates must be >= 0"),
-        (t.torch_threads >= 0, "train.torch_threads must be >= 0"),
+        (0 <= t.torch_threads <= MAX_TORCH_THREADS,
+         f"train.torch_threads must be in [0, {MAX_TORCH_THREADS}] (0: torch's default; OpenMP aborts the "
+         f"process when it cannot start a thread, and no CPU runs more at once), got {t.torch_threads}"),
         (t.keep_checkpoints >= 0, "train.keep_checkpoints must be >= 0"),
         (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
         (t.replay_device in REPLAY_DEVICES,
@@ -112,7 +123,8 @@ def validate_config(cfg: Sections) -> None:
 def _check_upper_bounds(cfg: Sections) -> None:
     """Integers bounded from above: the replay buffer by what a process can address, the image
     by the renderer, every other integer by :data:`MAX_INT` (layer counts are bounded by the
-    crop they must leave pixels of, in :func:`validate_config`)."""
+    crop they must leave pixels of, the shadow map by OpenGL's textures and torch's threads by
+    OpenMP, in :func:`validate_config`)."""
     e, t = cfg.env, cfg.train
     frame_bytes = 3 * e.image_size * e.image_size
     if t.replay_capacity > MAX_ADDRESSABLE_BYTES // frame_bytes:

@@ -31,7 +31,7 @@ from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
 from imssr.memlimit import check_room_to_render, raise_limit_text
 from imssr.rng import random_state_from_plain, random_state_to_plain
-from imssr.settings import EnvConfig
+from imssr.settings import MAX_SHADOW_SIZE, EnvConfig
 
 
 class DMCEnv(gym.Env):
@@ -66,6 +66,9 @@ class DMCEnv(gym.Env):
             raise ImssrError(f"image_size must be >= 16, got {image_size}")
         if frame_stack < 1:
             raise ImssrError(f"frame_stack must be >= 1, got {frame_stack}")
+        if not 1 <= shadow_size <= MAX_SHADOW_SIZE:
+            raise ImssrError(f"shadow_size must be in [1, {MAX_SHADOW_SIZE}] (an OpenGL texture's side), "
+                             f"got {shadow_size}")
         check_gl()
         suite, Camera = _import_dm_control()
 
@@ -77,8 +80,6 @@ class DMCEnv(gym.Env):
         self.frame_stack = frame_stack
         self.camera_id = spec.camera_id if camera_id is None else camera_id
         self._env = suite.load(spec.domain, spec.suite_task, task_kwargs={"random": seed})
-        if shadow_size < 1:
-            raise ImssrError(f"shadow_size must be >= 1, got {shadow_size}")
         # Read when the GL context is made (by the camera below).  The suite's
         # 2048-px shadow map costs a third of a 100x100 frame; 512 px changes
         # pixels by ~0.02/255 on average (bench/render_speed.py).

@@ -19,10 +19,6 @@ from imssr.files import atomic_write_csv
 from imssr.report.stats import MIN_SEEDS_FOR_BOOTSTRAP
 from imssr.report.tables import FRACTIONS, Row, mode_order
 
-# The report extra; imported with this module, which only `imssr report` imports.
-rly = require("rliable.library", "report")
-metrics = require("rliable.metrics", "report")
-
 DMC_MAX_RETURN = 1000.0
 AGGREGATE_COLUMNS = ["mode", "fraction", "metric", "label", "point", "ci_low", "ci_high", "tasks", "runs"]
 
@@ -60,10 +56,6 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggr
     :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds."""
     out: list[Aggregate] = []
     notes: list[str] = []
-
-    def iqm(x: np.ndarray) -> np.ndarray:
-        return np.array([metrics.aggregate_iqm(x)])
-
     for mode in mode_order(r.mode for r in rows):
         by_label: dict[str, list[Row]] = {}
         for row in rows:
@@ -93,19 +85,27 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggr
                 matrices = {label: m for label, m in matrices.items() if label not in few}
             if not matrices:
                 continue
-            point, ci = _estimates(matrices, iqm, reps, seed)
+            point, ci = _iqm_estimates(matrices, reps, seed)
             for label, m in matrices.items():
                 out.append(Aggregate(mode, fraction, "IQM", label, float(point[label][0]),
                                      float(ci[label][0][0]), float(ci[label][1][0]), common, m.shape[0]))
     return out, notes
 
 
-def _estimates(scores: dict, func, reps: int, seed: int):
-    """rliable's bootstrap with a fixed seed, so a report is reproducible."""
+def _iqm_estimates(scores: dict, reps: int, seed: int):
+    """rliable's IQM with its stratified-bootstrap interval, with a fixed seed, so a report is
+    reproducible.  rliable (the report extra) is imported here, where an IQM is due: a report of
+    fewer seeds computes none and needs no extra."""
+    rly = require("rliable.library", "report")
+    metrics = require("rliable.metrics", "report")
+
+    def iqm(x: np.ndarray) -> np.ndarray:
+        return np.array([metrics.aggregate_iqm(x)])
+
     with warnings.catch_warnings():
         # rliable 1.2 passes a RandomState through arch's deprecated `random_state` keyword.
         warnings.filterwarnings("ignore", message="random_state is deprecated", category=FutureWarning)
-        return rly.get_interval_estimates(scores, func, reps=reps, random_state=np.random.RandomState(seed))
+        return rly.get_interval_estimates(scores, iqm, reps=reps, random_state=np.random.RandomState(seed))
 
 
 def markdown(aggregates: list[Aggregate]) -> str:

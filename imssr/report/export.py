@@ -39,7 +39,7 @@ class Exported:
     source: str
     """The run directory in the sweep."""
     dest: str
-    """Its directory in the export."""
+    """Its directory in the export (the export directory itself for a run skipped before it has one)."""
     state: str
     """``new`` (first copy), ``updated`` (some file changed, e.g. a longer budget), ``unchanged``,
     or why it was skipped: ``skipped (running)``, ``skipped (interrupted)``, ..."""
@@ -52,7 +52,11 @@ def export_runs(root: str, dest: str) -> list[Exported]:
     if _inside(dest, results.root):
         raise ImssrError(f"the export directory {dest} is inside the sweep {results.root}: pick one outside it")
     out = []
-    for result in sorted(results.runs, key=lambda r: r.run.dir):
+    found = [(r.run.dir, r) for r in results.runs] + list(results.skipped.items())
+    for source, result in sorted(found, key=lambda item: item[0]):
+        if isinstance(result, str):  # a run whose config.json or eval.csv cannot be read
+            out.append(Exported(source, dest, f"skipped ({result})"))
+            continue
         run = result.run
         beta = None if run.beta0 is None else beta_label(run.beta0)
         # Names read from a run's own files become path parts: only plain names, and the target
@@ -71,9 +75,8 @@ def export_runs(root: str, dest: str) -> list[Exported]:
         if not _inside(target, dest):
             out.append(Exported(run.dir, dest, "skipped (its path would leave the export directory)"))
             continue
-        state = run.run_dir.status()
-        if state != FINISHED:
-            out.append(Exported(run.dir, target, f"skipped ({state})"))
+        if result.state != FINISHED:
+            out.append(Exported(run.dir, target, f"skipped ({result.state})"))
             continue
         missing = [f for f in REQUIRED_FILES if not os.path.isfile(os.path.join(run.dir, f))]
         if missing:

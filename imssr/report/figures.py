@@ -37,15 +37,15 @@ def _save(plt, fig, path: str) -> str:
     return path
 
 
-def curve_points(results: SweepResults, task: str, mode: str, label: str) -> list[tuple[int, float, float, int]]:
-    """``(agent step, mean, std, seeds)`` over the seeds that evaluated at each agent step."""
-    by_step: dict[int, list[float]] = {}
+def curve_points(results: SweepResults) -> dict[tuple[str, str, str], list[tuple[int, float, float, int]]]:
+    """``(task, mode, label) -> [(agent step, mean, std, seeds)]`` over the seeds that evaluated
+    at each agent step, from one pass over the runs (a pass per curve would cost curves x runs)."""
+    by_step: dict[tuple[str, str, str], dict[int, list[float]]] = {}
     for result in results.runs:
-        if result.run.task == task and result.label == label:
-            for m, step, _, ret in result.evals:
-                if m == mode:
-                    by_step.setdefault(step, []).append(ret)
-    return [(s, float(np.mean(v)), float(np.std(v)), len(v)) for s, v in sorted(by_step.items())]
+        for mode, step, _, ret in result.evals:
+            by_step.setdefault((result.run.task, mode, result.label), {}).setdefault(step, []).append(ret)
+    return {key: [(s, float(np.mean(v)), float(np.std(v)), len(v)) for s, v in sorted(steps.items())]
+            for key, steps in by_step.items()}
 
 
 def plot_curves(results: SweepResults, path: str) -> str:
@@ -58,10 +58,11 @@ def plot_curves(results: SweepResults, path: str) -> str:
         panels = [(sorted({r.run.task for r in results.runs})[0], "training")]
     labels = label_order(results)
     colors = {label: plt.cm.tab10(i % 10) for i, label in enumerate(labels)}
+    curves = curve_points(results)
     fig, axes = _grid(plt, len(panels))
     for ax, (task, mode) in zip(axes, panels):
         for label in labels:
-            pts = curve_points(results, task, mode, label)
+            pts = curves.get((task, mode, label))
             if not pts:
                 continue
             x = [p[0] for p in pts]

@@ -10,8 +10,8 @@ Files written under ``out``:
 - ``aggregates.csv``   rliable IQM across tasks with 95% bootstrap CIs (5 seeds per task or more)
 - ``curves.png``       learning curves against agent steps, one panel per task and mode
 - ``beta0.png``        final return against beta_0 (only for a beta sweep)
-- ``report.md``        all of the above in one page, with the runs that failed in the sweep
-                       (``sweep_status.json``) and notes on what is missing
+- ``report.md``        all of the above in one page, with the runs that failed (``sweep_status.json``,
+                       each run's ``status.json``) and notes on what is missing
 
 T and its fractions count agent steps, as the paper's do; frames are given beside them.
 """
@@ -83,7 +83,7 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
 def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, with_paper: bool,
               beta_plot: bool, reps: int) -> str:
     n_evals = sum(len(r.evals) for r in results.runs)
-    failed = (f" **{len(results.failures)} failed** in the sweep (see Failed runs)." if results.failures else "")
+    failed = (f" **{len(results.failures)} failed** (see Failed runs)." if results.failures else "")
     against = tables.markdown_against_paper(rows) if with_paper else ""
     parts = [
         f"# Sweep report: `{root_name}`\n",
@@ -124,9 +124,10 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, 
                   "base algorithms (beta_0 = 0).\n", "![beta_0](beta0.png)\n"]
     if results.failures:
         parts.append("## Failed runs\n")
-        parts.append("Runs that `sweep_status.json` lists as failed after every attempt, with the last error "
-                     "(the full output is in each run's `sweep.log`); their evaluations up to the failure "
-                     "count where they reach.\n")
+        parts.append("Runs that failed, with the last error: those `sweep_status.json` lists as failed after "
+                     "every attempt (the full output is in each run's `sweep.log`) and those whose own last "
+                     "training failed or diverged (`status.json`); their evaluations up to the failure count "
+                     "where they reach.\n")
         parts.append("\n".join(f"- `{os.path.relpath(d, results.root)}`: {e}"
                                for d, e in sorted(results.failures.items())) + "\n")
     parts.append("## Notes\n")

@@ -8,7 +8,8 @@ on hand-assembled directories and on sweeps that are still running; each is name
 :class:`~imssr.sweep.grid.Run`.  The files ``imssr sweep`` writes under the root, read through
 :class:`~imssr.sweep.directory.SweepDir`, add the runs that were planned but have not written
 anything yet (``sweep.json``) and the runs that failed every attempt, with their last error
-(``sweep_status.json``).
+(``sweep_status.json``).  How each run stands (finished, failed, diverged, ...) is its own
+:meth:`RunDir.outcome <imssr.rundir.RunDir.outcome>`, read once here for the report and the export.
 """
 from __future__ import annotations
 
@@ -17,10 +18,11 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
-from imssr.config import steps_for_frames
+from imssr.config import MAX_INT, steps_for_frames
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_csv, read_csv
-from imssr.rundir import CHECKPOINT_DIR, CONFIG_FILE, TB_DIR, VIDEOS_DIR, RunDir, parse_run_path
+from imssr.rundir import (CHECKPOINT_DIR, CONFIG_FILE, DIVERGED, FAILED, TB_DIR, VIDEOS_DIR, RunDir,
+                          parse_run_path)
 from imssr.sweep.directory import PLAN_FILE, PlannedRun, SweepDir
 from imssr.sweep.grid import Run, beta_label, group_label
 
@@ -52,6 +54,12 @@ class RunResult:
     provenance: list[dict] = field(default_factory=list)
     """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] for a run of imssr
     before them or one whose file cannot be read."""
+    state: str = ""
+    """How the run stands when read (:meth:`RunDir.outcome <imssr.rundir.RunDir.outcome>`):
+    ``new``, ``running``, ``interrupted``, ``finished``, ``failed`` or ``diverged``."""
+    error: str = ""
+    """The error line of a run whose last training failed or diverged (``status.json``); ""
+    otherwise."""
 
     @property
     def frames(self) -> int:
@@ -77,10 +85,18 @@ class SweepResults:
     """The runs ``sweep.json`` lists (they may not exist yet)."""
     notes: list[str]
     failures: dict[str, str] = field(default_factory=dict)
-    """Run directory (absolute) -> last error, for every run ``sweep_status.json`` lists as failed."""
+    """Run directory (absolute) -> last error, for every run that failed: listed as failed in
+    ``sweep_status.json``, or whose own last training failed or diverged (``status.json``; a
+    member of ``imssr train --seeds``, a run trained by hand)."""
+    skipped: dict[str, str] = field(default_factory=dict)
+    """Run directory (absolute) -> why it is left out: a ``config.json`` or ``eval.csv`` that
+    cannot be read."""
+    _tasks: Optional[dict[str, tuple[int, Optional[int]]]] = field(default=None, init=False, repr=False,
+                                                                    compare=False)
+    """Task -> ``(budget, action repeat)`` (:meth:`_per_task`), made when first asked."""
 
     def failure(self, run: Run) -> Optional[str]:
-        """The last error of ``run`` when ``sweep_status.json`` lists it as failed; None otherwise."""
+        """The last error of ``run`` when it failed (:attr:`failures`); None otherwise."""
         return self.failures.get(os.path.abspath(run.dir))
 
     @property
@@ -90,15 +106,30 @@ class SweepResults:
     def budget(self, task: str) -> int:
         """The sweep's T for ``task`` in agent steps: the planned budget, else the largest
         budget of its runs."""
-        steps = [p.steps for p in self.planned if p.run.task == task] or \
-                [r.steps for r in self.runs if r.run.task == task]
-        return max(steps)
+        return self._per_task()[task][0]
 
     def action_repeat(self, task: str) -> Optional[int]:
         """The action repeat of ``task``'s runs; None when they differ (then a point in agent
         steps is no single frame count)."""
-        repeats = {r.action_repeat for r in self.runs if r.run.task == task}
-        return repeats.pop() if len(repeats) == 1 else None
+        return self._per_task()[task][1]
+
+    def _per_task(self) -> dict[str, tuple[int, Optional[int]]]:
+        """Task -> ``(budget, action repeat)``, from one pass over the plan and the runs when first
+        asked (they are complete once :func:`collect` returns): tables ask it per row and per
+        point, which must not cost a pass over thousands of runs each time."""
+        if self._tasks is None:
+            planned: dict[str, int] = {}
+            for p in self.planned:
+                planned[p.run.task] = max(p.steps, planned.get(p.run.task, p.steps))
+            ran: dict[str, int] = {}
+            repeats: dict[str, set[int]] = {}
+            for r in self.runs:
+                ran[r.run.task] = max(r.steps, ran.get(r.run.task, r.steps))
+                repeats.setdefault(r.run.task, set()).add(r.action_repeat)
+            self._tasks = {task: (planned.get(task, ran.get(task)),
+                                  next(iter(repeats[task])) if len(repeats.get(task, ())) == 1 else None)
+                           for task in {*planned, *ran}}
+        return self._tasks
 
     def frames_at(self, task: str, step: int) -> Optional[int]:
         """Agent step ``step`` of ``task`` in environment frames (None: mixed action repeats)."""
@@ -112,22 +143,31 @@ def collect(root: str) -> SweepResults:
     root = os.path.abspath(root)
     notes: list[str] = []
     runs = []
+    skipped: dict[str, str] = {}
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if d not in (CHECKPOINT_DIR, TB_DIR, VIDEOS_DIR))
         if CONFIG_FILE not in filenames:
             continue
-        run = _read_run(dirpath, root, notes)
+        run = _read_run(dirpath, root, notes, skipped)
         if run is not None:
             runs.append(run)
+    if not runs:
+        # Say which runs were found and why none can be read, not that there are none.
+        why = [f"{os.path.relpath(d, root)}: {reason}" for d, reason in skipped.items()]
+        raise ImssrError(f"no readable runs under {root}: " + "; ".join(why[:3])
+                         + (f"; and {len(why) - 3} more" if len(why) > 3 else "") if why else
+                         f"no runs under {root} (a run directory holds config.json and eval.csv)")
     set_apart(runs, root)
     planned = _read_plan(root, notes)
-    results = SweepResults(root, runs, planned, notes, SweepDir(root).failed_runs())
+    failures = SweepDir(root).failed_runs()
+    for result in runs:
+        if result.state in (FAILED, DIVERGED):
+            failures.setdefault(os.path.abspath(result.run.dir), result.error)
+    results = SweepResults(root, runs, planned, notes, failures, skipped)
     found = {os.path.abspath(r.run.dir) for r in runs}
     for p in planned:
         if p.run.dir not in found and results.failure(p.run) is None:
             notes.append(f"{os.path.relpath(p.run.dir, root)}: planned but not started (no config.json)")
-    if not runs:
-        raise ImssrError(f"no runs under {root} (a run directory holds config.json and eval.csv)")
     return results
 
 
@@ -150,15 +190,25 @@ def set_apart(runs: list[RunResult], root: str) -> None:
         seeds = [r.run.seed for r in group]
         if len(seeds) == len(set(seeds)):
             continue
-        keys = sorted({k for r in group for k in r.settings if k not in IDENTITY + RUN_ONLY
-                       and len({repr(o.settings.get(k)) for o in group}) > 1})
+        # Each setting's values over the group in one pass over its runs, so that thousands of
+        # runs of one seed cost linear work, not a comparison of every run with every other.
+        values: dict[str, set[str]] = {}
+        for result in group:
+            for k in result.settings:
+                if k not in IDENTITY + RUN_ONLY:
+                    values.setdefault(k, set())
+        for result in group:
+            for k, seen in values.items():
+                seen.add(repr(result.settings.get(k)))
+        keys = sorted(k for k, seen in values.items() if len(seen) > 1)
         for result in group:
             # Runs alike in every setting (a copy of a run, the same sweep twice): their directories.
             result.variant = ", ".join(f"{k}={result.settings.get(k)}" for k in keys) or \
                 os.path.relpath(os.path.dirname(result.run.dir), root)
 
 
-def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
+def _read_run(run_dir: str, root: str, notes: list[str], skipped: dict[str, str]) -> Optional[RunResult]:
+    """The run in ``run_dir``; None when it cannot be read, with why in ``skipped`` and ``notes``."""
     rel = os.path.relpath(run_dir, root)
     run_files = RunDir(run_dir)
     try:
@@ -166,11 +216,13 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
         where = parse_run_path(rel)
         beta0 = float(cfg.intrinsic.beta0) if where is not None and where.beta0_label is not None else None
     except (ImssrError, OSError, ValueError, KeyError, TypeError) as exc:
-        notes.append(f"{rel}: unreadable config.json ({exc}); skipped")
+        skipped[run_dir] = f"unreadable config.json ({exc})"
+        notes.append(f"{rel}: {skipped[run_dir]}; skipped")
         return None
     repeat = cfg.env.action_repeat
     result = RunResult(Run(cfg.algo, cfg.env.task, cfg.train.seed, beta0, run_dir), cfg.train.steps, repeat,
                        precision=cfg.agent.precision_label, settings=cfg.flat())
+    result.state, result.error = run_files.outcome()
     records = run_files.read_provenance()
     if records is None:
         notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
@@ -179,18 +231,26 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     try:
         rows = read_csv(path, complete_only=True)
     except ImssrError as exc:  # one damaged run must not stop a report of the others
+        skipped[run_dir] = str(exc)
         notes.append(f"{rel}: {exc}; skipped")
         return None
     non_finite: list[str] = []
+    not_counts: list[str] = []
     for row in rows:
         try:
-            frame = int(float(row["frame"]))
+            frame = _count(row["frame"], MAX_INT * MAX_INT)
             # Every eval.csv has a step column; a hand-made one without it gets the step at which
             # the loop reaches that frame.
-            step = int(float(row["step"])) if row.get("step") not in (None, "") else steps_for_frames(frame, repeat)
+            has_step = row.get("step") not in (None, "")
+            step = _count(row["step"], MAX_INT) if has_step else \
+                None if frame is None else steps_for_frames(frame, repeat)
             value = float(row["return_mean"])
         except (KeyError, TypeError, ValueError):
             continue  # a row cut short by a killed process
+        if step is None or frame is None:
+            # inf, 1e30 or -5 is no agent step: such a point would break every table and plot.
+            not_counts.append(f"step {row['step']}, frame {row['frame']}" if has_step else f"frame {row['frame']}")
+            continue
         if not math.isfinite(value):
             # A mean over seeds with a nan or inf in it says nothing: the point is left out, and said.
             non_finite.append(f"{value} at agent step {step:,} ({row['mode']})")
@@ -199,9 +259,20 @@ def _read_run(run_dir: str, root: str, notes: list[str]) -> Optional[RunResult]:
     if non_finite:
         notes.append(f"{rel}: {len(non_finite)} evaluation(s) with a non-finite return left out: "
                      f"{', '.join(non_finite[:3])}{', ...' if len(non_finite) > 3 else ''}")
+    if not_counts:
+        notes.append(f"{rel}: {len(not_counts)} evaluation(s) with a step or frame that is no whole number of agent "
+                     f"steps or frames left out: {'; '.join(not_counts[:3])}{'; ...' if len(not_counts) > 3 else ''}")
     if not result.evals:
         notes.append(f"{rel}: no evaluations yet")
     return result
+
+
+def _count(text: str, most: int) -> Optional[int]:
+    """``text`` as a count of agent steps or frames, an integer in ``[0, most]`` (``most``: the
+    bound of ``train.steps``, or of its frames); None for any other number (``inf``, ``nan``,
+    ``1e30``, ``-5``, ``2.5``); ValueError when it is no number at all."""
+    number = float(text)
+    return int(number) if math.isfinite(number) and number.is_integer() and 0 <= number <= most else None
 
 
 def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:

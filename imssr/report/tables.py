@@ -10,9 +10,10 @@ is the same step.  A seed whose evaluations stop before ``p`` (an unfinished run
 there, and the cell says how many of the expected seeds it averages.  Std is the sample standard
 deviation over seeds (ddof 1, :func:`imssr.report.stats.sample_std`), so one seed has none.  A
 published number comes with its seeds where the source says them, and a cell beside one gets the
-difference of means with its 95% Welch interval.  A seed whose run
-``sweep_status.json`` lists as failed and that has no value at a point is counted as failed
-there ("(2/3, 1 failed)"), not as merely missing.
+difference of means with its 95% Welch interval.  A seed whose run failed
+(:attr:`SweepResults.failures <imssr.report.results.SweepResults.failures>`: ``sweep_status.json``
+or the run's own ``status.json``) and that has no value at a point is counted as failed there
+("(2/3, 1 failed)"), not as merely missing.
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from imssr.files import atomic_write_csv
 from imssr.presets import ALGOS
 from imssr.report.results import RunResult, SweepResults
 from imssr.report.stats import sample_std, welch_interval
+from imssr.sweep.directory import PlannedRun
 
 FRACTIONS = (0.2, 0.5, 1.0)
 TABLE_COLUMNS = ["mode", "task", "label", "algo", "beta0", "fraction", "step", "frame", "mean", "std",
@@ -63,7 +65,7 @@ class Cell:
     expected: int = 0
     """Seeds the sweep planned (or that any algo of the task ran) for this group."""
     failed: set[int] = field(default_factory=set)
-    """Seeds without a value here whose run failed (``sweep_status.json``)."""
+    """Seeds without a value here whose run failed (``sweep_status.json`` or its ``status.json``)."""
     best: bool = False
     """Highest mean of its (mode, task) row group at this fraction."""
     paper: Optional[PaperNumber] = None
@@ -151,6 +153,9 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
     by_group: dict[tuple[str, str], list[RunResult]] = {}
     for result in results.runs:
         by_group.setdefault((result.run.task, result.label), []).append(result)
+    planned_groups: dict[tuple[str, str], list[PlannedRun]] = {}
+    for p in results.planned:
+        planned_groups.setdefault((p.run.task, p.label), []).append(p)
     rows = []
     for task in sorted({r.run.task for r in results.runs}):
         budget = results.budget(task)
@@ -159,9 +164,9 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
         for mode in modes:
             for label in labels:
                 runs = by_group.get((task, label), [])
-                if not runs and not any(p.run.task == task and p.label == label for p in results.planned):
+                if not runs and (task, label) not in planned_groups:
                     continue
-                first = runs[0] if runs else next(p for p in results.planned if p.label == label)
+                first = runs[0] if runs else planned_groups[task, label][0]
                 algo, beta0, precision = first.run.algo, first.run.beta0, first.precision
                 want = expected.get(label, set())
                 cells = []
@@ -183,9 +188,8 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
                             cell.values[result.run.seed] = value
                     absent = sorted(want - {r.run.seed for r in runs})
                     # Planned runs that failed before writing their config.json.
-                    failed_early = {p.run.seed: results.failure(p.run) for p in results.planned
-                                    if p.run.task == task and p.label == label and results.failure(p.run)
-                                    and p.run.seed in absent}
+                    failed_early = {p.run.seed: results.failure(p.run) for p in planned_groups.get((task, label), ())
+                                    if p.run.seed in absent and results.failure(p.run)}
                     cell.failed |= set(failed_early)
                     absent = [s for s in absent if s not in failed_early]
                     if late or absent or failed_early:

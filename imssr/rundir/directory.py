@@ -593,14 +593,23 @@ class RunDir:
         it recorded it (``finished``, ``interrupted``, ``failed``, ``diverged``: ``status.json``);
         else ``finished`` when a sweep marked it done, ``interrupted`` when it has a checkpoint
         (a training killed outright), and ``new`` otherwise."""
+        return self.outcome()[0]
+
+    def outcome(self) -> tuple[str, str]:
+        """``(state, error)``: :meth:`status`, and for a run whose last training ``failed`` or
+        ``diverged`` the error line it recorded (the state itself when it recorded none); ""
+        otherwise.  What ``imssr report`` and ``imssr export`` know of how a run stands."""
         if self.in_use():
-            return RUNNING
+            return RUNNING, ""
         record = self.read_status()
         if record is not None:
-            return record["state"]
+            state = record["state"]
+            error = record.get("error")
+            return state, ((error if isinstance(error, str) and error else state) if state in (FAILED, DIVERGED)
+                           else "")
         if self.read_done() is not None:
-            return FINISHED
-        return INTERRUPTED if self.has_checkpoint() else NEW
+            return FINISHED, ""
+        return (INTERRUPTED if self.has_checkpoint() else NEW), ""
 
     def read_status(self) -> Optional[dict]:
         """The record of how the last training ended (None: none, or unreadable)."""

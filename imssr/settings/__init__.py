@@ -10,7 +10,8 @@ build on it, and :mod:`imssr.config` assembles it with them into a run's config.
 - ``plugin``: what a plug-in declares (:class:`AuxPlugin`, :class:`SignalPlugin`), the preset rows
   with their sources (:class:`Setting`), and the registries' and sections' assembly.
 """
-from imssr.settings.fields import (MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT, MAX_SEED, SEED_RULE,
+from imssr.settings.fields import (ADAM_BETA_RULE, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT, MAX_SEED,
+                                   MAX_SHADOW_SIZE, MAX_TORCH_THREADS, MIN_CROP_SIZE, SEED_RULE,
                                    dataclass_field_docs, dataclass_field_types, type_phrase)
 from imssr.settings.plugin import (AUTHORS, AUTHORS_CURL, AUTHORS_LOOP, AUTHORS_SIGNAL, DECAY, DMCGB, IMSSR,
                                    OFFICIAL_CURL, PAPER, TABLE3, TABLE5, AuxPlugin, Beta0, Implementations, Plugin,
@@ -21,9 +22,10 @@ from imssr.settings.sections import (BATCH_LAYOUTS, COMPILE_MODES, NORMALIZATION
                                      IntrinsicCore, TrainConfig, conv_output_size, steps_for_frames)
 
 __all__ = [
-    "AUTHORS", "AUTHORS_CURL", "AUTHORS_LOOP", "AUTHORS_SIGNAL", "AgentConfig", "AuxCore", "AuxPlugin", "Beta0",
-    "BATCH_LAYOUTS", "COMPILE_MODES", "DECAY", "DMCGB", "EnvConfig", "IMSSR", "Implementations", "IntrinsicCore", "MAX_ADDRESSABLE_BYTES",
-    "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "NORMALIZATIONS", "OFFICIAL_CURL", "PAPER", "PRECISIONS", "Plugin",
+    "ADAM_BETA_RULE", "AUTHORS", "AUTHORS_CURL", "AUTHORS_LOOP", "AUTHORS_SIGNAL", "AgentConfig", "AuxCore",
+    "AuxPlugin", "BATCH_LAYOUTS", "Beta0", "COMPILE_MODES", "DECAY", "DMCGB", "EnvConfig", "IMSSR", "Implementations", "IntrinsicCore",
+    "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "MAX_SHADOW_SIZE", "MAX_TORCH_THREADS",
+    "MIN_CROP_SIZE", "NORMALIZATIONS", "OFFICIAL_CURL", "PAPER", "PRECISIONS", "Plugin",
     "REPLAY_DEVICES", "SCHEDULES", "SEED_RULE", "Sections", "Setting", "SignalPlugin", "TABLE3", "TABLE5",
     "TF32_MODES", "TrainConfig", "UPDATE_SCHEDULES", "VIDEO_FORMATS", "compose_section", "conv_output_size",
     "dataclass_field_docs", "dataclass_field_types", "plugin_table", "steps_for_frames", "type_phrase",

@@ -25,6 +25,19 @@ MAX_IMAGE_SIZE = 480
 every DeepMind Control model (their shared visual settings)."""
 MAX_ADDRESSABLE_BYTES = sys.maxsize
 """Largest array a process can address (numpy's limit): bounds the replay buffer's frames."""
+MAX_SHADOW_SIZE = 16384
+"""Largest MuJoCo shadow map side (``env.shadow_size``): the map is an OpenGL texture, and 16384
+is the largest side every OpenGL 4.1 renderer must accept (``GL_MAX_TEXTURE_SIZE``; Mesa's
+llvmpipe accepts no more, and MuJoCo stops on an incomplete shadow framebuffer beyond it)."""
+MAX_TORCH_THREADS = 1024
+"""Most torch intra-op threads (``train.torch_threads``): more than any CPU has hardware threads
+to run them on, far below what OpenMP can start (a thread per pid: Linux's default ``pid_max``
+is 32768, and libgomp aborts the process when a thread cannot be made).  A fixed number, not the
+machine's core count, as a config is checked on the machine that writes it (a sweep's) too."""
+MIN_CROP_SIZE = 3
+"""Smallest crop (``agent.crop_size``): the encoder's first convolution is 3x3, without padding."""
+ADAM_BETA_RULE = "in [0, 1) (torch's Adam)"
+"""What torch's Adam accepts of a beta: 0 <= beta < 1."""
 SEED_RULE = f"an integer in [0, {MAX_SEED}] (numpy and dm_control take 32-bit seeds, and evaluation adds up to 20000)"
 
 

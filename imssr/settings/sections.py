@@ -30,7 +30,8 @@ class EnvConfig:
     """Frames stacked (channels first) into one observation."""
     shadow_size: int = 512
     """MuJoCo shadow-map size in pixels (the suite's default is 2048; 512 steps the env 1.7-2.2x
-    faster and changes pixels by 0.003-0.025 grey levels on average; docs/performance.md)."""
+    faster and changes pixels by 0.003-0.025 grey levels on average; docs/performance.md); at
+    most 16384, the largest OpenGL texture every renderer takes."""
 
 
 @dataclass
@@ -56,7 +57,8 @@ class AgentConfig:
     hidden_dim: int = 1024
     """Width of the two hidden layers of the actor and of each Q head."""
     crop_size: int = 84
-    """Random crop (training) / centre crop (acting) size from ``image_size``."""
+    """Random crop (training) / centre crop (acting) size from ``image_size``; at least 3, and
+    enough for ``encoder_layers`` to leave a pixel."""
     discount: float = 0.99
     """Discount factor gamma."""
     batch_size: int = 128
@@ -64,15 +66,15 @@ class AgentConfig:
     critic_lr: float = 1e-3
     """Adam learning rate of the critic (including the encoder)."""
     critic_beta1: float = 0.9
-    """Adam beta1 of the critic."""
+    """Adam beta1 of the critic, in [0, 1)."""
     actor_lr: float = 1e-3
     """Adam learning rate of the actor (its head; the convs belong to the critic)."""
     actor_beta1: float = 0.9
-    """Adam beta1 of the actor."""
+    """Adam beta1 of the actor, in [0, 1)."""
     alpha_lr: float = 1e-4
     """Adam learning rate of the log temperature."""
     alpha_beta1: float = 0.5
-    """Adam beta1 of the log temperature."""
+    """Adam beta1 of the log temperature, in [0, 1)."""
     init_temperature: float = 0.1
     """Initial SAC temperature alpha."""
     critic_tau: float = 0.01
@@ -256,7 +258,7 @@ class TrainConfig:
     progress: bool = True
     """Show a progress bar with frames per second."""
     torch_threads: int = 0
-    """torch intra-op threads (0 leaves torch's default)."""
+    """torch intra-op threads (0 leaves torch's default); at most 1024."""
     env_workers: bool = False
     """Step the training env and each evaluation env in a process of its own, overlapped with the
     update where the loop's order allows it (many seeds in one process step all their envs at
