@@ -23,7 +23,7 @@ from typing import Optional
 import torch
 
 from imssr._version import __version__
-from imssr.precision import cpu_has_native_bf16
+from imssr.precision import cpu_has_native_bf16, cpu_info
 
 FIELDS = ("imssr", "git_commit", "git_clean", "python", "torch", "cuda", "cudnn", "nvidia_driver", "numpy",
           "dm_control", "mujoco", "device", "device_name", "cpu", "cpu_native_bf16")
@@ -82,13 +82,9 @@ def git_state() -> tuple[Optional[str], Optional[bool]]:
 @functools.cache
 def cpu_model() -> Optional[str]:
     """The CPU's model name (``/proc/cpuinfo``), else what the platform says."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
+    for line in (cpu_info() or "").splitlines():
+        if line.lower().startswith("model name"):
+            return line.split(":", 1)[1].strip()
     return platform.processor() or platform.machine() or None
 
 
