@@ -6,8 +6,9 @@ that can change a run's numbers (imssr and, when it runs from a git checkout, th
 whether tracked files differ from it; Python, torch, CUDA, cuDNN, the NVIDIA driver, numpy,
 dm_control, mujoco), the device (its name: the GPU's, or the CPU model and whether it computes
 bfloat16 natively) and the command line.  No host name is recorded, and every absolute or
-home-relative path in the command line is cut to its last part (``…/runs``): a committed
-result does not carry its author's machine.
+home-relative path in the command line, also inside a ``--set`` value, is cut to its last part
+(``…/runs``): a committed record does not carry its author's machine.  (``config.json`` keeps the
+data folders a run reads as given, so that a resume reads the same.)
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import datetime
 import functools
 import os
 import platform
+import re
 import subprocess
 import sys
 from importlib import metadata
@@ -99,19 +101,23 @@ def nvidia_driver() -> Optional[str]:
     return next((w for w in words if w[:1].isdigit() and "." in w), None)
 
 
+PATH_IN_ARG = re.compile(r"(?:^|(?<=[=\[,(\s'\"]))[/~][^,\])\s'\"]*")
+"""An absolute or home-relative path inside one argument: the whole argument, or one that starts
+after ``=``, ``[``, ``,``, ``(``, a space or a quote (``--out=/x``, ``--set aux.image_dir=/x``,
+``--set key=[/a,~/b]``), up to the next such delimiter."""
+
+
 def command_line(argv: list[str]) -> list[str]:
-    """``argv`` with the program cut to its name and every absolute or home-relative path (also
-    after ``--flag=``) cut to its last part: ``…/name``."""
+    """``argv`` with the program cut to its name and every absolute or home-relative path inside
+    an argument (:data:`PATH_IN_ARG`) cut to its last part, ``…/name``; an argument that still
+    names the home directory is cut as a whole."""
     out = [os.path.basename(argv[0])] if argv else []
     home = os.path.expanduser("~")
     for arg in argv[1:]:
-        prefix, value = ("", arg)
-        if arg.startswith("--") and "=" in arg:
-            prefix, value = arg.split("=", 1)
-            prefix += "="
-        if value.startswith(("/", "~")) or (home not in ("", "/") and home in value):
-            value = "…/" + os.path.basename(value.rstrip("/"))
-        out.append(prefix + value)
+        arg = PATH_IN_ARG.sub(lambda m: "…/" + os.path.basename(m.group(0).rstrip("/")), arg)
+        if home not in ("", "/") and home in arg:
+            arg = "…/" + os.path.basename(arg.rstrip("/"))
+        out.append(arg)
     return out
 
 
