@@ -132,35 +132,76 @@ def optimizer_step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> No
     torch.clear_autocast_cache()
 
 
+def cpu_features(cpuinfo: str) -> tuple[str, frozenset[str]]:
+    """``(vendor, flags)`` of the CPU that ``cpuinfo`` (the text of /proc/cpuinfo) describes: x86's
+    ``vendor_id`` (``GenuineIntel``, ``AuthenticAMD``; empty elsewhere) and its ``flags`` (Arm:
+    ``Features``)."""
+    vendor, flags = "", set()
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip().lower()
+        if key == "vendor_id" and not vendor:
+            vendor = value.strip()
+        elif key in ("flags", "features"):
+            flags.update(value.split())
+    return vendor, frozenset(flags)
+
+
 def native_bf16(cpuinfo: str) -> bool:
     """Whether the CPU that ``cpuinfo`` (the text of /proc/cpuinfo) describes computes bfloat16
     natively: x86 ``avx512_bf16`` or AMX (``amx_bf16``), Arm ``bf16``."""
-    flags = {word for line in cpuinfo.splitlines() if line.lower().startswith(("flags", "features"))
-             for word in line.split(":", 1)[-1].split()}
-    return bool(flags & {"avx512_bf16", "amx_bf16", "bf16"})
+    return bool(cpu_features(cpuinfo)[1] & {"avx512_bf16", "amx_bf16", "bf16"})
+
+
+def bf16_slowdown(vendor: str, flags: frozenset[str]) -> Optional[str]:
+    """Why ``agent.precision=bf16`` is expected to run slower than float32 on a CPU of ``vendor``
+    with ``flags`` (:func:`cpu_features`): ``"no-amx"`` (``avx512_bf16`` on a CPU that is not
+    AMD's, without AMX) or ``"emulated"`` (no native bfloat16); None where it is expected to gain
+    or nothing is known.
+
+    Measured per update (docs/performance.md, "Mixed precision"): AMD Zen 4 (``avx512_bf16``)
+    0.42-0.46x of float32's time, an Intel Xeon with ``avx512_bf16`` but without AMX 1.14-1.23x,
+    emulated bfloat16 about 5x.  Intel CPUs with AMX (``amx_bf16``) gain; Arm's ``bf16`` is native
+    and not measured."""
+    if flags & {"amx_bf16", "bf16"}:
+        return None
+    if "avx512_bf16" in flags:
+        return None if vendor == "AuthenticAMD" else "no-amx"
+    return "emulated"
 
 
 @functools.cache
-def cpu_has_native_bf16() -> Optional[bool]:
-    """:func:`native_bf16` of this machine; None when it cannot tell (no /proc/cpuinfo)."""
+def cpu_info() -> Optional[str]:
+    """The text of this machine's /proc/cpuinfo; None where there is none."""
     try:
         with open("/proc/cpuinfo") as f:
-            return native_bf16(f.read())
+            return f.read()
     except OSError:
         return None
+
+
+def cpu_has_native_bf16() -> Optional[bool]:
+    """:func:`native_bf16` of this machine; None when it cannot tell (no /proc/cpuinfo)."""
+    info = cpu_info()
+    return None if info is None else native_bf16(info)
 
 
 _warned_slow_bf16 = False
 
 
 def warn_if_bf16_is_slow(device: torch.device, precision: str) -> Optional[str]:
-    """Print, once per process, that bf16 will be slow on a CPU without native bfloat16 (it is
-    emulated there: slower than float32); return the line, or None when there is nothing to say."""
+    """Print, once per process, that bf16 will be slower than float32 on this CPU
+    (:func:`bf16_slowdown`); return the line, or None when there is nothing to say."""
     global _warned_slow_bf16
-    if precision != "bf16" or device.type != "cpu" or cpu_has_native_bf16() is not False:
+    info = cpu_info() if precision == "bf16" and device.type == "cpu" else None
+    why = None if info is None else bf16_slowdown(*cpu_features(info))
+    if why is None:
         return None
-    line = (f"imssr: warning: agent.precision=bf16 on a CPU without native bfloat16 (no avx512_bf16/AMX; "
-            f"torch sees {torch.backends.cpu.get_cpu_capability()}): expect it slower than fp32 here")
+    cpu = {"no-amx": "with avx512_bf16 but without AMX (AMD Zen 4 and Intel CPUs with AMX gain; an Intel "
+                     "Xeon without AMX ran bf16 updates at 1.14-1.23x of fp32's time)",
+           "emulated": "without native bfloat16 (no avx512_bf16/AMX; torch sees "
+                       f"{torch.backends.cpu.get_cpu_capability()})"}[why]
+    line = f"imssr: warning: agent.precision=bf16 on a CPU {cpu}: expect it slower than fp32 here"
     if not _warned_slow_bf16:
         _warned_slow_bf16 = True
         print(line, file=sys.stderr)

@@ -6,8 +6,9 @@ that can change a run's numbers (imssr and, when it runs from a git checkout, th
 whether tracked files differ from it; Python, torch, CUDA, cuDNN, the NVIDIA driver, numpy,
 dm_control, mujoco), the device (its name: the GPU's, or the CPU model and whether it computes
 bfloat16 natively) and the command line.  No host name is recorded, and every absolute or
-home-relative path in the command line is cut to its last part (``…/runs``): a committed
-result does not carry its author's machine.
+home-relative path in the command line, also inside a ``--set`` value, is cut to its last part
+(``…/runs``): a committed record does not carry its author's machine.  (``config.json`` keeps the
+data folders a run reads as given, so that a resume reads the same.)
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import datetime
 import functools
 import os
 import platform
+import re
 import subprocess
 import sys
 from importlib import metadata
@@ -23,7 +25,7 @@ from typing import Optional
 import torch
 
 from imssr._version import __version__
-from imssr.precision import cpu_has_native_bf16
+from imssr.precision import cpu_has_native_bf16, cpu_info
 
 FIELDS = ("imssr", "git_commit", "git_clean", "python", "torch", "cuda", "cudnn", "nvidia_driver", "numpy",
           "dm_control", "mujoco", "device", "device_name", "cpu", "cpu_native_bf16")
@@ -82,13 +84,9 @@ def git_state() -> tuple[Optional[str], Optional[bool]]:
 @functools.cache
 def cpu_model() -> Optional[str]:
     """The CPU's model name (``/proc/cpuinfo``), else what the platform says."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
+    for line in (cpu_info() or "").splitlines():
+        if line.lower().startswith("model name"):
+            return line.split(":", 1)[1].strip()
     return platform.processor() or platform.machine() or None
 
 
@@ -103,19 +101,23 @@ def nvidia_driver() -> Optional[str]:
     return next((w for w in words if w[:1].isdigit() and "." in w), None)
 
 
+PATH_IN_ARG = re.compile(r"(?:^|(?<=[=\[,(\s'\"]))[/~][^,\])\s'\"]*")
+"""An absolute or home-relative path inside one argument: the whole argument, or one that starts
+after ``=``, ``[``, ``,``, ``(``, a space or a quote (``--out=/x``, ``--set aux.image_dir=/x``,
+``--set key=[/a,~/b]``), up to the next such delimiter."""
+
+
 def command_line(argv: list[str]) -> list[str]:
-    """``argv`` with the program cut to its name and every absolute or home-relative path (also
-    after ``--flag=``) cut to its last part: ``…/name``."""
+    """``argv`` with the program cut to its name and every absolute or home-relative path inside
+    an argument (:data:`PATH_IN_ARG`) cut to its last part, ``…/name``; an argument that still
+    names the home directory is cut as a whole."""
     out = [os.path.basename(argv[0])] if argv else []
     home = os.path.expanduser("~")
     for arg in argv[1:]:
-        prefix, value = ("", arg)
-        if arg.startswith("--") and "=" in arg:
-            prefix, value = arg.split("=", 1)
-            prefix += "="
-        if value.startswith(("/", "~")) or (home not in ("", "/") and home in value):
-            value = "…/" + os.path.basename(value.rstrip("/"))
-        out.append(prefix + value)
+        arg = PATH_IN_ARG.sub(lambda m: "…/" + os.path.basename(m.group(0).rstrip("/")), arg)
+        if home not in ("", "/") and home in arg:
+            arg = "…/" + os.path.basename(arg.rstrip("/"))
+        out.append(arg)
     return out
 
 

@@ -5,13 +5,14 @@ checked by running the same tiny, seeded runs on the old and the new tree and co
 number they leave: ``train.csv`` and ``eval.csv`` (all columns but wall-clock ones) and every
 tensor of the agent in the final checkpoint (networks, optimiser states)::
 
-    git worktree add /tmp/before main            # the tree to compare against
-    (cd /tmp/before && ../work/main/.venv/bin/python /work/main/scripts/fixedseed.py run /tmp/fs-before)
+    git worktree add ../before main              # the tree to compare against, beside this one
+    (cd ../before && "$OLDPWD/.venv/bin/python" scripts/fixedseed.py run /tmp/fs-before)
     .venv/bin/python scripts/fixedseed.py run /tmp/fs-after
     .venv/bin/python scripts/fixedseed.py compare /tmp/fs-before /tmp/fs-after
 
-``run`` uses the ``imssr`` of the tree it is started in (``python -m imssr`` from the current
-directory), one torch thread, the CPU.  ``--only NAME,...`` runs a subset.  Each case writes
+from the repository's root, both trees run by its ``.venv`` (``$OLDPWD``: the directory ``cd``
+left).  ``run`` uses the ``imssr`` of the tree it is started in (``python -m imssr`` from the
+current directory), one torch thread, the CPU.  ``--only NAME,...`` runs a subset.  Each case writes
 ``weights.pt``: the agent's tensors flattened to ``name -> tensor`` by the tree that trained
 it, so that ``compare`` reads only plain tensors (``weights_only=True``) whatever the
 checkpoint format of either tree.  ``compare`` exits 1 when anything differs.

@@ -23,8 +23,8 @@
 #                    (above 1: kernels ran at the same time)
 #   alone.txt        bench/step_time.py: one seed with its environment (render and step included),
 #                    eager and recorded
-# On a lent machine whose image lacks dm_control, MuJoCo, omegaconf and docstring-parser, carry
-# them as wheels (.whl/, the device README's recipe) and start the call with
+# On a GPU machine with torch but without dm_control, MuJoCo, omegaconf and docstring-parser, and
+# without a package index to fetch them from, bring their wheels in .whl/ and start with
 #   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
 #     --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site || exit; OUT=$OUT bash scripts/gpu_seeds.sh
 # Each item has its own share of BUDGET_S (default 470 s) and is cut, not the script, when it runs

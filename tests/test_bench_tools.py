@@ -47,3 +47,27 @@ def test_the_seeds_benches_build_their_agents_with_the_overrides():
     template = batch.template
     assert template.cfg.batch_size == 8 and template.cfg.encoder_filters == 8
     assert all(g["fused"] for o in batch.optimizers.values() for g in o.param_groups) and len(replays) == 2
+
+
+SYSTEM_PATHS = ("/tmp/", "/dev/null", "/usr/bin/env", "/proc/", "/path/for/")
+"""The absolute paths a script may name: temporary and system files, and the placeholder of its usage."""
+
+
+def test_scripts_and_benches_name_no_directory_of_a_particular_machine():
+    """They find the repository, its .venv and their data relative to themselves (or as arguments)
+    and speak of the project: an absolute path elsewhere is one machine's layout, and words about
+    the machine a script was written on mean nothing to a user."""
+    import glob
+    import re
+
+    path = re.compile(r"(?<![\w.~$}/:])/[A-Za-z][\w.-]*(?:/[\w.*-]+)*")
+    machine = re.compile(r"\blent\b|device README|this machine|\bsession\b", re.IGNORECASE)
+    found = {}
+    for name in sorted(glob.glob(os.path.join(REPO, "scripts", "*")) + glob.glob(os.path.join(REPO, "bench", "*"))):
+        if os.path.isfile(name):
+            with open(name) as fh:
+                text = fh.read()
+            bad = [p for p in path.findall(text) if not (p + "/").startswith(SYSTEM_PATHS)] + machine.findall(text)
+            if bad:
+                found[os.path.relpath(name, REPO)] = bad
+    assert not found

@@ -10,7 +10,8 @@ from conftest import assert_same_tensors, filled_buffer, load_script, small_agen
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 from imssr.intrinsic import IntrinsicReward
-from imssr.precision import FP32LayerNorm, FrozenBF16, full_precision, native_bf16, warn_if_bf16_is_slow
+from imssr.precision import (FP32LayerNorm, FrozenBF16, bf16_slowdown, cpu_features, full_precision, native_bf16,
+                             warn_if_bf16_is_slow)
 from imssr.presets import make_config
 
 
@@ -127,23 +128,48 @@ def test_native_bfloat16_is_read_from_cpuinfo_and_only_cpu_bf16_can_be_slow():
     assert native_bf16("processor\t: 0\nflags\t\t: fpu sse avx512f avx512_bf16 avx512_vnni\n")
     assert native_bf16("Features\t: fp asimd bf16 i8mm\n")
     assert not native_bf16("flags\t\t: fpu sse avx2 avx512f avx512bw\n")
+    assert cpu_features(INTEL_NO_AMX) == ("GenuineIntel", frozenset({"fpu", "avx2", "avx512f", "avx512_bf16"}))
+    assert cpu_features("Features\t: fp asimd bf16\n") == ("", frozenset({"fp", "asimd", "bf16"}))
     assert warn_if_bf16_is_slow(torch.device("cpu"), "fp32") is None
     assert warn_if_bf16_is_slow(torch.device("cuda"), "bf16") is None
 
 
-@pytest.mark.parametrize("native", [False, True, None])
-def test_the_slow_bf16_warning_is_printed_once_and_only_without_native_bfloat16(native, monkeypatch, capsys):
+INTEL_NO_AMX = "processor\t: 0\nvendor_id\t: GenuineIntel\nflags\t\t: fpu avx2 avx512f avx512_bf16\n"
+AVX512 = frozenset({"avx2", "avx512f", "avx512_bf16"})
+
+
+@pytest.mark.parametrize("vendor, flags, why", [
+    ("AuthenticAMD", AVX512, None),                                 # Zen 4: 0.42-0.46x of fp32's time
+    ("GenuineIntel", AVX512 | {"amx_bf16", "amx_tile"}, None),      # AMX
+    ("GenuineIntel", AVX512, "no-amx"),                             # a Xeon with avx512_bf16 alone: 1.14-1.23x
+    ("CentaurHauls", AVX512, "no-amx"),                             # not measured to gain
+    ("AuthenticAMD", frozenset({"avx2", "avx512f"}), "emulated"),   # Zen 3 / AVX-512 without bf16
+    ("GenuineIntel", frozenset({"avx2"}), "emulated"),
+    ("", frozenset({"fp", "asimd", "bf16"}), None),                 # Arm's bf16: native, not measured
+    ("", frozenset(), "emulated"),
+])
+def test_bf16_is_expected_to_gain_only_on_amd_with_avx512_bf16_or_intel_with_amx(vendor, flags, why):
+    assert bf16_slowdown(vendor, flags) == why
+
+
+@pytest.mark.parametrize("cpuinfo", [None, INTEL_NO_AMX, "vendor_id\t: AuthenticAMD\nflags\t\t: avx2 avx512_bf16\n",
+                                     "vendor_id\t: AuthenticAMD\nflags\t\t: avx2\n"])
+def test_the_slow_bf16_warning_is_printed_once_and_only_where_bf16_is_expected_slower(cpuinfo, monkeypatch, capsys):
     import imssr.precision as precision
 
-    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: native)
+    monkeypatch.setattr(precision, "cpu_info", lambda: cpuinfo)
     monkeypatch.setattr(precision, "_warned_slow_bf16", False)
     lines = [warn_if_bf16_is_slow(torch.device("cpu"), "bf16") for _ in range(3)]
     printed = capsys.readouterr().err.splitlines()
-    if native is False:  # AVX2 without avx512_bf16: emulated
-        assert lines[0] == lines[1] == lines[2] and lines[0].startswith("imssr: warning: agent.precision=bf16")
-        assert printed == [lines[0]]
-    else:  # native bfloat16, or a machine that cannot tell
+    if cpuinfo is None or "AuthenticAMD" in cpuinfo and "avx512_bf16" in cpuinfo:  # cannot tell, or gains
         assert lines == [None, None, None] and printed == []
+        return
+    assert lines[0] == lines[1] == lines[2] and lines[0].startswith("imssr: warning: agent.precision=bf16 on a CPU ")
+    assert lines[0].endswith(": expect it slower than fp32 here") and printed == [lines[0]]
+    if cpuinfo == INTEL_NO_AMX:
+        assert "with avx512_bf16 but without AMX" in lines[0]
+    else:
+        assert "without native bfloat16 (no avx512_bf16/AMX; torch sees " in lines[0]
 
 
 class CastCount(TorchDispatchMode):

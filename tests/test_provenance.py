@@ -1,10 +1,12 @@
 """Every run says which code and machine made it: a provenance record at its start and at every
 resume, kept by an export, shown per row by a report, with a warning where a row mixes them."""
+import glob
 import json
 import os
 import socket
+import sys
 
-from conftest import REPO, curve, make_run, tiny_config, train_run
+from conftest import REPO, curve, image_folder, make_run, tiny_config, train_run
 from imssr.provenance import FIELDS, command_line, git_state, record
 from imssr.report.export import export_runs
 from imssr.report.report import write_report
@@ -38,6 +40,38 @@ def test_the_command_line_keeps_no_paths_of_the_machine():
             "--task", "walker_walk", "--out", "runs/rel", f"{home}/data"]
     assert command_line(argv) == ["imssr", "train", "--out", "…/x", "--config=…/c.json", "--task", "walker_walk",
                                   "--out", "runs/rel", "…/data"]
+
+
+def test_paths_inside_set_values_are_cut_too():
+    argv = ["imssr", "train", "--set", "aux.image_dir=/home/me/images", "--set", "k=[/a/b,~/c/d/,rel/e]",
+            "--set=env.footage_dir=~/clips/v.mp4", "--set", "w=(/p/q)", "--set", "train.device=cuda:0",
+            "--set", "k=a/b"]
+    assert command_line(argv) == ["imssr", "train", "--set", "aux.image_dir=…/images", "--set", "k=[…/b,…/d,rel/e]",
+                                  "--set=env.footage_dir=…/v.mp4", "--set", "w=(…/q)", "--set", "train.device=cuda:0",
+                                  "--set", "k=a/b"]
+
+
+def test_an_exported_provenance_keeps_no_absolute_path_of_a_set_value(tmp_path, monkeypatch):
+    from imssr.cli import main
+
+    footage, config = tmp_path / "my_clips", tmp_path / "tiny.json"
+    footage.mkdir()
+    cfg = _cfg()
+    cfg.train.steps, cfg.train.seed_steps, cfg.train.eval_every_steps, cfg.train.checkpoint_every_steps = 20, 10, 20, 20
+    cfg.train.torch_threads = 1
+    config.write_text(json.dumps(cfg.to_dict()))
+    run = tmp_path / "sweep" / "cartpole_swingup_sparse" / "curl" / "seed_0"
+    argv = ["imssr", "train", "--config", str(config), "--set", f"env.footage_dir={footage}", "--no-progress",
+            "--out", str(run)]
+    monkeypatch.setattr(sys, "argv", argv)  # what provenance.record reads, as in an `imssr train` process
+    assert main(argv[1:]) == 0
+    assert export_runs(str(tmp_path / "sweep"), str(tmp_path / "dest"))[0].state == "new"
+    (exported,) = glob.glob(str(tmp_path / "dest" / "**" / "provenance.json"), recursive=True)
+    for path in (run / "provenance.json", exported):
+        assert str(tmp_path) not in open(path).read()
+        (record,) = json.load(open(path))["records"]
+        assert record["command"] == ["imssr", "train", "--config", "…/tiny.json", "--set", "env.footage_dir=…/my_clips",
+                                     "--no-progress", "--out", "…/seed_0"]
 
 
 def test_an_installed_package_has_no_git_state(monkeypatch, tmp_path):
@@ -97,3 +131,19 @@ def test_an_export_keeps_the_provenance(tmp_path):
     assert [e.state for e in exported] == ["new"], exported
     (copied,) = [os.path.join(d, f) for d, _, fs in os.walk(dest) for f in fs if f == "provenance.json"]
     assert open(copied).read() == open(os.path.join(run, "provenance.json")).read()
+
+
+def test_a_new_run_records_the_data_folders_that_environment_variables_name(tmp_path, monkeypatch):
+    """The two environment variables that reach config.json (README): a resume or an evaluation
+    in a shell without them reads the same images and footage."""
+    from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
+    from imssr.training import Trainer
+
+    images, footage = tmp_path / "images", tmp_path / "clips"
+    image_folder(images)
+    footage.mkdir()
+    monkeypatch.setenv(IMAGE_DIR_ENV, str(images))
+    monkeypatch.setenv(FOOTAGE_DIR_ENV, str(footage))
+    Trainer(tiny_config("soda"), str(tmp_path / "run")).close()
+    written = json.load(open(tmp_path / "run" / "config.json"))
+    assert (written["aux"]["image_dir"], written["env"]["footage_dir"]) == (str(images), str(footage))
