@@ -12,8 +12,8 @@ so a run counts only if it finishes inside the budget.  What it does:
    steps in order: a sweep file (the runs' settings, algorithms and tasks), the folder of
    committed runs it fills (``<task>/<algo>/seed_<n>`` below it) and the seeds.  A run is
    committed when that folder holds it with an evaluation at its budget.  The candidates are the
-   missing runs in plan order: a step's first task, lowest seed first, its algorithms alternately
-   (CURL seed 4, IM-CURL seed 4, CURL seed 5, ...), then the next step's; at most ``--max-runs``.
+   missing runs in plan order: per step and task, lowest seed first, the sweep file's algorithms
+   alternately (CURL seed 4, IM-CURL seed 4, CURL seed 5, ...); the first ``--max-runs`` of them.
 2. **Train them at once**, each step's runs in processes of ``--runs-per-process`` runs
    (``imssr train --config`` for one, ``--runs`` for several in one batch), in a fresh
    ``--work`` directory, each run with its sweep file's settings; the lease changes only where
@@ -42,9 +42,8 @@ do not, stopping the last ones frees their share at once without restarting the 
 much faster the rest then go is assumed, optimistically, to be in proportion to how many
 processes are left (a device that was full), and the next predictions, from the faster rows,
 correct it.  The seed phase (random actions, no updates) is not used for the rate: it is
-faster than training.
-
-Everything the budget must hold is measured, not assumed, except the reserve at the end.
+faster than training.  Assumed, not measured: the reserve at the end, and a stop's speed-up
+until the next rows show it.
 """
 from __future__ import annotations
 
@@ -179,8 +178,8 @@ def missing(base: str, steps: list[PlanStep]) -> tuple[list[Candidate], list[str
                     if complete is None:
                         out.append(Candidate(i, task, algo, seed))
                     elif not complete:
-                        short.append(f"{os.path.join(step.runs, task, algo, f'seed_{seed}')} is there but did not "
-                                     "reach its budget: move it away to train it again")
+                        short.append(f"{run_path(step.runs, task, algo, seed)} is there but did not reach its "
+                                     "budget: move it away to train it again")
     return out, short
 
 
@@ -496,7 +495,7 @@ class Lease:
             path = os.path.join(self.out, "results.tar.gz" if len(groups) == 1 else f"results-{n + 1}.tar.gz")
             with atomic_path(path) as tmp, tarfile.open(tmp, "w:gz") as tar:
                 for c, files in group:
-                    folder = os.path.join(self.steps[c.step].runs, c.task, c.algo, f"seed_{c.seed}")
+                    folder = run_path(self.steps[c.step].runs, c.task, c.algo, c.seed)
                     for f in files:
                         tar.add(f, arcname=os.path.join(folder, os.path.basename(f)), recursive=False)
         shutil.rmtree(stage, ignore_errors=True)
