@@ -9,11 +9,21 @@ bfloat16 natively) and the command line.  No host name is recorded, and every ab
 home-relative path in the command line, also inside a ``--set`` value, is cut to its last part
 (``…/runs``): a committed record does not carry its author's machine.  (``config.json`` keeps the
 data folders a run reads as given, so that a resume reads the same.)
+
+A copy of a checkout without its ``.git`` (copied to a cluster or a machine without git) knows
+its commit from a source stamp, ``.imssr-source.json`` beside the package, which
+``python -m imssr.provenance --stamp`` writes in the checkout before the copy: the commit, whether
+the checkout was clean, and the sha256 of every tracked file of the package.  The copy's records
+take the commit from it, and count as clean only if the package's files are still those.
+``python -m imssr.provenance`` prints this machine's record (what a run started here would say).
 """
 from __future__ import annotations
 
+import argparse
 import datetime
 import functools
+import hashlib
+import json
 import os
 import platform
 import re
@@ -25,6 +35,8 @@ from typing import Optional
 import torch
 
 from imssr._version import __version__
+from imssr.errors import ImssrError
+from imssr.files import atomic_write_text
 from imssr.precision import cpu_has_native_bf16, cpu_info
 
 FIELDS = ("imssr", "git_commit", "git_clean", "python", "torch", "cuda", "cudnn", "nvidia_driver", "numpy",
@@ -63,14 +75,27 @@ def _version(package: str) -> Optional[str]:
         return None
 
 
+SOURCE_STAMP = ".imssr-source.json"
+"""The source stamp of a copy without ``.git``, beside the package (module docstring)."""
+
+
+def _checkout() -> str:
+    """The folder that holds the imported package (a checkout's top, or site-packages)."""
+    return os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
 @functools.cache
 def git_state() -> tuple[Optional[str], Optional[bool]]:
-    """``(commit, clean)`` of the git checkout imssr is imported from (``clean``: no tracked file
-    differs from the commit); ``(None, None)`` for an installed package or without git."""
-    package = os.path.dirname(os.path.abspath(__file__))
-    top = os.path.dirname(package)
-    if not os.path.exists(os.path.join(top, ".git")):
-        return None, None
+    """``(commit, clean)`` of the code imssr is imported from (``clean``: no tracked file differs
+    from the commit): from git in a checkout, from the source stamp in a copy that has one
+    (:func:`stamped_state`); ``(None, None)`` (unknown) for an installed package, or without git."""
+    top = _checkout()
+    if os.path.exists(os.path.join(top, ".git")):
+        return _git(top)
+    return stamped_state(top)
+
+
+def _git(top: str) -> tuple[Optional[str], Optional[bool]]:
     try:
         commit = subprocess.run(["git", "-C", top, "rev-parse", "HEAD"], capture_output=True, text=True,
                                 timeout=10, check=True).stdout.strip()
@@ -79,6 +104,54 @@ def git_state() -> tuple[Optional[str], Optional[bool]]:
     except (OSError, subprocess.SubprocessError):
         return None, None
     return commit or None, not changes.strip()
+
+
+def _sha256(path: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
+
+
+def _package_modules(top: str) -> set[str]:
+    """The package's Python files in the folder ``top``, as paths relative to it."""
+    package = os.path.join(top, "imssr")
+    return {os.path.relpath(os.path.join(d, f), top) for d, _, files in os.walk(package)
+            for f in files if f.endswith(".py")}
+
+
+def write_stamp(top: Optional[str] = None) -> str:
+    """Write the source stamp of the checkout ``top`` (default: the one imssr is imported from):
+    its commit, whether it is clean, and the sha256 of every tracked file of the package.
+    Returns its path; a folder that is no git checkout is one line."""
+    top = top or _checkout()
+    commit, clean = _git(top) if os.path.exists(os.path.join(top, ".git")) else (None, None)
+    if commit is None:
+        raise ImssrError(f"{top} is not a git checkout (or git is missing): a source stamp names a commit")
+    listed = subprocess.run(["git", "-C", top, "ls-files", "-z", "--", "imssr"], capture_output=True, text=True,
+                            timeout=30, check=True).stdout
+    files = {name: _sha256(os.path.join(top, name)) for name in sorted(listed.split("\0")) if name}
+    path = os.path.join(top, SOURCE_STAMP)
+    atomic_write_text(path, json.dumps({"commit": commit, "clean": clean, "files": files}, indent=1) + "\n")
+    return path
+
+
+def stamped_state(top: str) -> tuple[Optional[str], Optional[bool]]:
+    """``(commit, clean)`` from the source stamp in ``top``: the stamp's commit, clean when the
+    checkout was and every file of the package is still the stamped one (none changed, none
+    missing, no Python file added); ``(None, None)`` without a readable stamp."""
+    try:
+        with open(os.path.join(top, SOURCE_STAMP), encoding="utf-8") as fh:
+            stamp = json.load(fh)
+        commit, files = stamp["commit"], stamp["files"]
+        if not isinstance(commit, str) or not commit or not isinstance(files, dict):
+            return None, None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None, None
+    try:
+        same = all(_sha256(os.path.join(top, name)) == digest for name, digest in files.items())
+    except OSError:  # a stamped file is gone
+        same = False
+    same = same and _package_modules(top) <= set(files)
+    return commit, stamp.get("clean") is True and same
 
 
 @functools.cache
@@ -122,10 +195,33 @@ def command_line(argv: list[str]) -> list[str]:
 
 
 def summary(entry: dict) -> str:
-    """One line: ``imssr 0.2.0 (a1b2c3d, clean), torch 2.13.0, CUDA -, on AMD EPYC 9B14``."""
+    """One line: ``imssr 0.2.0 (a1b2c3d), torch 2.13.0, CUDA -, on AMD EPYC 9B14`` (``a1b2c3d,
+    modified`` when tracked files differed from the commit; ``commit unknown`` without one)."""
     commit = entry.get("git_commit")
     code = f"imssr {entry.get('imssr', '?')}"
-    if commit:
-        code += f" ({commit[:7]}{'' if entry.get('git_clean') else ', modified'})"
+    code += f" ({commit[:7]}{'' if entry.get('git_clean') else ', modified'})" if commit else " (commit unknown)"
     return (f"{code}, torch {entry.get('torch', '?')}, CUDA {entry.get('cuda') or '-'}, "
             f"on {entry.get('device_name') or entry.get('device') or '?'}")
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """``python -m imssr.provenance``: this machine's record, a field a line (CUDA's device when
+    there is one); ``--stamp``: write the source stamp of the checkout imssr is imported from."""
+    p = argparse.ArgumentParser(prog="python -m imssr.provenance", description=main.__doc__)
+    p.add_argument("--stamp", action="store_true", help=f"write {SOURCE_STAMP} beside the package and print its path")
+    args = p.parse_args(argv)
+    try:
+        if args.stamp:
+            print(write_stamp())
+            return 0
+    except ImssrError as exc:
+        print(f"imssr: error: {exc}", file=sys.stderr)
+        return 2
+    entry = record(torch.device("cuda" if torch.cuda.is_available() else "cpu"), "check", 0, [])
+    for field in FIELDS:
+        print(f"{field}: {entry[field]}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

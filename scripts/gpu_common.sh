@@ -4,8 +4,10 @@
 #   SCRIPT=gpu_name OUT_DIR=... BUDGET_S=... source scripts/gpu_common.sh
 #
 # Sets PY (.venv's Python when there is one, else $PYTHON or python), exports MUJOCO_GL (egl
-# unless set) and PYTHONUNBUFFERED, makes OUT_DIR and writes device.txt there (nvidia-smi, torch,
-# CUDA and cuDNN versions).
+# unless set) and PYTHONUNBUFFERED, makes OUT_DIR and writes device.txt there: nvidia-smi, then
+# what a run started here would record in its provenance.json (`python -m imssr.provenance`:
+# imssr and its commit, Python, torch, CUDA, cuDNN, the driver, numpy, dm_control, mujoco, the
+# device and the CPU).
 PY="${PYTHON:-python}"
 [ -x .venv/bin/python ] && PY=.venv/bin/python
 export MUJOCO_GL="${MUJOCO_GL:-egl}" PYTHONUNBUFFERED=1
@@ -25,5 +27,5 @@ run() {
 }
 
 { nvidia-smi 2>&1 || echo "no nvidia-smi"
-  "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"
+  "$PY" -m imssr.provenance
 } > "$OUT_DIR/device.txt" 2>&1

@@ -11,7 +11,7 @@
 #   bench_seeds.md, bench_seeds.csv   aggregate agent steps/s, N seeds in one process vs N processes
 #   runs.tar.gz                       imssr export of every finished run (config.json, CSV logs)
 #   sweep_status.json, sweep.log      the sweep's status and the first packed process's output
-#   nvidia-smi.txt                    the device, driver and CUDA versions
+#   nvidia-smi.txt                    the device, and the versions a run's provenance.json records
 #   progress.log                      every 20 s: GPU use and each run's last training row
 # Settings (environment): BUDGET_S (total seconds, default 540), BENCH_S (the bench's share,
 # default 120; 0 skips it, as when the same command is run again to resume the sweep), PROCESSES (processes at once, default 4), RUNS_PER_PROCESS (default 5),
@@ -47,7 +47,7 @@ START=$(date +%s)
 mkdir -p "$OUT_DIR" "$ROOT"
 left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
 
-{ nvidia-smi 2>&1 || echo "no nvidia-smi"; "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'cudnn', torch.backends.cudnn.version())"; } > "$OUT_DIR/nvidia-smi.txt" 2>&1 || true
+{ nvidia-smi 2>&1 || echo "no nvidia-smi"; "$PY" -m imssr.provenance; } > "$OUT_DIR/nvidia-smi.txt" 2>&1 || true
 
 # vmap only (loop is slower than separate processes on a GPU), separate processes up to N = 4:
 # each start of a process costs 15-25 s on a GPU machine.

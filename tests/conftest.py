@@ -36,9 +36,11 @@ def load_script(relpath: str):
     """A script of the repository (``scripts/compare_sweeps.py``, ``bench/gpu.py``) as a module."""
     import importlib.util
 
-    name = os.path.splitext(os.path.basename(relpath))[0]
+    # Registered under a name of its own (dataclasses look their module up while the script runs).
+    name = "script_" + "".join(c if c.isalnum() else "_" for c in os.path.splitext(relpath)[0])
     spec = importlib.util.spec_from_file_location(name, os.path.join(REPO, relpath))
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
 

@@ -65,3 +65,23 @@ def test_the_prepared_seeds_command_works_on_the_cpu(tmp_path):
     assert "overlap: kernel time / wall time = " in profile and "| fp32 |" in profile and "| bf16 |" in profile
     alone = (seeds / "alone.txt").read_text()
     assert "curl:agent.cuda_graphs=true" in alone and "wait for the device" in alone
+
+
+def test_the_prepared_results_lease_works_on_the_cpu(tmp_path):
+    # A plan whose one run is committed: the lease trains nothing and says so; device.txt holds
+    # what a run's provenance records (the lease itself: tests/test_lease_results.py).
+    from conftest import make_run
+
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "sweep.json").write_text(
+        '{"algos": ["curl"], "tasks": ["cartpole_swingup"], "seeds": "1", "steps": 250}')
+    (tmp_path / "plan.json").write_text('{"steps": [{"sweep": "t/sweep.json", "runs": "t/runs"}]}')
+    make_run(str(tmp_path / "t" / "runs"), "curl", 1, [("training", 250, 10.0)], task="cartpole_swingup", steps=250)
+    out = tmp_path / "out"
+    proc, files = run_script("gpu_results.sh", out, PLAN=str(tmp_path / "plan.json"), BUDGET_S="120")
+    assert files == ["results/device.txt", "results/lease.md", "results/train.log"], proc.stdout + proc.stderr
+    assert "0 run(s) started" in (out / "results" / "lease.md").read_text()
+    assert "nothing to train" in proc.stdout
+    device = (out / "results" / "device.txt").read_text()
+    for field in ("imssr", "git_commit", "python", "torch", "cuda", "nvidia_driver", "numpy", "dm_control", "mujoco"):
+        assert f"\n{field}: " in device, device

@@ -3,11 +3,16 @@ resume, kept by an export, shown per row by a report, with a warning where a row
 import glob
 import json
 import os
+import shutil
 import socket
+import subprocess
 import sys
 
+import pytest
+
 from conftest import REPO, curve, image_folder, make_run, tiny_config, train_run
-from imssr.provenance import FIELDS, command_line, git_state, record
+from imssr.errors import ImssrError
+from imssr.provenance import FIELDS, SOURCE_STAMP, command_line, git_state, record, summary, write_stamp
 from imssr.report.export import export_runs
 from imssr.report.report import write_report
 from imssr.rundir import RunDir
@@ -84,6 +89,66 @@ def test_an_installed_package_has_no_git_state(monkeypatch, tmp_path):
         assert record(__import__("torch").device("cpu"), "start", 0, ["imssr"])["git_commit"] is None
     finally:
         git_state.cache_clear()
+
+
+def _git(repo, *args):
+    return subprocess.run(["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                          capture_output=True, text=True, check=True).stdout.strip()
+
+
+def _state_of(monkeypatch, top):
+    """git_state() of imssr imported from the folder ``top``."""
+    import imssr.provenance as prov
+
+    monkeypatch.setattr(prov, "__file__", str(top / "imssr" / "provenance.py"))
+    git_state.cache_clear()
+    return git_state()
+
+
+def test_a_copy_without_git_takes_its_commit_from_its_source_stamp(monkeypatch, tmp_path):
+    repo, copy = tmp_path / "repo", tmp_path / "copy"
+    (repo / "imssr").mkdir(parents=True)
+    (repo / "imssr" / "__init__.py").write_text("")
+    (repo / "imssr" / "agent.py").write_text("LR = 1e-3\n")
+    (repo / "README.md").write_text("docs\n")
+    _git(tmp_path, "init", "-q", str(repo))
+    _git(repo, "add", ".")
+    _git(repo, "commit", "-q", "-m", "start")
+    commit = _git(repo, "rev-parse", "HEAD")
+    try:
+        assert write_stamp(str(repo)) == str(repo / SOURCE_STAMP)
+        shutil.copytree(repo, copy, ignore=shutil.ignore_patterns(".git"))
+        assert _state_of(monkeypatch, copy) == (commit, True)
+        assert record(__import__("torch").device("cpu"), "start", 0, ["imssr"])["git_commit"] == commit
+        (copy / "README.md").write_text("other docs\n")  # not the package's: still its code
+        assert _state_of(monkeypatch, copy) == (commit, True)
+        (copy / "imssr" / "agent.py").write_text("LR = 2e-3\n")
+        assert _state_of(monkeypatch, copy) == (commit, False)
+        (copy / "imssr" / "agent.py").write_text("LR = 1e-3\n")
+        (copy / "imssr" / "extra.py").write_text("")  # a module the commit does not have
+        assert _state_of(monkeypatch, copy) == (commit, False)
+        os.unlink(copy / "imssr" / "extra.py")
+        os.unlink(copy / "imssr" / "agent.py")
+        assert _state_of(monkeypatch, copy) == (commit, False)
+        (copy / SOURCE_STAMP).write_text("{not json")
+        assert _state_of(monkeypatch, copy) == (None, None)
+        # Stamped in a checkout with a change: the copy is not clean, whatever its files.
+        (repo / "imssr" / "agent.py").write_text("LR = 3e-3\n")
+        write_stamp(str(repo))
+        os.unlink(copy / SOURCE_STAMP)
+        shutil.copytree(repo, copy, ignore=shutil.ignore_patterns(".git"), dirs_exist_ok=True)
+        assert _state_of(monkeypatch, copy) == (commit, False)
+    finally:
+        git_state.cache_clear()
+    with pytest.raises(ImssrError, match="is not a git checkout"):
+        write_stamp(str(copy))
+
+
+def test_a_record_without_a_commit_says_so():
+    rec = {"imssr": "0.2.0", "git_commit": None, "git_clean": None, "torch": "2.13.0", "cuda": None,
+           "device_name": "CPU A"}
+    assert summary(rec) == "imssr 0.2.0 (commit unknown), torch 2.13.0, CUDA -, on CPU A"
+    assert summary({**rec, "git_commit": "b" * 40, "git_clean": False}).startswith("imssr 0.2.0 (bbbbbbb, modified),")
 
 
 def test_a_damaged_provenance_file_is_kept_aside_and_a_new_one_begun(tmp_path):
