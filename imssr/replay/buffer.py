@@ -61,7 +61,7 @@ def replay_files(path: str) -> list[str]:
     """The files of the buffer saved as ``path``: the index and the frame files it names (for an
     index written before frame files: the single frames file).  :class:`ReplayFileError` when the
     index is missing or cannot be read and verified, since what it names is then unknown."""
-    verify_index(path)
+    _verify_index(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             if "frame_chunks" not in data.files:
@@ -72,7 +72,7 @@ def replay_files(path: str) -> list[str]:
         raise ReplayFileError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
 
 
-def verify_index(path: str) -> None:
+def _verify_index(path: str) -> None:
     """Check the seal of the replay index ``path`` (:mod:`imssr.integrity`) before anything reads
     it: :class:`ReplayFileError` when it is missing, unreadable, damaged or carries no seal (imssr
     seals every index it writes, so such a file is not one of its buffers)."""
@@ -400,7 +400,7 @@ class FrameReplayBuffer:
     def load(self, path: str, rng_state: Optional[dict] = None) -> None:
         """Load what :meth:`save` wrote, verifying its checksums; :class:`ReplayFileError` when
         a file is missing, damaged or carries no checksum."""
-        verify_index(path)
+        _verify_index(path)
         try:
             # Arrays only: an object array in a replay file someone else wrote would unpickle.
             with np.load(path, allow_pickle=False) as data:
@@ -483,7 +483,7 @@ class FrameReplayBuffer:
                 raise ValueError(f"npy format version {version}")
         except Exception as exc:  # noqa: BLE001 - numpy's header parser fails in many ways
             # Named here: the index that lists this file is whole (its seal verified).
-            what = "empty" if not reader.read_bytes else f"its .npy header is unreadable: {exc}"
+            what = "empty" if not reader.nread else f"its .npy header is unreadable: {exc}"
             raise ReplayFileError(f"replay frames {fpath} are damaged ({what})") from None
         if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
             raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
@@ -588,10 +588,10 @@ class _HashingReader:
 
     def __init__(self, fh, h):
         self.fh, self.h = fh, h
-        self.read_bytes = 0
+        self.nread = 0
 
     def read(self, size: int = -1) -> bytes:
         data = self.fh.read(size)
         self.h.update(data)
-        self.read_bytes += len(data)
+        self.nread += len(data)
         return data
