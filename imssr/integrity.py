@@ -8,7 +8,10 @@ inside the file, so the atomic rename that publishes the file publishes its chec
 sees one without the other).  The digest covers the file as it was written, before the seal:
 every byte up to the comment-length field, then that field as zero.
 
-Files written before checksums existed have no seal and are read unverified.
+Every checkpoint and replay index imssr writes is sealed, so a file without a seal where the
+file ends is not trusted: :func:`zip_seal_problem` tells a seal that does not match, a seal that
+is no longer at the file's end (the file was cut short or had bytes appended: a zip reader still
+opens such a file, so only its seal tells), and a file with no seal at all.
 """
 from __future__ import annotations
 
@@ -92,20 +95,43 @@ def seal_zip(path: str) -> str:
     return digest
 
 
-def check_zip(path: str) -> Optional[bool]:
-    """True when the file's seal matches its bytes, False when it does not (the file is
-    damaged), None when the file carries no seal (written before checksums, or not a zip)."""
+MISMATCH = "checksum mismatch"
+""":func:`zip_seal_problem`: the file's bytes do not match its seal."""
+DISPLACED = "its checksum is not at its end: cut short or extended"
+""":func:`zip_seal_problem`: a seal near the file's end, but not where the file ends."""
+UNSEALED = "no checksum"
+""":func:`zip_seal_problem`: no seal at all (a file imssr did not write, or not a zip)."""
+_SEARCH = (1 << 16) + _EOCD_LEN + _COMMENT_LEN  # as far back as a zip reader looks for its directory
+
+
+def zip_seal_problem(path: str) -> Optional[str]:
+    """None when the file at ``path`` ends with a seal that matches its bytes; else why it cannot
+    be trusted: :data:`MISMATCH`, :data:`DISPLACED` or :data:`UNSEALED`.  ``OSError`` when the file
+    cannot be read."""
     with open(path, "rb") as fh:
         size = fh.seek(0, 2)
         tail_len = _EOCD_LEN + _COMMENT_LEN
-        if size < tail_len:
-            return None
-        fh.seek(size - tail_len)
-        tail = fh.read(tail_len)
-        if (tail[:4] != _EOCD or tail[20:22] != struct.pack("<H", _COMMENT_LEN)
-                or tail[22:22 + len(SEAL_TAG)] != SEAL_TAG):
-            return None
-        stored = tail[22 + len(SEAL_TAG):]
-        h = sha256_of(fh, size - _COMMENT_LEN - 2)
-        h.update(b"\0\0")
-        return h.hexdigest().encode() == stored
+        if size >= tail_len:
+            fh.seek(size - tail_len)
+            tail = fh.read(tail_len)
+            if _is_seal_record(tail) and len(tail) == tail_len:
+                h = sha256_of(fh, size - _COMMENT_LEN - 2)
+                h.update(b"\0\0")
+                return None if h.hexdigest().encode() == tail[22 + len(SEAL_TAG):] else MISMATCH
+        fh.seek(max(0, size - _SEARCH))
+        data = fh.read()
+    pos = data.rfind(_EOCD)
+    while pos >= 0:
+        if _is_seal_record(data[pos:]):
+            return DISPLACED
+        pos = data.rfind(_EOCD, 0, pos)
+    return UNSEALED
+
+
+def _is_seal_record(data: bytes) -> bool:
+    """``data`` starts with an end-of-central-directory record whose comment is a seal, as far as
+    ``data`` reaches (a file cut inside its seal keeps the seal's start)."""
+    if len(data) < _EOCD_LEN or data[:4] != _EOCD or data[20:22] != struct.pack("<H", _COMMENT_LEN):
+        return False
+    start = data[22:22 + len(SEAL_TAG)]
+    return start == SEAL_TAG[:len(start)]

@@ -150,10 +150,11 @@ def filled_buffer(n_steps: int = 200, action_dim: int = 1, seed: int = 0, episod
 
 def as_single_file_replay(path: str, checksum: bool = True) -> np.ndarray:
     """Rewrite the replay buffer saved as ``path`` in the layout of imssr before frame files: the
-    ``.npz`` (no counter, no frame-file list; ``frames_sha256`` when ``checksum``) and one
+    sealed ``.npz`` (no counter, no frame-file list; ``frames_sha256`` when ``checksum``) and one
     ``.frames.npy`` of the ring's first slots.  Returns those frames."""
     import hashlib
 
+    from imssr.integrity import seal_zip
     from imssr.replay.buffer import frames_path, replay_files
 
     with np.load(path) as data:
@@ -175,6 +176,7 @@ def as_single_file_replay(path: str, checksum: bool = True) -> np.ndarray:
             fields["frames_sha256"] = np.array(hashlib.sha256(fh.read()).hexdigest())
     with open(path, "wb") as fh:
         np.savez(fh, **fields)
+    seal_zip(path)
     return frames
 
 

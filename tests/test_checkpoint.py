@@ -9,6 +9,7 @@ import torch
 
 from conftest import a_checkpoint, assert_same_tensors, tiny_config, train_run, train_stopped_at, without_timing
 from imssr.errors import ImssrError
+from imssr.integrity import seal_zip
 from imssr.training import Trainer
 from imssr.training.loop import TrainingInterrupted
 from imssr.rundir import RunDir
@@ -162,6 +163,7 @@ def test_corrupt_checkpoint_gives_clear_error(tmp_path):
     with pytest.raises(ImssrError, match="not an imssr checkpoint"):
         Trainer(_cfg(), str(tmp_path), resume=True)
     torch.save({"something": 1}, str(path))
+    seal_zip(str(path))  # sealed, as if imssr wrote it: what is inside is checked on its own
     whole = path.read_bytes()
     with pytest.raises(ImssrError, match="not an imssr checkpoint of format"):
         load_checkpoint(str(path))
@@ -171,6 +173,7 @@ def test_corrupt_checkpoint_gives_clear_error(tmp_path):
     with zipfile.ZipFile(path, "w") as archive:  # a zip archive whose pickle is text
         archive.writestr("archive/data.pkl", b"hello world")
         archive.writestr("archive/version", "3\n")
+    seal_zip(str(path))
     with pytest.raises(CheckpointDamaged, match=r"^corrupt checkpoint .*: KeyError: 101$"):
         load_checkpoint(str(path))
 
@@ -284,6 +287,7 @@ def test_checkpoint_from_before_new_settings_still_resumes(full_run, tmp_path):
     state = load_checkpoint(path).to_state()
     del state["config"]["env"]["footage_dir"], state["config"]["intrinsic"]["source"]
     torch.save(dict(state, format_version=1), path)
+    seal_zip(path)
     cfg = _cfg()
     t = Trainer(cfg, str(tmp_path / "old"), resume=True)
     t.close()

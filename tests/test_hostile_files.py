@@ -3,8 +3,11 @@ code when unpickled is refused in one line, and the code never runs; a file that
 checkpoint or no log is one line; a link planted in a run directory is not written through."""
 from __future__ import annotations
 
+import io
 import os
+import pickle
 import re
+import zipfile
 
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from conftest import a_checkpoint, tiny_config, train_run
 from imssr.cli import main
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
+from imssr.integrity import seal_zip
 from imssr.replay import FrameReplayBuffer
 from imssr.replay.buffer import ReplayFileError
 from imssr.rundir import RunDir
@@ -84,6 +88,10 @@ def test_a_replay_file_with_pickled_objects_is_refused(tmp_path):
     path = str(tmp_path / "replay.npz")
     np.savez(path, meta=np.array([Evil(marker)], dtype=object), actions=np.zeros((2, 1), np.float32))
     np.save(path + ".frames.npy", np.zeros((2, 3, 8, 8), np.uint8))
+    with pytest.raises(ReplayFileError, match=r"^\S+replay\.npz is not a replay buffer imssr wrote: it carries "
+                                              r"no imssr checksum$"):
+        FrameReplayBuffer(10, (3, 8, 8), 1).load(path)
+    seal_zip(path)  # a seal is no signature: anyone can write one, and the arrays are still refused
     with pytest.raises(ReplayFileError, match=r"^corrupt replay buffer file .*Object arrays cannot be loaded"):
         FrameReplayBuffer(10, (3, 8, 8), 1).load(path)
     assert not marker.exists()
@@ -209,3 +217,59 @@ def test_json_nested_too_deep_is_one_line(tmp_path, capsys, what):
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nests its JSON too deeply" in err[0], err
+
+
+def _zip_checkpoint() -> bytes:
+    """The bytes torch writes for a small dict: a zip archive without a seal."""
+    buf = io.BytesIO()
+    torch.save({"format_version": 1}, buf)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("sealed", [False, True])
+def test_a_pickle_and_zip_polyglot_is_not_an_imssr_checkpoint(tmp_path, sealed):
+    """A pickle with a zip archive behind it: a zip reader finds the archive, torch reads the
+    pickle in its legacy format.  A seal is no signature (anyone can write one), so neither a
+    sealed one nor an unsealed one is read, and the pickle never runs."""
+    marker = tmp_path / "PWNED"
+    path = str(tmp_path / "poly.pt")
+    with open(path, "wb") as fh:
+        fh.write(pickle.dumps(Evil(marker)) + _zip_checkpoint())
+    if sealed:
+        seal_zip(path)
+    with pytest.raises(ImssrError, match=rf"^{path} is not an imssr checkpoint \(not a torch checkpoint file\)$"):
+        load_checkpoint(path)
+    assert not marker.exists()
+
+
+def test_a_sealed_checkpoint_that_torch_refuses_is_not_an_imssr_checkpoint(tmp_path):
+    """Bytes that match their seal are as written: what a weights-only load refuses in them is not
+    damage, and torch's advice to load it with weights_only=False is not passed on."""
+    path = str(tmp_path / "odd.pt")
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("archive/data.pkl", b"\x80\x02}(U\x01aK\x01u}b.")  # BUILD on a dict
+        archive.writestr("archive/version", "3\n")
+    seal_zip(path)
+    with pytest.raises(ImssrError, match=rf"^{path} is not an imssr checkpoint: a weights-only load refuses it "
+                                         r"\(Can only build .*\)$") as err:
+        load_checkpoint(path)
+    assert "weights_only" not in str(err.value)
+
+
+@pytest.mark.parametrize("damage", ["flip a weight and cut the last byte", "no seal"])
+def test_a_resume_from_a_checkpoint_that_cannot_be_verified_is_one_line(run, capsys, damage):
+    """No retained copy to fall back to: the resume stops, naming the file, before anything trains."""
+    weight = torch.arange(64, dtype=torch.float32)
+    RunDir(run).save_checkpoint(a_checkpoint(step=5, agent={"w": weight}), keep=0)
+    path = RunDir(run).latest
+    if damage == "no seal":
+        torch.save(dict(load_checkpoint(path).to_state(), format_version=1), path)
+        expected = f"{path} is not an imssr checkpoint: it carries no imssr checksum"
+    else:
+        data = bytearray(open(path, "rb").read())
+        data[data.find(weight.numpy().tobytes()) + 9] ^= 0x01
+        with open(path, "wb") as fh:
+            fh.write(bytes(data[:-1]))
+        expected = f"checkpoint {path} is damaged (its checksum is not at its end: cut short or extended)"
+    assert main(["train", "--out", run, "--resume", "--no-progress"]) == 2
+    assert _one_error_line(capsys.readouterr().err) == f"imssr: error: {expected}"

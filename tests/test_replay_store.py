@@ -1,13 +1,16 @@
 """The two frame stores: the numpy host store and the tensor store (run here on the CPU) draw the
 same indices, give the same batches and write the same files, so either resumes the other."""
 import os
+import re
 
 import numpy as np
 import pytest
 import torch
 
+from conftest import as_single_file_replay
 import imssr.replay.buffer as buffer_module
 import imssr.replay.device as device_module
+from imssr.integrity import seal_zip
 from imssr.replay import FrameReplayBuffer, TensorFrameReplayBuffer
 from imssr.replay.buffer import Packing, ReplayFileError, replay_files
 
@@ -241,6 +244,73 @@ def test_an_index_that_misses_frames_is_refused(tmp_path):
         fields = {k: data[k] for k in data.files}
     fields["frame_chunks"], fields["frame_chunk_sha256"] = fields["frame_chunks"][1:], fields["frame_chunk_sha256"][1:]
     with open(path, "wb") as fh:
-        np.savez(fh, **fields)  # unsealed: read unverified, as a file of imssr before checksums
+        np.savez(fh, **fields)
+    seal_zip(path)  # a sealed index that lists too little: what the frame list itself must catch
     with pytest.raises(ReplayFileError, match=r"b\.npz does not name frame files for all its frames$"):
         _host(capacity=1000).load(path)
+
+
+def _empty(path):
+    open(path, "wb").close()
+
+
+def _bad_magic(path):
+    with open(path, "r+b") as fh:
+        fh.write(b"XNUMPY")
+
+
+def _bad_header(path):
+    data = open(path, "rb").read()
+    with open(path, "wb") as fh:
+        fh.write(data.replace(b"'descr'", b"'dexcr'", 1))
+
+
+@pytest.mark.parametrize("fault, what", [(_empty, "empty"),
+                                         (_bad_magic, "its .npy header is unreadable: "),
+                                         (_bad_header, "its .npy header is unreadable: ")])
+def test_a_frame_file_with_a_damaged_header_is_named(tmp_path, fault, what):
+    """The index is whole and verified: the frame file is what is damaged, and the line says so."""
+    path = str(tmp_path / "replay.npz")
+    _fill(_host()).save(path)
+    frame_file = replay_files(path)[-1]
+    fault(frame_file)
+    with pytest.raises(ReplayFileError, match=rf"^replay frames {re.escape(frame_file)} are damaged "
+                                              rf"\({re.escape(what)}"):
+        _host().load(path)
+
+
+def _cut_last_byte(path):
+    data = open(path, "rb").read()
+    with open(path, "wb") as fh:
+        fh.write(data[:-1])
+
+
+def _unsealed(path):
+    with np.load(path) as data:
+        fields = {k: data[k] for k in data.files}
+    with open(path, "wb") as fh:
+        np.savez(fh, **fields)
+
+
+@pytest.mark.parametrize("fault, message", [
+    (_cut_last_byte, "replay buffer {} is damaged (its checksum is not at its end: cut short or extended)"),
+    (_unsealed, "{} is not a replay buffer imssr wrote: it carries no imssr checksum")])
+def test_an_index_that_cannot_be_verified_is_refused(tmp_path, fault, message):
+    """numpy reads both files as they are; imssr seals every index it writes, so neither is loaded."""
+    path = str(tmp_path / "replay.npz")
+    _fill(_host()).save(path)
+    fault(path)
+    with pytest.raises(ReplayFileError, match=f"^{re.escape(message.format(path))}$"):
+        _host().load(path)
+    with pytest.raises(ReplayFileError, match=f"^{re.escape(message.format(path))}$"):
+        replay_files(path)
+
+
+def test_a_single_frames_file_without_its_checksum_is_refused(tmp_path):
+    """An index of the layout before frame files always named its frames' sha256: one that does
+    not (sealed by someone else) is not loaded unverified."""
+    path = str(tmp_path / "replay.npz")
+    _fill(_host()).save(path)
+    as_single_file_replay(path, checksum=False)
+    with pytest.raises(ReplayFileError, match=r"^replay buffer \S+replay\.npz holds no checksum of its frames$"):
+        _host().load(path)

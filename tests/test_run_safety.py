@@ -311,18 +311,24 @@ def test_a_lost_replay_buffer_needs_refill_buffer(run, fault, capsys):
     assert "--refill-buffer goes with --resume" in capsys.readouterr().err
 
 
-def test_files_from_before_checksums_still_load(run):
-    """Checkpoints and replay files without checksums (imssr before them) load unverified."""
+def test_files_without_checksums_are_not_loaded(run, capsys):
+    """imssr seals every checkpoint and replay index it writes: a resume never loads one without a
+    seal unverified.  An unsealed latest.pt falls back to the retained copy; an unsealed replay
+    index stops the resume, naming --refill-buffer."""
     path = RunDir(run).latest
-    state = torch.load(path, weights_only=False)
-    torch.save(state, path)  # as earlier versions wrote it: no seal
-    frames = as_single_file_replay(_ckpt(run, state["replay_file"]), checksum=False)
+    torch.save(dict(load_checkpoint(path).to_state(), format_version=1), path)
     t = Trainer(_cfg(), run, resume=True)
-    try:
-        assert t.step == 250 and t.replay.size == frames.shape[0]
-        assert np.array_equal(t.replay.frames[: t.replay.size], frames)
-    finally:
-        t.close()
+    t.close()
+    assert t.step == 250 and ("imssr: latest.pt is damaged (not an imssr checkpoint); resuming from "
+                              "step-000000250.pt at agent step 250\n") in capsys.readouterr().out
+    replay = _ckpt(run, "replay-000000250.npz")
+    with np.load(replay) as data:
+        fields = {k: data[k] for k in data.files}
+    with open(replay, "wb") as fh:
+        np.savez(fh, **fields)
+    with pytest.raises(ImssrError, match=rf"^{re.escape(replay)} is not a replay buffer imssr wrote: it carries no "
+                                         r"imssr checksum; `imssr train --resume --refill-buffer` continues"):
+        Trainer(_cfg(), run, resume=True)
 
 
 def test_a_replay_buffer_in_one_frames_file_resumes_exactly_and_is_verified(run, full):

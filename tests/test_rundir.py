@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import struct
 import threading
 
 import numpy as np
@@ -13,6 +14,8 @@ import torch
 
 from conftest import a_checkpoint, assert_same_tensors, filled_buffer, tiny_config
 from imssr.errors import ImssrError
+from imssr.integrity import seal_zip
+from imssr.replay import FrameReplayBuffer
 from imssr.rundir import (CONFIG_FILE, DONE_FILE, EVAL_LOG, LATEST_CHECKPOINT, STATUS_FILE, TRAIN_LOG, RunDir, RunPath,
                           parse_run_path, run_path)
 from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
@@ -145,6 +148,7 @@ def test_a_file_that_lacks_a_field_of_a_checkpoint_is_one_line(tmp_path):
     state = _state(3).to_state()
     del state["agent"], state["step"]
     torch.save(dict(state, format_version=1), path)
+    seal_zip(path)
     with pytest.raises(CheckpointDamaged, match=r"^\S+x\.pt is not a whole imssr checkpoint: it holds no agent, step$"):
         load_checkpoint(path)
 
@@ -278,3 +282,107 @@ def test_recording_says_how_a_training_ended(tmp_path):
         assert (record["state"], record["step"], run.status()) == (state, 7, state)
         assert record["error"] == ("" if exc is None else (str(exc).splitlines() or ["KeyboardInterrupt"])[0])
 
+
+
+def _flip_weight_and_cut_the_last_byte(path: str) -> None:
+    """The issue's damage: one byte of a weight flipped and the file's last byte cut (a zip
+    reader still opens it; only the seal, no longer at the end, tells)."""
+    data = bytearray(open(path, "rb").read())
+    at = data.find(struct.pack("<f", 250.0) * 4)
+    assert at > 0
+    data[at] ^= 0x01
+    with open(path, "wb") as fh:
+        fh.write(bytes(data[:-1]))
+
+
+def _append_a_byte(path: str) -> None:
+    with open(path, "ab") as fh:
+        fh.write(b"\0")
+
+
+def _unseal(path: str) -> None:
+    """The same checkpoint, whole, as ``torch.save`` alone writes it: no seal."""
+    torch.save(dict(load_checkpoint(path).to_state(), format_version=1), path)
+
+
+CUT_OR_EXTENDED = "its checksum is not at its end: cut short or extended"
+
+
+@pytest.mark.parametrize("damage, reason", [(_flip_weight_and_cut_the_last_byte, CUT_OR_EXTENDED),
+                                            (_append_a_byte, CUT_OR_EXTENDED),
+                                            (_unseal, "not an imssr checkpoint")])
+def test_a_checkpoint_that_cannot_be_verified_is_refused_and_a_valid_one_offered(tmp_path, damage, reason):
+    run = RunDir(tmp_path / "run")
+    for step in (125, 250):
+        run.save_checkpoint(_state(step), keep=2)
+    damage(run.latest)
+    with pytest.raises(CheckpointDamaged) as err:
+        load_checkpoint(run.latest)
+    assert err.value.reason == reason and run.latest in str(err.value)
+    # Unnamed: the newest retained checkpoint that verifies, said in one line.
+    state, path, note = run.checkpoint()
+    assert (state.step, path) == (250, run.numbered(250))
+    assert note == f"latest.pt is damaged ({reason}); resuming from step-000000250.pt at agent step 250"
+    # Named: refused, in one line that names the newest retained one that verifies and how to take it.
+    damage(run.numbered(250))
+    for spec in ("250", run.latest):
+        with pytest.raises(CheckpointDamaged, match=r"; step-000000125\.pt verifies \(agent step 125: "
+                                                    r"--checkpoint 125\)$"):
+            run.checkpoint(spec)
+
+
+def test_a_named_checkpoint_outside_the_run_offers_none_of_its_checkpoints(tmp_path):
+    run = RunDir(tmp_path / "run")
+    run.save_checkpoint(_state(125), keep=1)
+    elsewhere = str(tmp_path / "other.pt")
+    torch.save({"format_version": 1}, elsewhere)
+    with pytest.raises(CheckpointDamaged, match=r"^\S+other\.pt is not an imssr checkpoint: it carries no imssr "
+                                                r"checksum$"):
+        run.checkpoint(elsewhere)
+
+
+def _cut_in_half(path: str) -> None:
+    data = open(path, "rb").read()
+    with open(path, "wb") as fh:
+        fh.write(data[:len(data) // 2])
+
+
+@pytest.mark.parametrize("fault", [_cut_in_half, os.unlink, _damage])
+def test_a_cleanup_that_cannot_read_the_replay_index_removes_nothing(tmp_path, capsys, fault):
+    """What is live is what the index names: an index that cannot be read and verified names
+    nothing for sure, so no frame file goes (the next save cleans up)."""
+    run = RunDir(tmp_path / "run")
+    buf = filled_buffer(40, capacity=100, size=8)
+    name = RunDir.replay_name(1)
+    run.save_checkpoint(_state(1, replay_file=name), replay=buf)
+    (tmp_path / "run" / "checkpoints" / "replay-frames-000000000000-000000000007.npy").write_bytes(b"old")
+    files = sorted(os.listdir(run.checkpoint_dir))
+    fault(run.replay_path(name))
+    run.remove_unnamed_replay_files(name)
+    after = sorted(os.listdir(run.checkpoint_dir))
+    assert after == [f for f in files if f != name or fault is not os.unlink]
+    (line,) = capsys.readouterr().out.splitlines()
+    assert line.startswith("imssr: warning: ") and run.replay_path(name) in line
+    assert line.endswith("; no replay file is removed")
+
+
+def test_a_failed_save_of_a_run_that_has_read_no_replay_keeps_latests_replay_files(tmp_path, monkeypatch):
+    """A process that did not load latest.pt's replay buffer (a resume that refills it) and fails
+    to save removes only the files its own save wrote, not latest.pt's."""
+    path = tmp_path / "run"
+    RunDir(path).save_checkpoint(_state(1, replay_file=RunDir.replay_name(1)),
+                                 replay=filled_buffer(40, capacity=100, size=8))
+    kept = sorted(os.listdir(RunDir(path).checkpoint_dir))
+
+    def full_disk(*args, **kwargs):
+        raise ImssrError("no space left on device while writing latest.pt")
+
+    import imssr.rundir.checkpoint as checkpoint_file
+
+    monkeypatch.setattr(checkpoint_file, "write_checkpoint", full_disk)
+    with pytest.raises(ImssrError, match="no space left"):
+        RunDir(path).save_checkpoint(_state(2, replay_file=RunDir.replay_name(2)),
+                                     replay=filled_buffer(30, capacity=100, size=8, seed=1))
+    monkeypatch.undo()
+    assert sorted(os.listdir(RunDir(path).checkpoint_dir)) == kept
+    FrameReplayBuffer(100, (3, 8, 8), 1).load(RunDir(path).replay_path(RunDir.replay_name(1)))

@@ -44,7 +44,7 @@ import torch
 
 from imssr.errors import ImssrError
 from imssr.files import atomic_path
-from imssr.integrity import HashingWriter, check_zip, seal_zip
+from imssr.integrity import UNSEALED, HashingWriter, seal_zip, zip_seal_problem
 from imssr.memlimit import proc_bytes
 
 
@@ -59,15 +59,33 @@ def chunk_path(directory: str, first: int, end: int) -> str:
 
 def replay_files(path: str) -> list[str]:
     """The files of the buffer saved as ``path``: the index and the frame files it names (for an
-    index written before frame files, or one that cannot be read: the single frames file)."""
+    index written before frame files: the single frames file).  :class:`ReplayFileError` when the
+    index is missing or cannot be read and verified, since what it names is then unknown."""
+    _verify_index(path)
     try:
         with np.load(path, allow_pickle=False) as data:
-            if "frame_chunks" in data.files:
-                directory = os.path.dirname(path)
-                return [path] + [chunk_path(directory, int(a), int(b)) for a, b in data["frame_chunks"]]
-    except Exception:  # noqa: BLE001 - missing or damaged: load() says which, in one line
-        pass
-    return [path, frames_path(path)]
+            if "frame_chunks" not in data.files:
+                return [path, frames_path(path)]
+            directory = os.path.dirname(path)
+            return [path] + [chunk_path(directory, int(a), int(b)) for a, b in data["frame_chunks"]]
+    except Exception as exc:  # noqa: BLE001 - zip/npy corruption has many faces
+        raise ReplayFileError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
+
+
+def _verify_index(path: str) -> None:
+    """Check the seal of the replay index ``path`` (:mod:`imssr.integrity`) before anything reads
+    it: :class:`ReplayFileError` when it is missing, unreadable, damaged or carries no seal (imssr
+    seals every index it writes, so such a file is not one of its buffers)."""
+    if not os.path.exists(path):
+        raise ReplayFileError(f"replay buffer file not found: {path}")
+    try:
+        problem = zip_seal_problem(path)
+    except OSError as exc:
+        raise ReplayFileError(f"cannot read replay buffer file {path}: {exc.strerror or exc}") from None
+    if problem == UNSEALED:
+        raise ReplayFileError(f"{path} is not a replay buffer imssr wrote: it carries no imssr checksum")
+    if problem is not None:
+        raise ReplayFileError(f"replay buffer {path} is damaged ({problem})")
 
 
 def frames_path(path: str) -> str:
@@ -380,13 +398,10 @@ class FrameReplayBuffer:
         return self.capacity if self.size == self.capacity else self.head
 
     def load(self, path: str, rng_state: Optional[dict] = None) -> None:
-        """Load what :meth:`save` wrote, verifying its checksums (files written before
-        checksums load unverified); :class:`ReplayFileError` when a file is missing or damaged."""
-        if not os.path.exists(path):
-            raise ReplayFileError(f"replay buffer file not found: {path}")
+        """Load what :meth:`save` wrote, verifying its checksums; :class:`ReplayFileError` when
+        a file is missing, damaged or carries no checksum."""
+        _verify_index(path)
         try:
-            if check_zip(path) is False:
-                raise ReplayFileError(f"replay buffer {path} is damaged (checksum mismatch)")
             # Arrays only: an object array in a replay file someone else wrote would unpickle.
             with np.load(path, allow_pickle=False) as data:
                 meta = [int(x) for x in data["meta"]]
@@ -408,7 +423,9 @@ class FrameReplayBuffer:
                               zip(data["frame_chunks"], data["frame_chunk_sha256"], strict=True)]
                 else:
                     chunks = None
-                    expected = str(data["frames_sha256"]) if "frames_sha256" in data.files else None
+                    if "frames_sha256" not in data.files:
+                        raise ReplayFileError(f"replay buffer {path} holds no checksum of its frames")
+                    expected = str(data["frames_sha256"])
             directory = os.path.dirname(os.path.abspath(path))
             if chunks is None:
                 fpath = frames_path(path)
@@ -456,13 +473,18 @@ class FrameReplayBuffer:
     def _read_npy_header(self, fh, h, fpath: str, n: int) -> None:
         """Read a frame file's ``.npy`` header (hashed into ``h``); it must describe ``n`` frames."""
         reader = _HashingReader(fh, h)
-        version = np.lib.format.read_magic(reader)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(reader)
-        elif version == (2, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(reader)
-        else:
-            raise ValueError(f"npy format version {version}")
+        try:
+            version = np.lib.format.read_magic(reader)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(reader)
+            elif version == (2, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(reader)
+            else:
+                raise ValueError(f"npy format version {version}")
+        except Exception as exc:  # noqa: BLE001 - numpy's header parser fails in many ways
+            # Named here: the index that lists this file is whole (its seal verified).
+            what = "empty" if not reader.nread else f"its .npy header is unreadable: {exc}"
+            raise ReplayFileError(f"replay frames {fpath} are damaged ({what})") from None
         if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
             raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
                                   f"expected {(n, *self.frame_shape)} (uint8)")
@@ -482,17 +504,17 @@ class FrameReplayBuffer:
         self.physics[:n] = data["physics"]
         self.agent_step[:n] = data["agent_step"]
 
-    def _read_frames(self, fpath: str, n: int, expected: Optional[str]) -> None:
+    def _read_frames(self, fpath: str, n: int, expected: str) -> None:
         """Read the single frames file of an index written before frame files: ``n`` frames
         straight into the ring's first slots, hashing the file on the way; ``expected`` is its
-        sha256 (None: not verified)."""
+        sha256."""
         h = hashlib.sha256()
         with open(fpath, "rb") as fh:
             self._read_npy_header(fh, h, fpath, n)
             self._read_slots(fh, h, 0, n, fpath)
             if fh.read(1):
                 raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
-        if expected is not None and h.hexdigest() != expected:
+        if h.hexdigest() != expected:
             raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
 
     def _read_slots(self, fh, h, slot: int, count: int, fpath: str) -> None:
@@ -566,8 +588,10 @@ class _HashingReader:
 
     def __init__(self, fh, h):
         self.fh, self.h = fh, h
+        self.nread = 0
 
     def read(self, size: int = -1) -> bytes:
         data = self.fh.read(size)
         self.h.update(data)
+        self.nread += len(data)
         return data

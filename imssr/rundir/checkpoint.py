@@ -8,8 +8,9 @@ and the order in which a save writes and removes them (the replay files with it)
 
 Checksums: every checkpoint carries the sha256 of its own bytes in its zip comment
 (:mod:`imssr.integrity`), written with the file in the same rename, so a kill never separates
-a file from its checksum.  Loading verifies it; a mismatch is a :class:`CheckpointDamaged`
-error that names the file.  Checkpoints written before checksums (no seal) load unverified.
+a file from its checksum.  Loading verifies it before torch reads a byte: a mismatch, or a file
+cut short or extended past its checksum, is a :class:`CheckpointDamaged` error that names the
+file, and so is a file without a checksum, which imssr did not write.
 
 Every checkpoint is read with ``torch.load(weights_only=True)``: tensors and plain Python values
 only (RNG states are stored as such).  A file that needs any other object (``os.system``, a
@@ -33,7 +34,7 @@ import torch
 
 from imssr.errors import ImssrError
 from imssr.files import atomic_path
-from imssr.integrity import HashingWriter, check_zip, seal_zip
+from imssr.integrity import DISPLACED, MISMATCH, UNSEALED, HashingWriter, seal_zip, zip_seal_problem
 
 FORMAT_VERSION = 1
 
@@ -176,30 +177,36 @@ def load_checkpoint(path: str) -> Checkpoint:
     if not os.path.exists(path):
         raise ImssrError(f"checkpoint not found: {path}")
     try:
-        intact = check_zip(path)
+        problem = zip_seal_problem(path)
+        starts_as_zip = _starts_as_zip(path)
     except OSError as exc:
         raise CheckpointDamaged(f"cannot read checkpoint {path}: {exc.strerror or exc}", path,
                                 f"unreadable: {exc.strerror or exc}") from None
-    if intact is False:
-        raise CheckpointDamaged(f"checkpoint {path} is damaged (checksum mismatch)", path, "checksum mismatch")
-    if not zipfile.is_zipfile(path):
-        # Checkpoints are zip archives (torch's format); torch reads anything else in its legacy
-        # format, which fails on whatever it trips over first (text, /etc/passwd: KeyError, ...).
-        if _starts_as_zip(path):
-            raise CheckpointDamaged(f"corrupt checkpoint {path}: cut short (its zip directory is missing)", path,
-                                    "unreadable: cut short")
+    if problem in (MISMATCH, DISPLACED):
+        raise CheckpointDamaged(f"checkpoint {path} is damaged ({problem})", path, problem)
+    if not starts_as_zip:
+        # torch reads a file that does not start as a zip archive in its legacy pickle format,
+        # also one with a zip archive (and a seal) behind its pickle: never an imssr checkpoint.
         raise CheckpointDamaged(f"{path} is not an imssr checkpoint (not a torch checkpoint file)", path,
                                 "not an imssr checkpoint")
+    if not zipfile.is_zipfile(path):
+        raise CheckpointDamaged(f"corrupt checkpoint {path}: cut short (its zip directory is missing)", path,
+                                "unreadable: cut short")
+    if problem == UNSEALED:
+        # imssr seals every checkpoint it writes: this one comes from elsewhere.  Listing what its
+        # pickle would import runs none of it.
+        foreign = _foreign_globals(path)
+        what = f"it contains objects of type {', '.join(foreign)}" if foreign else "it carries no imssr checksum"
+        raise CheckpointDamaged(f"{path} is not an imssr checkpoint: {what}", path, "not an imssr checkpoint")
     try:
         # Never unpickle arbitrary objects: a checkpoint from a shared file system could run code.
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
+        # The bytes are as sealed, so this is a file imssr did not write, not a damaged one.
         foreign = _foreign_globals(path)
-        if foreign:
-            raise CheckpointDamaged(f"{path} is not an imssr checkpoint: it contains objects of type "
-                                    f"{', '.join(foreign)}", path, "not an imssr checkpoint") from None
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
+        what = (f"it contains objects of type {', '.join(foreign)}" if foreign else
+                f"a weights-only load refuses it ({_unpickler_reason(exc)})")
+        raise CheckpointDamaged(f"{path} is not an imssr checkpoint: {what}", path, "not an imssr checkpoint") from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
@@ -211,6 +218,14 @@ def load_checkpoint(path: str) -> Checkpoint:
         raise CheckpointDamaged(f"{path} is not an imssr checkpoint of format {FORMAT_VERSION}", path,
                                 "not an imssr checkpoint")
     return Checkpoint.from_state(state, path)
+
+
+def _unpickler_reason(exc: pickle.UnpicklingError) -> str:
+    """What torch's weights-only unpickler objected to (its "WeightsUnpickler error: ..." line),
+    without the advice around it to load the file with ``weights_only=False``."""
+    _, marker, rest = str(exc).partition("WeightsUnpickler error:")
+    reason = next((line.strip() for line in rest.splitlines() if line.strip()), "") if marker else ""
+    return reason or type(exc).__name__
 
 
 def _starts_as_zip(path: str) -> bool:

@@ -172,8 +172,6 @@ class RunDir:
 
     def __init__(self, path: str):
         self.path = str(path)
-        self._kept_replay: Optional[str] = None
-        """The replay file ``latest.pt`` names, as far as this object has read or written it."""
 
     def __repr__(self) -> str:
         return f"RunDir({self.path!r})"
@@ -290,17 +288,43 @@ class RunDir:
         return os.path.join(self.checkpoint_dir, name)
 
     def replay_files(self, name: str) -> list[str]:
-        """The files of the replay buffer ``name``: its ``.npz`` index and the frame files it names."""
+        """The files of the replay buffer ``name``: its ``.npz`` index and the frame files it names;
+        :class:`~imssr.replay.buffer.ReplayFileError` when the index cannot be read and verified."""
         from imssr.replay import buffer as replay_buffer  # torch: loaded when a run's replay is read
 
         return replay_buffer.replay_files(self.replay_path(name))
 
+    def _all_replay_files(self) -> set[str]:
+        return set(glob.glob(os.path.join(self.checkpoint_dir, REPLAY_GLOB)))
+
     def remove_unnamed_replay_files(self, name: Optional[str]) -> None:
-        """Remove the replay files that the replay buffer ``name`` (None: none) does not use."""
-        kept = {os.path.basename(p) for p in self.replay_files(name)} if name else set()
-        for old in glob.glob(os.path.join(self.checkpoint_dir, REPLAY_GLOB)):
+        """Remove the replay files that the replay buffer ``name`` (None: none) does not use.  When
+        the index ``name`` cannot be read and verified, what is live is unknown: nothing is removed,
+        and a one-line warning says so (the next save cleans up)."""
+        from imssr.replay.buffer import ReplayFileError  # torch: loaded when a run's replay is read
+
+        kept: set[str] = set()
+        if name:
+            try:
+                kept = {os.path.basename(p) for p in self.replay_files(name)}
+            except ReplayFileError as exc:
+                print(f"imssr: warning: {exc}; no replay file is removed", flush=True)
+                return
+        for old in self._all_replay_files():
             if os.path.basename(old) not in kept:
                 os.unlink(old)
+
+    def _replay_kept(self, name: str) -> bool:
+        """Whether the files of the replay buffer ``name`` are there: false when its index is
+        missing or a file it names is; true when its index cannot be read (that is its error)."""
+        from imssr.replay.buffer import ReplayFileError  # torch: loaded when a run's replay is read
+
+        if not os.path.exists(self.replay_path(name)):
+            return False
+        try:
+            return all(os.path.exists(p) for p in self.replay_files(name))
+        except ReplayFileError:
+            return True
 
     def load_replay(self, found: CheckpointFile, replay, refill: bool = False) -> Optional[str]:
         """Load into ``replay`` (a replay buffer) the replay files the checkpoint ``found`` names;
@@ -310,7 +334,6 @@ class RunDir:
         from imssr.replay.buffer import ReplayFileError  # torch: loaded when a run's replay is read
 
         ckpt = found.checkpoint
-        self._kept_replay = None  # until this load succeeds, latest.pt's replay files are not known good
         if not ckpt.replay_file:
             return "checkpoint holds no replay buffer"
         path = self.replay_path(ckpt.replay_file)
@@ -318,7 +341,7 @@ class RunDir:
             replay.load(path, ckpt.replay_state["rng"])
         except ReplayFileError as exc:
             # Only latest.pt's replay buffer is kept: an older checkpoint resumes without one.
-            if found.path != self.latest and not all(os.path.exists(p) for p in self.replay_files(ckpt.replay_file)):
+            if found.path != self.latest and not self._replay_kept(ckpt.replay_file):
                 return f"no replay buffer was kept for {os.path.basename(found.path)}"
             if refill:
                 return str(exc)
@@ -326,7 +349,6 @@ class RunDir:
                              "buffer refilled by random actions (not an exact resume)") from None
         if replay.state_dict()["head"] != ckpt.replay_state["head"]:
             raise ImssrError(f"replay buffer {path} does not match the checkpoint")
-        self._kept_replay = ckpt.replay_file
         return None
 
     # -- life ----------------------------------------------------------------------------
@@ -495,7 +517,7 @@ class RunDir:
 
         if ckpt.replay_file and replay is None:
             raise ValueError("a checkpoint that names a replay file is saved with its replay buffer")
-        before = _identity(self.latest)
+        before, replay_before = _identity(self.latest), self._all_replay_files()
         try:
             if ckpt.replay_file:
                 replay.save(self.replay_path(ckpt.replay_file))
@@ -510,10 +532,10 @@ class RunDir:
                     os.unlink(old)
         except ImssrError:
             if ckpt.replay_file and _identity(self.latest) == before:
-                # latest.pt is the previous one: keep what it names, drop what this save wrote.
-                self.remove_unnamed_replay_files(self._kept_replay)
+                # latest.pt is the previous one: drop what this save wrote, which nothing names.
+                for new in self._all_replay_files() - replay_before:
+                    os.unlink(new)
             raise
-        self._kept_replay = ckpt.replay_file
         # Numbered checkpoints therefore hold weights for evaluation; exact resume uses latest.
         self.remove_unnamed_replay_files(ckpt.replay_file)
         for tmp in glob.glob(os.path.join(self.checkpoint_dir, TEMP_GLOB)):
@@ -531,15 +553,27 @@ class RunDir:
         - ``spec`` an agent step (digits): the retained ``step-<spec>.pt``.
         - ``spec`` a file: that path (absolute or relative), or that name inside ``checkpoints/``.
 
-        A checkpoint named by ``spec`` is loaded as it is, with no fall-back.  Every load verifies
-        the file (:func:`~imssr.rundir.checkpoint.load_checkpoint`); none of them is a one-line error.
+        A checkpoint named by ``spec`` is loaded as it is, with no fall-back; when it is one of the
+        run's own and cannot be trusted, the error names the newest retained ``step-*.pt`` that
+        verifies and how to choose it ("--checkpoint 250").  Every load verifies the file
+        (:func:`~imssr.rundir.checkpoint.load_checkpoint`); none of them is a one-line error.
         """
         # torch reads checkpoints: loaded here, so that a run's layout, logs and status need none.
         from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 
         if spec:
             path = self._named_checkpoint(str(spec))
-            return CheckpointFile(load_checkpoint(path), path, None)
+            try:
+                return CheckpointFile(load_checkpoint(path), path, None)
+            except CheckpointDamaged as exc:
+                if os.path.dirname(os.path.abspath(path)) != os.path.abspath(self.checkpoint_dir):
+                    raise
+                other = self._newest_valid(exclude=path)
+                if other is None:
+                    raise
+                raise CheckpointDamaged(f"{exc}; {os.path.basename(other.path)} verifies (agent step "
+                                        f"{other.checkpoint.step}: --checkpoint {other.checkpoint.step})",
+                                        exc.path, exc.reason) from None
         latest = self.latest
         numbered = self.numbered_checkpoints()
         if not os.path.exists(latest):
@@ -554,15 +588,25 @@ class RunDir:
                 problem, error = f"damaged ({exc.reason})", str(exc)
                 if not numbered:
                     raise
-        for path in reversed(numbered):
+        found = self._newest_valid()
+        if found is None:
+            raise ImssrError(f"{error}, and no retained step-*.pt checkpoint in {self.checkpoint_dir} is valid")
+        note = (f"{os.path.basename(latest)} is {problem}; {verb} {os.path.basename(found.path)} "
+                f"at agent step {found.checkpoint.step}")
+        return found._replace(note=note)
+
+    def _newest_valid(self, exclude: Optional[str] = None) -> Optional[CheckpointFile]:
+        """The newest retained ``step-*.pt`` (other than ``exclude``) that verifies, or None."""
+        from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
+
+        for path in reversed(self.numbered_checkpoints()):
+            if exclude is not None and os.path.abspath(path) == os.path.abspath(exclude):
+                continue
             try:
-                ckpt = load_checkpoint(path)
+                return CheckpointFile(load_checkpoint(path), path, None)
             except CheckpointDamaged:
                 continue
-            note = (f"{os.path.basename(latest)} is {problem}; {verb} {os.path.basename(path)} "
-                    f"at agent step {ckpt.step}")
-            return CheckpointFile(ckpt, path, note)
-        raise ImssrError(f"{error}, and no retained step-*.pt checkpoint in {self.checkpoint_dir} is valid")
+        return None
 
     def _named_checkpoint(self, spec: str) -> str:
         """The checkpoint file ``spec`` names (see :meth:`checkpoint`)."""
