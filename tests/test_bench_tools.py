@@ -1,5 +1,5 @@
-"""bench/profile_seeds.py and bench/replay_checkpoint.py on tiny CPU smoke runs: they run and
-print their tables (never timings); the seeds bench runs in tests/test_gpu_script.py."""
+"""bench/profile_seeds.py, bench/replay_checkpoint.py and bench/floor.py on tiny CPU smoke runs:
+they run and print their tables (never timings); the seeds bench runs in tests/test_gpu_script.py."""
 import os
 import subprocess
 import sys
@@ -24,6 +24,26 @@ def test_profile_seeds_profiles_a_single_agent_and_each_mode():
     headings = [line for line in out.splitlines() if line.startswith("## ")]
     assert [h.split(":")[0] for h in headings] == ["## 1 seed, single", "## 2 seeds, loop", "## 2 seeds, vmap"]
     assert all("CPU operators busy" in h for h in headings) and "aten::" in out
+
+
+def test_floor_counts_flops_and_the_bytes_each_operator_moves():
+    sys.path.insert(0, os.path.join(REPO, "bench"))
+    try:
+        import floor
+    finally:
+        sys.path.remove(os.path.join(REPO, "bench"))
+    import torch
+
+    a, b = torch.ones(100), torch.ones(100)
+    with floor.ByteCounter() as moved:
+        c = a + b                       # reads 800 bytes, writes 400
+        c.view(10, 10).t()              # views move nothing
+        c.add_(1)                       # in place: reads and writes c
+        torch.arange(1000.0)[torch.tensor([3, 5])]  # a gather reads the rows it returns
+    assert (moved.read, moved.written) == (800 + 400 + 8 + 16, 400 + 400 + 4000 + 8)
+    out = _run("floor.py", "--precisions", "fp32", "--threads", "1", "--fill", "20", *TINY)
+    row = next(line for line in out.splitlines() if line.startswith("| fp32 |")).split(" | ")
+    assert float(row[1]) > 0 and float(row[4]) > 0
 
 
 def test_replay_checkpoint_compares_new_frames_with_whole_rewrites(tmp_path):
