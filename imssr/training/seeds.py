@@ -283,27 +283,35 @@ class SeedsTrainer:
                                    f"{self.resume_command()}", self.step, self._seeds_root())
 
     def resume_command(self) -> str:
-        """The command that continues these runs: ``--seeds`` when they are ``OUT/seed_<n>`` of
-        one ``OUT`` and their seeds, else ``--runs``."""
-        root = self._seeds_root()
-        if root is not None:
-            seeds = ",".join(str(t.cfg.train.seed) for t in self.trainers)
-            return f"imssr train --seeds {seeds} --out {root} --resume"
-        return f"imssr train --runs {' '.join(os.path.normpath(t.run_dir.path) for t in self.trainers)} --resume"
+        """The command that continues these runs (:func:`resume_command`)."""
+        return resume_command([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
 
     def _seeds_root(self) -> Optional[str]:
-        """``OUT`` when the runs are ``OUT/seed_<n>`` of one ``OUT`` and their seeds, else None."""
-        paths = [os.path.normpath(t.run_dir.path) for t in self.trainers]
-        roots = {os.path.dirname(p) for p in paths}
-        if len(roots) == 1 and all(os.path.basename(p) == SEED_DIR.format(seed=t.cfg.train.seed)
-                                   for p, t in zip(paths, self.trainers)):
-            return roots.pop()
-        return None
+        return seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
 
     def close(self) -> None:
         """Close every seed's envs and release its run directory."""
         for t in self.trainers:
             t.close()
+
+
+def resume_command(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> str:
+    """The command that continues the runs ``runs`` of ``cfgs`` trained in one process:
+    ``--seeds`` when they are ``OUT/seed_<n>`` of one ``OUT`` and their seeds, else ``--runs``."""
+    root = seeds_root(cfgs, runs)
+    if root is not None:
+        return f"imssr train --seeds {','.join(str(c.train.seed) for c in cfgs)} --out {root} --resume"
+    return f"imssr train --runs {' '.join(os.path.normpath(r.path) for r in runs)} --resume"
+
+
+def seeds_root(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> Optional[str]:
+    """``OUT`` when the runs are ``OUT/seed_<n>`` of one ``OUT`` and their seeds, else None."""
+    paths = [os.path.normpath(r.path) for r in runs]
+    roots = {os.path.dirname(p) for p in paths}
+    if len(roots) == 1 and all(os.path.basename(p) == SEED_DIR.format(seed=c.train.seed)
+                               for p, c in zip(paths, cfgs)):
+        return roots.pop()
+    return None
 
 
 def _record(trainer: Trainer, state: str, error: str = "") -> None:
