@@ -225,6 +225,33 @@ def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capf
     assert "stopping after this agent step" in capfd.readouterr().err
 
 
+def test_a_second_signal_that_comes_inside_the_first_ones_handler_stops_at_once(tmp_path, monkeypatch):
+    """A second signal that arrives while the first one's handler runs, before it gave way to the
+    next: Python runs it inside that call, with the first one's handler.  It is the second
+    signal, not a first one again (here SIGTERM comes as the first line is written)."""
+    from imssr.training import stop as module
+
+    exits, sent, say = [], [], module._say
+
+    def say_then_signal(text):
+        say(text)
+        if not sent:
+            sent.append(signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(module.os, "_exit", exits.append)  # this process lives on
+    monkeypatch.setattr(module, "_say", say_then_signal)
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop = module.StopRequest(RunDir(str(tmp_path))).install()
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+    finally:
+        stop.uninstall()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    assert stop.signal_name == "SIGINT" and exits == [INTERRUPTED_EXIT]
+
+
 def test_signal_handlers_survive_a_closed_stderr(tmp_path, monkeypatch):
     """stderr a closed pipe: the handlers' lines are lost, the stop and the exit still happen."""
     from imssr.rundir import RunDir

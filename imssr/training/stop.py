@@ -67,6 +67,11 @@ class StopRequest:
         return self
 
     def _handle(self, signum, frame) -> None:
+        if self.signal_name is not None:
+            # A second signal that came before this handler had given way to the next: Python runs
+            # it inside the first one's call (signal.signal handles what is pending first).
+            self._again(signum, frame)
+            return
         self.signal_name = signal.Signals(signum).name
         # os.write, not print: a signal handler may run inside a print to the same stream.
         _say(f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
@@ -76,6 +81,16 @@ class StopRequest:
                 signal.signal(sig, self._exit_at_once)
             else:
                 signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
+
+    def _again(self, signum, frame) -> None:
+        """What a second signal does where :meth:`_handle` still receives it."""
+        if self.runs:
+            self._exit_at_once(signum, frame)
+        elif signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        else:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
 
     def _exit_at_once(self, signum, frame) -> None:
         """The second signal on the command line: one line and the exit, with no exception that
