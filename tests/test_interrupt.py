@@ -365,6 +365,32 @@ def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_p
         without_timing(read_csv(os.path.join(reference, "eval.csv")))
 
 
+def test_an_attempt_waits_for_a_stopping_training_and_resumes_its_checkpoint(tmp_path):
+    """A sweep re-run right after its driver was killed: the driver's training, stopped by the
+    driver's death, still writes its checkpoint when the new attempt starts.  The attempt waits
+    for it and resumes, instead of starting fresh over it (refused: in use, or a run to resume)."""
+    cfg, st = _sweep_run(tmp_path)
+    run = RunDir(st.run.dir)
+    run.write_config(st.config)
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    orphan = subprocess.Popen([sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while len(read_csv(os.path.join(run.path, "train.csv"))) < 1:  # learning, no checkpoint yet
+            assert orphan.poll() is None
+            os.sched_yield()
+        assert not run.has_checkpoint()
+        orphan.send_signal(signal.SIGTERM)  # PR_SET_PDEATHSIG's signal when its driver dies
+        result = execute_run(run.path, st.steps, 1)
+    finally:
+        if orphan.poll() is None:
+            orphan.kill()
+        orphan.wait()
+    assert orphan.returncode == INTERRUPTED_EXIT
+    assert result["ok"] and result["resumed"], result
+    assert run.is_done(st.steps)
+
+
 def test_sigterm_to_a_ray_sweep_stops_its_trainings_with_checkpoints(tmp_path):
     """`kill` of the sweep (a batch scheduler's stop) on the default launcher: ray.init installs
     a SIGTERM handler of its own (a stack dump and an exit at once), and a Ray task blocked in a
