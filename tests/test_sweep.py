@@ -525,6 +525,21 @@ def test_runs_that_can_share_a_batch_are_packed_into_processes(tmp_path):
     assert [len(g) for g in pack(fused, 3)] == [1, 1]  # a schedule no batch takes: a process each
 
 
+def test_a_dry_run_shows_which_runs_train_in_one_process(tmp_path, capsys):
+    root = tmp_path / "s"
+    args = ["sweep", "--algos", "curl,im-curl,curl+rnd", "--tasks", TASK, "--seeds", "1,2", "--steps", "125",
+            "--root", str(root), *set_args(TINY), "--dry-run"]
+    assert main([*args, "--runs-per-process", "3"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    start = out.index("6 runs to train in 3 processes, one line each (imssr train --runs):")
+    assert out[start + 1:start + 4] == [  # as pack() groups them (RND's own weights: a batch of its own)
+        f"  {TASK}/curl/seed_1 {TASK}/curl/seed_2 {TASK}/im-curl/seed_1",
+        f"  {TASK}/im-curl/seed_2",
+        f"  {TASK}/curl+rnd/seed_1 {TASK}/curl+rnd/seed_2"], out
+    assert main(args) == 0  # on the CPU: a process each
+    assert "6 runs to train, each in a process of its own" in capsys.readouterr().out.splitlines()
+
+
 def test_a_packed_sweep_trains_curl_and_im_curl_in_one_process(tmp_path):
     root = str(tmp_path / "sweep")
     proc = sweep_cli("--algos", "curl,im-curl", "--tasks", TASK, "--seeds", "1", "--steps", "125",
