@@ -10,8 +10,8 @@ would (:mod:`imssr.agents.batched`).
 
 The seeds share the agent step: they start, take the seed phase, burst, evaluate and checkpoint
 at the same steps.  A stop request checkpoints every seed at the current step; a seed whose
-losses or actions turn non-finite is stopped (its last checkpoint is from before) and the others
-go on.
+losses or actions turn non-finite is stopped (its last checkpoint, if it has one, is from before)
+and the others go on.  Each seed's console lines name it (:func:`~imssr.training.progress.member_lines`).
 """
 from __future__ import annotations
 
