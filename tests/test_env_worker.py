@@ -5,6 +5,9 @@ from __future__ import annotations
 import functools
 import os
 import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -63,3 +66,55 @@ def test_step_all_steps_worker_and_local_envs_alike():
     finally:
         for env in envs:
             env.close()
+
+
+# A process with an env worker that ends without closing it: by an exception, or killed while
+# the worker steps (its reply then meets a closed pipe).
+LEFT_OPEN = """
+import functools, os, signal, sys
+import numpy as np
+from imssr.config import EnvConfig
+from imssr.envs import env_from_config
+from imssr.envs.worker import EnvWorker
+
+env = EnvWorker(functools.partial(env_from_config, EnvConfig(task="cartpole_swingup"), seed=0, footage_split="train"))
+env.reset()
+print(env._proc.pid, flush=True)
+if sys.argv[1] == "kill":
+    env.step_async(np.zeros(1, np.float32))
+    os.kill(os.getpid(), signal.SIGKILL)
+raise SystemExit(3)
+"""
+
+
+def _gone(pid: int, timeout: float = 30.0) -> bool:
+    """Whether process ``pid`` ends (or is a zombie) within ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                if fh.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    return True
+        except FileNotFoundError:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_a_process_that_exits_without_closing_its_worker_still_exits():
+    """Python's exit handler of multiprocessing SIGTERMs daemon children, which a worker ignores,
+    and joins them without a timeout: the worker must be ended before that."""
+    proc = subprocess.run([sys.executable, "-c", LEFT_OPEN, "exit"], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    assert proc.returncode == 3, proc.stderr
+    assert _gone(int(proc.stdout.split()[0]))
+
+
+def test_a_worker_whose_training_is_killed_exits_quietly():
+    proc = subprocess.Popen([sys.executable, "-c", LEFT_OPEN, "kill"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    # The worker shares stderr: it is read to the end once the worker is gone too.
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == -signal.SIGKILL
+    assert _gone(int(out.split()[0]))
+    assert err == "", err

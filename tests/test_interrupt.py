@@ -100,7 +100,7 @@ def test_a_second_signal_stops_at_once_and_keeps_the_last_checkpoint(tmp_path):
     assert load_checkpoint(RunDir(str(out)).latest).step >= 125
 
 
-# `imssr train` whose checkpoint write number WRITE (1: the first) gets two SIGINTs from the
+# `imssr train` whose checkpoint write number WRITE (1: the first) gets two signals SIGNAL from the
 # process itself in the middle of torch.save: the stop request, then the second signal.  Where
 # an outside Ctrl-C lands is chance; these land inside the write every time.
 SIGNALS_IN_A_WRITE = """
@@ -108,7 +108,7 @@ import os, signal, sys
 import imssr.rundir.checkpoint as checkpoint
 from imssr.cli import main
 
-WRITE = int(sys.argv[1])
+WRITE, SIGNAL = int(sys.argv[1]), getattr(signal, sys.argv[2])
 
 class SignalledWriter(checkpoint.HashingWriter):
     writes = 0
@@ -123,12 +123,12 @@ class SignalledWriter(checkpoint.HashingWriter):
         self.written += len(data)
         if SignalledWriter.writes == WRITE and self.written > 4096:
             SignalledWriter.writes += 1  # once
-            os.kill(os.getpid(), signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), SIGNAL)
+            os.kill(os.getpid(), SIGNAL)
         return n
 
 checkpoint.HashingWriter = SignalledWriter
-sys.exit(main(sys.argv[2:]))
+sys.exit(main(sys.argv[3:]))
 """
 
 
@@ -139,7 +139,7 @@ def test_a_second_signal_during_a_checkpoint_write_exits_130_in_one_line(tmp_pat
     out = tmp_path / "run"
     env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
     args = [*TRAIN, "--steps", "300", "--set", "train.checkpoint_every_steps=125", "--out", str(out)]
-    proc = subprocess.run([sys.executable, "-c", SIGNALS_IN_A_WRITE, str(write), *args], env=env,
+    proc = subprocess.run([sys.executable, "-c", SIGNALS_IN_A_WRITE, str(write), "SIGINT", *args], env=env,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == INTERRUPTED_EXIT, proc.stderr
     assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
@@ -155,6 +155,47 @@ def test_a_second_signal_during_a_checkpoint_write_exits_130_in_one_line(tmp_pat
                              f"imssr train --out {out} --resume")
         assert load_checkpoint(run.latest).step == 125
     assert run.status() == ("interrupted" if write == 2 else "new")
+
+
+@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
+def test_a_second_signal_ends_a_batch_with_env_workers_at_once_in_one_line(tmp_path, signum):
+    """Two seeds in one process, each env in a worker process: the second signal (in the seeds'
+    checkpoint at agent step 250, after both checkpointed step 125) exits 130 at once with the
+    batch's resume command; no worker outlives it (they share its stderr, read to the end)."""
+    out = tmp_path / "batch"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    seed = TRAIN.index("--seed")
+    args = TRAIN[:seed] + TRAIN[seed + 2:] + [
+        "--seeds", "1,2", "--steps", "300", "--set", "train.checkpoint_every_steps=125",
+        "--set", "train.env_workers=true", "--out", str(out)]
+    proc = subprocess.run([sys.executable, "-c", SIGNALS_IN_A_WRITE, "3", signum, *args], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == INTERRUPTED_EXIT, proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert lines[-2].startswith(f"imssr: {signum}: stopping after this agent step"), proc.stderr
+    assert lines[-1] == (f"imssr: {signum} again: stopped at once, keeping the last checkpoint; continue with: "
+                         f"imssr train --seeds 1,2 --out {out} --resume"), proc.stderr
+    assert [load_checkpoint(RunDir(str(out / f"seed_{s}")).latest).step for s in (1, 2)] == [125, 125]
+
+
+def test_the_second_signals_line_says_which_runs_of_a_batch_cannot_resume(tmp_path):
+    """Stopped at once during the runs' first checkpoints: the command that continues is named
+    only when every run has a checkpoint."""
+    from conftest import a_checkpoint
+    from imssr.training.stop import StopRequest
+
+    a, b = RunDir(str(tmp_path / "seed_1")), RunDir(str(tmp_path / "seed_2"))
+    stop = StopRequest(a, b, resume_command=f"imssr train --seeds 1,2 --out {tmp_path} --resume")
+    assert stop._at_once_text() == ("stopped at once, before the runs' first checkpoint: nothing to resume; "
+                                    f"choose another --out or remove {a.path}, {b.path}")
+    a.save_checkpoint(a_checkpoint(step=5), keep=1)
+    assert stop._at_once_text() == (f"stopped at once, during the runs' first checkpoint: {b.path} has none, so "
+                                    f"the runs cannot resume together; choose another --out or remove {a.path}, "
+                                    f"{b.path}")
+    b.save_checkpoint(a_checkpoint(step=5), keep=1)
+    assert stop._at_once_text() == ("stopped at once, keeping the last checkpoint; continue with: "
+                                    f"imssr train --seeds 1,2 --out {tmp_path} --resume")
 
 
 def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capfd):
@@ -182,6 +223,33 @@ def test_after_a_signal_uninstall_gives_the_callers_handlers_back(tmp_path, capf
         signal.signal(signal.SIGTERM, previous)
         signal.signal(signal.SIGINT, previous_int)
     assert "stopping after this agent step" in capfd.readouterr().err
+
+
+def test_a_second_signal_that_comes_inside_the_first_ones_handler_stops_at_once(tmp_path, monkeypatch):
+    """A second signal that arrives while the first one's handler runs, before it gave way to the
+    next: Python runs it inside that call, with the first one's handler.  It is the second
+    signal, not a first one again (here SIGTERM comes as the first line is written)."""
+    from imssr.training import stop as module
+
+    exits, sent, say = [], [], module._say
+
+    def say_then_signal(text):
+        say(text)
+        if not sent:
+            sent.append(signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(module.os, "_exit", exits.append)  # this process lives on
+    monkeypatch.setattr(module, "_say", say_then_signal)
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop = module.StopRequest(RunDir(str(tmp_path))).install()
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+    finally:
+        stop.uninstall()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    assert stop.signal_name == "SIGINT" and exits == [INTERRUPTED_EXIT]
 
 
 def test_signal_handlers_survive_a_closed_stderr(tmp_path, monkeypatch):
@@ -295,6 +363,32 @@ def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_p
     assert RunDir(run_dir).status() == "finished"
     assert without_timing(read_csv(os.path.join(run_dir, "eval.csv"))) == \
         without_timing(read_csv(os.path.join(reference, "eval.csv")))
+
+
+def test_an_attempt_waits_for_a_stopping_training_and_resumes_its_checkpoint(tmp_path):
+    """A sweep re-run right after its driver was killed: the driver's training, stopped by the
+    driver's death, still writes its checkpoint when the new attempt starts.  The attempt waits
+    for it and resumes, instead of starting fresh over it (refused: in use, or a run to resume)."""
+    cfg, st = _sweep_run(tmp_path)
+    run = RunDir(st.run.dir)
+    run.write_config(st.config)
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    orphan = subprocess.Popen([sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while len(read_csv(os.path.join(run.path, "train.csv"))) < 1:  # learning, no checkpoint yet
+            assert orphan.poll() is None
+            os.sched_yield()
+        assert not run.has_checkpoint()
+        orphan.send_signal(signal.SIGTERM)  # PR_SET_PDEATHSIG's signal when its driver dies
+        result = execute_run(run.path, st.steps, 1)
+    finally:
+        if orphan.poll() is None:
+            orphan.kill()
+        orphan.wait()
+    assert orphan.returncode == INTERRUPTED_EXIT
+    assert result["ok"] and result["resumed"], result
+    assert run.is_done(st.steps)
 
 
 def test_sigterm_to_a_ray_sweep_stops_its_trainings_with_checkpoints(tmp_path):

@@ -125,9 +125,10 @@ def test_seeds_as_agents_of_their_own_train_and_resume_across_layouts(uninterrup
 
 
 @pytest.mark.parametrize("bad", [0, 1])
-def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad):
-    """The seed whose critic turns to NaN stops at its first episode's end; the other trains on,
-    leaving the logs and weights of the batch where nothing diverged."""
+def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad, capsys):
+    """The seed whose critic turns to NaN stops at its first episode's end, before its first
+    checkpoint, and says so; the other trains on, leaving the logs and weights of the batch
+    where nothing diverged."""
     trainer = SeedsTrainer(configs(), runs(tmp_path))
     try:
         with torch.no_grad():
@@ -139,12 +140,46 @@ def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad):
         trainer.close()
     good = 1 - bad
     assert failed[good] is None and failed[bad].startswith("diverged at agent step")
+    said = [line for line in capsys.readouterr().out.splitlines() if "diverged" in line]
+    assert said == [f"imssr: seed {SEEDS[bad]}: {failed[bad]}; it has no checkpoint, the other seeds go on"]
     statuses = [json.load(open(os.path.join(run, "status.json")))["state"] for run in runs(tmp_path)]
     assert statuses[good] == "finished" and statuses[bad] == "diverged"
     done, other = runs(uninterrupted)[good], runs(tmp_path)[good]
     for log in ("train.csv", "eval.csv"):
         assert rows(os.path.join(other, log)) == rows(os.path.join(done, log))
     assert RunDir(other).checkpoint().checkpoint.step == 150
+
+
+def test_a_batch_says_each_seeds_lines_with_its_seed_and_a_warning_of_every_seed_once(tmp_path, capsys):
+    """Evaluation and progress lines name their seed; a warning every seed gives alike (here: the
+    seed phase outlasts the budget, so no seed ever updates) comes once, as for a run alone."""
+    cfgs = configs(steps=80)
+    for cfg in cfgs:
+        cfg.train.seed_steps = 100
+    trainer = SeedsTrainer(cfgs, runs(tmp_path))
+    try:
+        for t in trainer.trainers:
+            t.progress_every_s = 0.0  # a progress line every agent step (stdout is no terminal here)
+        assert trainer.train() == [None, None]
+    finally:
+        trainer.close()
+    out = capsys.readouterr().out.splitlines()
+    assert len([line for line in out if line.startswith("imssr: warning: the seed phase")]) == 1, out
+    evaluations = [line for line in out if "eval step" in line]
+    progress = [line for line in out if "frames/s" in line]
+    for seed in SEEDS:
+        assert f"seed {seed}: eval step 75 frame 600: return 0.0 ± 0.0" in evaluations, evaluations
+        assert any(line.startswith(f"imssr: seed {seed}: agent step 80/80 (100.0%)") for line in progress), progress
+    assert len(evaluations) == 2 and len(progress) == 2 * 80
+
+
+def test_runs_of_one_seed_are_told_apart_by_their_algorithm():
+    from imssr.training.progress import member_labels
+
+    assert member_labels([1, 2], ["curl", "curl"], ["a", "b"]) == ["seed 1", "seed 2"]
+    assert member_labels([1, 1], ["curl", "im-curl"], ["a", "b"]) == ["curl seed 1", "im-curl seed 1"]
+    assert member_labels([1, 1], ["im-curl", "im-curl"], ["x/beta0_0.01", "x/beta0_0.1"]) == \
+        ["x/beta0_0.01", "x/beta0_0.1"]
 
 
 def test_two_evaluation_scenes_in_lockstep_are_each_seeds_own(tmp_path):

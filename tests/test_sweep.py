@@ -6,6 +6,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import fields, replace
 
 import pytest
@@ -472,10 +473,13 @@ def test_a_fresh_attempt_never_deletes_a_finished_run_without_checkpoint(tmp_pat
     assert RunDir(run_dir).status() == "finished"
 
 
-def test_a_fresh_attempt_keeps_results_only_a_checkpoint_makes_and_a_run_in_use(tmp_path):
+def test_a_fresh_attempt_keeps_results_only_a_checkpoint_makes_and_a_run_in_use(tmp_path, monkeypatch):
     """evaluate.csv without a checkpoint (deleted) is a run too; a directory another process holds
     is not cleared under it.  What a training left before its first checkpoint is."""
+    from imssr.sweep import runner
     from imssr.sweep.runner import RunAttempt
+
+    monkeypatch.setattr(runner, "WRITER_WAIT_S", 0.0)  # the holder below never lets go while it waits
 
     run_dir = str(tmp_path / "run")
     run = RunDir(run_dir)
@@ -521,6 +525,21 @@ def test_runs_that_can_share_a_batch_are_packed_into_processes(tmp_path):
     assert [len(g) for g in pack(fused, 3)] == [1, 1]  # a schedule no batch takes: a process each
 
 
+def test_a_dry_run_shows_which_runs_train_in_one_process(tmp_path, capsys):
+    root = tmp_path / "s"
+    args = ["sweep", "--algos", "curl,im-curl,curl+rnd", "--tasks", TASK, "--seeds", "1,2", "--steps", "125",
+            "--root", str(root), *set_args(TINY), "--dry-run"]
+    assert main([*args, "--runs-per-process", "3"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    start = out.index("6 runs to train in 3 processes, one line each (imssr train --runs):")
+    assert out[start + 1:start + 4] == [  # as pack() groups them (RND's own weights: a batch of its own)
+        f"  {TASK}/curl/seed_1 {TASK}/curl/seed_2 {TASK}/im-curl/seed_1",
+        f"  {TASK}/im-curl/seed_2",
+        f"  {TASK}/curl+rnd/seed_1 {TASK}/curl+rnd/seed_2"], out
+    assert main(args) == 0  # on the CPU: a process each
+    assert "6 runs to train, each in a process of its own" in capsys.readouterr().out.splitlines()
+
+
 def test_a_packed_sweep_trains_curl_and_im_curl_in_one_process(tmp_path):
     root = str(tmp_path / "sweep")
     proc = sweep_cli("--algos", "curl,im-curl", "--tasks", TASK, "--seeds", "1", "--steps", "125",
@@ -532,3 +551,25 @@ def test_a_packed_sweep_trains_curl_and_im_curl_in_one_process(tmp_path):
     assert "trained in one process with 1 other run(s)" in open(second).read()
     for r in runs:
         assert RunDir(os.path.join(root, r["dir"])).is_done(125)
+
+
+def test_a_packed_attempt_killed_by_a_signal_says_so_for_each_run(tmp_path):
+    """Killed outright, the process wrote no status: each run's error is the signal, not the last
+    line the process happened to print."""
+    import signal
+
+    from imssr.sweep.runner import RunAttempt
+
+    dirs = [str(tmp_path / f"seed_{seed}") for seed in (1, 2)]
+    for seed, d in zip((1, 2), dirs):
+        RunDir(d).write_config(tiny_config("curl", seed=seed, steps=125))
+    attempt = RunAttempt(dirs, 125, 1)
+    try:
+        while "in one process:" not in open(attempt.log_path).read():  # the training said something
+            assert attempt.proc.poll() is None, open(attempt.log_path).read()
+            time.sleep(0.2)
+    finally:
+        os.killpg(attempt.proc.pid, signal.SIGKILL)
+    results = attempt.finish_all()
+    assert [(r["ok"], r["interrupted"], r["error"]) for r in results] == [(False, False, "killed by signal 9 (SIGKILL)")] * 2
+    assert [RunDir(d).read_status()["error"] for d in dirs] == ["killed by signal 9 (SIGKILL)"] * 2

@@ -55,6 +55,25 @@ def test_the_plan_and_the_status_read_back_as_written(tmp_path):
     assert sweep.failed_runs() == {}
 
 
+def test_a_running_row_of_a_sweep_that_is_gone_reads_as_interrupted(tmp_path):
+    """A sweep killed outright leaves its running rows behind: a run whose training stopped too
+    is interrupted, one whose training goes on (a SLURM job) is still running."""
+    sweep = SweepDir(tmp_path)
+    _, _, statuses = a_sweep(tmp_path)
+    for st in statuses:
+        st.state, st.errors = "running", []
+    with sweep.lock():  # as the sweep holds its root while it runs
+        sweep.write_status(statuses, started=0.0, retries=1)
+        assert [st.state for st in sweep.read_status()] == ["running", "running"]
+    training = statuses[0].run.run_dir.open()  # as its training holds the run
+    try:
+        read = sweep.read_status()
+    finally:
+        training.release()
+    assert [st.state for st in read] == ["running", "interrupted"]
+    assert "the next sweep resumes it" in read[1].note
+
+
 def test_a_status_row_that_cannot_be_read_hides_only_itself_from_the_failures(tmp_path):
     sweep = SweepDir(tmp_path)
     cfg, planned, statuses = a_sweep(tmp_path)

@@ -9,9 +9,11 @@ the order they are made, so the env sees exactly what it would see in the traini
 """
 from __future__ import annotations
 
+import atexit
 import multiprocessing as mp
 import signal
 import traceback
+import weakref
 from typing import Any, Callable, Optional
 
 import numpy as np
@@ -21,6 +23,11 @@ from imssr.errors import ImssrError
 START_TIMEOUT_S = 300.0
 """How long building the env in its worker may take (importing dm_control, the EGL context)."""
 
+_LIVE: "weakref.WeakSet[EnvWorker]" = weakref.WeakSet()
+"""The workers of this process not closed yet (:func:`end_workers` ends them)."""
+_AT_EXIT = False
+"""Whether :func:`end_workers` is registered to run at the interpreter's exit."""
+
 
 def _serve(conn, make: Callable[[], Any]) -> None:  # pragma: no cover - runs in the worker process
     # A stop signal reaches the whole process group (Ctrl-C, a sweep's SIGTERM, SLURM): the
@@ -28,24 +35,28 @@ def _serve(conn, make: Callable[[], Any]) -> None:  # pragma: no cover - runs in
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     try:
-        env = make()
-        conn.send((True, (env.action_space, env.observation_space, env.physics_state_dim)))
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
-        conn.send((False, _portable(exc)))
-        return
-    while True:
         try:
-            name, args, kwargs = conn.recv()
-        except EOFError:
-            break
-        try:
-            value = getattr(env, name)(*args, **kwargs)
-            conn.send((True, value))
-        except BaseException as exc:  # noqa: BLE001
+            env = make()
+            reply = (True, (env.action_space, env.observation_space, env.physics_state_dim))
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
             conn.send((False, _portable(exc)))
-        if name == "close":
-            break
-    conn.close()
+            return
+        conn.send(reply)
+        while True:
+            name, args, kwargs = conn.recv()
+            try:
+                reply = (True, getattr(env, name)(*args, **kwargs))
+            except BaseException as exc:  # noqa: BLE001
+                reply = (False, _portable(exc))
+            conn.send(reply)
+            if name == "close":
+                break
+    except (EOFError, OSError):
+        # The training is gone (it exited, or was killed): nobody is left to answer, and a
+        # traceback of the closed pipe would only hide the training's own last line.
+        pass
+    finally:
+        conn.close()
 
 
 def _portable(exc: BaseException) -> Exception:
@@ -73,6 +84,7 @@ class EnvWorker:
         child.close()
         self._pending: Optional[np.ndarray] = None
         self._closed = False
+        _watch(self)
         if not self._conn.poll(START_TIMEOUT_S):
             self.close()
             raise ImssrError(f"an env worker did not start in {START_TIMEOUT_S:.0f} s")
@@ -134,6 +146,7 @@ class EnvWorker:
         if self._closed:
             return
         self._closed = True
+        _LIVE.discard(self)
         try:
             if self._proc.is_alive():
                 if self._pending is not None and self._conn.poll(10.0):
@@ -149,6 +162,37 @@ class EnvWorker:
                 self._proc.kill()
                 self._proc.join()
             self._conn.close()
+
+    def end(self) -> None:
+        """End the worker now (SIGKILL: it ignores the stop signals), with nothing sent or waited for."""
+        self._closed = True
+        _LIVE.discard(self)
+        if self._proc.is_alive():
+            self._proc.kill()
+        self._proc.join(timeout=5.0)
+        self._conn.close()
+
+
+def _watch(worker: EnvWorker) -> None:
+    """Keep ``worker`` for :func:`end_workers`, which also runs at the interpreter's exit:
+    registered with the first worker, after multiprocessing's own exit handler, it runs before
+    that one, which sends the daemon workers SIGTERM (they ignore it) and joins them without a
+    timeout."""
+    global _AT_EXIT
+    if not _AT_EXIT:
+        atexit.register(end_workers)
+        _AT_EXIT = True
+    _LIVE.add(worker)
+
+
+def end_workers() -> None:
+    """End every env worker of this process that is still running (:meth:`EnvWorker.end`): the
+    process exits without closing them (an error, a second stop signal)."""
+    for worker in list(_LIVE):
+        try:
+            worker.end()
+        except (OSError, ValueError):  # already reaped, or its pipe already closed
+            pass
 
 
 def step_all(envs: list, actions: list) -> list:

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, Optional
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
 from imssr.jsonio import dumps, read_json
-from imssr.rundir.lock import DirectoryLock
+from imssr.rundir.lock import DirectoryLock, held_by
 from imssr.sweep.grid import Run, SweepConfig, group_label
 
 if TYPE_CHECKING:
@@ -83,7 +83,8 @@ class RunStatus:
     attempts: int = 0
     """Attempts started by this invocation of the sweep."""
     errors: list[str] = field(default_factory=list)
-    """Last output line of each failed attempt."""
+    """Last output line of each failed attempt (``killed by signal N (NAME)`` for one a signal
+    ended without a word)."""
     interruptions: int = 0
     """Attempts of this invocation stopped by a signal (resumed, not counted as failures)."""
     note: str = ""
@@ -217,11 +218,20 @@ class SweepDir:
 
     def read_status(self) -> list[RunStatus]:
         """Every run's row as the last sweep wrote it ([] when there is none; without the resolved
-        config); a one-line error when the file is damaged."""
+        config); a one-line error when the file is damaged.  A row ``running`` while no sweep
+        holds the root's lock, and no training the run's, is read as ``interrupted``: its sweep
+        was killed before it could say so, and its training stopped (the next sweep resumes the
+        run).  A training that outlives its sweep (a SLURM job) is still ``running``."""
         try:
-            return [RunStatus.from_dict(row, self.path, f"run {i + 1}") for i, row in enumerate(self._status_rows())]
+            statuses = [RunStatus.from_dict(row, self.path, f"run {i + 1}") for i, row in enumerate(self._status_rows())]
         except ValueError as exc:
             raise ImssrError(f"sweep status {self.status_path} is damaged: {exc}") from None
+        if any(st.state == "running" for st in statuses) and held_by(self.path) is None:
+            for st in statuses:
+                if st.state == "running" and not st.run.run_dir.in_use():
+                    st.state = "interrupted"
+                    st.note = st.note or "its sweep ended while it ran (killed): the next sweep resumes it"
+        return statuses
 
     def _status_rows(self) -> list:
         """The rows of ``sweep_status.json`` as JSON ([] when there is none), each still to be read."""

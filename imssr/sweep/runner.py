@@ -106,6 +106,9 @@ class RunAttempt:
         for r in self.runs:
             os.makedirs(r.path, exist_ok=True)
         self.steps, self.attempt = steps, attempt
+        # Classified now, not when the sweep planned or when an earlier attempt began: a training
+        # of a killed sweep may still be stopping here, writing the checkpoint this one resumes.
+        wait_for_writers(self.runs)
         self.resumed = run.has_checkpoint()
         if len(self.runs) == 1:
             cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
@@ -204,8 +207,11 @@ class RunAttempt:
                   "diverged": False, "final_step": final_step, "final_frame": final_frame,
                   "seconds": round(time.time() - self.start, 1)}
         if returncode != 0:
-            result["error"] = ((own or {}).get("error") or _last_line(self.log_path, self.offset)
-                               or f"exit status {returncode}")
+            error = (own or {}).get("error")
+            if not error:
+                # A process a signal killed said nothing of it: its last output line is not the cause.
+                error = _killed_text(returncode) if returncode < 0 else _last_line(self.log_path, self.offset)
+            result["error"] = error or f"exit status {returncode}"
             result["diverged"] = DIVERGED_PREFIX in result["error"]
         elif final_step < self.steps:
             result["error"] = (f"exited 0 but its last evaluation is at agent step {final_step}, "
@@ -222,6 +228,29 @@ class RunAttempt:
             except (ImssrError, OSError):  # a full disk: the result still says what happened
                 pass
         return result
+
+
+WRITER_WAIT_S = STOP_GRACE_S
+"""Seconds an attempt waits for a process that still holds its run's lock (a training of a killed
+sweep, stopping with its checkpoint) before it starts and lets the training refuse in one line."""
+
+
+def wait_for_writers(runs: list[RunDir]) -> None:
+    """Wait, up to :data:`WRITER_WAIT_S` seconds in all, until no process holds the lock of any
+    of ``runs``."""
+    deadline = time.monotonic() + WRITER_WAIT_S
+    for run in runs:
+        while run.in_use() and time.monotonic() < deadline:
+            time.sleep(0.2)
+
+
+def _killed_text(returncode: int) -> str:
+    """``killed by signal 9 (SIGKILL)`` for a child's negative exit status."""
+    try:
+        name = f" ({signal.Signals(-returncode).name})"
+    except ValueError:
+        name = ""
+    return f"killed by signal {-returncode}{name}"
 
 
 def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
@@ -245,7 +274,7 @@ def execute_run(run_dir: RunDir | str, steps: int, attempt: int, niceness: Optio
     wait for it; return what happened (the body of a Ray task or a SLURM job).
 
     Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
-    line when it failed), ``interrupted`` (stopped by a signal: resume it, it did not fail),
+    line when it failed, or ``killed by signal N (NAME)``), ``interrupted`` (stopped by a signal: resume it, it did not fail),
     ``diverged`` (a resume would diverge again from the same checkpoint: do not retry),
     ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``: as
     in :class:`RunAttempt`.

@@ -83,12 +83,21 @@ def config_conflict(run: RunDir, cfg: RunConfig) -> str:
 
 
 def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
-    """The expanded grid, one run per line (``--dry-run``)."""
-    lines = [f"{len(statuses)} runs under {os.path.abspath(cfg.root)}:"]
+    """The expanded grid, one run per line, and the processes the runs to train are packed into
+    (``--dry-run``)."""
+    root = os.path.abspath(cfg.root)
+    lines = [f"{len(statuses)} runs under {root}:"]
     for s in statuses:
         what = {"done": "done, skipped", "resume": "resume from checkpoint", "fresh": "new"}[s.action]
-        lines.append(f"  {os.path.relpath(s.run.dir, os.path.abspath(cfg.root))}\t{s.run.name}, "
+        lines.append(f"  {os.path.relpath(s.run.dir, root)}\t{s.run.name}, "
                      f"{s.steps:,} agent steps ({s.frames:,} frames)\t[{what}]")
+    groups = pack([s for s in statuses if s.state == "queued"], cfg.runs_per_process)
+    if any(len(g) > 1 for g in groups):
+        lines.append(f"{sum(len(g) for g in groups)} runs to train in {len(groups)} processes, one line each "
+                     f"(imssr train --runs):")
+        lines += ["  " + " ".join(os.path.relpath(s.run.dir, root) for s in g) for g in groups]
+    elif groups:
+        lines.append(f"{len(groups)} runs to train, each in a process of its own")
     if statuses:
         run = statuses[0].run.run_dir
         lines.append(f"each run trains the config the sweep writes to its directory, e.g. "

@@ -141,9 +141,10 @@ def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list
 
     SIGTERM / SIGINT stop every run after the current agent step with a checkpoint and raise
     :class:`TrainingInterrupted`; a second signal stops at once: with
-    ``exit_on_second_signal`` (the command line, one run) the process exits with one line,
-    otherwise the default handlers act (``KeyboardInterrupt``).  A run of several whose losses
-    turn non-finite stops; the others finish, then a one-line error names it."""
+    ``exit_on_second_signal`` (the command line: one run or many) the process exits with one
+    line naming the command that continues, otherwise the default handlers act
+    (``KeyboardInterrupt``).  A run of several whose losses turn non-finite stops; the others
+    finish, then a one-line error names it."""
     if request.seeds is not None or request.runs:
         from imssr.agents.streams import allow_concurrent_streams
 
@@ -151,13 +152,13 @@ def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list
     planned = plan(request)
     if request.seeds is None and not request.runs:
         cfg, run = planned[0]
-        stop = StopRequest(run if exit_on_second_signal else None).install()
+        stop = (StopRequest(run) if exit_on_second_signal else StopRequest()).install()
         try:
             _train_one(cfg, run, request, stop)
         finally:
             stop.uninstall()
         return planned
-    return _train_many(planned, request)
+    return _train_many(planned, request, exit_on_second_signal)
 
 
 def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest) -> None:
@@ -181,12 +182,13 @@ def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopReq
         trainer.close()
 
 
-def _train_many(planned: list[RunPlan], request: TrainRequest) -> list[RunPlan]:
+def _train_many(planned: list[RunPlan], request: TrainRequest, exit_on_second_signal: bool) -> list[RunPlan]:
     from imssr.plots.curves import plot_learning_curve
-    from imssr.training.seeds import SeedsTrainer
+    from imssr.training.seeds import SeedsTrainer, resume_command
 
     cfgs, runs = [p.config for p in planned], [p.run for p in planned]
-    stop = StopRequest().install()
+    stop = (StopRequest(*runs, resume_command=resume_command(cfgs, runs)) if exit_on_second_signal
+            else StopRequest()).install()
     try:
         trainer = SeedsTrainer(cfgs, runs, resume=request.resume, stop=stop)
         try:

@@ -1,10 +1,12 @@
 """What a person watching a training run sees: a progress bar on a terminal, else (a SLURM or
-nohup log) a line every :data:`PROGRESS_EVERY_S` seconds, and a line per evaluation."""
+nohup log) a line every :data:`PROGRESS_EVERY_S` seconds, and a line per evaluation; in a batch
+of runs (``--seeds``, ``--runs``) each run's lines say which seed they are of (:func:`member_lines`)."""
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
-from typing import Callable, Optional
+from typing import Callable, Iterator, Optional
 
 from tqdm import tqdm
 
@@ -132,6 +134,85 @@ def eval_summary(rows: list[dict]) -> str:
     """``12.5 ± 3.0`` for one scene's ``eval.csv`` row, ``train 12.5 ± 3.0, color_hard ...`` for several."""
     text = ", ".join(f"{r['mode']} {r['return_mean']:.1f} ± {r['return_std']:.1f}" for r in rows)
     return text if len(rows) > 1 else text.split(" ", 1)[1]
+
+
+def member_labels(seeds: list[int], algos: list[str], paths: list[str]) -> list[str]:
+    """What each run of a batch is called in its console lines: ``seed 3`` when the seeds tell the
+    runs apart, else ``im-curl seed 3`` (``--runs`` of CURL and IM-CURL), else its directory."""
+    for labels in ([f"seed {s}" for s in seeds], [f"{a} seed {s}" for a, s in zip(algos, seeds)]):
+        if len(set(labels)) == len(labels):
+            return labels
+    return list(paths)
+
+
+def with_member(label: str, line: str) -> str:
+    """``line`` of the run ``label`` of a batch: ``imssr: seed 3: warning: ...``, ``seed 3: eval step ...``."""
+    if not line.strip():
+        return line
+    if line.startswith("imssr: "):
+        return f"imssr: {label}: {line[len('imssr: '):]}"
+    return f"{label}: {line}"
+
+
+class _MemberStdout:
+    """``sys.stdout`` for the lines of one run of a batch: each whole line is written to
+    ``stream`` with the run's label (:func:`with_member`), or kept in ``held`` to be said later."""
+
+    def __init__(self, stream, label: str, held: Optional[list[str]]):
+        self.stream, self.label, self.held = stream, label, held
+        self._partial = ""
+
+    def write(self, text: str) -> int:
+        self._partial += text
+        *lines, self._partial = self._partial.split("\n")
+        for line in lines:
+            if self.held is not None:
+                self.held.append(line)
+            else:
+                self.stream.write(with_member(self.label, line) + "\n")
+        return len(text)
+
+    def flush(self) -> None:
+        if self.held is None:
+            self.stream.flush()
+
+    def end(self) -> None:
+        """The block is over: a line left without its newline is written too."""
+        if self._partial:
+            self.write("\n")
+        self.flush()
+
+    def __getattr__(self, name: str):  # isatty, encoding, fileno: the stream's
+        return getattr(self.stream, name)
+
+
+@contextlib.contextmanager
+def member_lines(label: str, held: Optional[list[str]] = None) -> Iterator[None]:
+    """Inside the block, every line printed to stdout is of the run ``label`` of a batch
+    (:func:`member_labels`): written with the label (:func:`with_member`), or, with ``held``,
+    appended there (without it) for :func:`say_held`.  A run alone prints its lines as they are."""
+    stream = sys.stdout
+    sys.stdout = ours = _MemberStdout(stream, label, held)
+    try:
+        yield
+    finally:
+        ours.end()
+        sys.stdout = stream
+
+
+def say_held(held: dict[str, list[str]], once: bool = True) -> None:
+    """The lines the runs of a batch said (label -> lines, :func:`member_lines` with ``held``): a
+    line every run said alike (a warning about the machine, the step all resume from) once,
+    with ``once``; the others, or all, each with its run's label."""
+    common = set.intersection(*(set(lines) for lines in held.values())) if once and len(held) > 1 else set()
+    said: set[str] = set()
+    for label, lines in held.items():
+        for line in lines:
+            if line not in common:
+                print(with_member(label, line), flush=True)
+            elif line not in said:
+                said.add(line)
+                print(line, flush=True)
 
 
 def _isatty(stream) -> bool:

@@ -10,8 +10,8 @@ would (:mod:`imssr.agents.batched`).
 
 The seeds share the agent step: they start, take the seed phase, burst, evaluate and checkpoint
 at the same steps.  A stop request checkpoints every seed at the current step; a seed whose
-losses or actions turn non-finite is stopped (its last checkpoint is from before) and the others
-go on.
+losses or actions turn non-finite is stopped (its last checkpoint, if it has one, is from before)
+and the others go on.  Each seed's console lines name it (:func:`~imssr.training.progress.member_lines`).
 """
 from __future__ import annotations
 
@@ -27,10 +27,10 @@ from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
 from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
-from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, SEED_DIR, RunDir
+from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, SEED_DIR, RunDir, as_run_dir
 from imssr.training.evaluate import evaluate_members, non_finite_text
 from imssr.training.loop import Trainer
-from imssr.training.progress import Progress
+from imssr.training.progress import Progress, member_labels, member_lines, say_held
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
 
@@ -81,9 +81,19 @@ class SeedsTrainer:
             raise ImssrError(conflict)
         self.stop = stop or StopRequest()
         self.trainers: list[Trainer] = []
+        self.labels = member_labels([c.train.seed for c in cfgs], [c.algo for c in cfgs],
+                                    [as_run_dir(r).path for r in runs])
+        """What each run is called in its console lines (:func:`member_labels`)."""
+        # What each run says as it starts, said once when it is the same for all (a warning
+        # about the machine's cores would come once per run).
+        held: dict[str, list[str]] = {label: [] for label in self.labels}
         try:
-            for cfg, run in zip(cfgs, runs):
-                self.trainers.append(Trainer(cfg, run, resume=resume, stop=self.stop))
+            try:
+                for cfg, run, label in zip(cfgs, runs, self.labels):
+                    with member_lines(label, held[label]):
+                        self.trainers.append(Trainer(cfg, run, resume=resume, stop=self.stop))
+            finally:  # a run that failed to start: each line with its run, the error after them
+                say_held(held, once=len(self.trainers) == len(cfgs))
             steps = sorted({t.step for t in self.trainers})
             if len(steps) > 1:
                 behind = [t.run_dir.path for t in self.trainers if t.step != steps[-1]]
@@ -211,17 +221,21 @@ class SeedsTrainer:
         lane.obs, lane.episode = lane.trainer._after_action(action, lane.episode, lane.progress)
 
     def _guarded(self, lane: _Lane, fn) -> None:
-        """``fn()``; a divergence stops this seed only (one line), as it would stop its run."""
+        """``fn()``, its console lines with the seed; a divergence stops this seed only (one
+        line), as it would stop its run."""
+        label = self.labels[self.trainers.index(lane.trainer)]
         try:
-            fn()
+            with member_lines(label):
+                fn()
         except NonFiniteError as exc:
             t = lane.trainer
             text = str(exc) if isinstance(exc, DivergedError) and str(exc).startswith(DIVERGED_PREFIX) else \
                 f"{DIVERGED_PREFIX} {t.step}: {t.divergence.describe(exc, lane.episode)}"
             lane.failed = text
             _record(t, DIVERGED, text)
-            print(f"imssr: seed {t.cfg.train.seed}: {text}; the last checkpoint is from before it, "
-                  "the other seeds go on", flush=True)
+            kept = ("the last checkpoint is from before it" if t.run_dir.has_checkpoint()
+                    else "it has no checkpoint")
+            print(f"imssr: {label}: {text}; {kept}, the other seeds go on", flush=True)
 
     def _act(self, lanes: list[_Lane]) -> list[np.ndarray]:
         """This agent step's action of every seed: uniform random in the seed phase (each seed's
@@ -284,27 +298,35 @@ class SeedsTrainer:
                                    f"{self.resume_command()}", self.step, self._seeds_root())
 
     def resume_command(self) -> str:
-        """The command that continues these runs: ``--seeds`` when they are ``OUT/seed_<n>`` of
-        one ``OUT`` and their seeds, else ``--runs``."""
-        root = self._seeds_root()
-        if root is not None:
-            seeds = ",".join(str(t.cfg.train.seed) for t in self.trainers)
-            return f"imssr train --seeds {seeds} --out {root} --resume"
-        return f"imssr train --runs {' '.join(os.path.normpath(t.run_dir.path) for t in self.trainers)} --resume"
+        """The command that continues these runs (:func:`resume_command`)."""
+        return resume_command([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
 
     def _seeds_root(self) -> Optional[str]:
-        """``OUT`` when the runs are ``OUT/seed_<n>`` of one ``OUT`` and their seeds, else None."""
-        paths = [os.path.normpath(t.run_dir.path) for t in self.trainers]
-        roots = {os.path.dirname(p) for p in paths}
-        if len(roots) == 1 and all(os.path.basename(p) == SEED_DIR.format(seed=t.cfg.train.seed)
-                                   for p, t in zip(paths, self.trainers)):
-            return roots.pop()
-        return None
+        return seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
 
     def close(self) -> None:
         """Close every seed's envs and release its run directory."""
         for t in self.trainers:
             t.close()
+
+
+def resume_command(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> str:
+    """The command that continues the runs ``runs`` of ``cfgs`` trained in one process:
+    ``--seeds`` when they are ``OUT/seed_<n>`` of one ``OUT`` and their seeds, else ``--runs``."""
+    root = seeds_root(cfgs, runs)
+    if root is not None:
+        return f"imssr train --seeds {','.join(str(c.train.seed) for c in cfgs)} --out {root} --resume"
+    return f"imssr train --runs {' '.join(os.path.normpath(r.path) for r in runs)} --resume"
+
+
+def seeds_root(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> Optional[str]:
+    """``OUT`` when the runs are ``OUT/seed_<n>`` of one ``OUT`` and their seeds, else None."""
+    paths = [os.path.normpath(r.path) for r in runs]
+    roots = {os.path.dirname(p) for p in paths}
+    if len(roots) == 1 and all(os.path.basename(p) == SEED_DIR.format(seed=c.train.seed)
+                               for p, c in zip(paths, cfgs)):
+        return roots.pop()
+    return None
 
 
 def _record(trainer: Trainer, state: str, error: str = "") -> None:
