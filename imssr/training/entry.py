@@ -85,7 +85,8 @@ def plan(request: TrainRequest) -> list[RunPlan]:
                 or "train.seed" in request.values:
             raise ImssrError("--runs takes each run's own config.json: leave out --seeds, --out, --config, "
                              "--algo, --task and --seed")
-        dirs = list(dict.fromkeys(os.path.normpath(d) for d in request.runs))
+        dirs = [os.path.normpath(d) for d in request.runs]
+        _refuse_twice(dirs)
         for d in dirs:
             if not os.path.isfile(os.path.join(d, CONFIG_FILE)):
                 raise ImssrError(f"--runs {d}: no {CONFIG_FILE} there (write one, or train it with --out)")
@@ -101,12 +102,25 @@ def plan(request: TrainRequest) -> list[RunPlan]:
         if request.config_file and request.resume:
             raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
         runs = [RunDir(os.path.join(request.out, SEED_DIR.format(seed=seed))) for seed in request.seeds]
+        _refuse_twice([run.path for run in runs])
         return [RunPlan(_config(request, run, {"train.seed": seed}), run)
                 for seed, run in zip(request.seeds, runs)]
     if request.resume and not request.config_file and not request.out:
         raise ImssrError("--resume needs --out RUN_DIR")
     cfg = _config(request, RunDir(request.out) if request.out else None)
     return [RunPlan(cfg, RunDir(request.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)))]
+
+
+def _refuse_twice(dirs: Sequence[str]) -> None:
+    """A one-line error when two of ``dirs`` are one directory (the same path, or two paths to it:
+    ``X`` and ``/abs/X``, a symbolic link): each run trains once, under one lock."""
+    seen: dict[str, str] = {}
+    for d in dirs:
+        real = os.path.realpath(d)
+        if real in seen:
+            what = f"{d} is named twice" if seen[real] == d else f"{seen[real]} and {d} are one directory"
+            raise ImssrError(f"{what}: each run trains once, so name it once")
+        seen[real] = d
 
 
 def _config(request: TrainRequest, run: Optional[RunDir] = None, values: Optional[dict] = None,
