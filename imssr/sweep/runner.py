@@ -106,7 +106,9 @@ class RunAttempt:
         for r in self.runs:
             os.makedirs(r.path, exist_ok=True)
         self.steps, self.attempt = steps, attempt
-        self.resumed = run.has_checkpoint()
+        # A packed process resumes when every run has a checkpoint; before that (a batch stopped
+        # during its first one) it starts afresh, which clears what that left.
+        self.resumed = all(r.has_checkpoint() for r in self.runs)
         if len(self.runs) == 1:
             cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
         else:
