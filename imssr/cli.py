@@ -432,7 +432,7 @@ def train_request(args, demo: bool = False):
     if args.logger is not None:
         values.update(logger_fields(args.logger, args.no_tensorboard))
     return TrainRequest(algo=args.algo, task=args.task, out=args.out,
-                        seeds=None if seeds is None else parse_seeds(seeds), runs=runs,
+                        seeds=None if seeds is None else parse_seeds(seeds, repeats=False), runs=runs,
                         resume=args.resume, refill_buffer=getattr(args, "refill_buffer", False), demo=demo,
                         network=args.network, config_file=args.config, values=values, frames=args.frames,
                         batch_size=args.batch_size, beta0=args.beta0, overrides=args.set or ())

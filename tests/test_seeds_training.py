@@ -11,7 +11,7 @@ import sys
 import pytest
 import torch
 
-from conftest import StopAtStep, tiny_config, without_timing
+from conftest import REPO, StopAtStep, tiny_config, without_timing
 from imssr.rundir import RunDir
 from imssr.training.seeds import SeedsTrainer
 from imssr.training.stop import TrainingInterrupted
@@ -221,12 +221,40 @@ def imssr(*args):
     (["--seeds", "1-2"], "--seeds needs --out DIR"),
     (["--seeds", "1-2", "--seed", "3", "--out", "X"], "--seeds and --seed exclude each other"),
     (["--seeds", "2-1", "--out", "X"], "bad seed range"),
+    (["--seeds", "-1", "--out", "X"], "seeds must be an integer in [0, 2147483647] (numpy and dm_control take "
+                                      "32-bit seeds, and evaluation adds up to 20000), got -1"),
+    (["--seeds", "0--2", "--out", "X"], "seeds must be an integer in [0, 2147483647]"),
+    (["--seeds", "1,1", "--out", "X"], "seed 1 is named twice in --seeds 1,1: each seed trains one run; name it once"),
+    (["--seeds", "1-3,2", "--out", "X"], "seed 2 is named twice"),
 ])
 def test_seeds_errors_are_one_line(args, message, tmp_path):
     proc = imssr("train", "--algo", "curl", "--task", "cartpole_swingup", *[
         a.replace("X", str(tmp_path / "x")) for a in args])
     assert proc.returncode == 2
     assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("second, message", [
+    ("D", "imssr: error: D is named twice: each run trains once, so name it once"),
+    ("ABS", "imssr: error: D and ABS are one directory: each run trains once, so name it once"),
+    ("LINK", "imssr: error: D and LINK are one directory: each run trains once, so name it once"),
+])
+def test_runs_naming_one_directory_twice_are_refused(second, message, tmp_path):
+    """``--runs D D``, ``--runs D /abs/D`` and a link to D: one directory, refused before it is locked
+    (the second lock would be the process's own: "in use by PID" of itself)."""
+    os.makedirs(tmp_path / "D")
+    RunDir(str(tmp_path / "D")).write_config(tiny_config("curl"))
+    os.symlink(tmp_path / "D", tmp_path / "LINK")
+    second = {"D": "D", "ABS": str(tmp_path / "D"), "LINK": "LINK"}[second]
+    before = sorted(os.listdir(tmp_path / "D"))
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+           "PYTHONPATH": os.pathsep.join([REPO, os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, "-m", "imssr", "train", "--runs", "D", second], capture_output=True,
+                          text=True, cwd=tmp_path, env=env, timeout=300)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == message.replace("ABS", str(tmp_path / "D"))
+    assert sorted(os.listdir(tmp_path / "D")) == before
 
 
 def test_cli_trains_seeds_into_their_directories(tmp_path):

@@ -17,7 +17,8 @@ No module here imports torch.  The modules, each name re-exported here:
   (``AuxConfig``, ``IntrinsicConfig``), ``FIELD_TYPES`` and ``field_docs``;
 - ``version``: ``CONFIG_VERSION`` and ``check_version``;
 - ``overrides``: values merged onto a config (``apply_overrides``, ``--logger``), through OmegaConf;
-- ``validation``: the rules ``RunConfig.validate`` applies, the general ones and each plug-in's;
+- ``validation``: the rules ``RunConfig.validate`` applies, the general ones and each plug-in's
+  (``check_seed``: the seed's);
 - ``runconfig``: ``RunConfig``, the sections together, and the one rule of what a resume may
   change (``RESUMABLE_CHANGES``, ``RunConfig.resume_conflicts``);
 - ``files``: ``read_config_file`` and ``load_config``.
@@ -26,6 +27,7 @@ from imssr.config.files import load_config, read_config_file
 from imssr.config.overrides import LOGGERS, TYPE_WORDS, apply_overrides, logger_fields
 from imssr.config.runconfig import RESUMABLE_CHANGES, RunConfig
 from imssr.config.schema import FIELD_TYPES, SECTIONS, AuxConfig, IntrinsicConfig, field_docs
+from imssr.config.validation import check_seed
 from imssr.config.version import CONFIG_VERSION, V1_KEYS, check_version
 from imssr.settings import (COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT, MAX_SEED, PRECISIONS,
                             REPLAY_DEVICES, SEED_RULE, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig,
@@ -36,7 +38,7 @@ __all__ = [
     "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES",
     "IntrinsicConfig", "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED",
     "PRECISIONS", "REPLAY_DEVICES", "RESUMABLE_CHANGES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TYPE_WORDS",
-    "TrainConfig", "UPDATE_SCHEDULES", "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_version",
+    "TrainConfig", "UPDATE_SCHEDULES", "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_seed", "check_version",
     "dataclass_field_docs", "dataclass_field_types", "field_docs", "load_config", "logger_fields",
     "read_config_file", "steps_for_frames", "type_phrase",
 ]

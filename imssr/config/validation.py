@@ -101,11 +101,11 @@ def validate_config(cfg: Sections) -> None:
         (t.eval_video_format in VIDEO_FORMATS,
          f"train.eval_video_format must be one of {', '.join(VIDEO_FORMATS)}"),
         (bool(t.wandb_project.strip()), "train.wandb_project must not be empty"),
-        (0 <= t.seed <= MAX_SEED, f"train.seed must be {SEED_RULE}, got {t.seed}"),
     ]
     for ok, message in checks:
         if not ok:
             raise ImssrError(message)
+    check_seed(t.seed)
     _check_upper_bounds(cfg)
     for mode in [e.mode, *t.eval_mode_list(e.mode)]:
         get_mode(mode)
@@ -118,6 +118,14 @@ def validate_config(cfg: Sections) -> None:
                          f"{str(algo.intrinsic_enabled).lower()}"
                          + (f", intrinsic.source={algo.intrinsic}" if algo.intrinsic_enabled else "")
                          + "; choose the algo instead of overriding these")
+
+
+def check_seed(seed: int) -> None:
+    """A one-line error when ``seed`` is no ``train.seed`` (:data:`SEED_RULE`): what
+    :func:`validate_config` checks of it, for configs that differ in the seed alone (a batch
+    validates one of them and checks the others' seeds)."""
+    if not 0 <= seed <= MAX_SEED:
+        raise ImssrError(f"train.seed must be {SEED_RULE}, got {seed}")
 
 
 def _check_upper_bounds(cfg: Sections) -> None:

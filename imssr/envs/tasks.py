@@ -137,3 +137,68 @@ def get_task(name: str) -> TaskSpec:
         f"unknown task {name!r}; paper tasks: {', '.join(PAPER_TASKS)} "
         f"(`imssr tasks` lists all {len(static_task_names())})"
     )
+
+
+TASK_DIMS: dict[str, tuple[int, int]] = {
+    "acrobot_swingup": (1, 4),
+    "acrobot_swingup_sparse": (1, 4),
+    "ball_in_cup_catch": (2, 8),
+    "cartpole_balance": (1, 4),
+    "cartpole_balance_sparse": (1, 4),
+    "cartpole_swingup": (1, 4),
+    "cartpole_swingup_sparse": (1, 4),
+    "cartpole_two_poles": (1, 6),
+    "cartpole_three_poles": (1, 8),
+    "cheetah_run": (6, 18),
+    "dog_stand": (38, 197),
+    "dog_walk": (38, 197),
+    "dog_trot": (38, 197),
+    "dog_run": (38, 197),
+    "dog_fetch": (38, 210),
+    "finger_spin": (2, 6),
+    "finger_turn_easy": (2, 6),
+    "finger_turn_hard": (2, 6),
+    "fish_upright": (5, 27),
+    "fish_swim": (5, 27),
+    "hopper_stand": (4, 14),
+    "hopper_hop": (4, 14),
+    "humanoid_stand": (21, 55),
+    "humanoid_walk": (21, 55),
+    "humanoid_run": (21, 55),
+    "humanoid_run_pure_state": (21, 55),
+    "humanoid_CMU_stand": (56, 125),
+    "humanoid_CMU_walk": (56, 125),
+    "humanoid_CMU_run": (56, 125),
+    "lqr_lqr_2_1": (1, 4),
+    "lqr_lqr_6_2": (2, 12),
+    "manipulator_bring_ball": (5, 22),
+    "manipulator_bring_peg": (5, 22),
+    "manipulator_insert_ball": (5, 22),
+    "manipulator_insert_peg": (5, 22),
+    "pendulum_swingup": (1, 2),
+    "point_mass_easy": (2, 4),
+    "point_mass_hard": (2, 4),
+    "quadruped_walk": (12, 57),
+    "quadruped_run": (12, 57),
+    "quadruped_escape": (12, 57),
+    "quadruped_fetch": (12, 70),
+    "reacher_easy": (2, 4),
+    "reacher_hard": (2, 4),
+    "stacker_stack_2": (5, 28),
+    "stacker_stack_4": (5, 40),
+    "swimmer_swimmer6": (5, 16),
+    "swimmer_swimmer15": (14, 34),
+    "walker_stand": (6, 18),
+    "walker_walk": (6, 18),
+    "walker_run": (6, 18),
+}
+"""Each suite task's action size and physics-state length (qpos, qvel, act: what
+:meth:`~imssr.envs.dmc.DMCEnv.physics_state` records), written out so that a training's memory
+plan (:mod:`imssr.training.memory`) needs no simulator; tests/test_gym_ids.py checks them against
+the installed suite."""
+
+
+def task_dims(name: str) -> tuple[int, int]:
+    """The action size and physics-state length of the task ``name`` (:data:`TASK_DIMS`)."""
+    spec = get_task(name)
+    return TASK_DIMS[f"{spec.domain}_{spec.suite_task}"]

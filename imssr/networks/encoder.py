@@ -6,7 +6,9 @@ gradients stopped and trains only its own projection.
 """
 from __future__ import annotations
 
+import contextlib
 import weakref
+from typing import Iterator
 
 import torch
 from torch import nn
@@ -161,8 +163,26 @@ class Encoder(nn.Module):
         return self.projection(self.trunk(obs))
 
 
+_shapes_only = False
+
+
+@contextlib.contextmanager
+def shapes_only() -> Iterator[None]:
+    """Inside the block :func:`weight_init` does nothing: for networks built only for their shapes
+    (a training's memory plan counts an agent's parameters), whose orthogonal initialisation (a
+    QR decomposition per weight) would take seconds for the presets' 1024-wide layers."""
+    global _shapes_only
+    before, _shapes_only = _shapes_only, True
+    try:
+        yield
+    finally:
+        _shapes_only = before
+
+
 def weight_init(m: nn.Module) -> None:
     """Orthogonal init for linear layers, delta-orthogonal for convolutions (as CURL)."""
+    if _shapes_only:
+        return
     if isinstance(m, nn.Linear):
         nn.init.orthogonal_(m.weight.data)
         m.bias.data.fill_(0.0)

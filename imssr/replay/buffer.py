@@ -33,6 +33,7 @@ gathers them there; both draw the same indices and write the same files.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import math
 import os
@@ -43,7 +44,7 @@ import numpy as np
 import torch
 
 from imssr.errors import ImssrError
-from imssr.files import atomic_path
+from imssr.files import atomic_path, disk_full_as_error, open_own
 from imssr.integrity import UNSEALED, HashingWriter, seal_zip, zip_seal_problem
 from imssr.memlimit import proc_bytes
 
@@ -525,6 +526,60 @@ class FrameReplayBuffer:
 
     def __len__(self) -> int:
         return self.size
+
+    def close(self) -> None:
+        """Give up what the store holds outside the process (nothing, for frames in memory)."""
+
+
+class DiskFrameReplayBuffer(FrameReplayBuffer):
+    """The frame store as a file on local disk, memory-mapped (``train.replay_device=disk``): the
+    kernel's page cache keeps the frames that memory allows and reads the others back, so a batch
+    of runs whose frames outgrow host memory still trains.  The frames are the same bytes in the
+    same slots, so the batches, the saved files and a resume are the in-memory store's.  The file
+    is scratch (the checkpoints' replay files are the record): made when the buffer is, removed
+    by :meth:`close`.
+
+    Args:
+        path: the frames file (:meth:`imssr.rundir.RunDir.frames_file`); one there is replaced.
+        reserve_slots: frames whose disk space is set aside at once (``posix_fallocate``): a file
+            system that fills up later cannot fail a write into the mapping (which the kernel
+            answers with SIGBUS, not an error).  The other arguments are
+            :class:`FrameReplayBuffer`'s.
+    """
+
+    def __init__(self, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,
+                 frame_stack: int = 3, seed: int = 0, warn_memory: bool = True, physics_dim: int = 0, *,
+                 path: str, reserve_slots: int = 0):
+        self.path, self.reserve_slots = path, reserve_slots
+        super().__init__(capacity, frame_shape, action_dim, frame_stack, seed, warn_memory, physics_dim)
+
+    def host_nbytes_expected(self) -> int:
+        return self.nbytes_expected() - self.capacity * self.frame_nbytes()
+
+    def _allocate_frames(self):
+        size = self.capacity * self.frame_nbytes()
+        reserve = min(self.reserve_slots, self.capacity) * self.frame_nbytes()
+        with disk_full_as_error(self.path, reserve):
+            fd = open_own(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC)
+            try:
+                os.ftruncate(fd, size)  # sparse: blocks are taken as frames are written
+                if reserve:
+                    try:
+                        os.posix_fallocate(fd, 0, reserve)
+                    except OSError as exc:
+                        if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+                            raise
+            finally:
+                os.close(fd)
+        return np.memmap(self.path, dtype=np.uint8, mode="r+", shape=(self.capacity, *self.frame_shape))
+
+    def close(self) -> None:
+        """Unmap the frames and remove their file (idempotent)."""
+        self.frames = np.zeros((0, *self.frame_shape), dtype=np.uint8)  # drops the mapping
+        try:
+            os.unlink(self.path)
+        except FileNotFoundError:
+            pass
 
 
 READ_CHUNK = 1 << 24

@@ -20,7 +20,7 @@ import torch
 
 from imssr.errors import ImssrError
 from imssr.integrity import HashingWriter
-from imssr.replay.buffer import READ_CHUNK, FrameReplayBuffer, read_hashed
+from imssr.replay.buffer import READ_CHUNK, DiskFrameReplayBuffer, FrameReplayBuffer, read_hashed
 
 REPLAY_DEVICE_MARGIN_BYTES = 4 * 10**9
 """GPU memory that ``auto`` keeps free beside the frames for the rest of the run: the networks
@@ -119,6 +119,9 @@ class ReplayPlacement:
     """The CPU (the numpy host store) or a CUDA device (:class:`TensorFrameReplayBuffer`)."""
     reason: Optional[str] = None
     """One line saying what ``auto`` chose and why; None where there was nothing to choose."""
+    disk: bool = False
+    """The frames in a memory-mapped file on local disk (``train.replay_device=disk``,
+    :class:`~imssr.replay.buffer.DiskFrameReplayBuffer`); ``device`` is then the CPU."""
 
 
 def choose_replay_device(setting: str, agent_device: torch.device, frames_nbytes: int,
@@ -129,7 +132,8 @@ def choose_replay_device(setting: str, agent_device: torch.device, frames_nbytes
     ``agent_device`` whose device has ``free_nbytes`` free of ``total_nbytes`` (None: not a CUDA
     device).
 
-    ``cpu``: the host.  ``cuda``: the agent's GPU (the agent must be on one).  ``auto``: the
+    ``cpu``: the host.  ``disk``: a file on local disk, mapped into host memory.  ``cuda``: the
+    agent's GPU (the agent must be on one).  ``auto``: the
     agent's GPU when the room it has there holds the frames plus ``margin_nbytes`` for the model
     (:data:`REPLAY_DEVICE_MARGIN_BYTES`), else the host; a CPU agent keeps them on the host.  The
     room is the free memory, or with ``share`` < 1 (``train.gpu_share``: runs sharing the GPU)
@@ -137,13 +141,15 @@ def choose_replay_device(setting: str, agent_device: torch.device, frames_nbytes
     whose frames are not allocated yet when each one looks."""
     if setting == "cpu":
         return ReplayPlacement(torch.device("cpu"))
+    if setting == "disk":
+        return ReplayPlacement(torch.device("cpu"), disk=True)
     if setting == "cuda":
         if agent_device.type != "cuda":
             raise ImssrError(f"train.replay_device=cuda needs the agent on a GPU, but train.device is "
                              f"{agent_device}; use --device cuda or --set train.replay_device=cpu")
         return ReplayPlacement(agent_device)
     if setting != "auto":
-        raise ImssrError(f"train.replay_device must be one of cpu, cuda, auto, got {setting!r}")
+        raise ImssrError(f"train.replay_device must be one of cpu, cuda, auto, disk, got {setting!r}")
     if agent_device.type != "cuda" or free_nbytes is None:
         return ReplayPlacement(torch.device("cpu"))
     need, gb = frames_nbytes + margin_nbytes, 1e9
@@ -162,7 +168,7 @@ def choose_replay_device(setting: str, agent_device: torch.device, frames_nbytes
 
 
 def replay_placement(setting: str, agent_device: torch.device, frames_nbytes: int,
-                     share: float = 1.0) -> ReplayPlacement:
+                     share: float = 1.0, margin_nbytes: int = REPLAY_DEVICE_MARGIN_BYTES) -> ReplayPlacement:
     """:func:`choose_replay_device` with this machine's CUDA state (free and total memory from
     ``torch.cuda.mem_get_info``)."""
     if setting == "cuda" and not torch.cuda.is_available():
@@ -173,13 +179,19 @@ def replay_placement(setting: str, agent_device: torch.device, frames_nbytes: in
         if agent_device.index is None:  # name the GPU the message speaks of
             agent_device = torch.device("cuda", torch.cuda.current_device())
         free, total = torch.cuda.mem_get_info(agent_device)
-    return choose_replay_device(setting, agent_device, frames_nbytes, free, share=share, total_nbytes=total)
+    return choose_replay_device(setting, agent_device, frames_nbytes, free, margin_nbytes=margin_nbytes, share=share,
+                                total_nbytes=total)
 
 
 def make_replay_buffer(device: torch.device, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,
                        frame_stack: int = 3, seed: int | np.random.SeedSequence = 0,
-                       physics_dim: int = 0) -> FrameReplayBuffer:
-    """The host store for frames on the CPU, the tensor store for frames on a GPU."""
+                       physics_dim: int = 0, frames_file: Optional[str] = None,
+                       reserve_slots: int = 0) -> FrameReplayBuffer:
+    """The host store for frames on the CPU (in the memory-mapped ``frames_file`` when given, with
+    disk space for ``reserve_slots`` frames set aside), the tensor store for frames on a GPU."""
+    if frames_file is not None:
+        return DiskFrameReplayBuffer(capacity, frame_shape, action_dim, frame_stack, seed=seed,
+                                     physics_dim=physics_dim, path=frames_file, reserve_slots=reserve_slots)
     if device.type == "cpu":
         return FrameReplayBuffer(capacity, frame_shape, action_dim, frame_stack, seed=seed, physics_dim=physics_dim)
     return TensorFrameReplayBuffer(capacity, frame_shape, action_dim, frame_stack, seed=seed,

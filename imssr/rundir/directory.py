@@ -16,6 +16,7 @@ Layout of ``RUN/`` (every name below is a constant of this module)::
     episode.gif             ``imssr demo``: the trained policy
     analysis/               ``imssr analyze``
     wandb_run.json          the W&B run id a resume continues
+    replay-frames.mmap      ``train.replay_device=disk``: the replay frames while a training runs
     status.json             how the last training of the run ended (see :meth:`RunDir.status`)
     done.json               ``imssr sweep``: the run reached its budget
     sweep.log               ``imssr sweep``: the output of every attempt
@@ -44,7 +45,7 @@ import json
 import os
 import shutil
 import time
-from typing import TYPE_CHECKING, Callable, Iterator, NamedTuple, Optional, Union
+from typing import TYPE_CHECKING, Callable, Iterable, Iterator, NamedTuple, Optional, Sequence, Union
 
 from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
@@ -94,6 +95,9 @@ DONE_FILE = "done.json"
 budget in agent steps (``steps``) and frames (``frames``)."""
 SWEEP_LOG = "sweep.log"
 """``imssr sweep``: the output of every attempt of the run, appended, one header line each."""
+FRAMES_FILE = "replay-frames.mmap"
+"""``train.replay_device=disk``: the replay frames of the training running here, memory-mapped
+(:class:`~imssr.replay.buffer.DiskFrameReplayBuffer`); scratch, removed when the training ends."""
 CHECKPOINT_DIR = "checkpoints"
 """Checkpoints and the replay buffer."""
 LATEST_CHECKPOINT = "latest.pt"
@@ -172,6 +176,12 @@ class RunDir:
 
     def __init__(self, path: str):
         self.path = str(path)
+        self._kept_replay: Optional[str] = None
+        """The replay file ``latest.pt`` names, as far as this object has read or written it."""
+        self._staged: Optional[tuple[int, Optional[str], bool, set[str]]] = None
+        """A batch's checkpoint staged here (:meth:`stage_checkpoint`) and not yet pruned: its agent
+        step, its replay file, whether its numbered copy existed before, the replay files there
+        before it."""
 
     def __repr__(self) -> str:
         return f"RunDir({self.path!r})"
@@ -260,6 +270,11 @@ class RunDir:
     @property
     def sweep_log(self) -> str:
         return self.file(SWEEP_LOG)
+
+    @property
+    def frames_file(self) -> str:
+        """``RUN/replay-frames.mmap`` (:data:`FRAMES_FILE`)."""
+        return self.file(FRAMES_FILE)
 
     @property
     def lock_path(self) -> str:
@@ -475,13 +490,38 @@ class RunDir:
                 shown = ", ".join(results[:3]) + (", ..." if len(results) > 3 else "")
                 raise ImssrError(f"{self.path} holds results of a run without a checkpoint ({shown}); move it "
                                  "away to train it again")
-            for name in parts + [TB_DIR]:
-                path = self.file(name)
-                if os.path.isdir(path):
-                    shutil.rmtree(path)
-                elif os.path.exists(path):
-                    os.unlink(path)
+            self._remove(parts)
             return parts
+
+    def _remove(self, parts: list[str]) -> None:
+        """Remove ``parts`` (names of :meth:`run_parts`) and ``tb/``; the caller holds the lock."""
+        for name in parts + [TB_DIR]:
+            path = self.file(name)
+            if os.path.isdir(path):
+                shutil.rmtree(path)
+            elif os.path.exists(path):
+                os.unlink(path)
+
+    def _first_set_leftovers(self) -> Optional[list[str]]:
+        """The parts (:meth:`run_parts`) here when they may be what a batch stopped before its
+        first checkpoint was complete left (:func:`first_set_leftovers`): no ``latest.pt`` (a batch
+        promotes its first only once every run staged one), no finished run, nothing but the logs,
+        videos and staged checkpoint files; else None."""
+        if self.has_latest() or self.read_done() is not None:
+            return None
+        record = self.read_status()
+        if record is not None and record["state"] == FINISHED:
+            return None
+        parts = self.run_parts()
+        staged = os.path.join(CHECKPOINT_DIR, "")
+        if any(name not in EARLY_PARTS and not name.startswith(staged) for name in parts):
+            return None
+        return parts
+
+    def clear_first_set_leftovers(self, parts: list[str]) -> None:
+        """Remove ``parts`` (:func:`first_set_leftovers`) and ``tb/``, so that a batch starts
+        afresh here; the caller holds the lock."""
+        self._remove(parts)
 
     # -- checkpoints ---------------------------------------------------------------------
     def has_latest(self) -> bool:
@@ -499,12 +539,8 @@ class RunDir:
 
     def checkpoint_steps(self) -> list[int]:
         """The agent steps of the retained ``step-*.pt`` files, oldest first."""
-        steps = []
-        for path in self.numbered_checkpoints():
-            digits = os.path.basename(path)[len("step-"):-len(".pt")]
-            if digits.isdigit():
-                steps.append(int(digits))
-        return steps
+        steps = [_numbered_step(path) for path in self.numbered_checkpoints()]
+        return [step for step in steps if step is not None]
 
     def save_checkpoint(self, ckpt: "Checkpoint", keep: int = 1, replay=None) -> str:
         """Write ``ckpt`` as ``latest.pt`` and its numbered copy (``keep`` > 0: the ``keep``
@@ -541,6 +577,87 @@ class RunDir:
         for tmp in glob.glob(os.path.join(self.checkpoint_dir, TEMP_GLOB)):
             os.unlink(tmp)
         return path
+
+    # A batch's checkpoint (imssr train --seeds / --runs) is a set, every run's or none: each run
+    # stages its checkpoint as its numbered copy, keeping what latest.pt names; once every run has
+    # staged, each promotes its copy to latest.pt, then each prunes.  At any moment every run holds
+    # a checkpoint of the last step every run completed (batch_checkpoints finds it).
+    def stage_checkpoint(self, ckpt: "Checkpoint", replay=None) -> str:
+        """The first stage of a batch's checkpoint: ``ckpt`` as ``step-<step>.pt``, after its replay
+        files (as :meth:`save_checkpoint` writes them); ``latest.pt``, the older numbered copies and
+        the replay files they name stay.  A stage that fails removes what it wrote (the numbered
+        copy only when it was not there before).  Returns the numbered copy's path."""
+        from imssr.rundir.checkpoint import write_checkpoint
+
+        if ckpt.replay_file and replay is None:
+            raise ValueError("a checkpoint that names a replay file is saved with its replay buffer")
+        path = self.numbered(ckpt.step)
+        self._staged = (ckpt.step, ckpt.replay_file, os.path.exists(path), self._all_replay_files())
+        try:
+            if ckpt.replay_file:
+                replay.save(self.replay_path(ckpt.replay_file))
+            write_checkpoint(path, ckpt)
+        except BaseException:
+            self.unstage_checkpoint()
+            raise
+        return path
+
+    def unstage_checkpoint(self) -> None:
+        """Undo :meth:`stage_checkpoint` (another run of the batch failed to stage): remove the
+        numbered copy and the replay files it added (only those: what ``latest.pt`` names stays,
+        whether or not this object has read it)."""
+        if self._staged is None:
+            return
+        step, _, existed, replay_before = self._staged
+        self._staged = None
+        if not existed and os.path.exists(self.numbered(step)):
+            os.unlink(self.numbered(step))
+        for new in self._all_replay_files() - replay_before:
+            os.unlink(new)
+
+    def promote_checkpoint(self) -> str:
+        """The second stage, once every run of the batch staged: the staged copy becomes
+        ``latest.pt`` (a real copy, written atomically).  Returns ``latest.pt``'s path."""
+        from imssr.rundir.checkpoint import copy_checkpoint
+
+        if self._staged is None:
+            raise ValueError("no staged checkpoint to promote")
+        step, replay_file, _, _ = self._staged
+        copy_checkpoint(self.numbered(step), self.latest)
+        self._kept_replay = replay_file
+        return self.latest
+
+    def prune_checkpoints(self, keep: int) -> None:
+        """The last stage, once every run of the batch promoted: the ``keep`` newest numbered
+        copies stay (0: none), and the replay files and temporary files ``latest.pt`` does not
+        need go."""
+        self._staged = None
+        numbered = self.numbered_checkpoints()
+        for old in numbered[:-keep] if keep > 0 else numbered:
+            os.unlink(old)
+        self.remove_unnamed_replay_files(self._kept_replay)
+        for tmp in glob.glob(os.path.join(self.checkpoint_dir, TEMP_GLOB)):
+            os.unlink(tmp)
+
+    def return_to(self, found: CheckpointFile) -> CheckpointFile:
+        """Make the checkpoint ``found`` (a numbered copy that :func:`batch_checkpoints` chose, older
+        than ``latest.pt`` or in place of a missing or damaged one) this run's ``latest.pt``, and
+        remove the newer numbered copies and the replay files it does not name: they belong to a
+        batch's checkpoint that not every run completed.  Returns ``found`` as ``latest.pt``."""
+        from imssr.rundir.checkpoint import copy_checkpoint
+
+        if found.path == self.latest:
+            return found
+        step, replay_file = found.checkpoint.step, found.checkpoint.replay_file
+        copy_checkpoint(found.path, self.latest)
+        for path in self.numbered_checkpoints():
+            newer = _numbered_step(path)
+            if newer is not None and newer > step:
+                os.unlink(path)
+        if replay_file and all(os.path.exists(p) for p in self.replay_files(replay_file)):
+            self.remove_unnamed_replay_files(replay_file)
+        self._kept_replay = replay_file
+        return CheckpointFile(found.checkpoint, self.latest, found.note)
 
     def checkpoint(self, spec: Optional[str] = None, verb: str = "resuming from") -> CheckpointFile:
         """The checkpoint a command continues from or loads: ``(checkpoint, path, note)``.  The one rule
@@ -741,6 +858,108 @@ def as_run_dir(run: Union[RunDir, str, "os.PathLike[str]"]) -> RunDir:
     ``imssr.load_run``, ``evaluate_run``, ``analyze_run``, ``plot_learning_curve``) accept as a
     run is a path or a RunDir; everything below them is handed the RunDir."""
     return run if isinstance(run, RunDir) else RunDir(os.fspath(run))
+
+
+def _numbered_step(path: str) -> Optional[int]:
+    """The agent step in the name of a numbered checkpoint ``step-<step>.pt`` (None: not digits)."""
+    digits = os.path.basename(path)[len("step-"):-len(".pt")]
+    return int(digits) if digits.isdigit() else None
+
+
+def batch_checkpoints(runs: Sequence[RunDir], budget: int) -> list[CheckpointFile]:
+    """The checkpoints a batch of runs (``imssr train --seeds/--runs --resume``) continues from,
+    one per run, all of one agent step: the newest step at which every run holds a checkpoint that
+    verifies, ``latest.pt`` or a numbered copy (:meth:`RunDir.stage_checkpoint` keeps one of the
+    last step every run completed).  A run's ``note`` says when it is not ``latest.pt``.
+
+    One-line errors: no run has a checkpoint ("nothing to resume"); some have none (the batch
+    stopped during its first checkpoint: start afresh); the runs share no step (trained apart:
+    the line says which to bring where alone first, then to resume together with ``--steps
+    budget``); a run none of whose checkpoints verifies (:meth:`RunDir.checkpoint`'s error)."""
+    from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
+
+    without = [run for run in runs if not run.has_checkpoint()]
+    if len(without) == len(runs):
+        raise ImssrError(f"nothing to resume: {runs[0].latest} does not exist")
+    if without:
+        raise ImssrError(f"nothing to resume as one batch: {_some(r.path for r in without)} "
+                         f"{'holds' if len(without) == 1 else 'hold'} no checkpoint (the batch stopped during its "
+                         "first one); start every run afresh: the same command without --resume")
+    loaded: dict[str, "Checkpoint"] = {}
+    damaged: dict[str, str] = {}
+    offers: list[dict[int, str]] = []  # per run: agent step -> the file that holds it
+    for run in runs:
+        offer = {step: run.numbered(step) for step in run.checkpoint_steps()}
+        if run.has_latest():
+            try:
+                ckpt = loaded[run.latest] = load_checkpoint(run.latest)
+                offer[ckpt.step] = run.latest
+            except CheckpointDamaged as exc:
+                damaged[run.latest] = exc.reason
+        offers.append(offer)
+    while True:
+        for run, offer in zip(runs, offers):
+            if not offer:
+                run.checkpoint()  # raises: none of its checkpoints verifies, in its own words
+        common = set.intersection(*(set(offer) for offer in offers))
+        if not common:
+            newest = [max(offer) for offer in offers]
+            behind = [run.path for run, step in zip(runs, newest) if step < max(newest)]
+            held = "; ".join(f"{run.path}: {', '.join(map(str, sorted(offer)))}" for run, offer in
+                             list(zip(runs, offers))[:3]) + ("; ..." if len(runs) > 3 else "")
+            raise ImssrError(f"the runs hold no checkpoint of one agent step in common (agent steps {held}): "
+                             f"bring {_some(behind)} to step {max(newest)} alone first (imssr train --out RUN_DIR "
+                             f"--resume --steps {max(newest)}), then resume them together with --steps {budget}")
+        step = max(common)
+        found = []
+        for run, offer in zip(runs, offers):
+            path = offer[step]
+            if path not in loaded:
+                try:
+                    loaded[path] = load_checkpoint(path)
+                    if loaded[path].step != step:
+                        raise CheckpointDamaged(f"{path} holds agent step {loaded[path].step}", path,
+                                                "another agent step than its name")
+                except CheckpointDamaged as exc:
+                    damaged[path] = exc.reason
+                    del offer[step]  # the next common step, if any
+                    break
+            found.append(CheckpointFile(loaded[path], path, _batch_note(run, path, step, loaded, damaged)))
+        else:
+            return found
+
+
+def first_set_leftovers(runs: Sequence[RunDir]) -> Optional[list[list[str]]]:
+    """What a batch stopped before its first checkpoint was complete left in its runs, per run
+    (names of :meth:`RunDir.run_parts`: logs, videos, the checkpoints some runs staged), for a
+    fresh start of the batch to clear; None when there is nothing to clear or the runs hold
+    anything else: a ``latest.pt`` or results of a run, a finished run, or a numbered checkpoint
+    every run holds (a whole checkpoint of the batch, which ``--resume`` continues)."""
+    parts = [run._first_set_leftovers() for run in runs]
+    if any(p is None for p in parts) or not any(parts):
+        return None
+    if set.intersection(*(set(run.checkpoint_steps()) for run in runs)):
+        return None
+    return parts  # type: ignore[return-value]
+
+
+def _batch_note(run: RunDir, path: str, step: int, loaded: dict, damaged: dict) -> Optional[str]:
+    """Why ``run`` resumes from ``path`` and not ``latest.pt`` (None when it is latest.pt)."""
+    if path == run.latest:
+        return None
+    there = f"{run.path}: resuming from {os.path.basename(path)} at agent step {step}"
+    if run.latest in damaged:
+        return f"{run.latest} is damaged ({damaged[run.latest]}); {there}"
+    if run.latest not in loaded:
+        return f"{run.latest} is missing; {there}"
+    return (f"{there}, the last checkpoint every run of the batch completed (its latest.pt, of agent step "
+            f"{loaded[run.latest].step}, is of a checkpoint the others lack)")
+
+
+def _some(names: Iterable[str], shown: int = 3) -> str:
+    """The first ``shown`` of ``names`` joined by commas, "..." after them when there are more."""
+    names = list(names)
+    return ", ".join(names[:shown]) + (", ..." if len(names) > shown else "")
 
 
 def _read_json(path: str) -> Optional[dict]:

@@ -233,8 +233,10 @@ class TrainConfig:
     replay_device: str = "auto"
     """Where the replay frames live: ``cpu`` (host memory; on a CUDA agent each batch is gathered
     into pinned memory and copied once), ``cuda`` (a uint8 tensor on the agent's GPU: index, stack
-    and crop there), or ``auto`` (the GPU when its free memory holds the frames plus a margin for
-    the model, else the host; docs/performance.md "Replay memory").  The same batches either way."""
+    and crop there), ``disk`` (a file in the run directory on local disk, memory-mapped: the page
+    cache keeps what memory allows; for batches whose frames outgrow host memory), or ``auto``
+    (the GPU when its free memory holds the frames of every run of the process plus a margin for
+    the agents, else the host; docs/performance.md "Replay memory").  The same batches either way."""
     gpu_share: float = 1.0
     """The fraction of its GPU's memory this run may fill, in (0, 1]: below 1 (a sweep's
     ``--gpus-per-run``, runs sharing a GPU), ``replay_device=auto`` counts that fraction of the
@@ -278,7 +280,7 @@ COMPILE_MODES = ("off", "default", "max-autotune")
 BATCH_LAYOUTS = ("auto", "vmap", "loop", "streams")
 """How a batch of seeds runs (``agent.batch_layout``)."""
 VIDEO_FORMATS = ("gif", "mp4")
-REPLAY_DEVICES = ("cpu", "cuda", "auto")
+REPLAY_DEVICES = ("cpu", "cuda", "auto", "disk")
 
 NORMALIZATIONS = ("zscore", "minmax", "mean", "none")
 """The in-batch normalisations of the intrinsic reward (``intrinsic.normalization``)."""

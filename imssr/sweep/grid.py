@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import re
 import typing
 from dataclasses import dataclass, field, fields
 from typing import Any, Optional
@@ -293,38 +294,57 @@ MAX_SEEDS = 100_000
 """The most seeds one seed list may name (each is a run per algo and task)."""
 
 
-def parse_seeds(text: Any) -> list[int]:
-    """``1,2,3``, ``1-5``, ``1-3,7`` or a JSON list of integers -> seeds, without repeats."""
+def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
+    """``1,2,3``, ``1-5``, ``1-3,7`` or a JSON list of integers -> seeds, each once: a seed named
+    twice is dropped (``repeats``) or refused in one line (``imssr train --seeds``, where each
+    seed is one run directory trained once); a negative seed is refused in one line."""
     items = text if isinstance(text, list) else str(text).split(",")
     seeds: list[int] = []
     for item in items:
         if isinstance(item, bool):
             raise ImssrError(f"bad seed {item!r}")
         if isinstance(item, int):
-            seeds.append(item)
+            seeds.append(_seed(item))
             continue
         part = str(item).strip()
         if not part:
             continue
-        lo, sep, hi = part.partition("-")
-        try:
-            if sep:
-                a, b = int(lo), int(hi)
-                if a > b:
-                    raise ImssrError(f"bad seed range {part!r}: {a} > {b}")
-                # Checked before the list is built: a typo like 5-3000000000 would fill memory.
-                if b - a + 1 > MAX_SEEDS:
-                    raise ImssrError(f"bad seed range {part!r}: {b - a + 1:,} seeds, at most {MAX_SEEDS:,}")
-                seeds.extend(range(a, b + 1))
-            else:
-                seeds.append(int(part))
-        except ValueError:
-            raise ImssrError(f"bad seeds {part!r}: expected integers like 1,2,3 or a range like 1-5") from None
+        # A leading minus is a negative seed (refused as such), not a range.
+        match = _SEED_ITEM.match(part)
+        if match is None:
+            raise ImssrError(f"bad seeds {part!r}: expected integers like 1,2,3 or a range like 1-5")
+        a = _seed(int(match[1]))
+        if match[2] is None:
+            seeds.append(a)
+            continue
+        b = _seed(int(match[2]))
+        if a > b:
+            raise ImssrError(f"bad seed range {part!r}: {a} > {b}")
+        # Checked before the list is built: a typo like 5-3000000000 would fill memory.
+        if b - a + 1 > MAX_SEEDS:
+            raise ImssrError(f"bad seed range {part!r}: {b - a + 1:,} seeds, at most {MAX_SEEDS:,}")
+        seeds.extend(range(a, b + 1))
     if not seeds:
         raise ImssrError("no seeds given")
-    if any(s < 0 for s in seeds):
-        raise ImssrError(f"seeds must be >= 0, got {min(seeds)}")
-    return list(dict.fromkeys(seeds))
+    unique = list(dict.fromkeys(seeds))
+    if not repeats and len(unique) < len(seeds):
+        seen: set[int] = set()
+        twice = next(s for s in seeds if s in seen or seen.add(s))
+        raise ImssrError(f"seed {twice} is named twice in --seeds {text if isinstance(text, str) else seeds}: "
+                         "each seed trains one run; name it once")
+    return unique
+
+
+_SEED_ITEM = re.compile(r"^(-?[0-9]+)(?:\s*-\s*(-?[0-9]+))?$")
+"""One item of a seed list: a seed, or a range ``a-b`` (either end may carry a minus sign)."""
+
+
+def _seed(value: int) -> int:
+    """``value``, or a one-line error when it is negative (the upper bound, :data:`MAX_SEED`, is
+    the config's and the sweep's check, after a range's size is)."""
+    if value < 0:
+        raise ImssrError(f"seeds must be {SEED_RULE}, got {value}")
+    return value
 
 
 def parse_floats(text: Any, what: str) -> list[float]:

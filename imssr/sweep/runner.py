@@ -108,8 +108,10 @@ class RunAttempt:
         self.steps, self.attempt = steps, attempt
         # Classified now, not when the sweep planned or when an earlier attempt began: a training
         # of a killed sweep may still be stopping here, writing the checkpoint this one resumes.
+        # A packed process resumes when every run has a checkpoint; before that (a batch stopped
+        # during its first one) it starts afresh, which clears what that left.
         wait_for_writers(self.runs)
-        self.resumed = run.has_checkpoint()
+        self.resumed = all(r.has_checkpoint() for r in self.runs)
         if len(self.runs) == 1:
             cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
         else:

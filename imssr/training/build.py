@@ -23,6 +23,7 @@ from imssr.rng import seed_everything
 from imssr.rundir import RunDir
 from imssr.rundir.checkpoint import Checkpoint
 from imssr.seeds import TRAINING_EVAL_SEED_OFFSET, evaluation_seed
+from imssr.training.memory import replay_slots
 from imssr.training.state import RunState
 
 
@@ -72,14 +73,19 @@ class TrainingParts:
     """The loop's counters, schedules and seed-phase generator."""
 
     def close(self) -> None:
-        """Close the envs."""
-        close_envs(self.env, self.eval_envs)
+        """Close the envs and the replay buffer (a frames file on disk is removed)."""
+        try:
+            close_envs(self.env, self.eval_envs)
+        finally:
+            self.replay.close()
 
 
-def build_training(cfg: RunConfig, device: torch.device, replay_placement) -> TrainingParts:
-    """The envs, the agent, the replay buffer (where ``replay_placement`` says) and the loop's
-    state of a training at agent step 0, in the order their random draws have always had (the
-    global seed, the envs, the weights, SODA's image pool, then the streams spawned from the seed)."""
+def build_training(cfg: RunConfig, device: torch.device, replay_placement,
+                   frames_file: Optional[str] = None) -> TrainingParts:
+    """The envs, the agent, the replay buffer (where ``replay_placement`` says; frames on disk go
+    in ``frames_file``) and the loop's state of a training at agent step 0, in the order their
+    random draws have always had (the global seed, the envs, the weights, SODA's image pool, then
+    the streams spawned from the seed)."""
     seed_everything(cfg.train.seed)
     e = cfg.env
     # Each env in a process of its own (train.env_workers), or here.
@@ -108,9 +114,13 @@ def build_training(cfg: RunConfig, device: torch.device, replay_placement) -> Tr
             print(replay_placement.reason, flush=True)
         # Each frame's physics state goes in too (float64 qpos and qvel: 32 bytes for cartpole,
         # 144 for walker): `imssr analyze` renders it again.
+        if replay_placement.disk and frames_file is None:
+            raise ValueError("frames on disk need a frames file")
         replay = make_replay_buffer(replay_placement.device, cfg.train.replay_capacity,
                                     (3, e.image_size, e.image_size), action_dim, e.frame_stack,
-                                    seed=replay_seq, physics_dim=env.physics_state_dim)
+                                    seed=replay_seq, physics_dim=env.physics_state_dim,
+                                    frames_file=frames_file if replay_placement.disk else None,
+                                    reserve_slots=replay_slots(cfg))
     except BaseException:
         close_envs(env, eval_envs)
         raise

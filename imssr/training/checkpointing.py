@@ -29,13 +29,12 @@ from imssr.training.build import TrainingParts
 from imssr.training.state import Episode
 
 
-def resume_point(run: RunDir, cfg: RunConfig) -> CheckpointFile:
-    """The checkpoint a resume of ``run`` with ``cfg`` continues from (:meth:`RunDir.checkpoint`,
-    its fall-back said in one line), refused in one line when ``cfg`` changes a setting a resume
-    may not change or a budget it is already past; nothing is written before."""
-    found = run.checkpoint()
-    if found.note:
-        print(f"imssr: {found.note}", flush=True)
+def resume_point(run: RunDir, cfg: RunConfig, found: Optional[CheckpointFile] = None) -> CheckpointFile:
+    """The checkpoint a resume of ``run`` with ``cfg`` continues from (``found``, the one a batch
+    chose, :func:`~imssr.rundir.batch_checkpoints`; None: :meth:`RunDir.checkpoint`), refused in
+    one line when ``cfg`` changes a setting a resume may not change or a budget it is already
+    past.  Nothing is written or printed: its ``note`` (a fall-back) is the caller's to say."""
+    found = found or run.checkpoint()
     diff = cfg.resume_conflicts(found.checkpoint.config)
     numerics = [k for k in diff if k in ("agent.precision", "agent.q_heads_fp32")]
     if numerics:
@@ -78,6 +77,12 @@ class Checkpointer:
         a checkpoint holds it so that a larger budget goes on as if that evaluation never ran."""
         self._open_episode: Optional[dict] = None
         self._open_burst: Optional[dict] = None
+        self.in_batch = False
+        """A run of a batch (:class:`~imssr.training.seeds.SeedsTrainer`): :meth:`save` stages
+        the checkpoint (:meth:`RunDir.stage_checkpoint`), and the batch promotes and prunes it
+        once every run staged its own, so that a batch's checkpoint is every run's or none."""
+        self.staged = False
+        """Whether this run staged a checkpoint the batch has not promoted yet."""
 
     # -- resume --------------------------------------------------------------------------
     def restore(self, found: CheckpointFile) -> None:
@@ -159,11 +164,16 @@ class Checkpointer:
     def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
         the burst of updates a stop interrupted), with the replay buffer when ``train.save_buffer``
-        (:meth:`RunDir.save_checkpoint`: what a failed save leaves)."""
+        (:meth:`RunDir.save_checkpoint`: what a failed save leaves; in a batch, staged:
+        :attr:`in_batch`)."""
         step = self.state.step
         replay_file = self.run.replay_name(step) if self.cfg.train.save_buffer else None
-        self.run.save_checkpoint(self.snapshot(replay_file, episode, burst), keep=self.cfg.train.keep_checkpoints,
-                                 replay=self.replay)
+        ckpt = self.snapshot(replay_file, episode, burst)
+        if self.in_batch:
+            self.run.stage_checkpoint(ckpt, replay=self.replay)
+            self.staged = True
+        else:
+            self.run.save_checkpoint(ckpt, keep=self.cfg.train.keep_checkpoints, replay=self.replay)
         self.saved_step = step
 
     def snapshot(self, replay_file: Optional[str], episode: Optional[Episode] = None,

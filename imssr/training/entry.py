@@ -12,12 +12,14 @@ policy.
 """
 from __future__ import annotations
 
+import copy
+import json
 import os
 import time
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Optional, Sequence
 
-from imssr.config import RunConfig, load_config
+from imssr.config import RunConfig, check_seed, load_config
 from imssr.errors import ImssrError
 from imssr.presets import run_config
 from imssr.rundir import CONFIG_FILE, SEED_DIR, RunDir, run_path
@@ -85,12 +87,15 @@ def plan(request: TrainRequest) -> list[RunPlan]:
                 or "train.seed" in request.values:
             raise ImssrError("--runs takes each run's own config.json: leave out --seeds, --out, --config, "
                              "--algo, --task and --seed")
-        dirs = list(dict.fromkeys(os.path.normpath(d) for d in request.runs))
+        dirs = [os.path.normpath(d) for d in request.runs]
+        _refuse_twice(dirs)
         for d in dirs:
             if not os.path.isfile(os.path.join(d, CONFIG_FILE)):
                 raise ImssrError(f"--runs {d}: no {CONFIG_FILE} there (write one, or train it with --out)")
         # Each directory's config.json is its run's own file: the base whether new or resumed.
-        return [RunPlan(_config(request, config_file=os.path.join(d, CONFIG_FILE)), RunDir(d)) for d in dirs]
+        runs = [RunDir(d) for d in dirs]
+        return [RunPlan(cfg, run) for cfg, run in zip(_configs(request, runs, files=[r.config_path for r in runs]),
+                                                      runs)]
     if request.seeds is not None:
         if "train.seed" in request.values:
             raise ImssrError("--seeds and --seed exclude each other")
@@ -98,15 +103,75 @@ def plan(request: TrainRequest) -> list[RunPlan]:
             raise ImssrError("--seeds needs --out DIR: each seed trains into DIR/seed_<n>")
         if not request.seeds or len(set(request.seeds)) != len(request.seeds):
             raise ImssrError(f"--seeds needs one or more different seeds, got {request.seeds}")
+        for seed in request.seeds:
+            check_seed(seed)
         if request.config_file and request.resume:
             raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
         runs = [RunDir(os.path.join(request.out, SEED_DIR.format(seed=seed))) for seed in request.seeds]
-        return [RunPlan(_config(request, run, {"train.seed": seed}), run)
-                for seed, run in zip(request.seeds, runs)]
+        _refuse_twice([run.path for run in runs])
+        return [RunPlan(cfg, run) for cfg, run in zip(_configs(request, runs, seeds=request.seeds), runs)]
     if request.resume and not request.config_file and not request.out:
         raise ImssrError("--resume needs --out RUN_DIR")
     cfg = _config(request, RunDir(request.out) if request.out else None)
     return [RunPlan(cfg, RunDir(request.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)))]
+
+
+def _refuse_twice(dirs: Sequence[str]) -> None:
+    """A one-line error when two of ``dirs`` are one directory (the same path, or two paths to it:
+    ``X`` and ``/abs/X``, a symbolic link): each run trains once, under one lock."""
+    seen: dict[str, str] = {}
+    for d in dirs:
+        real = os.path.realpath(d)
+        if real in seen:
+            what = f"{d} is named twice" if seen[real] == d else f"{seen[real]} and {d} are one directory"
+            raise ImssrError(f"{what}: each run trains once, so name it once")
+        seen[real] = d
+
+
+def _configs(request: TrainRequest, runs: Sequence[RunDir], seeds: Optional[Sequence[int]] = None,
+             files: Optional[Sequence[str]] = None) -> list[RunConfig]:
+    """The config of each of ``runs`` (:func:`_config`; ``seeds``: each run's, ``files``: each
+    run's config file), made once per base that differs from the others in more than the seed:
+    the runs whose bases (the preset, a config file, a resumed run's ``config.json``) differ in
+    the seed alone take a copy of the first one's with their own seed, so that planning 1000
+    seeds merges and validates one config, not 1000."""
+    made: dict[str, RunConfig] = {}
+    cfgs = []
+    for i, run in enumerate(runs):
+        file = files[i] if files else None
+        key, seed = _base_key(request, run, file)
+        if seeds is not None:
+            seed = seeds[i]
+        if key is not None and key in made:
+            cfg = copy.deepcopy(made[key])
+            if seed is not None:
+                check_seed(seed)
+                cfg.train.seed = seed
+        else:
+            cfg = _config(request, run, None if seeds is None else {"train.seed": seed}, file)
+            if key is not None:
+                made[key] = cfg
+        cfgs.append(cfg)
+    return cfgs
+
+
+def _base_key(request: TrainRequest, run: RunDir, file: Optional[str]) -> tuple[Optional[str], Optional[int]]:
+    """What a run's config is made from, as text without its seed (None: no shortcut, e.g. a
+    resumed run's lost ``config.json``), and the seed it holds (None: none, or the preset's)."""
+    path = file or request.config_file or (run.config_path if request.resume else None)
+    if path is None:
+        return "", None  # the preset, the same for every run
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except (OSError, ValueError):
+        return None, None  # _config says what is wrong, in one line
+    train = data.get("train") if isinstance(data, dict) else None
+    if not isinstance(train, dict):
+        return None, None
+    seed = train.get("seed")
+    data = {**data, "train": {k: v for k, v in train.items() if k != "seed"}}
+    return json.dumps(data, sort_keys=True), seed if isinstance(seed, int) and not isinstance(seed, bool) else None
 
 
 def _config(request: TrainRequest, run: Optional[RunDir] = None, values: Optional[dict] = None,
@@ -145,28 +210,33 @@ def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list
     line naming the command that continues, otherwise the default handlers act
     (``KeyboardInterrupt``).  A run of several whose losses turn non-finite stops; the others
     finish, then a one-line error names it."""
+    from imssr.training.memory import memory_plan
+
     if request.seeds is not None or request.runs:
         from imssr.agents.streams import allow_concurrent_streams
 
         allow_concurrent_streams()
     planned = plan(request)
+    # Before any run directory is written or any agent built: does the machine hold them all?
+    placement = memory_plan([p.config for p in planned], [p.run for p in planned]).placement
     if request.seeds is None and not request.runs:
         cfg, run = planned[0]
         stop = (StopRequest(run) if exit_on_second_signal else StopRequest()).install()
         try:
-            _train_one(cfg, run, request, stop)
+            _train_one(cfg, run, request, stop, placement)
         finally:
             stop.uninstall()
         return planned
-    return _train_many(planned, request, exit_on_second_signal)
+    return _train_many(planned, request, placement, exit_on_second_signal)
 
 
-def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest) -> None:
+def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest, placement) -> None:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.demo import record_episode, summary
     from imssr.training.loop import Trainer
 
-    trainer = Trainer(cfg, run, resume=request.resume, refill_buffer=request.refill_buffer, stop=stop)
+    trainer = Trainer(cfg, run, resume=request.resume, refill_buffer=request.refill_buffer, stop=stop,
+                      placement=placement)
     _say(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}")
     started = time.time()
     try:
@@ -182,7 +252,8 @@ def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopReq
         trainer.close()
 
 
-def _train_many(planned: list[RunPlan], request: TrainRequest, exit_on_second_signal: bool) -> list[RunPlan]:
+def _train_many(planned: list[RunPlan], request: TrainRequest, placement,
+                exit_on_second_signal: bool) -> list[RunPlan]:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.seeds import SeedsTrainer, resume_command
 
@@ -190,7 +261,7 @@ def _train_many(planned: list[RunPlan], request: TrainRequest, exit_on_second_si
     stop = (StopRequest(*runs, resume_command=resume_command(cfgs, runs)) if exit_on_second_signal
             else StopRequest()).install()
     try:
-        trainer = SeedsTrainer(cfgs, runs, resume=request.resume, stop=stop)
+        trainer = SeedsTrainer(cfgs, runs, resume=request.resume, stop=stop, placement=placement)
         try:
             where = (f"{len(runs)} run directories" if request.runs
                      else os.path.join(request.out, SEED_DIR.format(seed="<n>")))

@@ -11,22 +11,25 @@ too (:class:`~imssr.training.state.Episode`), which a resume steps through again
 """
 from __future__ import annotations
 
+import json
 import os
-from typing import Optional, Union
+from dataclasses import dataclass
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
 
 from imssr import provenance
-from imssr.config import RunConfig
+from imssr.config import RunConfig, check_seed
 from imssr.contention import contention_warning
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
-from imssr.replay import replay_placement
-from imssr.rundir import RunDir, as_run_dir
+from imssr.replay import ReplayPlacement, replay_placement
+from imssr.rundir import CheckpointFile, RunDir, as_run_dir
+from imssr.rundir.lock import DirectoryLock
 from imssr.training.build import build_training, resolve_device
 from imssr.training.checkpointing import Checkpointer, resume_point, thread_warning
 from imssr.training.divergence import DivergenceCheck
@@ -36,7 +39,8 @@ from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
 
-__all__ = ["Trainer", "StopRequest", "TrainingInterrupted", "no_update_warning"]
+__all__ = ["Start", "Trainer", "StopRequest", "TrainingInterrupted", "check_start", "checked_configs",
+           "no_update_warning"]
 
 
 class Trainer:
@@ -52,6 +56,11 @@ class Trainer:
         stop: the SIGTERM / SIGINT request the CLI installed (:class:`StopRequest`); when it is
             set, :meth:`train` checkpoints after the current agent step and raises
             :class:`TrainingInterrupted`.
+        start: the run's checked start (:class:`Start`), a batch's: then ``cfg``, ``run`` and
+            ``resume`` are the start's, and the caller calls :meth:`begin`.  None: checked here
+            (:func:`check_start`), and the trainer begins as it is made.
+        placement: where the replay frames live (the memory plan's choice,
+            :mod:`imssr.training.memory`); None: :func:`replay_placement` for this run alone.
     """
 
     progress_every_s: float = PROGRESS_EVERY_S
@@ -60,31 +69,35 @@ class Trainer:
     """How an evaluation plays its episodes (:func:`~imssr.training.evaluate.evaluate`)."""
 
     def __init__(self, cfg: RunConfig, run: Union[RunDir, str], resume: bool = False, refill_buffer: bool = False,
-                 stop: Optional[StopRequest] = None):
-        self.run_dir = as_run_dir(run)
-        if os.path.exists(self.run_dir.path) and not os.path.isdir(self.run_dir.path):
-            raise ImssrError(f"--out {self.run_dir.path} is a file, not a directory")
+                 stop: Optional[StopRequest] = None, *, start: Optional[Start] = None,
+                 placement: Optional[ReplayPlacement] = None):
+        own = start is None
         # A second process on the same directory fails here, before anything is checked or written.
-        self._lock = self.run_dir.open()
+        start = check_start(cfg, run, resume) if own else start
+        self.run_dir, self._lock, self._found = start.run, start.lock, start.found
         self.stop = stop or StopRequest()  # uninstalled: never set
         try:
-            self._setup(cfg, resume, refill_buffer)
+            self._build(start.cfg, refill_buffer, placement)
+            if own:
+                self.begin()
         except BaseException:
             self.close()
             raise
 
-    def _setup(self, cfg: RunConfig, resume: bool, refill_buffer: bool) -> None:
-        """Check the config and run directory; build envs, agent, replay; restore; write config, provenance, logs."""
-        self.cfg = _checked(cfg, new_run=not resume)
+    def _build(self, cfg: RunConfig, refill_buffer: bool, placement: Optional[ReplayPlacement]) -> None:
+        """Build envs, agent and replay (where ``placement`` says; None: :func:`replay_placement`'s
+        choice for this run alone) and restore the checkpoint the start resumes from; nothing is
+        written to the run directory."""
+        self.cfg = cfg
         self.device = resolve_device(cfg.train.device)
-        self.replay_placement = replay_placement(cfg.train.replay_device, self.device,
-                                                 cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2,
-                                                 cfg.train.gpu_share)
-        found = resume_point(self.run_dir, cfg) if resume else None
-        if found is None:
-            self.run_dir.refuse_fresh_start()
+        self.replay_placement = placement or replay_placement(cfg.train.replay_device, self.device,
+                                                              cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2,
+                                                              cfg.train.gpu_share)
+        found = self._found
+        if found is not None and found.note:
+            print(f"imssr: {found.note}", flush=True)
         _set_threads(cfg.train.torch_threads, self.device, None if found is None else found.checkpoint.torch_threads)
-        self.parts = parts = build_training(cfg, self.device, self.replay_placement)
+        self.parts = parts = build_training(cfg, self.device, self.replay_placement, self.run_dir.frames_file)
         self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
                                                                          parts.replay, parts.state)
         self.action_dim = self.env.action_space.shape[0]
@@ -93,6 +106,13 @@ class Trainer:
         os.makedirs(self.run_dir.path, exist_ok=True)
         if found is not None:
             self.checkpoints.restore(found)
+
+    def begin(self) -> None:
+        """Write what a training starts with (config.json, a provenance record, the logs: on
+        resume truncated to the checkpoint) and say where it resumes from.  A trainer begins as it
+        is made; a run of a batch when every run of the batch is checked and built
+        (:class:`~imssr.training.seeds.SeedsTrainer`), so that a refused batch writes nothing."""
+        cfg, found = self.cfg, self._found
         self.run_dir.write_config(cfg)
         self.run_dir.record_provenance(provenance.record(self.device, "resume" if found else "start", self.step))
         self.logger = open_logger(self.run_dir, cfg, resume_frame=None if found is None else self.frame)
@@ -321,14 +341,79 @@ class Trainer:
             self._lock.release()
 
 
-def _checked(cfg: RunConfig, new_run: bool) -> RunConfig:
+@dataclass
+class Start:
+    """A training's start as checked before anything is written: its validated config, its run
+    directory, held (:meth:`RunDir.open`), and the checkpoint it resumes from (None: a fresh
+    start).  :func:`check_start` makes one for a run alone; a batch checks its runs together
+    (:class:`~imssr.training.seeds.SeedsTrainer`)."""
+
+    cfg: RunConfig
+    run: RunDir
+    lock: DirectoryLock
+    found: Optional[CheckpointFile] = None
+
+    @classmethod
+    def take(cls, cfg: RunConfig, run: Union[RunDir, str], new_run: bool, checked: bool = False) -> "Start":
+        """``run`` locked (a second writer fails at once) with ``cfg`` validated (:func:`_checked`;
+        ``checked``: already, :func:`checked_configs`)."""
+        run_dir = as_run_dir(run)
+        if os.path.exists(run_dir.path) and not os.path.isdir(run_dir.path):
+            raise ImssrError(f"--out {run_dir.path} is a file, not a directory")
+        lock = run_dir.open()
+        try:
+            return cls(cfg if checked else _checked(cfg, new_run), run_dir, lock)
+        except BaseException:
+            lock.release()
+            raise
+
+
+def check_start(cfg: RunConfig, run: Union[RunDir, str], resume: bool) -> Start:
+    """The checked start of a run alone: locked and validated (:meth:`Start.take`), then its resume
+    point (:func:`resume_point`) or, for a fresh start, a directory that holds no run
+    (:meth:`RunDir.refuse_fresh_start`); the lock is released when a check fails."""
+    start = Start.take(cfg, run, new_run=not resume)
+    try:
+        if resume:
+            start.found = resume_point(start.run, start.cfg)
+        else:
+            start.run.refuse_fresh_start()
+    except BaseException:
+        start.lock.release()
+        raise
+    return start
+
+
+def checked_configs(cfgs: Sequence[RunConfig], new_run: bool) -> list[RunConfig]:
+    """``cfgs`` (a batch's) as :func:`_checked` leaves them, validated once per config but for the
+    seed: the others' seeds are checked alone (a batch of 1000 seeds validates one config)."""
+    seen: set[str] = set()
+    for cfg in cfgs:
+        key = _without_seed(_checked(cfg, new_run, validate=False))
+        if key in seen:
+            check_seed(cfg.train.seed)
+        else:
+            _checked(cfg, new_run)
+            seen.add(key)
+    return list(cfgs)
+
+
+def _without_seed(cfg: RunConfig) -> str:
+    """``cfg`` as JSON text without its seed: equal for configs that differ in the seed alone."""
+    data = cfg.to_dict()
+    data["train"] = {k: v for k, v in data["train"].items() if k != "seed"}
+    return json.dumps(data, sort_keys=True)
+
+
+def _checked(cfg: RunConfig, new_run: bool, validate: bool = True) -> RunConfig:
     """``cfg``, validated; a new run's takes the image and footage folders that environment
     variables name, so that a resume or ``imssr evaluate`` in another shell uses the same."""
     if new_run:
         cfg.aux.image_dir = cfg.aux.image_dir or os.environ.get(IMAGE_DIR_ENV, "")
         cfg.env.footage_dir = cfg.env.footage_dir or os.environ.get(FOOTAGE_DIR_ENV, "")
-    cfg.validate()
-    get_algo(cfg.algo)
+    if validate:
+        cfg.validate()
+        get_algo(cfg.algo)
     return cfg
 
 

@@ -27,9 +27,12 @@ from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
 from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
-from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, SEED_DIR, RunDir, as_run_dir
+from imssr.replay import ReplayPlacement
+from imssr.rundir import (DIVERGED, FAILED, FINISHED, INTERRUPTED, SEED_DIR, RunDir, as_run_dir, batch_checkpoints,
+                          first_set_leftovers)
+from imssr.training.checkpointing import resume_point
 from imssr.training.evaluate import evaluate_members, non_finite_text
-from imssr.training.loop import Trainer
+from imssr.training.loop import Start, Trainer, checked_configs
 from imssr.training.progress import Progress, member_labels, member_lines, say_held
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
@@ -73,7 +76,7 @@ class SeedsTrainer:
     scalars (``intrinsic.beta0``, ``intrinsic.enabled``) only."""
 
     def __init__(self, cfgs: Sequence[RunConfig], runs: Sequence[Union[RunDir, str]], resume: bool = False,
-                 stop: Optional[StopRequest] = None):
+                 stop: Optional[StopRequest] = None, placement: Optional[ReplayPlacement] = None):
         if len(cfgs) != len(runs) or not cfgs:
             raise ImssrError("one run directory per seed")
         conflict = lockstep_conflict(cfgs)
@@ -84,22 +87,20 @@ class SeedsTrainer:
         self.labels = member_labels([c.train.seed for c in cfgs], [c.algo for c in cfgs],
                                     [as_run_dir(r).path for r in runs])
         """What each run is called in its console lines (:func:`member_labels`)."""
+        # Every run is checked before any is built, and built before any is written to: a refused
+        # batch leaves every file as it was.
+        starts = _check_starts(cfgs, runs, resume)
         # What each run says as it starts, said once when it is the same for all (a warning
         # about the machine's cores would come once per run).
         held: dict[str, list[str]] = {label: [] for label in self.labels}
         try:
             try:
-                for cfg, run, label in zip(cfgs, runs, self.labels):
+                for start, label in zip(starts, self.labels):
                     with member_lines(label, held[label]):
-                        self.trainers.append(Trainer(cfg, run, resume=resume, stop=self.stop))
+                        self.trainers.append(Trainer(start.cfg, start.run, resume, stop=self.stop, start=start,
+                                                     placement=placement))
             finally:  # a run that failed to start: each line with its run, the error after them
                 say_held(held, once=len(self.trainers) == len(cfgs))
-            steps = sorted({t.step for t in self.trainers})
-            if len(steps) > 1:
-                behind = [t.run_dir.path for t in self.trainers if t.step != steps[-1]]
-                raise ImssrError(f"the runs' checkpoints are at different agent steps ({', '.join(map(str, steps))}): "
-                                 f"bring {', '.join(behind)} to step {steps[-1]} alone first "
-                                 f"(imssr train --out RUN_DIR --resume --steps {steps[-1]})")
             if len({t.state.learning_starts for t in self.trainers}) > 1:
                 raise ImssrError("the seeds' seed phases end at different agent steps (a refilled replay buffer): "
                                  "resume them one by one")
@@ -108,10 +109,25 @@ class SeedsTrainer:
                 t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
                 t.episodes_of = self._episodes_of(i)
                 t.checkpoints.keep_before_final = self._keep_before_final(i)
+                t.checkpoints.in_batch = True
             self._lanes: list[_Lane] = []
             self._evaluated: dict = {}
             self._rngs_before: dict[int, dict] = {}
+            held = {label: [] for label in self.labels}
+            try:
+                for start, t, label in zip(starts, self.trainers, self.labels):
+                    with member_lines(label, held[label]):
+                        if start.leftovers:
+                            start.run.clear_first_set_leftovers(start.leftovers)
+                        if start.found is not None and start.found.path != start.run.latest:
+                            t._found = start.run.return_to(start.found)
+                            t.checkpoints.saved_step = t.step
+                        t.begin()
+            finally:
+                say_held(held)
         except BaseException:
+            for start in starts[len(self.trainers):]:  # checked, not yet handed to a trainer
+                start.lock.release()
             self.close()
             raise
 
@@ -187,6 +203,7 @@ class SeedsTrainer:
         try:
             self._train(lanes, total)
         except BaseException as exc:
+            self._unstage()
             state = INTERRUPTED if isinstance(exc, (KeyboardInterrupt, TrainingInterrupted)) else FAILED
             for lane in self._active(lanes):
                 _record(lane.trainer, state, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
@@ -205,9 +222,11 @@ class SeedsTrainer:
                 for lane, action in zip(lanes, actions):
                     if lane.failed is None:
                         self._guarded(lane, lambda: self._after_action(lane, action))
+                self._commit()
                 self._stop_if_requested(lanes)
             for lane in self._active(lanes):
                 self._guarded(lane, lambda: lane.trainer._finish(lane.episode))
+            self._commit()
         finally:
             for lane in lanes:
                 lane.progress.close()
@@ -280,6 +299,7 @@ class SeedsTrainer:
                 for lane, action in zip(lanes, actions):
                     if lane.failed is None:
                         self._guarded(lane, lambda: lane.trainer._save_in_burst(lane.episode, action, update))
+                self._commit()
                 raise self._interrupted()
             metrics = self.batch.update([lane.trainer.replay for lane in lanes], first.step)
             for i, lane in enumerate(lanes):
@@ -291,7 +311,36 @@ class SeedsTrainer:
             return
         for lane in self._active(lanes):
             self._guarded(lane, lambda: lane.trainer._save_for_stop(lane.episode))
+        self._commit()
         raise self._interrupted()
+
+    def _commit(self) -> None:
+        """Complete the batch's checkpoint once every training run staged its own (at an agent
+        step's end): every run's staged copy becomes its ``latest.pt``, then every run prunes
+        (:meth:`RunDir.stage_checkpoint`).  A kill in between leaves every run a checkpoint of
+        this step or of the one before in every run, which a resume finds."""
+        staged = [t for t in self.trainers if t.checkpoints.staged]
+        try:
+            for t in staged:
+                t.run_dir.promote_checkpoint()
+            for t in staged:
+                t.run_dir.prune_checkpoints(t.cfg.train.keep_checkpoints)
+        finally:
+            # Once one run promoted, every staged copy is part of the batch's newest checkpoint:
+            # none is removed (_unstage), whatever stops the batch now.
+            for t in staged:
+                t.checkpoints.staged = False
+
+    def _unstage(self) -> None:
+        """After a failure (a run that could not stage its checkpoint, a full disk): the others'
+        staged checkpoints are removed, as a failed save of a run alone removes what it wrote."""
+        for t in self.trainers:
+            if t.checkpoints.staged:
+                t.checkpoints.staged = False
+                try:
+                    t.run_dir.unstage_checkpoint()
+                except OSError:
+                    pass
 
     def _interrupted(self) -> TrainingInterrupted:
         return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
@@ -327,6 +376,49 @@ def seeds_root(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> Optional[st
                                for p, c in zip(paths, cfgs)):
         return roots.pop()
     return None
+
+
+@dataclass
+class _Start(Start):
+    """A run's checked start in a batch, and what a batch stopped before its first checkpoint was
+    complete left there, to clear before it starts afresh (:func:`~imssr.rundir.first_set_leftovers`)."""
+
+    leftovers: Optional[list[str]] = None
+
+
+def _check_starts(cfgs: Sequence[RunConfig], runs: Sequence[Union[RunDir, str]], resume: bool) -> list[_Start]:
+    """Every run of a batch locked and checked, nothing written: on resume, the checkpoints of the
+    last agent step every run completed (:func:`batch_checkpoints`), each checked against its
+    config (:func:`resume_point`); for a fresh start, directories that hold no run, or only what
+    a batch stopped before its first checkpoint was complete left in them (cleared as the batch
+    starts, said in one line).  A refusal releases every lock."""
+    cfgs = checked_configs(cfgs, new_run=not resume)
+    starts: list[_Start] = []
+    try:
+        for cfg, run in zip(cfgs, runs):
+            taken = Start.take(cfg, run, new_run=not resume, checked=True)
+            starts.append(_Start(taken.cfg, taken.run, taken.lock))
+        dirs = [start.run for start in starts]
+        if resume:
+            for start, found in zip(starts, batch_checkpoints(dirs, cfgs[0].train.steps)):
+                start.found = resume_point(start.run, start.cfg, found)
+            return starts
+        leftovers = first_set_leftovers(dirs)
+        if leftovers is not None:
+            held = [run.path for run, parts in zip(dirs, leftovers) if parts]
+            more = f" and {len(held) - 1} more run(s)" if len(held) > 1 else ""
+            print(f"imssr: {held[0]}{more}: clearing what a batch stopped before its first checkpoint was complete "
+                  "left, to start afresh", flush=True)
+            for start, parts in zip(starts, leftovers):
+                start.leftovers = parts
+            return starts
+        for run in dirs:
+            run.refuse_fresh_start()
+        return starts
+    except BaseException:
+        for start in starts:
+            start.lock.release()
+        raise
 
 
 def _record(trainer: Trainer, state: str, error: str = "") -> None:
