@@ -1,5 +1,6 @@
-"""bench/profile_seeds.py and bench/replay_checkpoint.py on tiny CPU smoke runs: they run and
-print their tables (never timings); the seeds bench runs in tests/test_gpu_script.py."""
+"""bench/profile_seeds.py, bench/replay_checkpoint.py and bench/replay_disk.py on tiny CPU smoke
+runs: they run and print their tables (never timings); the seeds bench runs in
+tests/test_gpu_script.py."""
 import os
 import subprocess
 import sys
@@ -47,3 +48,11 @@ def test_the_seeds_benches_build_their_agents_with_the_overrides():
     template = batch.template
     assert template.cfg.batch_size == 8 and template.cfg.encoder_filters == 8
     assert all(g["fused"] for o in batch.optimizers.values() for g in o.param_groups) and len(replays) == 2
+
+
+def test_replay_disk_compares_frames_on_disk_with_frames_in_memory(tmp_path):
+    out = _run("replay_disk.py", "--capacity", "300", "--steps", "5", "--batch", "8", "--size", "8", "--reps", "1",
+               "--dir", str(tmp_path))
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| host") or line.startswith("| file")]
+    assert [r[0] for r in rows] == ["| host memory (cpu)", "| file on disk (disk)"] and rows[0][2] == "1.00 |"
+    assert os.listdir(tmp_path) == []  # the frames file is removed

@@ -105,7 +105,7 @@ class SeedsTrainer:
             for start, t in zip(starts, self.trainers):
                 if start.leftovers:
                     start.run.clear_first_set_leftovers(start.leftovers)
-                if start.found is not None and start.found.path != start.run.latest:
+                if start.found is not None:
                     t._found = start.run.return_to(start.found)
                     t.checkpoints.saved_step = t.step
                 t.begin()
