@@ -1,5 +1,6 @@
-"""bench/profile_seeds.py, bench/replay_checkpoint.py and bench/floor.py on tiny CPU smoke runs:
-they run and print their tables (never timings); the seeds bench runs in tests/test_gpu_script.py."""
+"""bench/profile_seeds.py, bench/replay_checkpoint.py, bench/replay_disk.py and bench/floor.py on
+tiny CPU smoke runs: they run and print their tables (never timings); the seeds bench runs in
+tests/test_gpu_script.py."""
 import os
 import subprocess
 import sys
@@ -91,3 +92,11 @@ def test_scripts_and_benches_name_no_directory_of_a_particular_machine():
             if bad:
                 found[os.path.relpath(name, REPO)] = bad
     assert not found
+
+
+def test_replay_disk_compares_frames_on_disk_with_frames_in_memory(tmp_path):
+    out = _run("replay_disk.py", "--capacity", "300", "--steps", "5", "--batch", "8", "--size", "8", "--reps", "1",
+               "--dir", str(tmp_path))
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| host") or line.startswith("| file")]
+    assert [r[0] for r in rows] == ["| host memory (cpu)", "| file on disk (disk)"] and rows[0][2] == "1.00 |"
+    assert os.listdir(tmp_path) == []  # the frames file is removed

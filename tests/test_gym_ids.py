@@ -21,6 +21,20 @@ def test_static_task_list_matches_installed_suite():
     assert all(imssr.envs.get_task(name).name == name for name in imssr.list_tasks())
 
 
+def test_each_tasks_action_and_physics_state_sizes_are_the_suites():
+    """TASK_DIMS (a training's memory plan reads it without a simulator) against each model."""
+    from dm_control import suite
+
+    from imssr.envs.tasks import TASK_DIMS
+
+    found = {}
+    for domain, task in SUITE_TASKS:
+        env = suite.load(domain, task)
+        state = sum(x.size for x in env.physics._physics_state_items())  # what DMCEnv.physics_state records
+        found[f"{domain}_{task}"] = (env.action_spec().shape[0], state)
+    assert found == TASK_DIMS
+
+
 def test_listing_the_tasks_does_not_import_dm_control():
     code = "import sys, imssr; imssr.list_tasks(); print('dm_control.suite' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

@@ -12,7 +12,8 @@ from imssr.cli import main
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
 from imssr.presets import make_config
-from imssr.replay import FrameReplayBuffer, TensorFrameReplayBuffer, choose_replay_device, replay_placement
+from imssr.replay import (DiskFrameReplayBuffer, FrameReplayBuffer, TensorFrameReplayBuffer, choose_replay_device,
+                          replay_placement)
 from imssr.replay.device import REPLAY_DEVICE_MARGIN_BYTES
 from imssr.training import Trainer
 from imssr.training import build
@@ -103,12 +104,12 @@ def test_cuda_on_a_machine_without_it_is_one_line():
 def test_a_bad_replay_device_is_one_line(capsys):
     cfg = make_config("curl", "walker_walk")
     assert cfg.train.replay_device == "auto"
-    with pytest.raises(ImssrError, match=r"^train.replay_device must be one of cpu, cuda, auto, got 'tpu'$"):
+    with pytest.raises(ImssrError, match=r"^train.replay_device must be one of cpu, cuda, auto, disk, got 'tpu'$"):
         apply_overrides(cfg, ["train.replay_device=tpu"]).validate()
     assert main(["train", "--algo", "curl", "--task", "cartpole_swingup_sparse",
                  "--set", "train.replay_device=tpu"]) == 2
     err = capsys.readouterr().err
-    assert err == "imssr: error: train.replay_device must be one of cpu, cuda, auto, got 'tpu'\n"
+    assert err == "imssr: error: train.replay_device must be one of cpu, cuda, auto, disk, got 'tpu'\n"
 
 
 # -- training with the tensor store ------------------------------------------------------------
@@ -176,4 +177,55 @@ def test_a_killed_run_resumes_exactly_with_either_store(host_run, monkeypatch, t
     # train.replay_device may change on resume (it changes where the frames live, not the run).
     resumed = _train(tmp_path, resume=True, replay_device="cpu" if then == "host" else "auto")
     assert isinstance(resumed.replay, TensorFrameReplayBuffer) == (then == "tensor")
+    _assert_same_run(resumed, str(tmp_path), host_run[1], host_run[0])
+
+
+# -- frames on disk (train.replay_device=disk) ---------------------------------------------------
+
+def test_frames_on_disk_are_the_frames_in_memory(tmp_path):
+    """The disk store (a memory-mapped file) draws the batches and writes the files of the
+    in-memory store through a wrap of its ring, loads what the other saved, and leaves no file
+    once closed."""
+    shape, path = (3, 20, 20), str(tmp_path / "frames.mmap")
+    mem = FrameReplayBuffer(300, shape, 2, seed=7, physics_dim=3)
+    disk = DiskFrameReplayBuffer(300, shape, 2, seed=7, physics_dim=3, path=path, reserve_slots=300)
+    assert os.path.getsize(path) == 300 * 3 * 20 * 20
+    rng = np.random.default_rng(0)
+    for t in range(450):
+        first, frame = (rng.integers(0, 256, shape, dtype=np.uint8) for _ in range(2))
+        action, reward, physics = rng.uniform(-1, 1, 2), float(rng.normal()), rng.normal(size=3)
+        for buf in (mem, disk):
+            if t % 50 == 0:
+                buf.add_first(first, physics, t)
+            buf.add(action, reward, 1.0, frame, physics, t + 1)
+    for _ in range(3):
+        a, b = mem.sample_batch(16, "cpu"), disk.sample_batch(16, "cpu")
+        assert all(torch.equal(a[k], b[k]) for k in a)
+    for buf, where in ((mem, "mem"), (disk, "disk")):
+        os.makedirs(tmp_path / where)
+        buf.save(str(tmp_path / where / "replay-000000450.npz"))
+    saved = {where: sorted(os.listdir(tmp_path / where)) for where in ("mem", "disk")}
+    assert saved["mem"] == saved["disk"] and len(saved["mem"]) == 2
+    frames = next(name for name in saved["mem"] if name.endswith(".npy"))
+    assert (tmp_path / "mem" / frames).read_bytes() == (tmp_path / "disk" / frames).read_bytes()
+    with np.load(tmp_path / "mem" / "replay-000000450.npz") as m, np.load(tmp_path / "disk" / "replay-000000450.npz") as d:
+        assert m.files == d.files and all(np.array_equal(m[k], d[k]) for k in m.files)
+    again = DiskFrameReplayBuffer(300, shape, 2, seed=0, physics_dim=3, path=str(tmp_path / "again.mmap"))
+    again.load(str(tmp_path / "mem" / "replay-000000450.npz"), mem.state_dict()["rng"])
+    a, b = mem.sample_batch(16, "cpu"), again.sample_batch(16, "cpu")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    disk.close()
+    again.close()
+    assert not os.path.exists(path) and not os.path.exists(tmp_path / "again.mmap")
+
+
+def test_a_run_with_its_frames_on_disk_resumes_to_the_run_with_them_in_memory(host_run, tmp_path):
+    """``train.replay_device=disk``: the frames in ``RUN/replay-frames.mmap`` while the run trains,
+    gone when it stops; stopped and resumed, it ends as the run with its frames in memory."""
+    from imssr.rundir import RunDir
+
+    part = _train(tmp_path, stop_at=250, replay_device="disk")
+    assert type(part.replay) is DiskFrameReplayBuffer and part.replay.path == RunDir(str(tmp_path)).frames_file
+    assert not os.path.exists(part.replay.path)
+    resumed = _train(tmp_path, resume=True, replay_device="disk")
     _assert_same_run(resumed, str(tmp_path), host_run[1], host_run[0])

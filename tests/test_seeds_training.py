@@ -3,6 +3,7 @@ resume, a diverged seed stopped alone, and one-line errors."""
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import os
 import subprocess
@@ -11,7 +12,8 @@ import sys
 import pytest
 import torch
 
-from conftest import REPO, StopAtStep, tiny_config, without_timing
+from conftest import REPO, TORCH_THREADS, StopAtStep, tiny_config, without_timing
+from imssr.errors import ImssrError
 from imssr.rundir import RunDir
 from imssr.training.seeds import SeedsTrainer
 from imssr.training.stop import TrainingInterrupted
@@ -315,3 +317,171 @@ def test_envs_in_worker_processes_change_nothing(uninterrupted, tmp_path):
             assert rows(os.path.join(other, log)) == rows(os.path.join(done, log))
         for key, value in final_nets(done).items():
             assert torch.equal(value, final_nets(other)[key]), key
+
+
+# -- a batch's checkpoint is every run's or none; a refused batch writes nothing ---------------------
+
+def files_of(root) -> dict[str, bytes]:
+    """Every file under ``root`` but the runs' lock files (a killed process's is taken over and
+    released), by its path relative to it, with its bytes."""
+    from imssr.rundir import LOCK_FILE
+
+    out = {}
+    for folder, _, names in os.walk(root):
+        for name in names:
+            if name == LOCK_FILE:
+                continue
+            path = os.path.join(folder, name)
+            with open(path, "rb") as fh:
+                out[os.path.relpath(path, root)] = fh.read()
+    return out
+
+
+def assert_same_as_uninterrupted(done_root, root) -> None:
+    for done, other in zip(runs(done_root), runs(root)):
+        for log in ("train.csv", "eval.csv"):
+            assert rows(os.path.join(other, log)) == rows(os.path.join(done, log)), (other, log)
+        for key, value in final_nets(done).items():
+            assert torch.equal(value, final_nets(other)[key]), key
+
+
+KILLED_AT = """
+import os, signal, sys
+
+import imssr.rundir.checkpoint as checkpoint
+
+write, copy = checkpoint.write_checkpoint, checkpoint.copy_checkpoint
+times = [int(os.environ["KILL_TIME"])]
+
+
+def kill_at(path):
+    if path == os.environ["KILL_AT"]:
+        times[0] -= 1
+        if not times[0]:
+            os.kill(os.getpid(), signal.SIGKILL)  # as SIGKILL from outside, as this file is written
+
+
+checkpoint.write_checkpoint = lambda path, ckpt: kill_at(path) or write(path, ckpt)
+checkpoint.copy_checkpoint = lambda src, dst: kill_at(dst) or copy(src, dst)
+from imssr.cli import main
+
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def killed_batch(root, kill_at: str, time: int = 1) -> None:
+    """``imssr train --runs`` of the seeds' runs in ``root``, SIGKILLed as ``kill_at`` is written
+    for the ``time``-th time."""
+    for cfg, run in zip(configs(), runs(root)):
+        cfg.train.torch_threads = TORCH_THREADS  # the subprocesses compute as this process does
+        RunDir(run).write_config(cfg)
+    proc = subprocess.run([sys.executable, "-c", KILLED_AT, "train", "--runs", *runs(root)],
+                          capture_output=True, text=True, timeout=900,
+                          env={**os.environ, "KILL_AT": kill_at, "KILL_TIME": str(time),
+                               "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    assert proc.returncode == -9, proc.stdout + proc.stderr
+
+
+def test_a_batch_killed_between_its_runs_first_saves_resumes_as_a_fresh_start(uninterrupted, tmp_path, capsys):
+    """Killed after seed 1 saved its first checkpoint and before seed 2 did: ``--resume`` says in one
+    line to start afresh (and writes nothing), and a sweep's retry of the packed runs (``imssr
+    train --runs``, fresh: not every run has a checkpoint) clears what the kill left and trains the
+    runs as the uninterrupted batch did."""
+    from imssr.cli import main
+    from imssr.sweep.runner import execute_runs
+
+    killed_batch(tmp_path, os.path.join(runs(tmp_path)[1], "checkpoints", "step-000000125.pt"))
+    first = RunDir(runs(tmp_path)[0])
+    assert first.checkpoint_steps() == [125] and not RunDir(runs(tmp_path)[1]).has_checkpoint()
+
+    before = files_of(tmp_path)
+    assert main(["train", "--seeds", "1,2", "--out", str(tmp_path), "--resume"]) == 2
+    out, err = capsys.readouterr()
+    assert err == (f"imssr: error: nothing to resume as one batch: {runs(tmp_path)[1]} holds no checkpoint (the "
+                   "batch stopped during its first one); start every run afresh: the same command without "
+                   "--resume\n")
+    assert "resuming from" not in out and files_of(tmp_path) == before
+
+    results = execute_runs(runs(tmp_path), 150, attempt=2)
+    assert [r["ok"] for r in results] == [True, True], results
+    assert [r["resumed"] for r in results] == [False, False]
+    assert "clearing what a batch stopped before its first checkpoint was complete left" in \
+        open(os.path.join(runs(tmp_path)[0], "sweep.log")).read()
+    assert_same_as_uninterrupted(uninterrupted, tmp_path)
+
+
+def test_a_batch_whose_second_run_fails_to_save_resumes_from_the_last_complete_checkpoint(
+        uninterrupted, tmp_path, monkeypatch, capsys):
+    """Seed 2's checkpoint of step 150 fails (an I/O error) after seed 1 saved its own: seed 1's is
+    removed, every run keeps the checkpoint of step 125, and the resume from it ends as the
+    uninterrupted batch."""
+    from imssr.rundir import checkpoint
+
+    write = checkpoint.write_checkpoint
+    second = os.path.join(runs(tmp_path)[1], "checkpoints", "step-000000150.pt")
+
+    def failing(path, ckpt):
+        if path == second:
+            raise OSError(errno.EIO, "Input/output error", path)
+        return write(path, ckpt)
+
+    monkeypatch.setattr(checkpoint, "write_checkpoint", failing)
+    with pytest.raises(OSError, match="Input/output error"):
+        train_seeds(tmp_path)
+    monkeypatch.undo()
+    for run in runs(tmp_path):
+        assert RunDir(run).checkpoint().checkpoint.step == 125 and RunDir(run).checkpoint_steps() == [125]
+        assert json.load(open(os.path.join(run, "status.json")))["state"] == "failed"
+    assert train_seeds(tmp_path, resume=True) == [None, None]
+    assert_same_as_uninterrupted(uninterrupted, tmp_path)
+
+
+@pytest.mark.parametrize("kill_at, time, step", [("step-000000150.pt", 1, 125), ("latest.pt", 2, 150)])
+def test_a_batch_killed_in_its_second_checkpoint_resumes_from_the_last_step_every_run_completed(
+        uninterrupted, tmp_path, capsys, kill_at, time, step):
+    """Killed as seed 2 writes its checkpoint of step 150 (seed 1 wrote its own): both resume from
+    125; killed as seed 2 makes its copy of 150 its latest.pt (seed 1 did): both resume from 150.
+    Either way the batch ends as the uninterrupted one."""
+    killed_batch(tmp_path, os.path.join(runs(tmp_path)[1], "checkpoints", kill_at), time)
+    capsys.readouterr()
+    assert train_seeds(tmp_path, resume=True) == [None, None]
+    out = capsys.readouterr().out
+    assert out.count(f"imssr: resuming from agent step {step} ") == 2
+    if step == 150:  # seed 2 from its numbered copy, its latest.pt being of step 125
+        assert f"imssr: {runs(tmp_path)[1]}: resuming from step-000000150.pt at agent step 150, the last " \
+               "checkpoint every run of the batch completed (its latest.pt is of agent step 125)" in out
+    assert_same_as_uninterrupted(uninterrupted, tmp_path)
+
+
+def test_a_refused_batch_resume_writes_nothing(uninterrupted, tmp_path, capsys):
+    """Another process holds seed 2 (here: this test): the resume of the batch, with a new budget,
+    is refused before any run's config.json, provenance, logs or status changes, and says nothing
+    of resuming."""
+    import shutil
+
+    from imssr.rundir.lock import DirectoryLock
+
+    shutil.copytree(uninterrupted, tmp_path, dirs_exist_ok=True)
+    before = files_of(tmp_path)
+    lock = DirectoryLock(runs(tmp_path)[1]).acquire()
+    try:
+        with pytest.raises(ImssrError, match=f"^{runs(tmp_path)[1]} is in use by PID {os.getpid()}"):
+            train_seeds(tmp_path, resume=True, cfgs=configs(steps=200))
+    finally:
+        lock.release()
+    assert files_of(tmp_path) == before
+    assert "resuming from" not in capsys.readouterr().out
+
+
+def test_a_batch_that_finds_a_run_taken_leaves_no_trace(tmp_path):
+    """A fresh batch whose second run another process holds: the first run's directory is not even
+    made (no config.json, no "start" record that a report would count)."""
+    from imssr.rundir.lock import DirectoryLock
+
+    lock = DirectoryLock(runs(tmp_path)[1]).acquire()
+    try:
+        with pytest.raises(ImssrError, match="is in use by PID"):
+            train_seeds(tmp_path)
+    finally:
+        lock.release()
+    assert sorted(os.listdir(tmp_path)) == []

@@ -536,8 +536,8 @@ class DiskFrameReplayBuffer(FrameReplayBuffer):
     kernel's page cache keeps the frames that memory allows and reads the others back, so a batch
     of runs whose frames outgrow host memory still trains.  The frames are the same bytes in the
     same slots, so the batches, the saved files and a resume are the in-memory store's.  The file
-    is scratch (the checkpoints' replay files are the record): made when the buffer is, removed
-    by :meth:`close`.
+    is scratch (the checkpoints' replay files are the record): made (or replaced) when the buffer
+    is, removed by :meth:`close`.
 
     Args:
         path: the frames file (:meth:`imssr.rundir.RunDir.frames_file`); one there is replaced.
@@ -574,8 +574,8 @@ class DiskFrameReplayBuffer(FrameReplayBuffer):
         return np.memmap(self.path, dtype=np.uint8, mode="r+", shape=(self.capacity, *self.frame_shape))
 
     def close(self) -> None:
-        """Unmap the frames and remove their file (idempotent)."""
-        self.frames = np.zeros((0, *self.frame_shape), dtype=np.uint8)  # drops the mapping
+        """Remove the frames file (idempotent); the mapping, and the disk space with it, goes with
+        the buffer."""
         try:
             os.unlink(self.path)
         except FileNotFoundError:

@@ -467,7 +467,7 @@ class RunDir:
 
     def discard_unresumable(self) -> list[str]:
         """Clear what a training that failed before its first checkpoint left (its CSV logs,
-        ``videos/``, ``tb/``), so that the run can start again from agent step 0, as a sweep's
+        ``videos/``, ``tb/``, the replay files of a save killed before its checkpoint), so that the run can start again from agent step 0, as a sweep's
         fresh attempt does; returns the names removed (those of :meth:`run_parts`).  A run with a
         checkpoint is left as it is: it resumes.  The removal holds the run's lock (a one-line
         error while a process holds it).
@@ -485,7 +485,10 @@ class RunDir:
                 raise ImssrError(f"{self.path} holds a finished run without a checkpoint; move it away to "
                                  "train it again")
             parts = self.run_parts()
-            results = [name for name in parts if name not in EARLY_PARTS]
+            # Without a checkpoint, replay files are what a first save killed before its checkpoint
+            # file wrote (a run's, or a batch's run that had not staged its checkpoint yet).
+            replay = os.path.join(CHECKPOINT_DIR, REPLAY_GLOB[:-1])
+            results = [name for name in parts if name not in EARLY_PARTS and not name.startswith(replay)]
             if results:
                 shown = ", ".join(results[:3]) + (", ..." if len(results) > 3 else "")
                 raise ImssrError(f"{self.path} holds results of a run without a checkpoint ({shown}); move it "
@@ -640,21 +643,20 @@ class RunDir:
             os.unlink(tmp)
 
     def return_to(self, found: CheckpointFile) -> CheckpointFile:
-        """Make the checkpoint ``found`` (a numbered copy that :func:`batch_checkpoints` chose, older
-        than ``latest.pt`` or in place of a missing or damaged one) this run's ``latest.pt``, and
-        remove the newer numbered copies and the replay files it does not name: they belong to a
-        batch's checkpoint that not every run completed.  Returns ``found`` as ``latest.pt``."""
+        """Make the checkpoint ``found`` (the one :func:`batch_checkpoints` chose) this run's
+        ``latest.pt`` and remove what belongs to a checkpoint of the batch that not every run
+        completed: the numbered copies of later steps and the replay files ``found`` does not
+        name.  Returns ``found`` as ``latest.pt``."""
         from imssr.rundir.checkpoint import copy_checkpoint
 
-        if found.path == self.latest:
-            return found
         step, replay_file = found.checkpoint.step, found.checkpoint.replay_file
-        copy_checkpoint(found.path, self.latest)
+        if found.path != self.latest:
+            copy_checkpoint(found.path, self.latest)
         for path in self.numbered_checkpoints():
-            newer = _numbered_step(path)
-            if newer is not None and newer > step:
+            later = _numbered_step(path)
+            if later is not None and later > step:
                 os.unlink(path)
-        if replay_file and all(os.path.exists(p) for p in self.replay_files(replay_file)):
+        if not replay_file or all(os.path.exists(p) for p in self.replay_files(replay_file)):
             self.remove_unnamed_replay_files(replay_file)
         self._kept_replay = replay_file
         return CheckpointFile(found.checkpoint, self.latest, found.note)
@@ -952,8 +954,10 @@ def _batch_note(run: RunDir, path: str, step: int, loaded: dict, damaged: dict) 
         return f"{run.latest} is damaged ({damaged[run.latest]}); {there}"
     if run.latest not in loaded:
         return f"{run.latest} is missing; {there}"
-    return (f"{there}, the last checkpoint every run of the batch completed (its latest.pt, of agent step "
-            f"{loaded[run.latest].step}, is of a checkpoint the others lack)")
+    latest = loaded[run.latest].step
+    why = (f"its latest.pt, of agent step {latest}, is of a checkpoint the other runs lack" if latest > step
+           else f"its latest.pt is of agent step {latest}")
+    return f"{there}, the last checkpoint every run of the batch completed ({why})"
 
 
 def _some(names: Iterable[str], shown: int = 3) -> str:

@@ -40,9 +40,9 @@ from imssr.config import RunConfig
 from imssr.settings import conv_output_size
 from imssr.envs.tasks import task_dims
 from imssr.errors import ImssrError
-from imssr.memlimit import address_space_in_use, address_space_limit
+from imssr.memlimit import address_space_in_use, address_space_limit, raise_limit_text
 from imssr.networks import shapes_only
-from imssr.replay import ReplayPlacement, available_memory_bytes, choose_replay_device
+from imssr.replay import ReplayPlacement, available_memory_bytes, replay_placement
 from imssr.replay.device import REPLAY_DEVICE_MARGIN_BYTES
 from imssr.rundir import RunDir
 
@@ -120,12 +120,12 @@ def _activation_bytes(cfg: RunConfig) -> int:
     a = cfg.agent
     maps = sum(conv_output_size(a.crop_size, k) ** 2 for k in range(1, a.encoder_layers + 1))
     per_sample = 2 * 4 * a.encoder_filters * maps
-    return per_sample * (a.batch_size + getattr(cfg.aux, "batch_size", a.batch_size))
+    return per_sample * (a.batch_size + cfg.aux.batch_size)
 
 
 @dataclass(frozen=True)
 class MemoryPlan:
-    """What the runs of a training need, where their frames go, and the lines that say so."""
+    """What the runs of a training need and where their frames go."""
 
     needs: RunNeeds
     """One run's (the runs of a batch share their sizes)."""
@@ -158,17 +158,18 @@ def memory_plan(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> MemoryPlan
 
 
 def _placement(cfg: RunConfig, needs: RunNeeds, n: int, device: torch.device) -> ReplayPlacement:
-    """Where ``train.replay_device`` puts the frames of ``n`` runs: ``disk`` as asked, else the
-    rule of :func:`choose_replay_device` for all the runs' frames (each mapped at its capacity on
-    a GPU) beside the margin and, for a batch, the other members' agents."""
-    from imssr.replay import replay_placement
+    """Where ``train.replay_device`` puts the frames of ``n`` runs (:func:`replay_placement`, with
+    this machine's GPU): for ``auto``, the GPU when all the runs' frames (each mapped at its
+    capacity there) fit beside :func:`auto_margin`."""
+    return replay_placement(cfg.train.replay_device, device, n * needs.capacity * needs.frame_bytes,
+                            cfg.train.gpu_share, margin_nbytes=auto_margin(needs, n))
 
-    setting = cfg.train.replay_device
-    if setting == "disk":
-        return ReplayPlacement(torch.device("cpu"), disk=True)
-    margin = REPLAY_DEVICE_MARGIN_BYTES + (n - 1) * (needs.agent_bytes + needs.activation_bytes)
-    return replay_placement(setting, device, n * needs.capacity * needs.frame_bytes, cfg.train.gpu_share,
-                            margin_nbytes=margin)
+
+def auto_margin(needs: RunNeeds, n: int) -> int:
+    """The GPU memory ``auto`` keeps free beside the frames of ``n`` runs of ``needs``: the margin
+    of a run alone (:data:`REPLAY_DEVICE_MARGIN_BYTES`, which holds its agent) and the agents of
+    the other members of a batch, each with its update's activations (a batch updates them at once)."""
+    return REPLAY_DEVICE_MARGIN_BYTES + (n - 1) * (needs.agent_bytes + needs.activation_bytes)
 
 
 def _runs(n: int) -> str:
@@ -194,10 +195,11 @@ def _check_host(needs: RunNeeds, n: int, frames: bool, agents: int, disk: bool) 
         # The arrays (and a frames file) are mapped at their capacity as the buffer is made.
         mapped = n * needs.capacity * (needs.frame_bytes + needs.other_bytes if frames or disk else needs.other_bytes)
         if mapped + agents > limit - used:
+            also = f" and {agents / GB:.1f} GB for agents" if agents else ""
+            fewer = "train fewer seeds at once, " if n > 1 else ""
             raise ImssrError(f"{_runs(n)} {mapped / GB:.1f} GB of address space for replay ({needs.capacity:,} "
-                             f"slots each){f' and {agents / GB:.1f} GB for agents' if agents else ''}; the "
-                             f"address-space limit (ulimit -v) leaves {max(limit - used, 0) / GB:.1f} GB: raise it "
-                             f"(ulimit -v unlimited), train fewer seeds at once or lower train.replay_capacity")
+                             f"slots each){also}; {max(limit - used, 0) / GB:.1f} GB is left: {raise_limit_text()}, "
+                             f"or {fewer}lower train.replay_capacity")
 
 
 def _check_gpu(needs: RunNeeds, n: int, frames: bool, agents: int, device: torch.device, share: float) -> None:

@@ -119,7 +119,7 @@ class SeedsTrainer:
                     with member_lines(label, held[label]):
                         if start.leftovers:
                             start.run.clear_first_set_leftovers(start.leftovers)
-                        if start.found is not None and start.found.path != start.run.latest:
+                        if start.found is not None:
                             t._found = start.run.return_to(start.found)
                             t.checkpoints.saved_step = t.step
                         t.begin()
