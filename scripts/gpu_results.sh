@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Seeds for the results tables in one lent machine's time: the runs docs/results/lease_plan.json
+# Seeds for the results tables in one leased GPU machine's time: the runs docs/results/lease_plan.json
 # still misses that finish within the budget (scripts/lease_results.py: it starts the next missing
 # runs, measures their pace, stops those that would not finish, packs those that did).
 #

@@ -5,12 +5,12 @@ finish in the budget, and pack each finished run's exported files.
         [--device cuda] [--max-runs 6] [--runs-per-process 1] [--threads 2] [--set SECTION.FIELD=VALUE ...]
     python scripts/lease_results.py --plan docs/results/lease_plan.json --dry-run
 
-A machine that is lent for a few minutes and given back bare keeps nothing but a few small files,
+A machine that is leased for a few minutes and given back bare keeps nothing but a few small files,
 so a run counts only if it finishes inside the budget.  What it does:
 
 1. **What is missing.** The plan (``docs/results/lease_plan.json``, :func:`read_plan`) lists
    steps in order: a sweep file (the runs' settings, algorithms and tasks), the folder of
-   committed runs it fills (``<task>/<algo>/seed_<n>`` below it) and the seeds.  A run is
+   committed runs it fills (``TASK/ALGO/seed_N`` below it) and the seeds.  A run is
    committed when that folder holds it with an evaluation at its budget.  The candidates are the
    missing runs in plan order: per step and task, lowest seed first, the sweep file's algorithms
    alternately (CURL seed 4, IM-CURL seed 4, CURL seed 5, ...); the first ``--max-runs`` of them.
@@ -80,7 +80,7 @@ no TensorBoard files (nothing but the CSV logs comes back), replay frames in hos
 run's store on the GPU would reserve its whole capacity), each environment in a worker process
 that steps while the agent learns.  All are ``imssr.report.results.RUN_ONLY`` settings."""
 ARCHIVE_LIMIT = 15 * 2 ** 20
-"""Bytes of run files (uncompressed) in one archive: below the 16 MiB a lent machine returns."""
+"""Bytes of run files (uncompressed) in one archive: below the 16 MiB a leased machine returns."""
 MAX_ARCHIVES = 4
 """Archives at most: with ``lease.md``, ``train.log`` and the wrapper's ``device.txt``, at most 8
 files come back."""
@@ -98,7 +98,7 @@ class PlanStep:
     """The sweep file (relative to the plan file): the runs' settings, algorithms, tasks, budget."""
     runs: str
     """The folder of committed runs this step fills (relative to the plan file, inside its
-    folder): ``<task>/<algo>/seed_<n>/`` below it, as ``imssr export`` writes below a precision."""
+    folder): ``TASK/ALGO/seed_N/`` below it, as ``imssr export`` writes below a precision."""
     seeds: list[int] = field(default_factory=list)
     """The seeds each algorithm and task of the sweep file should have (``1-10``); empty: the
     sweep file's."""
