@@ -386,7 +386,7 @@ def test_a_non_string_for_a_string_field_is_judged_not_replaced_by_the_base(tmp_
     partial = tmp_path / "partial.json"
     cases = [({"train": {"device": 5}}, "train.device=5", "unknown device '5'; use cpu, cuda, cuda:N or auto"),
              ({"train": {"replay_device": True}}, None,
-              "train.replay_device must be one of cpu, cuda, auto, got 'True'"),
+              "train.replay_device must be one of cpu, cuda, auto, disk, got 'True'"),
              ({"agent": {"tf32": 1}}, "agent.tf32=1", "agent.tf32 must be one of default, true, false")]
     for data, override, message in cases:
         partial.write_text(json.dumps({"algo": "curl", "env": {"task": "walker_walk"}, **data}))
@@ -394,7 +394,7 @@ def test_a_non_string_for_a_string_field_is_judged_not_replaced_by_the_base(tmp_
         if override:
             assert refused(["--algo", "curl", "--task", "walker_walk", "--set", override]) == [f"imssr: error: {message}"]
     assert refused(["--algo", "curl", "--task", "walker_walk", "--set", "train.replay_device=true"]) == \
-        ["imssr: error: train.replay_device must be one of cpu, cuda, auto, got 'true'"]
+        ["imssr: error: train.replay_device must be one of cpu, cuda, auto, disk, got 'true'"]
     section = RunConfig.from_dict({"train": {"device": 5}, "algo": 3})
     assert (section.train.device, section.algo) == ("5", "3")
     for flag in (True, False):

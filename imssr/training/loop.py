@@ -35,6 +35,7 @@ from imssr.training.checkpointing import Checkpointer, resume_point, thread_warn
 from imssr.training.divergence import DivergenceCheck
 from imssr.training.evaluate import evaluate, evaluate_in_training, non_finite_text
 from imssr.training.logger import open_logger
+from imssr.training.memory import replay_slots
 from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
@@ -97,7 +98,8 @@ class Trainer:
         if found is not None and found.note:
             print(f"imssr: {found.note}", flush=True)
         _set_threads(cfg.train.torch_threads, self.device, None if found is None else found.checkpoint.torch_threads)
-        self.parts = parts = build_training(cfg, self.device, self.replay_placement, self.run_dir.frames_file)
+        self.parts = parts = build_training(cfg, self.device, self.replay_placement, self.run_dir.frames_file,
+                                            replay_slots(cfg))
         self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
                                                                          parts.replay, parts.state)
         self.action_dim = self.env.action_space.shape[0]
