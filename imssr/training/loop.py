@@ -11,7 +11,6 @@ too (:class:`~imssr.training.state.Episode`), which a resume steps through again
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from typing import Optional, Sequence, Union
@@ -21,6 +20,7 @@ import torch
 
 from imssr import provenance
 from imssr.config import RunConfig, check_seed
+from imssr.config.batching import seedless
 from imssr.contention import contention_warning
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs.worker import EnvWorker
@@ -391,20 +391,13 @@ def checked_configs(cfgs: Sequence[RunConfig], new_run: bool) -> list[RunConfig]
     seed: the others' seeds are checked alone (a batch of 1000 seeds validates one config)."""
     seen: set[str] = set()
     for cfg in cfgs:
-        key = _without_seed(_checked(cfg, new_run, validate=False))
+        key = seedless(_checked(cfg, new_run, validate=False).to_dict())
         if key in seen:
             check_seed(cfg.train.seed)
         else:
             _checked(cfg, new_run)
             seen.add(key)
     return list(cfgs)
-
-
-def _without_seed(cfg: RunConfig) -> str:
-    """``cfg`` as JSON text without its seed: equal for configs that differ in the seed alone."""
-    data = cfg.to_dict()
-    data["train"] = {k: v for k, v in data["train"].items() if k != "seed"}
-    return json.dumps(data, sort_keys=True)
 
 
 def _checked(cfg: RunConfig, new_run: bool, validate: bool = True) -> RunConfig:
