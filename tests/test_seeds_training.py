@@ -216,7 +216,8 @@ def test_the_resume_command_names_seeds_or_run_directories(tmp_path):
 
 def imssr(*args):
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, "-m", "imssr", *args], capture_output=True, text=True, env=env)
+    return subprocess.run([sys.executable, "-m", "imssr", *args], capture_output=True, text=True, env=env,
+                          timeout=600)
 
 
 @pytest.mark.parametrize("args, message", [

@@ -5,6 +5,7 @@ reward.  Settings only: the batch itself is :mod:`imssr.agents.batched`, the loc
 """
 from __future__ import annotations
 
+import json
 from typing import Optional, Sequence
 
 from imssr.config.runconfig import RunConfig
@@ -24,6 +25,16 @@ def agent_refusal(agent) -> Optional[str]:
     if agent.compile != "off":
         return "seeds in one process run eagerly on CPU and as one batch on CUDA: set agent.compile=off"
     return None
+
+
+def seedless(data: dict) -> str:
+    """A config as a dict (:meth:`RunConfig.to_dict`, or a config file's JSON) without its seed,
+    as canonical JSON text: equal for configs that differ in the seed alone, which a batch merges
+    and validates once (:func:`imssr.training.entry.plan`, :func:`imssr.training.loop.checked_configs`)."""
+    train = data.get("train")
+    if isinstance(train, dict):
+        data = {**data, "train": {k: v for k, v in train.items() if k != "seed"}}
+    return json.dumps(data, sort_keys=True)
 
 
 def shared_settings(cfg: RunConfig) -> dict[tuple[str, ...], object]:

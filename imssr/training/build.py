@@ -23,7 +23,6 @@ from imssr.rng import seed_everything
 from imssr.rundir import RunDir
 from imssr.rundir.checkpoint import Checkpoint
 from imssr.seeds import TRAINING_EVAL_SEED_OFFSET, evaluation_seed
-from imssr.training.memory import replay_slots
 from imssr.training.state import RunState
 
 
@@ -81,11 +80,11 @@ class TrainingParts:
 
 
 def build_training(cfg: RunConfig, device: torch.device, replay_placement,
-                   frames_file: Optional[str] = None) -> TrainingParts:
+                   frames_file: Optional[str] = None, reserve_slots: int = 0) -> TrainingParts:
     """The envs, the agent, the replay buffer (where ``replay_placement`` says; frames on disk go
-    in ``frames_file``) and the loop's state of a training at agent step 0, in the order their
-    random draws have always had (the global seed, the envs, the weights, SODA's image pool, then
-    the streams spawned from the seed)."""
+    in ``frames_file``, with disk space set aside for ``reserve_slots`` of them) and the loop's
+    state of a training at agent step 0, in the order their random draws have always had (the
+    global seed, the envs, the weights, SODA's image pool, then the streams spawned from the seed)."""
     seed_everything(cfg.train.seed)
     e = cfg.env
     # Each env in a process of its own (train.env_workers), or here.
@@ -120,7 +119,7 @@ def build_training(cfg: RunConfig, device: torch.device, replay_placement,
                                     (3, e.image_size, e.image_size), action_dim, e.frame_stack,
                                     seed=replay_seq, physics_dim=env.physics_state_dim,
                                     frames_file=frames_file if replay_placement.disk else None,
-                                    reserve_slots=replay_slots(cfg))
+                                    reserve_slots=reserve_slots)
     except BaseException:
         close_envs(env, eval_envs)
         raise

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Optional, Sequence
 
 from imssr.config import RunConfig, check_seed, load_config
+from imssr.config.batching import seedless
 from imssr.errors import ImssrError
 from imssr.presets import run_config
 from imssr.rundir import CONFIG_FILE, SEED_DIR, RunDir, run_path
@@ -170,8 +171,7 @@ def _base_key(request: TrainRequest, run: RunDir, file: Optional[str]) -> tuple[
     if not isinstance(train, dict):
         return None, None
     seed = train.get("seed")
-    data = {**data, "train": {k: v for k, v in train.items() if k != "seed"}}
-    return json.dumps(data, sort_keys=True), seed if isinstance(seed, int) and not isinstance(seed, bool) else None
+    return seedless(data), seed if isinstance(seed, int) and not isinstance(seed, bool) else None
 
 
 def _config(request: TrainRequest, run: Optional[RunDir] = None, values: Optional[dict] = None,

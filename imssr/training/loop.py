@@ -11,7 +11,6 @@ too (:class:`~imssr.training.state.Episode`), which a resume steps through again
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from typing import Optional, Sequence, Union
@@ -21,6 +20,7 @@ import torch
 
 from imssr import provenance
 from imssr.config import RunConfig, check_seed
+from imssr.config.batching import seedless
 from imssr.contention import contention_warning
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs.worker import EnvWorker
@@ -35,6 +35,7 @@ from imssr.training.checkpointing import Checkpointer, resume_point, thread_warn
 from imssr.training.divergence import DivergenceCheck
 from imssr.training.evaluate import evaluate, evaluate_in_training, non_finite_text
 from imssr.training.logger import open_logger
+from imssr.training.memory import replay_slots
 from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
@@ -97,7 +98,8 @@ class Trainer:
         if found is not None and found.note:
             print(f"imssr: {found.note}", flush=True)
         _set_threads(cfg.train.torch_threads, self.device, None if found is None else found.checkpoint.torch_threads)
-        self.parts = parts = build_training(cfg, self.device, self.replay_placement, self.run_dir.frames_file)
+        self.parts = parts = build_training(cfg, self.device, self.replay_placement, self.run_dir.frames_file,
+                                            replay_slots(cfg))
         self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
                                                                          parts.replay, parts.state)
         self.action_dim = self.env.action_space.shape[0]
@@ -389,20 +391,13 @@ def checked_configs(cfgs: Sequence[RunConfig], new_run: bool) -> list[RunConfig]
     seed: the others' seeds are checked alone (a batch of 1000 seeds validates one config)."""
     seen: set[str] = set()
     for cfg in cfgs:
-        key = _without_seed(_checked(cfg, new_run, validate=False))
+        key = seedless(_checked(cfg, new_run, validate=False).to_dict())
         if key in seen:
             check_seed(cfg.train.seed)
         else:
             _checked(cfg, new_run)
             seen.add(key)
     return list(cfgs)
-
-
-def _without_seed(cfg: RunConfig) -> str:
-    """``cfg`` as JSON text without its seed: equal for configs that differ in the seed alone."""
-    data = cfg.to_dict()
-    data["train"] = {k: v for k, v in data["train"].items() if k != "seed"}
-    return json.dumps(data, sort_keys=True)
 
 
 def _checked(cfg: RunConfig, new_run: bool, validate: bool = True) -> RunConfig:
