@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from imssr.agents import SACAgent
-from imssr.agents.batched import make_batch
+from imssr.agents.layouts import make_batch
 from imssr.agents.streams import allow_concurrent_streams
 from imssr.algos import get_algo
 from imssr.config import apply_overrides

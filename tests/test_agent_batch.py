@@ -16,7 +16,8 @@ import torch
 
 from conftest import filled_buffer, small_agent, tiny_config
 from imssr import draws
-from imssr.agents.batched import AgentBatch, make_batch
+from imssr.agents.batched import AgentBatch
+from imssr.agents.layouts import make_batch
 from imssr.agents.streams import MemberStreams
 from imssr.agents.sac import SACAgent
 from imssr.errors import ImssrError

@@ -140,7 +140,7 @@ def test_checkpoint_contents_and_round_trip(full_run):
     cfg.train.steps = 375
     t = Trainer(cfg, str(full_dir), resume=True)  # loads everything, nothing left to do
     try:
-        obs, _ = t.eval_env.reset()
+        obs, _ = next(iter(t.eval_envs.values())).reset()
         assert np.array_equal(t.agent.act(obs, True), full.agent.act(obs, True))
         assert t.replay.size == full.replay.size
         assert np.array_equal(t.replay.frames[: t.replay.size], full.replay.frames[: full.replay.size])

@@ -287,7 +287,7 @@ def test_a_member_among_many_on_streams_is_its_run_alone_on_cuda(deterministic_c
     beside the others; with deterministic cuDNN algorithms, member 1 (IM-CURL) and the last
     member are the very runs of the same seeds alone, bit for bit, and the actions of all come
     back as one tensor."""
-    from imssr.agents.batched import make_batch
+    from imssr.agents.layouts import make_batch
 
     fields = {"tf32": "false", "cuda_graphs": True}
 

@@ -36,7 +36,7 @@ def test_rnd_error_is_per_sample_and_falls_on_seen_observations():
     assert err.shape == (8,) and not err.requires_grad and torch.all(err >= 0)
     target_before = [p.clone() for p in rnd.target.parameters()]
     for s in range(30):
-        rnd.update(batch, s)
+        agent.update_signal(batch, s)
     assert float(rnd(_ctx(batch)).mean()) < 0.5 * float(err.mean())
     # The target network is fixed.
     assert all(torch.equal(a, b) for a, b in zip(target_before, rnd.target.parameters()))

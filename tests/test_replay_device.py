@@ -131,7 +131,8 @@ REAL_MAKE_REPLAY_BUFFER = build.make_replay_buffer
 def _use(monkeypatch, store: str) -> None:
     """Have the trainer build ``store``: ``host`` (what it builds on a CPU) or ``tensor`` (the
     tensor store, here on the CPU)."""
-    def tensor(device, *args, **kwargs):
+    def tensor(device, *args, frames_file=None, reserve_slots=0, **kwargs):
+        assert frames_file is None  # frames on disk are the host store's; these tests keep them in memory
         return TensorFrameReplayBuffer(*args, **kwargs, device="cpu")
 
     monkeypatch.setattr(build, "make_replay_buffer", REAL_MAKE_REPLAY_BUFFER if store == "host" else tensor)

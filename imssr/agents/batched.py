@@ -64,20 +64,6 @@ def resolve_mode(mode: str, device: torch.device) -> str:
     return mode
 
 
-def make_batch(members: Sequence[SACAgent], mode: str = "auto"):
-    """The members as one batch in layout ``mode`` (:data:`MODES`): an :class:`AgentBatch` of
-    stacked weights (``vmap``, ``loop``), or agents of their own on streams
-    (:class:`~imssr.agents.streams.MemberStreams`)."""
-    if not members:
-        raise ImssrError("a batch of agents needs at least one member")
-    mode = resolve_mode(mode, members[0].device)
-    if mode == "streams":
-        from imssr.agents.streams import MemberStreams
-
-        return MemberStreams(members)
-    return AgentBatch(members, mode)
-
-
 def batch_refusal(members: Sequence[SACAgent], stacked: bool = True) -> Optional[str]:
     """Why ``members`` cannot train as one batch (one line), or None; ``stacked``: as one
     :class:`AgentBatch` of stacked weights, which also needs every member to hold the same

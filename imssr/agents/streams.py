@@ -1,7 +1,7 @@
 """Many seeds of one experiment as agents of their own whose GPU work overlaps (``streams``).
 
 :class:`MemberStreams` is the ``streams`` layout of a batch of seeds
-(:func:`imssr.agents.batched.make_batch`): each member is a whole
+(:func:`imssr.agents.layouts.make_batch`): each member is a whole
 :class:`~imssr.agents.sac.SACAgent`, untouched, and an agent step runs every member's own
 update (and action) in turn.  On CUDA each member issues its work on a CUDA stream of its own,
 all forked from the current stream and joined back into it before the step's host work, so the
@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Callable, Optional, Sequence, TypeVar
 
 import torch
 
+from imssr.agents.batched import batch_refusal
 from imssr.agents.sac import Metrics, SACAgent
 from imssr.errors import ImssrError
 
@@ -59,8 +60,6 @@ class MemberStreams:
     mode = "streams"
 
     def __init__(self, members: Sequence[SACAgent]):
-        from imssr.agents.batched import batch_refusal
-
         if not members:
             raise ImssrError("a batch of agents needs at least one member")
         reason = batch_refusal(members, stacked=False)

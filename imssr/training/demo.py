@@ -22,7 +22,7 @@ def record_episode(trainer, path: str) -> str:
     """Run one deterministic evaluation episode of ``trainer``'s agent in its first evaluation
     scene and save what the agent sees as a GIF at the task's real-time rate."""
     frames: list = []
-    evaluate(trainer.agent, trainer.eval_env, 1, record=frames)
+    evaluate(trainer.agent, next(iter(trainer.eval_envs.values())), 1, record=frames)
     # One frame per agent step; dm_control's control step is 10 ms for cartpole, so
     # 100 / action_repeat frames per second plays the episode in real time.
     fps = 100 / trainer.cfg.env.action_repeat

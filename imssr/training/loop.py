@@ -27,7 +27,7 @@ from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
-from imssr.replay import ReplayPlacement, replay_placement
+from imssr.replay import ReplayPlacement
 from imssr.rundir import CheckpointFile, RunDir, as_run_dir
 from imssr.rundir.lock import DirectoryLock
 from imssr.training.build import build_training, resolve_device
@@ -35,7 +35,7 @@ from imssr.training.checkpointing import Checkpointer, resume_point, thread_warn
 from imssr.training.divergence import DivergenceCheck
 from imssr.training.evaluate import evaluate, evaluate_in_training, non_finite_text
 from imssr.training.logger import open_logger
-from imssr.training.memory import replay_slots
+from imssr.training.memory import replay_slots, run_placement
 from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
@@ -61,7 +61,7 @@ class Trainer:
             ``resume`` are the start's, and the caller calls :meth:`begin`.  None: checked here
             (:func:`check_start`), and the trainer begins as it is made.
         placement: where the replay frames live (the memory plan's choice,
-            :mod:`imssr.training.memory`); None: :func:`replay_placement` for this run alone.
+            :mod:`imssr.training.memory`); None: :func:`run_placement`.
     """
 
     progress_every_s: float = PROGRESS_EVERY_S
@@ -86,14 +86,11 @@ class Trainer:
             raise
 
     def _build(self, cfg: RunConfig, refill_buffer: bool, placement: Optional[ReplayPlacement]) -> None:
-        """Build envs, agent and replay (where ``placement`` says; None: :func:`replay_placement`'s
-        choice for this run alone) and restore the checkpoint the start resumes from; nothing is
-        written to the run directory."""
+        """Build envs, agent and replay (where ``placement`` says, else :func:`run_placement`) and
+        restore the checkpoint the start resumes from; nothing is written to the run directory."""
         self.cfg = cfg
         self.device = resolve_device(cfg.train.device)
-        self.replay_placement = placement or replay_placement(cfg.train.replay_device, self.device,
-                                                              cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2,
-                                                              cfg.train.gpu_share)
+        self.replay_placement = placement or run_placement(cfg, self.device)
         found = self._found
         if found is not None and found.note:
             print(f"imssr: {found.note}", flush=True)
@@ -135,11 +132,6 @@ class Trainer:
         """The environment frame the run is at (:attr:`state` holds it)."""
         return self.state.frame
 
-    @property
-    def eval_env(self):
-        """The evaluation env of the first evaluated scene."""
-        return next(iter(self.eval_envs.values()))
-
     def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         """Checkpoint now (:meth:`Checkpointer.save`)."""
         self.checkpoints.save(episode, burst)
@@ -160,7 +152,7 @@ class Trainer:
         last checkpoint is from before it, since nothing is saved after a divergence.
         """
         s, total = self.state, self.cfg.total_steps
-        progress = self.progress()
+        progress = Progress.of_run(self.cfg, self.state, self.progress_every_s)
         episode, obs = self.checkpoints.reopen_episode()
         try:
             while s.step < total:
@@ -185,12 +177,6 @@ class Trainer:
         self.replay.add_first(info["frame"], self.env.physics_state(), self.state.step)
         return episode, obs
 
-    def progress(self) -> Progress:
-        """The progress report of this training from where it stands."""
-        c, s = self.cfg, self.state
-        return Progress(c.total_steps, s.step, s.frame, f"{c.algo} {c.env.task} s{c.train.seed}", bar=c.train.progress,
-                        every_s=self.progress_every_s, learning_starts=s.learning_starts)
-
     def _after_action(self, action: np.ndarray, episode: Episode, progress: Progress
                       ) -> tuple[np.ndarray, Optional[Episode]]:
         """Everything of an agent step after its action: the env step, then what is due
@@ -207,16 +193,12 @@ class Trainer:
             self._checkpoint_if_due()
         return obs, episode
 
-    def _random_action(self) -> np.ndarray:
-        """A seed-phase action: uniform in [-1, 1] from the run's seed-phase generator."""
-        return self.state.action_rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
-
     def _act(self, obs: np.ndarray, episode: Episode) -> np.ndarray:
         """This agent step's action: uniform random until ``learning_starts``, else the policy's
         sample, after which the agent learns (:meth:`_learn`)."""
         s = self.state
         if s.step < s.learning_starts:
-            return self._random_action()
+            return self.state.random_action(self.action_dim)
         burst = self.checkpoints.take_burst()
         if burst is not None:
             # Stopped inside the burst: its action was drawn before the stop; the updates go on.

@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Sequence
 
 import torch
 
@@ -163,6 +163,13 @@ def _placement(cfg: RunConfig, needs: RunNeeds, n: int, device: torch.device) ->
     capacity there) fit beside :func:`auto_margin`."""
     return replay_placement(cfg.train.replay_device, device, n * needs.capacity * needs.frame_bytes,
                             cfg.train.gpu_share, margin_nbytes=auto_margin(needs, n))
+
+
+def run_placement(cfg: RunConfig, device: torch.device) -> ReplayPlacement:
+    """Where ``train.replay_device`` puts the frames of a run trained alone on ``device``: its
+    frames mapped at their capacity, beside the margin of one agent."""
+    return replay_placement(cfg.train.replay_device, device, cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2,
+                            cfg.train.gpu_share)
 
 
 def auto_margin(needs: RunNeeds, n: int) -> int:

@@ -80,6 +80,13 @@ class Progress:
         learning_starts: the agent step from which the agent updates (:class:`Eta`).
     """
 
+    @classmethod
+    def of_run(cls, cfg, state, every_s: float = PROGRESS_EVERY_S) -> "Progress":
+        """The progress of a training of ``cfg`` from where its :class:`~imssr.training.state.RunState`
+        ``state`` stands."""
+        return cls(cfg.total_steps, state.step, state.frame, f"{cfg.algo} {cfg.env.task} s{cfg.train.seed}",
+                   bar=cfg.train.progress, every_s=every_s, learning_starts=state.learning_starts)
+
     def __init__(self, total: int, step: int, frame: int, desc: str, bar: bool = True,
                  every_s: float = PROGRESS_EVERY_S, learning_starts: int = 0):
         self.total, self.every_s = total, every_s

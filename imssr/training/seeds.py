@@ -4,7 +4,7 @@ Each seed is a run of its own: a :class:`~imssr.training.loop.Trainer` with its 
 (``DIR/seed_<n>/``: config, CSV logs, checkpoints), envs, replay buffer, seed-phase generator and
 loop state, so ``evaluate``, ``plot``, ``report``, ``export`` and ``--resume`` see standard runs.
 Only the agent is shared: the seeds' agents become the members of one batch
-(:func:`~imssr.agents.batched.make_batch`, in the layout ``agent.batch_layout`` names), which
+(:func:`~imssr.agents.layouts.make_batch`, in the layout ``agent.batch_layout`` names), which
 acts for all seeds at once and makes every seed's update in one go.  Each seed still draws, samples and steps what its run alone
 would (:mod:`imssr.agents.batched`).
 
@@ -21,7 +21,8 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from imssr.agents.batched import AgentBatch, make_batch
+from imssr.agents.batched import AgentBatch
+from imssr.agents.layouts import make_batch
 from imssr.agents.streams import MemberStreams
 from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
@@ -196,7 +197,7 @@ class SeedsTrainer:
         self._lanes = lanes = []
         for t in self.trainers:
             episode, obs = t.checkpoints.reopen_episode()
-            lanes.append(_Lane(t, t.progress(), episode, obs))
+            lanes.append(_Lane(t, Progress.of_run(t.cfg, t.state, t.progress_every_s), episode, obs))
             if os.path.exists(t.run_dir.status_path):  # this training now runs (RunDir.recording)
                 os.unlink(t.run_dir.status_path)
         total = self.trainers[0].cfg.total_steps
@@ -261,7 +262,7 @@ class SeedsTrainer:
         own generator), else the members' policy samples, after which all learn."""
         first = self._lead(lanes)
         if first.step < first.state.learning_starts:
-            actions = [lane.trainer._random_action() for lane in lanes]
+            actions = [lane.trainer.state.random_action(lane.trainer.action_dim) for lane in lanes]
             self._send_ahead(lanes, actions)
             return actions
         bursts = [lane.trainer.checkpoints.take_burst() for lane in lanes]

@@ -91,6 +91,10 @@ class RunState:
         return cls(eval_schedule=StepSchedule("eval", eval_every), ckpt_schedule=StepSchedule("ckpt", ckpt_every),
                    action_rng=np.random.default_rng(action_seed), learning_starts=seed_steps)
 
+    def random_action(self, action_dim: int) -> np.ndarray:
+        """A seed-phase action: uniform in [-1, 1] from the run's seed-phase generator."""
+        return self.action_rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+
     def state_dict(self) -> dict[str, Any]:
         return {"frame": self.frame, "step": self.step, "episode": self.episode,
                 **self.eval_schedule.state_dict(), **self.ckpt_schedule.state_dict(),
