@@ -35,20 +35,16 @@ from torch.func import functional_call, vmap
 
 from imssr import draws
 from imssr.agents.graphs import set_capturable
-from imssr.agents.sac import Eager, Metrics, SACAgent
+from imssr.agents.sac import GENERATORS, Eager, Metrics, SACAgent, restore_generators
 from imssr.batch import Batch
 from imssr.config import IntrinsicConfig
 from imssr.config.batching import agent_refusal
 from imssr.errors import ImssrError
 from imssr.intrinsic.reward import STAT_KEYS, BetaSchedule
-from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 from imssr.settings import BATCH_LAYOUTS
 
 if TYPE_CHECKING:
     import numpy as np
-
-GENERATORS = ("gen", "noise_gen", "intrinsic_gen")
-"""A single agent's generators, each replaced by the members' own in the batch."""
 
 MODES = BATCH_LAYOUTS
 """How a batch runs its members' computation (``agent.batch_layout``; see the module's doc;
@@ -258,7 +254,7 @@ class AgentBatch:
         for i, m in enumerate(members):
             for opt, member_opt in zip(t.optimizers(), m.optimizers()):
                 self._set_member_optimizer_state(self.optimizers[id(opt)], i, member_opt.state_dict())
-        for attr in GENERATORS:
+        for attr, _ in GENERATORS:
             setattr(t, attr, draws.MemberGenerators([getattr(m, attr) for m in members]))
         if t.intrinsic is not None:
             t.intrinsic.schedule = MemberSchedules([m.intrinsic.schedule if m.intrinsic is not None else None
@@ -333,7 +329,7 @@ class AgentBatch:
         state = {"nets": module_state("nets", t.nets)}
         for key, opt in zip(("critic_opt", "actor_opt", "alpha_opt"), (t.critic_opt, t.actor_opt, t.alpha_opt)):
             state[key] = self._member_optimizer_state(self.optimizers[id(opt)], i)
-        for attr in GENERATORS:
+        for attr, _ in GENERATORS:
             state[attr] = getattr(t, attr).generators[i].get_state()
         state["updates"] = t.updates
         for key, module in (("aux", t.aux), ("signal", t.signal)):
@@ -374,13 +370,7 @@ class AgentBatch:
         set_capturable(self.optimizers.values(), t.graphs.record)
         t.graphs.reset()
         if restore_rng:
-            seed = int(t.gen.generators[i].initial_seed())
-            for attr, offset in zip(GENERATORS, (0, NOISE_SEED_OFFSET, INTRINSIC_SEED_OFFSET)):
-                gen = getattr(t, attr).generators[i]
-                try:
-                    gen.set_state(state[attr])
-                except RuntimeError:  # saved on another device type
-                    gen.manual_seed(seed + offset + t.updates)
+            restore_generators({key: getattr(t, key).generators[i] for key, _ in GENERATORS}, state, t.updates)
 
 
 def _member_value(named: dict[str, torch.Tensor], name: str, template: dict[str, torch.Tensor]) -> torch.Tensor:

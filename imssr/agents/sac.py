@@ -42,6 +42,22 @@ from imssr.replay import FrameReplayBuffer
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
 Metrics = dict[str, "torch.Tensor | float"]
+
+GENERATORS = (("gen", 0), ("noise_gen", NOISE_SEED_OFFSET), ("intrinsic_gen", INTRINSIC_SEED_OFFSET))
+"""An agent's generators (attribute and state-dict key) with the offset of each one's seed from
+the run's (:mod:`imssr.seeds`): augmentation, policy noise, the intrinsic signal's extra views."""
+
+
+def restore_generators(gens: dict[str, torch.Generator], state: dict, updates: int) -> None:
+    """Set each of :data:`GENERATORS` (``gens``, by key) from ``state``.  A state written on
+    another device type (CPU and CUDA generator states differ) reseeds it instead, at its seed
+    plus ``updates``: an exact resume across device types is impossible anyway."""
+    seed = int(gens["gen"].initial_seed())
+    for key, offset in GENERATORS:
+        try:
+            gens[key].set_state(state[key])
+        except RuntimeError:  # saved on another device type
+            gens[key].manual_seed(seed + offset + updates)
 Inputs = dict[str, "torch.Tensor | dict[str, torch.Tensor]"]
 """What one update reads besides the agent's own state: ``sample`` (the RL batch from the replay
 buffer), ``aux_sample`` (the auxiliary task's own batch, when it trains on one at this step) and,
@@ -465,8 +481,7 @@ class SACAgent:
             "critic_opt": self.critic_opt.state_dict(),
             "actor_opt": self.actor_opt.state_dict(),
             "alpha_opt": self.alpha_opt.state_dict(),
-            "gen": self.gen.get_state(), "noise_gen": self.noise_gen.get_state(),
-            "intrinsic_gen": self.intrinsic_gen.get_state(), "updates": self.updates,
+            **{key: getattr(self, key).get_state() for key, _ in GENERATORS}, "updates": self.updates,
         }
         if self.aux is not None:
             state["aux"] = self.aux.full_state_dict()
@@ -490,13 +505,7 @@ class SACAgent:
         self.alpha_opt.load_state_dict(state["alpha_opt"])
         self.updates = state["updates"]
         if restore_rng:
-            seed = int(self.gen.initial_seed())
-            for key, gen, offset in [("gen", self.gen, 0), ("noise_gen", self.noise_gen, NOISE_SEED_OFFSET),
-                                     ("intrinsic_gen", self.intrinsic_gen, INTRINSIC_SEED_OFFSET)]:
-                try:
-                    gen.set_state(state[key])
-                except RuntimeError:  # saved on another device type
-                    gen.manual_seed(seed + offset + self.updates)
+            restore_generators({key: getattr(self, key) for key, _ in GENERATORS}, state, self.updates)
         if self.aux is not None:
             self.aux.load_full_state_dict(state["aux"])
         if self.signal is not None:
