@@ -25,6 +25,8 @@ from torch.profiler import ProfilerActivity, profile
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from seeds import agent_step  # noqa: E402  (bench/seeds.py: the same agents, buffers and step)
 
+from imssr.agents.streams import allow_concurrent_streams  # noqa: E402
+
 
 def profile_one(args, n: int, mode: str) -> None:
     layout, graphs = mode.split("+")[0], mode.endswith("+graphs")
@@ -80,6 +82,7 @@ def main(argv=None) -> int:
     p.add_argument("--floor", action="store_true",
                    help="first print bench/floor.py's FLOPs, bytes and time floor of one seed's agent step")
     args = p.parse_args(argv)
+    allow_concurrent_streams()  # as imssr train does for a batch, before anything starts CUDA
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"# bench/profile_seeds.py: {args.algo} on {args.device}, torch {torch.__version__}, "

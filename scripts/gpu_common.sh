@@ -3,13 +3,15 @@
 #
 #   SCRIPT=gpu_name OUT_DIR=... BUDGET_S=... source scripts/gpu_common.sh
 #
-# Sets PY (.venv's Python when there is one, else $PYTHON or python), exports MUJOCO_GL (egl
-# unless set) and PYTHONUNBUFFERED, makes OUT_DIR and writes device.txt there: nvidia-smi, then
-# what a run started here would record in its provenance.json (`python -m imssr.provenance`:
+# Sets PY (.venv's Python when there is one, else $PYTHON, python or python3), puts the
+# repository on PYTHONPATH, exports MUJOCO_GL (egl unless set) and PYTHONUNBUFFERED, makes OUT_DIR
+# and writes device.txt there: nvidia-smi, then what a run started here would record in its provenance.json (`python -m imssr.provenance`:
 # imssr and its commit, Python, torch, CUDA, cuDNN, the driver, numpy, dm_control, mujoco, the
 # device and the CPU).
-PY="${PYTHON:-python}"
+PY="${PYTHON:-$(command -v python || command -v python3)}"
 [ -x .venv/bin/python ] && PY=.venv/bin/python
+# The repository's root on the path: `python bench/x.py` puts bench/ there, not the package.
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 export MUJOCO_GL="${MUJOCO_GL:-egl}" PYTHONUNBUFFERED=1
 START=$(date +%s)
 mkdir -p "$OUT_DIR"

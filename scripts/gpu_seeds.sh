@@ -12,8 +12,9 @@
 #                    a member among 3 and among 16 on streams against its run alone (bit for bit
 #                    with deterministic cuDNN), the eager update under CUDA's sync detector
 #   seeds_paper.md   bench/seeds.py at the paper's numerics (fp32, torch's default TF32 use, foreach
-#                    Adam): 1, 8 and 16 seeds in each layout (vmap eager and recorded, members in
-#                    turn recorded, members on streams recorded) and 16 separate processes
+#                    Adam): 16, 8 and 1 seeds (the rows that matter most first) in each layout
+#                    (vmap eager and recorded, members in turn recorded, members on streams
+#                    recorded) and 16 separate processes
 #   seeds_paper.csv  the same rows as CSV
 #   seeds_fast.md    the same for 16 seeds with agent.tf32=true and agent.fused_adam=true
 #   seeds_fast.csv   the same rows as CSV
@@ -27,6 +28,8 @@
 # without a package index to fetch them from, bring their wheels in .whl/ and start with
 #   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
 #     --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site || exit; OUT=$OUT bash scripts/gpu_seeds.sh
+# alone.txt renders with EGL: where `ldconfig -p | grep libEGL` prints nothing on the machine, carry
+# Debian's libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2 .debs and unpack them first.
 # Each item has its own share of BUDGET_S (default 470 s) and is cut, not the script, when it runs
 # over.  DEVICE (cuda) and TINY=1 (tiny networks, a few steps: the CPU test in
 # tests/test_gpu_script.py); on the CPU the check's GPU tests skip.
@@ -39,7 +42,7 @@ SCRIPT=gpu_seeds
 source scripts/gpu_common.sh
 
 LAYOUTS=(vmap vmap+graphs loop+graphs streams+graphs)
-PAPER=(--device "$DEVICE" --n 1 8 16 --modes "${LAYOUTS[@]}" --baseline-n 16 --steps 20 --warmup 6 --fill 1000)
+PAPER=(--device "$DEVICE" --n 16 8 1 --modes "${LAYOUTS[@]}" --baseline-n 16 --steps 20 --warmup 6 --fill 1000)
 FAST=(--device "$DEVICE" --n 16 --modes vmap+graphs streams+graphs --baseline-n 0 --steps 20 --warmup 6 --fill 1000
       --set agent.tf32=true --set agent.fused_adam=true)
 PROFILE=(--device "$DEVICE" --n 16 --modes streams+graphs loop+graphs --single none --steps 5 --warmup 6 --fill 1000

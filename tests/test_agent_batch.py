@@ -269,6 +269,7 @@ def test_a_batch_raises_cudas_work_queues_unless_the_user_set_them(monkeypatch):
     stands."""
     from imssr.agents.streams import allow_concurrent_streams
 
+    monkeypatch.setattr(torch.cuda, "is_initialized", lambda: False)  # on a GPU, a test before may have started it
     monkeypatch.delenv("CUDA_DEVICE_MAX_CONNECTIONS", raising=False)
     allow_concurrent_streams()
     assert os.environ["CUDA_DEVICE_MAX_CONNECTIONS"] == "32"

@@ -72,6 +72,13 @@ def set_capturable(optimizers: Iterable[torch.optim.Optimizer], on: bool) -> Non
                     state["step"] = step.to(device, torch.float32)
 
 
+def _clear_cublas_workspaces() -> None:
+    """Drop cuBLAS's workspaces (CUDA builds of torch; the next matmul allocates one again)."""
+    clear = getattr(torch._C, "_cuda_clearCublasWorkspaces", None)
+    if clear is not None:
+        clear()
+
+
 class StepGraphs:
     """Runs a step function, recorded as a CUDA graph per key on CUDA (see the module's doc)."""
 
@@ -141,8 +148,18 @@ class StepGraphs:
             with torch.cuda.device(self.device):
                 for generator in self.generators():
                     graph.register_generator_state(generator)
-            with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-                outputs = fn(static)
+            # cuBLAS keeps one workspace per stream, and a recording keeps the address of the one
+            # it was made with: recordings made on one stream would share it, members of a batch
+            # on streams of their own (agents/streams.py) would race on it when they replay at the
+            # same time, and destroying one recording would free it under the others.  Cleared
+            # before and after, the recording allocates a workspace of its own in its own pool
+            # (as torch's inductor does for its recordings).
+            _clear_cublas_workspaces()
+            try:
+                with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+                    outputs = fn(static)
+            finally:
+                _clear_cublas_workspaces()
         except Exception as e:  # the step ran eagerly in the warm-up: what fails here is the recording
             # When the step fails inside the recording, ending the capture fails too: the step's
             # own error is then the context of the one raised.

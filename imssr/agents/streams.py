@@ -80,12 +80,14 @@ class MemberStreams:
             return [fn(i, m) for i, m in enumerate(self.members)]
         main = torch.cuda.current_stream(self.device)
         out = []
-        for i, (stream, member) in enumerate(zip(self.streams, self.members)):
-            stream.wait_stream(main)
-            with torch.cuda.stream(stream):
-                out.append(fn(i, member))
-        for stream in self.streams:
-            main.wait_stream(stream)
+        try:
+            for i, (stream, member) in enumerate(zip(self.streams, self.members)):
+                stream.wait_stream(main)
+                with torch.cuda.stream(stream):
+                    out.append(fn(i, member))
+        finally:  # joined also when a member fails: what follows must not race its work
+            for stream in self.streams:
+                main.wait_stream(stream)
         return out
 
     def update(self, replays: Sequence, step: int) -> list[Metrics]:
