@@ -43,6 +43,16 @@ from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
 Metrics = dict[str, "torch.Tensor | float"]
 
+Inputs = dict[str, "torch.Tensor | dict[str, torch.Tensor]"]
+"""What one update reads besides the agent's own state: ``sample`` (the RL batch from the replay
+buffer), ``aux_sample`` (the auxiliary task's own batch, when it trains on one at this step) and,
+under ``agent.cuda_graphs``, ``beta`` (``beta_t`` as a float64 tensor; otherwise the intrinsic
+reward reads its schedule)."""
+
+INDUCTOR_MODES = {"default": None, "max-autotune": "max-autotune-no-cudagraphs"}
+"""``torch.compile``'s mode for each ``agent.compile`` but ``off``: kernels only, never inductor's
+own CUDA graphs (``agent.cuda_graphs`` records whole steps, the compiled kernels included)."""
+
 GENERATORS = (("gen", 0), ("noise_gen", NOISE_SEED_OFFSET), ("intrinsic_gen", INTRINSIC_SEED_OFFSET))
 """An agent's generators (attribute and state-dict key) with the offset of each one's seed from
 the run's (:mod:`imssr.seeds`): augmentation, policy noise, the intrinsic signal's extra views."""
@@ -58,15 +68,6 @@ def restore_generators(gens: dict[str, torch.Generator], state: dict, updates: i
             gens[key].set_state(state[key])
         except RuntimeError:  # saved on another device type
             gens[key].manual_seed(seed + offset + updates)
-Inputs = dict[str, "torch.Tensor | dict[str, torch.Tensor]"]
-"""What one update reads besides the agent's own state: ``sample`` (the RL batch from the replay
-buffer), ``aux_sample`` (the auxiliary task's own batch, when it trains on one at this step) and,
-under ``agent.cuda_graphs``, ``beta`` (``beta_t`` as a float64 tensor; otherwise the intrinsic
-reward reads its schedule)."""
-
-INDUCTOR_MODES = {"default": None, "max-autotune": "max-autotune-no-cudagraphs"}
-"""``torch.compile``'s mode for each ``agent.compile`` but ``off``: kernels only, never inductor's
-own CUDA graphs (``agent.cuda_graphs`` records whole steps, the compiled kernels included)."""
 
 
 class Eager:

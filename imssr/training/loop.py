@@ -198,7 +198,7 @@ class Trainer:
         sample, after which the agent learns (:meth:`_learn`)."""
         s = self.state
         if s.step < s.learning_starts:
-            return self.state.random_action(self.action_dim)
+            return s.random_action(self.action_dim)
         burst = self.checkpoints.take_burst()
         if burst is not None:
             # Stopped inside the burst: its action was drawn before the stop; the updates go on.

@@ -87,6 +87,11 @@ def replay_slots(cfg: RunConfig) -> int:
     return min(cfg.train.replay_capacity, steps + math.ceil(steps / episode) + 1)
 
 
+def frame_bytes(cfg: RunConfig) -> int:
+    """Bytes of one stored frame of a run of ``cfg`` (uint8 RGB at ``env.image_size``)."""
+    return 3 * cfg.env.image_size ** 2
+
+
 def run_needs(cfg: RunConfig) -> RunNeeds:
     """What a run of ``cfg`` will hold, from its config alone (nothing is built but one agent, to
     count its parameters)."""
@@ -94,7 +99,7 @@ def run_needs(cfg: RunConfig) -> RunNeeds:
     other = 4 * action_dim + 4 + 4 + 4 + (8 * physics_dim + 4)  # as FrameReplayBuffer.bytes_per_slot
     trainable, other_params = _parameter_counts(cfg, action_dim)
     return RunNeeds(slots=replay_slots(cfg), capacity=cfg.train.replay_capacity,
-                    frame_bytes=3 * cfg.env.image_size ** 2, other_bytes=other,
+                    frame_bytes=frame_bytes(cfg), other_bytes=other,
                     agent_bytes=4 * (4 * trainable + other_params), activation_bytes=_activation_bytes(cfg))
 
 
@@ -168,7 +173,7 @@ def _placement(cfg: RunConfig, needs: RunNeeds, n: int, device: torch.device) ->
 def run_placement(cfg: RunConfig, device: torch.device) -> ReplayPlacement:
     """Where ``train.replay_device`` puts the frames of a run trained alone on ``device``: its
     frames mapped at their capacity, beside the margin of one agent."""
-    return replay_placement(cfg.train.replay_device, device, cfg.train.replay_capacity * 3 * cfg.env.image_size ** 2,
+    return replay_placement(cfg.train.replay_device, device, cfg.train.replay_capacity * frame_bytes(cfg),
                             cfg.train.gpu_share)
 
 
