@@ -46,6 +46,8 @@ CASES = {
     "im-soda": ["--algo", "im-soda"],
     "im-pad": ["--algo", "im-pad"],
     "im-pad-fused": ["--algo", "im-pad", "--set", "agent.update_schedule=fused"],
+    "im-pad-fused-rl-batch": ["--algo", "im-pad", "--set", "agent.update_schedule=fused",
+                              "--set", "aux.own_batch=false"],
     "im-svea": ["--algo", "im-svea"],
     "curl+rnd": ["--algo", "curl+rnd"],
     "soda+re3": ["--algo", "soda+re3"],

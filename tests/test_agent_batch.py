@@ -27,10 +27,12 @@ STEPS = 4  # covers the actor's and the targets' every-2nd-step updates
 ALGOS = ["curl", "im-curl", "soda", "im-soda", "pad", "im-pad", "svea", "im-svea", "curl+rnd", "soda+re3"]
 
 
-def member(algo: str, seed: int, dtype: torch.dtype = torch.float32, **agent_fields) -> SACAgent:
-    """A small agent of ``algo`` (conftest.small_agent) with seed ``seed``, cast to ``dtype``."""
+def member(algo: str, seed: int, dtype: torch.dtype = torch.float32, aux: dict | None = None,
+           **agent_fields) -> SACAgent:
+    """A small agent of ``algo`` (conftest.small_agent) with seed ``seed``, cast to ``dtype``;
+    ``aux``: fields of its auxiliary task's config."""
     intrinsic = agent_fields.pop("intrinsic", None)
-    return small_agent(algo, agent_fields=agent_fields, seed=seed, dtype=dtype, intrinsic=intrinsic)
+    return small_agent(algo, agent_fields=agent_fields, seed=seed, dtype=dtype, intrinsic=intrinsic, **(aux or {}))
 
 
 def buffers():
@@ -100,6 +102,30 @@ def test_members_equal_single_runs_float64_under_vmap(algo):
     # SODA's MLPs put a bias right before a batch norm: its gradient is zero in exact arithmetic,
     # so the bias holds nothing but rounding (about 1e-12), and Adam scales that rounding up; the
     # rest of the network stays within 1e-9 of the single run.
+    rtol, atol = (1e-9, 1e-10) if "soda" in algo else (1e-10, 1e-12)
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=rtol, atol=atol)
+
+
+FUSED = [("im-curl", {}), ("im-pad", {"own_batch": False}), ("im-soda", {})]
+"""The fused schedule's three paths: the task's loss read from the critic's pass over o (CURL),
+over o and o' (PAD on the RL batch), and a task that trains on passes of its own (SODA)."""
+
+
+@pytest.mark.parametrize("mode", ["loop", "streams"])
+@pytest.mark.parametrize("algo, aux", FUSED)
+def test_fused_schedule_members_are_their_single_runs_bit_for_bit_in_turn(algo, aux, mode):
+    singles = [member(algo, s, aux=aux, update_schedule="fused") for s in SEEDS]
+    batch = make_batch([member(algo, s, aux=aux, update_schedule="fused") for s in SEEDS], mode)
+    assert singles[0].fuse_aux == (algo != "im-soda")
+    single_metrics, batch_metrics = train_both(singles, batch)
+    assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=0.0, atol=0.0)
+
+
+@pytest.mark.parametrize("algo, aux", FUSED)
+def test_fused_schedule_members_equal_single_runs_float64_under_vmap(algo, aux):
+    singles = [member(algo, s, torch.float64, aux=aux, update_schedule="fused") for s in SEEDS]
+    batch = AgentBatch([member(algo, s, torch.float64, aux=aux, update_schedule="fused") for s in SEEDS], mode="vmap")
+    single_metrics, batch_metrics = train_both(singles, batch)
     rtol, atol = (1e-9, 1e-10) if "soda" in algo else (1e-10, 1e-12)
     assert_members_equal(singles, batch, single_metrics, batch_metrics, rtol=rtol, atol=atol)
 
@@ -179,8 +205,8 @@ def test_member_state_round_trip(mode):
 
 
 @pytest.mark.parametrize("members, message", [
-    (lambda: [member("curl", 1, update_schedule="fused"), member("curl", 2, update_schedule="fused")],
-     "update_schedule=sequential"),
+    (lambda: [member("curl", 1, compile="default"), member("curl", 2, compile="default")], "agent.compile=off"),
+    (lambda: [member("curl", 1), member("curl", 2, update_schedule="fused")], "share the agent's settings"),
     (lambda: [member("curl", 1), member("curl", 2, hidden_dim=16)], "share the agent's settings"),
     (lambda: [member("curl", 1), member("soda", 2)], "auxiliary task"),
     (lambda: [member("curl", 1), member("curl+rnd", 2)], "weights of its own"),

@@ -100,7 +100,7 @@ def _same_batch(agent, sample):
 
 
 def _critic_loss(agent, batch, step=0):
-    return agent.update_critic(batch, agent.encode(batch), step)["critic_loss"]
+    return agent.critic_objective(batch, step)[1]["critic_loss"]
 
 
 @torch.no_grad()

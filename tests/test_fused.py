@@ -10,6 +10,7 @@ from imssr.agents import SACAgent
 from imssr.batch import Encoding, NextObsContext
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
+from imssr.precision import optimizer_step
 
 
 def _agent(algo="curl", seed=0, beta0=None, **agent):
@@ -49,9 +50,8 @@ def test_fused_gradient_is_the_sum_of_the_critic_and_task_gradients(algo):
     g_task = torch.autograd.grad(task_loss, enc + own, allow_unused=True)
     agent.gen.set_state(gen)
     agent.noise_gen.set_state(noise)
-    fused_enc = agent.encode(batch, with_task_loss=True)
-    metrics = agent.update_critic(batch, fused_enc, 0)
-    obs_trunk = fused_enc.obs_trunk.detach()  # update_fused's actor input
+    loss, metrics, obs_trunk = agent.fused_objective(batch, 0, None, with_task_loss=True)
+    optimizer_step(loss, agent.critic_opt, agent.aux.optimizer)  # as update_fused steps it
     # The agent's passes run over other batch sizes (o and o' together): rounding differs.
     torch.testing.assert_close(metrics["critic_loss"], critic_loss.detach(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(metrics["aux_loss"], task_loss.detach(), rtol=1e-5, atol=1e-6)
@@ -102,7 +102,7 @@ def test_fused_im_pad_update_hands_its_training_loss_to_the_reward():
 
     agent.signal.task_loss = spy
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    metrics = agent.update_critic(batch, agent.encode(batch, with_task_loss=True), 0)
+    metrics = agent.fused_objective(batch, 0, None, with_task_loss=True)[1]
     ((handed, got, recomputed),) = seen
     assert handed is not None and not got.requires_grad
     torch.testing.assert_close(got, handed.detach())
@@ -111,7 +111,7 @@ def test_fused_im_pad_update_hands_its_training_loss_to_the_reward():
     # Sequential schedule: nothing to hand over, the reward computes the loss itself.
     seen.clear()
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    agent.update_critic(batch, agent.encode(batch), 1)
+    agent.critic_objective(batch, 1)
     assert seen[0][0] is None
 
 

@@ -297,15 +297,19 @@ class SACAgent:
     def update_fused(self, inputs: Inputs, batch: Batch, step: int) -> Metrics:
         """One online pass over o serves the critic, the actor (the encoding from before the
         critic's step, detached, as DrQ-v2) and a task that reads it (CURL, PAD): its loss
-        joins the critic's backward.  Needs ``critic_update_every = 1`` (validated)."""
-        c = self.cfg
+        joins the critic's backward, each optimiser stepping its own parameters (the shared
+        encoder's once, the critic's, on the summed gradient).  Needs
+        ``critic_update_every = 1`` (validated)."""
+        c, run = self.cfg, self.run
         fuse = self.fuse_aux and self.aux_due(step)
-        enc = self.encode(batch, with_task_loss=fuse)
-        metrics = self.update_critic(batch, enc, step, inputs.get("beta"))
+        loss, metrics, trunk = run.call(self.fused_objective, batch, step, inputs.get("beta"), fuse)
+        run.step(loss, self.critic_opt, *([self.aux.optimizer] if fuse else []))
+        if fuse:
+            run.read(lambda: self.aux.after_step(step))
         if step % c.actor_update_every == 0:
-            metrics.update(self.update_actor_and_alpha(enc.obs_trunk.detach()))
+            metrics.update(self.step_actor_and_alpha(*run.call(self.actor_losses, trunk)))
         if step % c.target_update_every == 0:
-            self.soft_update_targets()
+            run.read(self.soft_update_targets)
         if self.aux_due(step) and not fuse:
             metrics.update(self.update_aux(inputs, batch, step))
         return metrics
@@ -314,11 +318,24 @@ class SACAgent:
                          beta: Optional[torch.Tensor] = None) -> tuple[torch.Tensor, Metrics]:
         """The sequential schedule's critic loss (:meth:`critic_loss` on a fresh :meth:`encode`
         of ``batch`` and its :meth:`bellman_target`) and its metrics."""
-        enc = self.encode(batch)
+        loss, metrics, _ = self.fused_objective(batch, step, beta, with_task_loss=False)
+        return loss, metrics
+
+    def fused_objective(self, batch: Batch, step: int, beta: Optional[torch.Tensor],
+                        with_task_loss: bool) -> tuple[torch.Tensor, Metrics, torch.Tensor]:
+        """The critic's loss on one :meth:`encode` of ``batch`` and its :meth:`bellman_target`,
+        plus the task's mean per-sample loss read from the same pass if ``with_task_loss``; the
+        metrics; and that pass's trunk of o, detached (the fused schedule's actor input)."""
+        enc = self.encode(batch, with_task_loss=with_task_loss)
         target_q, metrics = self.bellman_target(batch, enc, step, beta)
         loss, q_mean = self.critic_loss(batch, enc, target_q)
+        if with_task_loss:
+            aux_loss = enc.aux_loss.mean()
+            metrics["aux_loss"] = aux_loss.detach()
         metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
-        return loss, metrics
+        if with_task_loss:
+            loss = loss + aux_loss
+        return loss, metrics, enc.obs_trunk.detach()
 
     def actor_objective(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The sequential schedule's actor and temperature losses on a fresh encoding of o after
@@ -397,22 +414,6 @@ class SACAgent:
                 loss = loss + weight * (F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q))
             return loss, q1_all[:len(batch)].detach().mean()
 
-    def update_critic(self, batch: Batch, enc: Encoding, step: int, beta: Optional[torch.Tensor] = None) -> Metrics:
-        """One critic step on :meth:`critic_loss`.  With the task's loss in ``enc`` (fused), one
-        backward serves both: each optimiser steps its own parameters, the shared encoder's
-        once (the critic's) on the summed gradient."""
-        target_q, metrics = self.bellman_target(batch, enc, step, beta)
-        loss, q_mean = self.critic_loss(batch, enc, target_q)
-        if enc.aux_loss is None:
-            optimizer_step(loss, self.critic_opt)
-        else:
-            aux_loss = enc.aux_loss.mean()
-            metrics["aux_loss"] = aux_loss.detach()
-            optimizer_step(loss + aux_loss, self.critic_opt, self.aux.optimizer)
-            self.aux.after_step(step)
-        metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
-        return metrics
-
     def actor_losses(self, trunk: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """SAC's policy and temperature losses on ``trunk``, the online trunk's output on
         ``batch.obs`` without a graph, and the policy's mean entropy.  The temperature's loss
@@ -437,10 +438,6 @@ class SACAgent:
         self.run.step(alpha_loss, self.alpha_opt)
         return {"actor_loss": actor_loss.detach(), "alpha": self.run.read(lambda: self.alpha.detach()),
                 "alpha_loss": alpha_loss.detach(), "entropy": entropy}
-
-    def update_actor_and_alpha(self, trunk: torch.Tensor) -> Metrics:
-        """Actor and temperature step on ``trunk`` (:meth:`actor_losses`)."""
-        return self.step_actor_and_alpha(*self.actor_losses(trunk))
 
     def aux_due(self, step: int) -> bool:
         """Whether the auxiliary task trains at agent step ``step``."""

@@ -20,8 +20,6 @@ weights-free scalars :func:`imssr.agents.batched.batch_refusal` checks), hence t
 def agent_refusal(agent) -> Optional[str]:
     """Why an agent with these settings (an ``AgentConfig``) cannot be a member of a batch (one
     line), or None."""
-    if agent.update_schedule != "sequential":
-        return "seeds in one process need agent.update_schedule=sequential (the fused schedule is not batched)"
     if agent.compile != "off":
         return "seeds in one process run eagerly on CPU and as one batch on CUDA: set agent.compile=off"
     return None
