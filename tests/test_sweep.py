@@ -522,7 +522,9 @@ def test_runs_that_can_share_a_batch_are_packed_into_processes(tmp_path):
         st.config.train.device = "cuda"
     assert [len(g) for g in pack(statuses, 0)] == [4]  # on CUDA: all that can share
     fused = plan_runs(replace(cfg, algos=["curl"], overrides=TINY + ["agent.update_schedule=fused"]))
-    assert [len(g) for g in pack(fused, 3)] == [1, 1]  # a schedule no batch takes: a process each
+    assert [len(g) for g in pack(fused, 3)] == [2]  # either schedule trains in a batch
+    compiled = plan_runs(replace(cfg, algos=["curl"], overrides=TINY + ["agent.compile=default"]))
+    assert [len(g) for g in pack(compiled, 3)] == [1, 1]  # a setting no batch takes: a process each
 
 
 def test_a_dry_run_shows_which_runs_train_in_one_process(tmp_path, capsys):

@@ -15,7 +15,8 @@ uninterrupted run would have had: the open episode is stepped through again from
 """
 from __future__ import annotations
 
-from typing import Optional
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -52,6 +53,20 @@ def resume_point(run: RunDir, cfg: RunConfig, found: Optional[CheckpointFile] = 
     return found
 
 
+@dataclass(frozen=True)
+class BatchPlace:
+    """A run's place in a batch of runs trained in lockstep
+    (:class:`~imssr.training.seeds.SeedsTrainer`): what it does otherwise than a run alone, given
+    to its :class:`~imssr.training.loop.Trainer` when it is made."""
+
+    episodes_of: Callable
+    """Plays an evaluation's episodes in place of :func:`~imssr.training.evaluate.evaluate`: the
+    first seed to evaluate a scene at an agent step plays every seed's in lockstep."""
+    eval_rngs_before: Callable[[], Optional[dict]]
+    """The run's evaluation envs' generator states from before this agent step's lockstep
+    evaluation, once another seed played it (None: the envs' states as they are)."""
+
+
 class Checkpointer:
     """Saves the state of one training into its run directory and restores it on resume.
 
@@ -62,10 +77,12 @@ class Checkpointer:
             evaluation env of each scene, the replay buffer, the loop's state).
         refill_buffer: on resume, when the saved replay buffer is missing or damaged, start with
             an empty buffer refilled by random actions (not an exact resume) instead of failing.
+        batch: the run's place in a batch (:class:`BatchPlace`); None: a run alone.
     """
 
-    def __init__(self, run: RunDir, cfg: RunConfig, parts: TrainingParts, refill_buffer: bool = False):
-        self.run, self.cfg, self.refill_buffer = run, cfg, refill_buffer
+    def __init__(self, run: RunDir, cfg: RunConfig, parts: TrainingParts, refill_buffer: bool = False,
+                 batch: Optional[BatchPlace] = None):
+        self.run, self.cfg, self.refill_buffer, self.batch = run, cfg, refill_buffer, batch
         self.agent, self.env, self.eval_envs = parts.agent, parts.env, parts.eval_envs
         self.replay, self.state = parts.replay, parts.state
         self.resumed_from: Optional[str] = None
@@ -77,10 +94,6 @@ class Checkpointer:
         a checkpoint holds it so that a larger budget goes on as if that evaluation never ran."""
         self._open_episode: Optional[dict] = None
         self._open_burst: Optional[dict] = None
-        self.in_batch = False
-        """A run of a batch (:class:`~imssr.training.seeds.SeedsTrainer`): :meth:`save` stages
-        the checkpoint (:meth:`RunDir.stage_checkpoint`), and the batch promotes and prunes it
-        once every run staged its own, so that a batch's checkpoint is every run's or none."""
         self.staged = False
         """Whether this run staged a checkpoint the batch has not promoted yet."""
 
@@ -158,18 +171,22 @@ class Checkpointer:
         """Before the off-schedule evaluation where the budget runs out: what it is about to
         change, for the checkpoint (:meth:`_restore_before_final`)."""
         s = self.state
-        self.before_final = {"eval_env_rngs": {m: env.get_rng_state() for m, env in self.eval_envs.items()},
-                             "evaluations": len(s.eval_history), "last_eval_step": s.last_eval_step}
+        rngs = self.batch.eval_rngs_before() if self.batch is not None else None
+        if rngs is None:
+            rngs = {m: env.get_rng_state() for m, env in self.eval_envs.items()}
+        self.before_final = {"eval_env_rngs": rngs, "evaluations": len(s.eval_history),
+                             "last_eval_step": s.last_eval_step}
 
     def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
         the burst of updates a stop interrupted), with the replay buffer when ``train.save_buffer``
-        (:meth:`RunDir.save_checkpoint`: what a failed save leaves; in a batch, staged:
-        :attr:`in_batch`)."""
+        (:meth:`RunDir.save_checkpoint`: what a failed save leaves).  A run of a batch stages it
+        (:meth:`RunDir.stage_checkpoint`); the batch promotes and prunes it once every run staged
+        its own, so that a batch's checkpoint is every run's or none."""
         step = self.state.step
         replay_file = self.run.replay_name(step) if self.cfg.train.save_buffer else None
         ckpt = self.snapshot(replay_file, episode, burst)
-        if self.in_batch:
+        if self.batch is not None:
             self.run.stage_checkpoint(ckpt, replay=self.replay)
             self.staged = True
         else:

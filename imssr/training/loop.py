@@ -31,7 +31,7 @@ from imssr.replay import ReplayPlacement
 from imssr.rundir import CheckpointFile, RunDir, as_run_dir
 from imssr.rundir.lock import DirectoryLock
 from imssr.training.build import build_training, resolve_device
-from imssr.training.checkpointing import Checkpointer, resume_point, thread_warning
+from imssr.training.checkpointing import BatchPlace, Checkpointer, resume_point, thread_warning
 from imssr.training.divergence import DivergenceCheck
 from imssr.training.evaluate import evaluate, evaluate_in_training, non_finite_text
 from imssr.training.logger import open_logger
@@ -62,30 +62,30 @@ class Trainer:
             (:func:`check_start`), and the trainer begins as it is made.
         placement: where the replay frames live (the memory plan's choice,
             :mod:`imssr.training.memory`); None: :func:`run_placement`.
+        batch: its place in a batch of runs (:class:`~imssr.training.checkpointing.BatchPlace`).
     """
 
     progress_every_s: float = PROGRESS_EVERY_S
     """Seconds between progress lines when stdout is not a terminal (see :data:`PROGRESS_EVERY_S`)."""
-    episodes_of = staticmethod(evaluate)
-    """How an evaluation plays its episodes (:func:`~imssr.training.evaluate.evaluate`)."""
 
     def __init__(self, cfg: RunConfig, run: Union[RunDir, str], resume: bool = False, refill_buffer: bool = False,
                  stop: Optional[StopRequest] = None, *, start: Optional[Start] = None,
-                 placement: Optional[ReplayPlacement] = None):
+                 placement: Optional[ReplayPlacement] = None, batch: Optional[BatchPlace] = None):
         own = start is None
         # A second process on the same directory fails here, before anything is checked or written.
         start = check_start(cfg, run, resume) if own else start
         self.run_dir, self._lock, self._found = start.run, start.lock, start.found
         self.stop = stop or StopRequest()  # uninstalled: never set
         try:
-            self._build(start.cfg, refill_buffer, placement)
+            self._build(start.cfg, refill_buffer, placement, batch)
             if own:
                 self.begin()
         except BaseException:
             self.close()
             raise
 
-    def _build(self, cfg: RunConfig, refill_buffer: bool, placement: Optional[ReplayPlacement]) -> None:
+    def _build(self, cfg: RunConfig, refill_buffer: bool, placement: Optional[ReplayPlacement],
+               batch: Optional[BatchPlace]) -> None:
         """Build envs, agent and replay (where ``placement`` says, else :func:`run_placement`) and
         restore the checkpoint the start resumes from; nothing is written to the run directory."""
         self.cfg = cfg
@@ -101,7 +101,7 @@ class Trainer:
                                                                          parts.replay, parts.state)
         self.action_dim = self.env.action_space.shape[0]
         self.divergence = DivergenceCheck(self.agent.signal)
-        self.checkpoints = Checkpointer(self.run_dir, cfg, parts, refill_buffer=refill_buffer)
+        self.checkpoints = Checkpointer(self.run_dir, cfg, parts, refill_buffer=refill_buffer, batch=batch)
         os.makedirs(self.run_dir.path, exist_ok=True)
         if found is not None:
             self.checkpoints.restore(found)
@@ -138,8 +138,9 @@ class Trainer:
 
     def run_eval(self) -> list[dict]:
         """Evaluate now in every scene of ``train.eval_modes`` (:func:`evaluate_in_training`)."""
+        batch = self.checkpoints.batch
         return evaluate_in_training(self.agent, self.eval_envs, self.cfg.train, self.state, self.logger,
-                                    self.episodes_of)
+                                    evaluate if batch is None else batch.episodes_of)
 
     def train(self) -> None:
         """Train to ``cfg.train.steps`` agent steps: act, learn, step the env; evaluate and

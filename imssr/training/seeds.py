@@ -31,7 +31,7 @@ from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteEr
 from imssr.replay import ReplayPlacement
 from imssr.rundir import (DIVERGED, FAILED, FINISHED, INTERRUPTED, SEED_DIR, RunDir, as_run_dir, batch_checkpoints,
                           first_set_leftovers)
-from imssr.training.checkpointing import resume_point
+from imssr.training.checkpointing import BatchPlace, resume_point
 from imssr.training.evaluate import evaluate_members, non_finite_text
 from imssr.training.loop import Start, Trainer, checked_configs
 from imssr.training.progress import Progress, member_labels, member_lines, say_held
@@ -85,6 +85,11 @@ class SeedsTrainer:
             raise ImssrError(conflict)
         self.stop = stop or StopRequest()
         self.trainers: list[Trainer] = []
+        self._lanes: list[_Lane] = []
+        self._evaluated: dict = {}
+        """The lockstep evaluations of the current agent step: each seed's results by scene."""
+        self._rngs_before: dict[int, dict] = {}
+        """Each seed's evaluation envs' generator states from before this step's first evaluation."""
         self.labels = member_labels([c.train.seed for c in cfgs], [c.algo for c in cfgs],
                                     [as_run_dir(r).path for r in runs])
         """What each run is called in its console lines (:func:`member_labels`)."""
@@ -96,10 +101,10 @@ class SeedsTrainer:
         held: dict[str, list[str]] = {label: [] for label in self.labels}
         try:
             try:
-                for start, label in zip(starts, self.labels):
+                for i, (start, label) in enumerate(zip(starts, self.labels)):
                     with member_lines(label, held[label]):
                         self.trainers.append(Trainer(start.cfg, start.run, resume, stop=self.stop, start=start,
-                                                     placement=placement))
+                                                     placement=placement, batch=self._place(i)))
             finally:  # a run that failed to start: each line with its run, the error after them
                 say_held(held, once=len(self.trainers) == len(cfgs))
             if len({t.state.learning_starts for t in self.trainers}) > 1:
@@ -108,12 +113,6 @@ class SeedsTrainer:
             self.batch = make_batch([t.agent for t in self.trainers], cfgs[0].agent.batch_layout)
             for i, t in enumerate(self.trainers):
                 t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
-                t.episodes_of = self._episodes_of(i)
-                t.checkpoints.keep_before_final = self._keep_before_final(i)
-                t.checkpoints.in_batch = True
-            self._lanes: list[_Lane] = []
-            self._evaluated: dict = {}
-            self._rngs_before: dict[int, dict] = {}
             held = {label: [] for label in self.labels}
             try:
                 for start, t, label in zip(starts, self.trainers, self.labels):
@@ -169,17 +168,16 @@ class SeedsTrainer:
             return returns
         return play
 
-    def _keep_before_final(self, i: int):
-        """Seed ``i``'s :meth:`Checkpointer.keep_before_final`, with its eval envs' random states
-        from before this step's lockstep evaluation (another seed may have played them already)."""
-        checkpoints = self.trainers[i].checkpoints
-        keep = type(checkpoints).keep_before_final
-
-        def keep_before_final() -> None:
-            keep(checkpoints)
+    def _place(self, i: int) -> BatchPlace:
+        """Seed ``i``'s place in the batch: its evaluations in lockstep (:meth:`_episodes_of`), and
+        its eval envs' random states from before this step's lockstep evaluation for the final
+        evaluation's record (:meth:`Checkpointer.keep_before_final`: another seed may have played
+        its episodes already)."""
+        def rngs_before() -> Optional[dict]:
             if any(k[0] == self.step for k in self._evaluated) and i in self._rngs_before:
-                checkpoints.before_final["eval_env_rngs"] = self._rngs_before[i]
-        return keep_before_final
+                return self._rngs_before[i]
+            return None
+        return BatchPlace(self._episodes_of(i), rngs_before)
 
     def _act_members(self, obs: dict[int, np.ndarray], members: list[int]) -> dict[int, np.ndarray]:
         """Deterministic actions of the members ``obs`` names (the others get a blank frame)."""
