@@ -329,13 +329,11 @@ class SACAgent:
         enc = self.encode(batch, with_task_loss=with_task_loss)
         target_q, metrics = self.bellman_target(batch, enc, step, beta)
         loss, q_mean = self.critic_loss(batch, enc, target_q)
-        if with_task_loss:
+        if with_task_loss:  # its metric before the critic's, as the fused update always listed them
             aux_loss = enc.aux_loss.mean()
             metrics["aux_loss"] = aux_loss.detach()
         metrics.update(critic_loss=loss.detach(), q_mean=q_mean)
-        if with_task_loss:
-            loss = loss + aux_loss
-        return loss, metrics, enc.obs_trunk.detach()
+        return (loss + aux_loss if with_task_loss else loss), metrics, enc.obs_trunk.detach()
 
     def actor_objective(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The sequential schedule's actor and temperature losses on a fresh encoding of o after
