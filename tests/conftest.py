@@ -45,14 +45,35 @@ def load_script(relpath: str):
     return module
 
 
+TINY_NETWORKS = {"agent.hidden_dim": 32, "agent.encoder_filters": 8, "agent.feature_dim": 16,
+                 "agent.batch_size": 8, "aux.batch_size": 8}
+"""Small MLPs, thin convolutions and batches of 8 (the presets': 1024, 32, 50, 128)."""
+
+TINY_FRAMES = {"env.image_size": 64, "agent.crop_size": 56, "env.shadow_size": 64}
+"""64-px frames cropped to 56 px, with 64-px shadow maps: the real renderer and encoder on about
+half the pixels of the presets' 100-px frames and 84-px crops, which a tiny run spends most of
+its time rendering and convolving."""
+
+TINY = {**TINY_NETWORKS, **TINY_FRAMES}
+"""Every setting that makes :func:`tiny_config`'s networks and frames tiny (``section.field``)."""
+
+
+def tiny_sets(settings: dict | None = None) -> list[str]:
+    """:data:`TINY` (or ``settings``) as ``imssr`` command-line overrides: ``--set KEY=VALUE``..."""
+    return [a for k, v in (TINY if settings is None else settings).items() for a in ("--set", f"{k}={v}")]
+
+
+def tiny_overrides(settings: dict | None = None) -> list[str]:
+    """:data:`TINY` (or ``settings``) as ``KEY=VALUE`` overrides (a sweep's, the Python API's)."""
+    return [f"{k}={v}" for k, v in (TINY if settings is None else settings).items()]
+
+
 def tiny_config(algo: str = "im-curl", task: str = "cartpole_swingup_sparse", **train):
-    """The paper's preset shrunk: small MLPs and batches, short budgets."""
+    """The paper's preset shrunk: :data:`TINY` networks and frames, short budgets."""
     cfg = make_config(algo, task)
-    cfg.agent.hidden_dim = 32
-    cfg.agent.encoder_filters = 8
-    cfg.agent.feature_dim = 16
-    cfg.agent.batch_size = 8
-    cfg.aux.batch_size = 8
+    for key, value in TINY.items():
+        section, field = key.split(".")
+        setattr(getattr(cfg, section), field, value)
     cfg.train.replay_capacity = 5000
     cfg.train.seed_steps = 60
     cfg.train.burst_updates = 0  # DMC-GB presets: 1000
@@ -353,8 +374,7 @@ def cli_help(*argv: str) -> str:
 
 # -- sweeps ----------------------------------------------------------------------------------
 
-SWEEP_TINY = ["train.seed_steps=60", "train.burst_updates=0", "agent.batch_size=8", "aux.batch_size=8",
-              "agent.hidden_dim=32", "agent.feature_dim=16", "agent.encoder_filters=8", "train.replay_capacity=3000",
+SWEEP_TINY = ["train.seed_steps=60", "train.burst_updates=0", *tiny_overrides(), "train.replay_capacity=3000",
               "train.eval_every_steps=125", "train.eval_episodes=1", "train.checkpoint_every_steps=125",
               "train.tensorboard=false"]
 """The tiny settings of :func:`tiny_config` as the overrides every run of a sweep gets (no

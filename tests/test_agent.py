@@ -88,7 +88,8 @@ def test_task_optimisers_keep_the_parameter_order_of_saved_checkpoints():
 
 def test_deterministic_policy_output_is_the_mean_without_a_sample():
     agent = _agent()
-    obs = torch.as_tensor(filled_buffer(action_dim=2).sample(4)["obs"][:, :, :84, :84])
+    crop = agent.cfg.crop_size
+    obs = torch.as_tensor(filled_buffer(action_dim=2).sample(4)["obs"][:, :, :crop, :crop])
     with torch.no_grad():
         trunk = agent.nets.critic.encoder.trunk(obs)
     state = agent.noise_gen.get_state()
@@ -148,6 +149,7 @@ def test_pixels_convert_each_distinct_input_once():
     obs[0, 0, 0, 0] = 255 - obs[0, 0, 0, 0]  # changed in place: a new version, converted again
     again = encoder.pixels(obs, torch.float32, torch.channels_last)
     assert again is not first and torch.equal(again, obs.float() / 255)
+    gc.collect()  # entries of earlier tests' frames that only a collection frees
     entries = len(encoder._PIXELS)
     del obs
     gc.collect()

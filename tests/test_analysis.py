@@ -231,9 +231,10 @@ def test_analyze_rolls_out_the_policy_when_the_replay_has_no_physics(tiny_run, t
     copy = tmp_path / "old-run"
     shutil.copytree(run, copy)
     path = os.path.join(copy, "checkpoints", load_checkpoint(RunDir(str(copy)).latest).replay_file)
-    full = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, physics_dim=4, warn_memory=False)
+    frame = (3, cfg.env.image_size, cfg.env.image_size)
+    full = FrameReplayBuffer(cfg.train.replay_capacity, frame, 1, physics_dim=4, warn_memory=False)
     full.load(path)
-    old = FrameReplayBuffer(cfg.train.replay_capacity, (3, 100, 100), 1, warn_memory=False)
+    old = FrameReplayBuffer(cfg.train.replay_capacity, frame, 1, warn_memory=False)
     old.frames, old.actions, old.rewards = full.frames, full.actions, full.rewards
     old.discounts, old.step_in_episode = full.discounts, full.step_in_episode
     old.head, old.size, old._open_episode = full.head, full.size, full._open_episode

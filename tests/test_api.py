@@ -15,7 +15,7 @@ from imssr.errors import ImssrError
 from imssr.files import read_csv
 from imssr.training.evaluate import evaluate_run
 
-from conftest import tiny_config, train_run
+from conftest import tiny_config, tiny_overrides, train_run
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -113,8 +113,7 @@ def test_load_run_errors(tmp_path, tiny_run):
 
 
 TINY = ["train.seed_steps=20", "train.burst_updates=0", "train.eval_episodes=1", "train.eval_every_steps=20",
-        "agent.batch_size=8", "agent.hidden_dim=32", "agent.encoder_filters=8", "agent.feature_dim=16",
-        "train.tensorboard=false"]
+        *tiny_overrides(), "train.tensorboard=false"]
 
 
 def test_train_resumes_to_a_larger_budget(tmp_path):

@@ -149,5 +149,5 @@ def test_im_svea_signal_is_zero_when_online_equals_target():
 
 def test_dmcgb_encoders_use_tanh_projections():
     agent = _agent("soda")
-    z = agent.nets.critic.encoder(center_crop(torch.randint(0, 256, (4, 9, 100, 100), dtype=torch.uint8), 84))
+    z = agent.nets.critic.encoder(center_crop(torch.randint(0, 256, (4, 9, 100, 100), dtype=torch.uint8), agent.cfg.crop_size))
     assert z.shape == (4, 16) and float(z.detach().abs().max()) <= 1.0

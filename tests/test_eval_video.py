@@ -8,9 +8,7 @@ from imssr.training.logger import read_csv
 
 
 def small(**train):
-    cfg = tiny_config("curl", steps=130, eval_every_steps=65, checkpoint_every_steps=0, **train)
-    cfg.agent.encoder_filters = 8
-    return cfg
+    return tiny_config("curl", steps=130, eval_every_steps=65, checkpoint_every_steps=0, **train)
 
 
 def test_videos_every_second_evaluation_change_nothing_else(tmp_path, capsys):

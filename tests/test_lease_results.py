@@ -8,13 +8,12 @@ import tarfile
 
 import pytest
 
-from conftest import REPO, load_script, make_run
+from conftest import REPO, load_script, make_run, tiny_overrides
 from imssr.rundir import FINISHED, RunDir
 
 lease = load_script("scripts/lease_results.py")
 
-TINY = ["train.seed_steps=60", "train.burst_updates=0", "agent.batch_size=8", "aux.batch_size=8",
-        "agent.hidden_dim=32", "agent.feature_dim=16", "agent.encoder_filters=8", "train.replay_capacity=1000",
+TINY = ["train.seed_steps=60", "train.burst_updates=0", *tiny_overrides(), "train.replay_capacity=1000",
         "train.eval_every_steps=125", "train.eval_episodes=1", "train.checkpoint_every_steps=0"]
 
 

@@ -12,7 +12,7 @@ import textwrap
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, tiny_sets
 from imssr.auxiliary import AUX_PLUGINS
 from imssr.config import FIELD_TYPES, field_docs
 from imssr.intrinsic import SIGNAL_PLUGINS
@@ -81,9 +81,7 @@ class Toy(AuxiliaryTask):
 
 # One episode (125 agent steps at cartpole's action repeat 8) and one evaluation.
 TINY = ["--steps", "125", "--seed-steps", "60", "--batch-size", "8", "--eval-every", "125", "--eval-episodes", "1",
-        "--replay-capacity", "500", "--no-progress", "--set", "agent.hidden_dim=32", "--set",
-        "agent.encoder_filters=8", "--set", "agent.feature_dim=16", "--set", "train.burst_updates=0",
-        "--set", "env.image_size=64", "--set", "agent.crop_size=56"]
+        "--replay-capacity", "500", "--no-progress", *tiny_sets(), "--set", "train.burst_updates=0"]
 
 
 @pytest.fixture(scope="module")

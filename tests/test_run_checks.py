@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import TORCH_THREADS, cli_config, tiny_config, train_stopped_at
+from conftest import TORCH_THREADS, cli_config, tiny_config, tiny_sets, train_stopped_at
 from imssr.errors import DivergedError, ImssrError
 from imssr.training import Trainer
 from imssr.rundir import RunDir
@@ -18,8 +18,8 @@ from imssr.training.logger import read_csv
 TASK = "cartpole_swingup_sparse"
 # cartpole episodes are 1000 frames: at action repeat 50 an episode is 20 agent steps.
 FAST = ["--steps", "60", "--seed-steps", "10", "--batch-size", "8", "--eval-every", "0", "--eval-episodes", "1",
-        "--replay-capacity", "1000", "--no-progress", "--no-tensorboard", "--set", "agent.hidden_dim=32", "--set", "agent.encoder_filters=8",
-        "--set", "agent.feature_dim=16", "--set", "train.burst_updates=0", "--set", "env.action_repeat=50"]
+        "--replay-capacity", "1000", "--no-progress", "--no-tensorboard", *tiny_sets(),
+        "--set", "train.burst_updates=0", "--set", "env.action_repeat=50"]
 
 
 def fast(algo="curl", **train):

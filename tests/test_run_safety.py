@@ -39,7 +39,6 @@ def _cfg():
     # 3 episodes; learning starts at agent step 360, so the last 15 steps update the agent.
     cfg = tiny_config("curl", TASK, steps=375, seed_steps=360, eval_every_steps=0,
                       checkpoint_every_steps=125, keep_checkpoints=2)
-    cfg.agent.encoder_filters = 8
     return cfg
 
 

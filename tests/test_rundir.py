@@ -245,14 +245,15 @@ def test_load_agent_builds_the_run_at_its_checkpoint_and_refuses_a_mismatch(tmp_
     cfg = tiny_config("curl")
     run = RunDir(tmp_path / "run")
     run.write_config(cfg)
-    trained = build_agent(cfg, (9, 100, 100), 1, "cpu")
+    shape = (9, cfg.env.image_size, cfg.env.image_size)
+    trained = build_agent(cfg, shape, 1, "cpu")
     with torch.no_grad():
         for p in trained.nets.parameters():
             p.add_(0.5)
     run.save_checkpoint(a_checkpoint(step=125, frame=1000, agent=trained.state_dict()))
     loaded = load_agent(run, device="cpu")
-    assert (loaded.step, loaded.frame, loaded.note, loaded.obs_shape) == (125, 1000, None, (9, 100, 100))
-    obs = np.random.default_rng(0).integers(0, 255, (9, 100, 100), dtype=np.uint8)
+    assert (loaded.step, loaded.frame, loaded.note, loaded.obs_shape) == (125, 1000, None, shape)
+    obs = np.random.default_rng(0).integers(0, 255, shape, dtype=np.uint8)
     assert np.array_equal(loaded.agent.act(obs, True), trained.act(obs, True))
     # The checkpoint of another architecture than config.json describes: one line.
     cfg.agent.hidden_dim = 64

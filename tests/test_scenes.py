@@ -176,8 +176,8 @@ def test_training_in_a_scene_and_evaluating_in_several(tmp_path):
     try:
         assert trainer.env.scene is not None and trainer.env.mode == "distracting_easy"
         # Evaluation footage comes from the unseen test pool.
-        assert trainer.eval_envs["video_hard"].scene.clips == builtin_footage(100, "test")
-        assert trainer.env.scene.clips == builtin_footage(100, "train")
+        assert trainer.eval_envs["video_hard"].scene.clips == builtin_footage(cfg.env.image_size, "test")
+        assert trainer.env.scene.clips == builtin_footage(cfg.env.image_size, "train")
         trainer.train()
     finally:
         trainer.close()

@@ -12,7 +12,7 @@ import sys
 import pytest
 import torch
 
-from conftest import REPO, TORCH_THREADS, StopAtStep, tiny_config, without_timing
+from conftest import REPO, TORCH_THREADS, StopAtStep, tiny_config, tiny_sets, without_timing
 from imssr.errors import ImssrError
 from imssr.rundir import RunDir
 from imssr.training.seeds import SeedsTrainer
@@ -111,19 +111,17 @@ def streams_configs(steps: int = 150):
 
 
 def test_seeds_as_agents_of_their_own_train_and_resume_across_layouts(uninterrupted, tmp_path):
-    """``agent.batch_layout=streams`` (each seed's own agent; on the CPU, in turn) leaves the
-    logs and weights of the stacked batch; a run stopped in one layout resumes in the other."""
+    """``agent.batch_layout=streams`` (each seed's own agent; on the CPU, in turn) trains what the
+    stacked batch trains, and a run stopped in one layout resumes in the other: 100 agent steps
+    on streams, the last 50 stacked, leave the logs and weights of the stacked batch throughout."""
     with pytest.raises(TrainingInterrupted):
         train_seeds(tmp_path, stop_at=100, cfgs=streams_configs())
     assert train_seeds(tmp_path, resume=True) == [None, None]
-    again = tmp_path / "streams"
-    assert train_seeds(again, cfgs=streams_configs()) == [None, None]
-    for done in (runs(tmp_path), runs(again)):
-        for expected, got in zip(runs(uninterrupted), done):
-            for log in ("train.csv", "eval.csv"):
-                assert rows(os.path.join(got, log)) == rows(os.path.join(expected, log))
-            for key, value in final_nets(expected).items():
-                assert torch.equal(value, final_nets(got)[key]), key
+    for expected, got in zip(runs(uninterrupted), runs(tmp_path)):
+        for log in ("train.csv", "eval.csv"):
+            assert rows(os.path.join(got, log)) == rows(os.path.join(expected, log))
+        for key, value in final_nets(expected).items():
+            assert torch.equal(value, final_nets(got)[key]), key
 
 
 @pytest.mark.parametrize("bad", [0, 1])
@@ -264,8 +262,7 @@ def test_cli_trains_seeds_into_their_directories(tmp_path):
     out = tmp_path / "batch"
     proc = imssr("train", "--algo", "curl", "--task", "cartpole_swingup_sparse", "--seeds", "3,5",
                  "--out", str(out), "--steps", "70", "--seed-steps", "60", "--eval-every", "70",
-                 "--eval-episodes", "1", "--batch-size", "8", "--no-progress", "--no-tensorboard",
-                 "--set", "agent.hidden_dim=32", "--set", "agent.feature_dim=16", "--set", "agent.encoder_filters=8",
+                 "--eval-episodes", "1", "--no-progress", "--no-tensorboard", *tiny_sets(),
                  "--set", "train.burst_updates=0", "--set", "train.replay_capacity=1000")
     assert proc.returncode == 0, proc.stderr
     assert "seeds 3,5 in one process" in proc.stdout

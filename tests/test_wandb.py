@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from conftest import cli_config, kill_when_file_appears
+from conftest import cli_config, kill_when_file_appears, tiny_sets
 from imssr.cli import main
 from imssr.rundir import WANDB_RUN_FILE as RUN_ID_FILE, RunDir
 from imssr.training.wandb_run import read_run_id
@@ -17,10 +17,8 @@ pytest.importorskip("wandb")
 
 TASK = "cartpole_swingup_sparse"
 TINY_ARGS = ["--algo", "im-curl", "--task", TASK, "--steps", "250", "--seed-steps", "60", "--eval-every", "125",
-             "--eval-episodes", "1", "--checkpoint-every", "125", "--batch-size", "8", "--no-progress",
-             "--set", "train.burst_updates=0", "--set", "aux.batch_size=8", "--set", "agent.hidden_dim=32", "--set", "agent.encoder_filters=8",
-             "--set", "agent.feature_dim=16", "--set", "agent.encoder_filters=8",
-             "--set", "train.replay_capacity=3000"]
+             "--eval-episodes", "1", "--checkpoint-every", "125", "--no-progress",
+             "--set", "train.burst_updates=0", *tiny_sets(), "--set", "train.replay_capacity=3000"]
 
 
 def offline_runs(wandb_dir):
