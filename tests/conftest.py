@@ -47,7 +47,8 @@ def load_script(relpath: str):
 
 TINY_NETWORKS = {"agent.hidden_dim": 32, "agent.encoder_filters": 8, "agent.feature_dim": 16,
                  "agent.batch_size": 8, "aux.batch_size": 8}
-"""Small MLPs, thin convolutions and batches of 8 (the presets': 1024, 32, 50, 128)."""
+"""Small MLPs, thin convolutions and batches of 8 (the presets: hidden 1024, 32 filters, 100
+features, batch 128)."""
 
 TINY_FRAMES = {"env.image_size": 64, "agent.crop_size": 56, "env.shadow_size": 64}
 """64-px frames cropped to 56 px, with 64-px shadow maps: the real renderer and encoder on about
