@@ -22,7 +22,8 @@ H100 SXM's datasheet, 495 dense TF32 TFLOP/s and 3,350 GB/s, which no kernel rea
 also measures the device's own copy bandwidth (a 1 GiB device-to-device copy) and matmul rate
 (8192 x 8192 fp32 with TF32, and bf16) and prints the floor at those.
 
-The counts depend on the shapes only: a CPU gives the same FLOPs and bytes as a GPU.
+The counts depend on the shapes only: a CPU gives the same FLOPs and bytes as a GPU (the
+pixels' conversion is counted in one pass on every device, as CUDA runs it).
 """
 from __future__ import annotations
 
@@ -39,13 +40,15 @@ from torch.utils.flop_counter import FlopCounterMode
 from imssr.agents import SACAgent
 from imssr.algos import get_algo
 from imssr.config import apply_overrides
+from imssr.networks import encoder
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
 
 
 class ByteCounter(TorchDispatchMode):
     """Bytes of every non-view operator's tensor inputs and outputs (an output that is an input,
-    updated in place, counts as read and written)."""
+    updated in place, counts as read and written; a tensor given as ``out``, as written only;
+    an allocation moves nothing)."""
 
     def __init__(self):
         super().__init__()
@@ -54,10 +57,12 @@ class ByteCounter(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         out = func(*args, **(kwargs or {}))
-        if func._schema.is_mutable or not _is_view(func):
-            inputs = _tensors((args, kwargs))
+        name = func.overloadpacket.__name__
+        if name not in ALLOCATIONS and (func._schema.is_mutable or not _is_view(func)):
+            # A tensor given as ``out`` is written, not read (an in-place op's ``self`` is both).
+            inputs = _tensors((args, {k: v for k, v in (kwargs or {}).items() if k != "out"}))
             outputs = _tensors(out)
-            if func.overloadpacket.__name__ in GATHERS:
+            if name in GATHERS:
                 # A gather reads the rows it returns (and its indices), not its whole source.
                 read = sum(_nbytes(t) for t in outputs) + sum(_nbytes(t) for t in inputs[1:])
             else:
@@ -67,7 +72,6 @@ class ByteCounter(TorchDispatchMode):
                 written = sum(_nbytes(t) for t in _mutated(func, args, kwargs))
             self.read += read
             self.written += written
-            name = func.overloadpacket.__name__
             self.by_op[name] = self.by_op.get(name, 0) + read + written
         return out
 
@@ -95,6 +99,9 @@ def _mutated(func, args, kwargs) -> list[torch.Tensor]:
 
 GATHERS = {"index", "index_select", "gather", "embedding"}
 """Operators that read only the rows they return."""
+
+ALLOCATIONS = {"empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided"}
+"""Operators that only allocate: no kernel reads or writes the memory they return."""
 
 
 def _nbytes(t: torch.Tensor) -> int:
@@ -131,6 +138,8 @@ def full_step(agent: SACAgent) -> int:
 
 
 def count(args, precision: str) -> dict:
+    # The update as CUDA runs it on every device: the pixels' conversion in one pass.
+    encoder.ONE_PASS_DEVICES.add(torch.device(args.device).type)
     agent, replay, obs = build(args, precision)
     step = full_step(agent)
     agent.act(obs, deterministic=False)

@@ -7,10 +7,11 @@
 #
 # What comes back, under $OUT/seeds/ (8 files, one folder deep), in the order they are made:
 #   device.txt       nvidia-smi; Python, torch, CUDA, cuDNN, numpy and dm_control versions
-#   check.txt        pytest on the GPU of tests/test_cuda_graphs.py and tests/test_no_sync.py:
-#                    recorded updates and actions against eager ones (single agents, a vmap batch),
-#                    a member among 3 and among 16 on streams against its run alone (bit for bit
-#                    with deterministic cuDNN), the eager update under CUDA's sync detector
+#   check.txt        pytest on the GPU of tests/test_cuda_graphs.py, tests/test_no_sync.py and
+#                    tests/test_agent.py: recorded updates and actions against eager ones (single
+#                    agents, a vmap batch), a member among 3 and among 16 on streams against its run
+#                    alone (bit for bit with deterministic cuDNN), the eager update under CUDA's sync
+#                    detector, the one-pass pixel conversion against the three passes
 #   seeds_paper.md   bench/seeds.py at the paper's numerics (fp32, torch's default TF32 use, foreach
 #                    Adam): 16, 8 and 1 seeds (the rows that matter most first) in each layout
 #                    (vmap eager and recorded, members in turn recorded, members on streams
@@ -49,7 +50,8 @@ PROFILE=(--device "$DEVICE" --n 16 --modes streams+graphs loop+graphs --single n
          --rows 12 --floor)
 ALONE=(--device "$DEVICE" --task cartpole_swingup --variants curl "curl:agent.cuda_graphs=true" --steps 60 --warmup 6
        --seed-steps 300)
-CHECK=(tests/test_cuda_graphs.py tests/test_no_sync.py -k "on_cuda or never_synchronizes" -p no:cacheprovider -n 0 -q -rs)
+CHECK=(tests/test_cuda_graphs.py tests/test_no_sync.py tests/test_agent.py -k "on_cuda or never_synchronizes"
+       -p no:cacheprovider -n 0 -q -rs)
 if [ "${TINY:-0}" = 1 ]; then
   SMALL=(--set agent.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8
          --set aux.batch_size=8)

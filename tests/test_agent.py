@@ -5,6 +5,7 @@ import torch
 
 from conftest import assert_same_nets, filled_buffer, tiny_config
 from imssr.agents import SACAgent
+from imssr.augmentations import center_crop
 from imssr.batch import NextObsContext
 from imssr.errors import ImssrError
 
@@ -130,6 +131,33 @@ def test_each_backward_computes_only_the_gradients_its_optimisers_step(algo):
     actor_weight.register_post_accumulate_grad_hook(lambda p: accumulated.append(2))
     agent.update(filled_buffer(action_dim=2, seed=1, size=60), 0)
     assert accumulated.count(1) == 1 and accumulated.count(2) == 1
+
+
+def assert_one_pass_is_three(device: str) -> None:
+    from imssr.networks import encoder
+
+    frames = torch.randint(0, 256, (3, 9, 20, 20), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
+    frames = frames.to(device)
+    for dtype in (torch.float32, torch.float64):
+        for fmt in (torch.contiguous_format, torch.channels_last):
+            for obs in (frames, center_crop(frames, 16)):
+                one, three = encoder.one_pass(obs, dtype, fmt), encoder.three_passes(obs, dtype, fmt)
+                assert one.dtype == three.dtype == dtype and one.device == obs.device
+                assert torch.equal(one, three) and one.stride() == three.stride(), (dtype, fmt)
+                assert torch.equal(one, obs.to(dtype) / 255)
+
+
+def test_pixels_in_one_pass_are_the_three_passes_values_and_layout():
+    """CUDA's one-pass conversion gives what the relayout, cast and divide give (a CPU's, and
+    vmap's): the same values and strides, in float32 and float64, in both layouts, for contiguous
+    frames and a centre crop's view."""
+    assert_one_pass_is_three("cpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_pixels_in_one_pass_are_the_three_passes_on_cuda():
+    """The same on CUDA, where pixels are converted in one pass."""
+    assert_one_pass_is_three("cuda")
 
 
 def test_pixels_convert_each_distinct_input_once():

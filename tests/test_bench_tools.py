@@ -1,5 +1,5 @@
-"""bench/profile_seeds.py, bench/replay_checkpoint.py, bench/replay_disk.py and bench/floor.py on
-tiny CPU smoke runs: they run and print their tables (never timings); the seeds bench runs in
+"""bench/profile_seeds.py, bench/replay_checkpoint.py, bench/replay_disk.py, bench/floor.py and
+bench/pixels_speed.py on tiny CPU smoke runs: they run and print their tables (never timings); the seeds bench runs in
 tests/test_gpu_script.py."""
 import os
 import subprocess
@@ -41,7 +41,9 @@ def test_floor_counts_flops_and_the_bytes_each_operator_moves():
         c.view(10, 10).t()              # views move nothing
         c.add_(1)                       # in place: reads and writes c
         torch.arange(1000.0)[torch.tensor([3, 5])]  # a gather reads the rows it returns
-    assert (moved.read, moved.written) == (800 + 400 + 8 + 16, 400 + 400 + 4000 + 8)
+        d = torch.empty(100)            # an allocation moves nothing
+        torch.div(a, 2.0, out=d)        # an out= tensor is written, not read
+    assert (moved.read, moved.written) == (800 + 400 + 8 + 16 + 400, 400 + 400 + 4000 + 8 + 400)
     out = _run("floor.py", "--precisions", "fp32", "--threads", "1", "--fill", "20", *TINY)
     row = next(line for line in out.splitlines() if line.startswith("| fp32 |")).split(" | ")
     assert float(row[1]) > 0 and float(row[4]) > 0
@@ -100,3 +102,9 @@ def test_replay_disk_compares_frames_on_disk_with_frames_in_memory(tmp_path):
     rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| host") or line.startswith("| file")]
     assert [r[0] for r in rows] == ["| host memory (cpu)", "| file on disk (disk)"] and rows[0][2] == "1.00 |"
     assert os.listdir(tmp_path) == []  # the frames file is removed
+
+
+def test_pixels_speed_compares_one_pass_with_three_in_both_layouts():
+    out = _run("pixels_speed.py", "--batch", "2", "--reps", "1", "--threads", "1")
+    lines = [line for line in out.splitlines() if "ratio" in line]
+    assert [line.split("float32 ")[1].split(":")[0] for line in lines] == ["channels_last", "contiguous"]
