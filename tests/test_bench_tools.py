@@ -5,10 +5,9 @@ import os
 import subprocess
 import sys
 
-from conftest import REPO
+from conftest import REPO, TINY_NETWORKS, tiny_overrides, tiny_sets
 
-TINY = ["--set", "agent.batch_size=8", "--set", "aux.batch_size=8", "--set", "agent.hidden_dim=32",
-        "--set", "agent.feature_dim=16", "--set", "agent.encoder_filters=8"]
+TINY = tiny_sets(TINY_NETWORKS)
 
 
 def _run(script, *args):
@@ -65,7 +64,7 @@ def test_the_seeds_benches_build_their_agents_with_the_overrides():
         sys.path.remove(os.path.join(REPO, "bench"))
     args = seeds.main.__globals__["argparse"].Namespace(
         algo="curl", task="cartpole_swingup", action_dim=1, fill=20, device="cpu", batched=True, mode="loop",
-        set=[*TINY[1::2], "agent.fused_adam=true"])
+        set=[*tiny_overrides(TINY_NETWORKS), "agent.fused_adam=true"])
     batch, replays, _ = seeds.build(args, [1, 2])
     template = batch.template
     assert template.cfg.batch_size == 8 and template.cfg.encoder_filters == 8
