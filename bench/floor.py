@@ -138,8 +138,19 @@ def full_step(agent: SACAgent) -> int:
 
 
 def count(args, precision: str) -> dict:
-    # The update as CUDA runs it on every device: the pixels' conversion in one pass.
-    encoder.ONE_PASS_DEVICES.add(torch.device(args.device).type)
+    # The update as CUDA runs it on every device: the pixels' conversion in one pass (for this
+    # count only: a profile in the same process measures what the device runs).
+    device_type = torch.device(args.device).type
+    added = device_type not in encoder.ONE_PASS_DEVICES
+    encoder.ONE_PASS_DEVICES.add(device_type)
+    try:
+        return _count(args, precision)
+    finally:
+        if added:
+            encoder.ONE_PASS_DEVICES.discard(device_type)
+
+
+def _count(args, precision: str) -> dict:
     agent, replay, obs = build(args, precision)
     step = full_step(agent)
     agent.act(obs, deterministic=False)

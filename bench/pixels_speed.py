@@ -1,6 +1,6 @@
-"""uint8 crops -> float pixels in the encoder's layout: one pass (imssr) vs three, same process.
+"""uint8 crops -> float pixels in the encoder's layout: one pass (CUDA's) vs three, same process.
 
-    python bench/pixels_speed.py [--batch 128] [--reps 50] [--device cpu|cuda]
+    python bench/pixels_speed.py [--batch 128] [--reps 50] [--threads 2] [--device cpu|cuda]
 
 :func:`imssr.networks.encoder.pixels` converts each distinct input once: on CUDA in one pass (a
 divide that reads the bytes and writes the floats in the encoder's layout), elsewhere (and

@@ -48,11 +48,11 @@ def load_script(relpath: str):
 TINY_NETWORKS = {"agent.hidden_dim": 32, "agent.encoder_filters": 8, "agent.feature_dim": 16,
                  "agent.batch_size": 8, "aux.batch_size": 8}
 """Small MLPs, thin convolutions and batches of 8 (the presets: hidden 1024, 32 filters, 100
-features, batch 128)."""
+features, batch 128, SODA's and PAD's own batch 256)."""
 
 TINY_FRAMES = {"env.image_size": 64, "agent.crop_size": 56, "env.shadow_size": 64}
 """64-px frames cropped to 56 px, with 64-px shadow maps: the real renderer and encoder on about
-half the pixels of the presets' 100-px frames and 84-px crops, which a tiny run spends most of
+40% of the pixels of the presets' 100-px frames and 84-px crops, which a tiny run spends most of
 its time rendering and convolving."""
 
 TINY = {**TINY_NETWORKS, **TINY_FRAMES}

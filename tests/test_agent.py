@@ -134,6 +134,7 @@ def test_each_backward_computes_only_the_gradients_its_optimisers_step(algo):
 
 
 def assert_one_pass_is_three(device: str) -> None:
+    """The two conversions agree on ``device``, and :func:`pixels` takes the one its device lists."""
     from imssr.networks import encoder
 
     frames = torch.randint(0, 256, (3, 9, 20, 20), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
@@ -145,18 +146,28 @@ def assert_one_pass_is_three(device: str) -> None:
                 assert one.dtype == three.dtype == dtype and one.device == obs.device
                 assert torch.equal(one, three) and one.stride() == three.stride(), (dtype, fmt)
                 assert torch.equal(one, obs.to(dtype) / 255)
+    taken = []
+    with pytest.MonkeyPatch.context() as mp:
+        for name in ("one_pass", "three_passes"):
+            mp.setattr(encoder, name, lambda *a, fn=getattr(encoder, name), name=name: taken.append(name) or fn(*a))
+        encoder.pixels(frames.clone(), torch.float32, torch.channels_last)
+    assert taken == (["one_pass"] if frames.device.type in encoder.ONE_PASS_DEVICES else ["three_passes"])
 
 
-def test_pixels_in_one_pass_are_the_three_passes_values_and_layout():
+def test_pixels_in_one_pass_are_the_three_passes_values_and_layout(monkeypatch):
     """CUDA's one-pass conversion gives what the relayout, cast and divide give (a CPU's, and
     vmap's): the same values and strides, in float32 and float64, in both layouts, for contiguous
-    frames and a centre crop's view."""
+    frames and a centre crop's view; a device converts in one pass only if it is listed."""
+    from imssr.networks import encoder
+
+    assert_one_pass_is_three("cpu")
+    monkeypatch.setattr(encoder, "ONE_PASS_DEVICES", {"cpu"})
     assert_one_pass_is_three("cpu")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_pixels_in_one_pass_are_the_three_passes_on_cuda():
-    """The same on CUDA, where pixels are converted in one pass."""
+    """The same on CUDA, which converts in one pass."""
     assert_one_pass_is_three("cuda")
 
 

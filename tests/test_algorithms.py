@@ -43,7 +43,8 @@ def test_dmcgb_presets_train_at_full_size(algo, tmp_path):
     presets divides 8); many updates of every algorithm train above, at tiny sizes."""
     cfg = make_config(algo, "cartpole_swingup_sparse")
     assert cfg.agent.encoder_layers == 11 and cfg.agent.batch_size == 128
-    assert all(8 % every == 0 for every in (cfg.agent.actor_update_every, cfg.agent.target_update_every,
+    assert all(8 % every == 0 for every in (cfg.agent.critic_update_every, cfg.agent.actor_update_every,
+                                             cfg.agent.target_update_every,
                                              cfg.aux.update_every))
     cfg.train.seed_steps = 8
     cfg.train.burst_updates = 0  # the preset's 1000-update burst is budget, not architecture

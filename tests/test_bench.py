@@ -10,13 +10,12 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from conftest import load_script
+from conftest import TINY_NETWORKS, load_script, tiny_sets
 
 ROOT = Path(__file__).resolve().parent.parent
 GPU_BENCH = ROOT / "bench" / "gpu.py"
 TINY = ["--batch", "8", "--steps", "2", "--warmup", "1", "--seed-steps", "20", "--threads", "1",
-        "--set", "agent.hidden_dim=32", "--set", "agent.feature_dim=16",
-        "--set", "agent.encoder_filters=8", "--set", "aux.batch_size=8"]
+        *tiny_sets(TINY_NETWORKS)]
 
 
 def run_bench(*args):

@@ -4,7 +4,7 @@ import sys
 
 from PIL import Image
 
-from conftest import TINY_FRAMES, tiny_sets
+from conftest import tiny_sets
 from imssr.presets import demo_config, make_config
 from imssr.training.logger import read_csv
 
@@ -29,9 +29,8 @@ def test_demo_end_to_end_leaves_curve_gif_and_the_paper_command(tmp_path):
     out = tmp_path / "demo"
     proc = subprocess.run(
         [sys.executable, "-m", "imssr", "demo", "--out", str(out), "--steps", "40", "--seed-steps", "20",
-         "--eval-every", "20", "--eval-episodes", "1", "--batch-size", "8", "--no-progress",
-         "--set", "train.burst_updates=5", *tiny_sets(TINY_FRAMES), "--set", "agent.hidden_dim=32",
-         "--set", "agent.encoder_filters=8"],
+         "--eval-every", "20", "--eval-episodes", "1", "--no-progress", "--set", "train.burst_updates=5",
+         *tiny_sets()],
         capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert [r["step"] for r in read_csv(out / "eval.csv")] == ["20", "40"]

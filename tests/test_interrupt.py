@@ -160,9 +160,9 @@ def test_a_second_signal_ends_a_batch_with_env_workers_at_once_in_one_line(tmp_p
     """Two seeds in one process, each env in a worker process: the second Ctrl-C (in the seeds'
     checkpoint at agent step 250, after both checkpointed step 125) exits 130 at once with the
     batch's resume command; no worker outlives it (they share its stderr, read to the end).
-    SIGINT reaches the workers too (a terminal signals the process group); SIGTERM takes the same
-    handlers (a run alone: test_a_signal_checkpoints_the_current_step_and_the_resume_is_exact)."""
-    signum = "SIGINT"
+    SIGTERM takes the same handlers (a run alone:
+    test_a_signal_checkpoints_the_current_step_and_the_resume_is_exact)."""
+    signum = "SIGINT"  # the name the lines say, and the signal SIGNALS_IN_A_WRITE sends
     out = tmp_path / "batch"
     env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
     seed = TRAIN.index("--seed")

@@ -18,7 +18,8 @@ def test_paper_preset_trains(task, algo, tmp_path):
     # Only the budget shrinks: 8 random steps fill the buffer, then one full-size update, at agent
     # step 8, where every piece of the update runs (critic, actor, targets, task: each interval
     # divides 8); tests/test_algorithms.py trains many updates of every algorithm at tiny sizes.
-    assert all(8 % every == 0 for every in (cfg.agent.actor_update_every, cfg.agent.target_update_every,
+    assert all(8 % every == 0 for every in (cfg.agent.critic_update_every, cfg.agent.actor_update_every,
+                                             cfg.agent.target_update_every,
                                              cfg.aux.update_every))
     cfg.train.seed_steps = 8
     cfg.train.steps = 9

@@ -80,7 +80,7 @@ class Toy(AuxiliaryTask):
 '''
 
 # One episode (125 agent steps at cartpole's action repeat 8) and one evaluation.
-TINY = ["--steps", "125", "--seed-steps", "60", "--batch-size", "8", "--eval-every", "125", "--eval-episodes", "1",
+TINY = ["--steps", "125", "--seed-steps", "60", "--eval-every", "125", "--eval-episodes", "1",
         "--replay-capacity", "500", "--no-progress", *tiny_sets(), "--set", "train.burst_updates=0"]
 
 

@@ -17,7 +17,7 @@ from imssr.training.logger import read_csv
 
 TASK = "cartpole_swingup_sparse"
 # cartpole episodes are 1000 frames: at action repeat 50 an episode is 20 agent steps.
-FAST = ["--steps", "60", "--seed-steps", "10", "--batch-size", "8", "--eval-every", "0", "--eval-episodes", "1",
+FAST = ["--steps", "60", "--seed-steps", "10", "--eval-every", "0", "--eval-episodes", "1",
         "--replay-capacity", "1000", "--no-progress", "--no-tensorboard", *tiny_sets(),
         "--set", "train.burst_updates=0", "--set", "env.action_repeat=50"]
 

@@ -39,6 +39,13 @@ _PIXELS: dict[tuple, torch.Tensor] = {}
 """uint8 frames already converted by :func:`pixels`, by (the frames' id, version, dtype, layout);
 an entry lives as long as its frames (a finaliser removes it)."""
 
+ONE_PASS_DEVICES = {"cuda"}
+"""Device types whose conversion runs in :func:`one_pass`, where it is bound by its bytes; a
+CPU runs :func:`three_passes`, which is faster there (``bench/pixels_speed.py``)."""
+
+_DIVISORS: dict[torch.dtype, torch.Tensor] = {}
+"""255 as a 0-dim CPU tensor of each float dtype (:func:`one_pass`'s divisor)."""
+
 
 def pixels(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format, reuse: bool = True) -> torch.Tensor:
     """uint8 pixels -> floats in [0, 1] in layout ``fmt``: the same values as ``obs.float() /
@@ -61,9 +68,9 @@ def pixels(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format, reus
 
 def three_passes(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format) -> torch.Tensor:
     """:func:`pixels`' conversion as a relayout of the 1-byte pixels (not of the 4-byte floats),
-    a cast and an in-place divide: on a CPU faster than :func:`one_pass` (the cast and the divide
-    each vectorise; ``bench/pixels_speed.py``), and what vmap maps (it cannot write a member's
-    result into a fresh tensor given as ``out``)."""
+    a cast and an in-place divide: on a CPU faster than :func:`one_pass`, whose mixed-type divide
+    there casts into a float temporary first (``bench/pixels_speed.py``), and what vmap maps (it
+    cannot write a member's result into a fresh tensor given as ``out``)."""
     return obs.contiguous(memory_format=fmt).to(dtype).div_(255.0)
 
 
@@ -76,18 +83,11 @@ def one_pass(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format) ->
     return torch.div(obs, _divisor(dtype), out=out)
 
 
-ONE_PASS_DEVICES = {"cuda"}
-"""Device types whose conversion runs in :func:`one_pass` (bound by its bytes there); on a CPU
-:func:`three_passes` is faster (``bench/pixels_speed.py``: the one pass 1.2-2.1x slower on 2
-AVX2 cores)."""
-
-_DIVISORS: dict[torch.dtype, torch.Tensor] = {}
-
-
 def _divisor(dtype: torch.dtype) -> torch.Tensor:
-    """255 as a 0-dim CPU tensor of ``dtype`` (to a CUDA kernel, a scalar: no copy)."""
+    """255 as a 0-dim CPU tensor of ``dtype`` (to a CUDA kernel, a scalar: no copy), on the CPU
+    whatever torch's default device."""
     if dtype not in _DIVISORS:
-        _DIVISORS[dtype] = torch.tensor(255.0, dtype=dtype)
+        _DIVISORS[dtype] = torch.tensor(255.0, dtype=dtype, device="cpu")
     return _DIVISORS[dtype]
 
 
