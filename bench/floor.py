@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from unittest import mock
 
 import numpy as np
 import torch
@@ -140,14 +141,9 @@ def full_step(agent: SACAgent) -> int:
 def count(args, precision: str) -> dict:
     # The update as CUDA runs it on every device: the pixels' conversion in one pass (for this
     # count only: a profile in the same process measures what the device runs).
-    device_type = torch.device(args.device).type
-    added = device_type not in encoder.ONE_PASS_DEVICES
-    encoder.ONE_PASS_DEVICES.add(device_type)
-    try:
+    one_pass_here = {*encoder.ONE_PASS_DEVICES, torch.device(args.device).type}
+    with mock.patch.object(encoder, "ONE_PASS_DEVICES", one_pass_here):
         return _count(args, precision)
-    finally:
-        if added:
-            encoder.ONE_PASS_DEVICES.discard(device_type)
 
 
 def _count(args, precision: str) -> dict:

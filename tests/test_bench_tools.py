@@ -1,6 +1,6 @@
 """bench/profile_seeds.py, bench/replay_checkpoint.py, bench/replay_disk.py, bench/floor.py and
-bench/pixels_speed.py on tiny CPU smoke runs: they run and print their tables (never timings); the seeds bench runs in
-tests/test_gpu_script.py."""
+bench/pixels_speed.py on tiny CPU smoke runs: they run and print their tables (never timings);
+the seeds bench runs in tests/test_gpu_script.py."""
 import os
 import subprocess
 import sys

@@ -96,11 +96,7 @@ def test_a_stopped_batch_resumes_exactly(uninterrupted, tmp_path):
                                                   r"imssr train --seeds 1,2 --out .* --resume"):
         train_seeds(tmp_path, stop_at=100)
     assert train_seeds(tmp_path, resume=True) == [None, None]
-    for done, resumed in zip(runs(uninterrupted), runs(tmp_path)):
-        for log in ("train.csv", "eval.csv"):
-            assert rows(os.path.join(resumed, log)) == rows(os.path.join(done, log))
-        for key, value in final_nets(done).items():
-            assert torch.equal(value, final_nets(resumed)[key]), key
+    assert_same_as_uninterrupted(uninterrupted, tmp_path)
 
 
 def streams_configs(steps: int = 150):
@@ -117,11 +113,7 @@ def test_seeds_as_agents_of_their_own_train_and_resume_across_layouts(uninterrup
     with pytest.raises(TrainingInterrupted):
         train_seeds(tmp_path, stop_at=100, cfgs=streams_configs())
     assert train_seeds(tmp_path, resume=True) == [None, None]
-    for expected, got in zip(runs(uninterrupted), runs(tmp_path)):
-        for log in ("train.csv", "eval.csv"):
-            assert rows(os.path.join(got, log)) == rows(os.path.join(expected, log))
-        for key, value in final_nets(expected).items():
-            assert torch.equal(value, final_nets(got)[key]), key
+    assert_same_as_uninterrupted(uninterrupted, tmp_path)
 
 
 @pytest.mark.parametrize("bad", [0, 1])
