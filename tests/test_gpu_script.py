@@ -1,11 +1,10 @@
-"""The prepared GPU runs on the CPU at tiny sizes: scripts/gpu_dmc100k.sh (the bench, a packed
-sweep of CURL and IM-CURL, the archive of the finished runs) and scripts/gpu_kernels.sh (the
-kernel measurements); few files, at most two folders deep (what a device run brings back)."""
+"""The prepared GPU commands on the CPU at tiny sizes: scripts/gpu_seeds.sh (the correctness check,
+every layout's rate, the profile, one seed alone) and scripts/gpu_results.sh (the results lease);
+few files, at most two folders deep (what a device run brings back)."""
 from __future__ import annotations
 
 import os
 import subprocess
-import tarfile
 
 from conftest import REPO
 
@@ -21,31 +20,6 @@ def run_script(name: str, out, **env) -> tuple[subprocess.CompletedProcess, list
     files = sorted(os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs)
     assert len(files) <= 8 and all(f.count(os.sep) <= 1 for f in files), files
     return proc, files
-
-
-def test_the_prepared_gpu_run_works_on_the_cpu(tmp_path):
-    out, root = tmp_path / "out", tmp_path / "runs"
-    proc, files = run_script("gpu_dmc100k.sh", out, ROOT=str(root), SEEDS="1", PROCESSES="1", RUNS_PER_PROCESS="2",
-                             CPUS_PER_PROCESS="1", BENCH_S="120")
-    assert "2 runs in 1 processes" in proc.stdout
-    assert {"sweep/bench_seeds.md", "sweep/runs.tar.gz", "sweep/sweep_status.json"} <= set(files)
-    with tarfile.open(out / "sweep" / "runs.tar.gz") as tar:
-        names = tar.getnames()
-    for algo in ("curl", "im-curl"):
-        assert f"runs/fp32/cartpole_swingup/{algo}/seed_1/eval.csv" in names
-    assert "| 1 | 1 process, loop |" in (out / "sweep" / "bench_seeds.md").read_text()
-
-
-def test_the_prepared_kernel_measurement_works_on_the_cpu(tmp_path):
-    out = tmp_path / "out"
-    proc, _ = run_script("gpu_kernels.sh", out)
-    kernels = out / "kernels"
-    assert "stopped" not in proc.stdout and "no time left" not in proc.stdout
-    for name in ("profile_default.txt", "profile_fast.txt"):
-        assert "## 2 seeds, vmap" in (kernels / name).read_text()
-    assert "| 2 | 1 process, vmap |" in (kernels / "seeds_fast.md").read_text()
-    for name in ("gpu_fast.md", "gpu_default.md"):
-        assert "| curl | fp32 | off |" in (kernels / name).read_text()
 
 
 def test_the_prepared_seeds_command_works_on_the_cpu(tmp_path):

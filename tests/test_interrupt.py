@@ -25,9 +25,9 @@ from imssr.sweep.launchers import LocalLauncher
 from imssr.sweep.sweep import _run_sweep, plan_runs, settle
 from imssr.rundir.lock import LOCK_FILE
 
-# Tiny curl on cartpole: 3 episodes of 125 agent steps, updates from agent step 100, no
+# Tiny curl on cartpole: 2 episodes of 125 agent steps, updates from agent step 100, no
 # periodic checkpoint before the end (the stop writes the only one).
-TRAIN = ["train", "--algo", "curl", "--task", "cartpole_swingup_sparse", "--steps", "375", "--no-progress",
+TRAIN = ["train", "--algo", "curl", "--task", "cartpole_swingup_sparse", "--steps", "250", "--no-progress",
          "--seed", "3", *[a for kv in (
              *tiny_overrides(), "train.replay_capacity=2000", "train.seed_steps=100",
              "train.burst_updates=0", "train.eval_every_steps=250", "train.eval_episodes=1",
@@ -71,7 +71,7 @@ def test_a_signal_checkpoints_the_current_step_and_the_resume_is_exact(reference
     assert match, err
     step = int(match[1])
     assert match[2] == signal.Signals(signum).name and match[3] == str(out)
-    assert 125 <= step < 375, err  # after the first episode, before the budget
+    assert 125 <= step < 250, err  # after the first episode, before the budget
     state = load_checkpoint(RunDir(str(out)).latest)
     assert state.step == step and state.replay_file
     assert main([*TRAIN, "--out", str(out), "--resume"]) == 0
@@ -334,7 +334,7 @@ def _sweep_run(tmp_path, *overrides):
     """A one-run sweep of the tiny training above: (config, its RunStatus)."""
     sets = [TRAIN[i + 1] for i, a in enumerate(TRAIN) if a == "--set"]
     cfg = SweepConfig(root=str(tmp_path / "sweep"), algos=["curl"], tasks=["cartpole_swingup_sparse"],
-                      seeds=[3], steps=375, overrides=sets + list(overrides), retries=0)
+                      seeds=[3], steps=250, overrides=sets + list(overrides), retries=0)
     return cfg, plan_runs(cfg)[0]
 
 
