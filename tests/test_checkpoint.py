@@ -19,8 +19,8 @@ from imssr.training.state import StepSchedule
 
 
 def _cfg():
-    # 3 episodes of cartpole (125 agent steps each), checkpoints after each.
-    return tiny_config("im-curl", steps=375, seed_steps=60, eval_every_steps=125,
+    # 2 episodes of cartpole (125 agent steps each), checkpoints after each.
+    return tiny_config("im-curl", steps=250, seed_steps=60, eval_every_steps=125,
                        checkpoint_every_steps=125)
 
 
@@ -43,7 +43,7 @@ def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
     part = _train(tmp_path, stop_at=125)
     assert part.frame == 1000
     resumed = _train(tmp_path, resume=True)
-    assert resumed.frame == full.frame == 3000 and resumed.step == full.step
+    assert resumed.frame == full.frame == 2000 and resumed.step == full.step
     a, b = full.agent.state_dict(), resumed.agent.state_dict()
     for k, v in a["nets"].items():
         assert torch.equal(v, b["nets"][k]), k
@@ -134,10 +134,10 @@ def test_a_stop_inside_the_burst_of_updates_resumes_exactly(tmp_path):
 def test_checkpoint_contents_and_round_trip(full_run):
     full_dir, full = full_run
     state = load_checkpoint(RunDir(str(full_dir)).latest)
-    assert state.frame == 3000 and state.step == 375 and state.episode == 3
+    assert state.frame == 2000 and state.step == 250 and state.episode == 2
     assert os.path.exists(full_dir / "checkpoints" / state.replay_file)
     cfg = _cfg()
-    cfg.train.steps = 375
+    cfg.train.steps = 250
     t = Trainer(cfg, str(full_dir), resume=True)  # loads everything, nothing left to do
     try:
         obs, _ = next(iter(t.eval_envs.values())).reset()
@@ -236,8 +236,8 @@ def test_resume_with_changed_intervals_and_without_buffer(tmp_path):
         t.train()
     finally:
         t.close()
-    assert t.frame == 3000 and t.agent.updates > 0
-    assert [int(r["frame"]) for r in read_csv(tmp_path / "eval.csv")] == [1000, 3000]
+    assert t.frame == 2000 and t.agent.updates > 0
+    assert [int(r["frame"]) for r in read_csv(tmp_path / "eval.csv")] == [1000, 2000]
 
 
 def test_a_fresh_run_refuses_the_logs_of_a_run_that_never_checkpointed(tmp_path):
@@ -291,7 +291,7 @@ def test_checkpoint_from_before_new_settings_still_resumes(full_run, tmp_path):
     cfg = _cfg()
     t = Trainer(cfg, str(tmp_path / "old"), resume=True)
     t.close()
-    assert t.frame == 3000
+    assert t.frame == 2000
 
 
 def test_step_schedule_saves_itself_under_the_checkpoint_key_and_resumes():

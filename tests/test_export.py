@@ -19,7 +19,7 @@ TASK = "cartpole_swingup_sparse"
 
 
 def _tiny(algo, seed, precision="fp32"):
-    cfg = tiny_config(algo, TASK, seed=seed, steps=80, seed_steps=60, eval_every_steps=40,
+    cfg = tiny_config(algo, TASK, seed=seed, steps=80, seed_steps=60, eval_every_steps=80,
                       checkpoint_every_steps=40, torch_threads=1)
     cfg.agent.precision = precision
     return cfg
