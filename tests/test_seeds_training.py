@@ -221,11 +221,17 @@ def imssr(*args):
     (["--seeds", "1,1", "--out", "X"], "seed 1 is named twice in --seeds 1,1: each seed trains one run; name it once"),
     (["--seeds", "1-3,2", "--out", "X"], "seed 2 is named twice"),
 ])
-def test_seeds_errors_are_one_line(args, message, tmp_path):
-    proc = imssr("train", "--algo", "curl", "--task", "cartpole_swingup", *[
-        a.replace("X", str(tmp_path / "x")) for a in args])
-    assert proc.returncode == 2
-    assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+def test_seeds_errors_are_one_line(args, message, tmp_path, capsys):
+    from imssr.cli import main
+
+    try:
+        code = main(["train", "--algo", "curl", "--task", "cartpole_swingup", *[
+            a.replace("X", str(tmp_path / "x")) for a in args]])
+    except SystemExit as exit_:  # argparse's errors
+        code = exit_.code
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "x").exists()
 
 
