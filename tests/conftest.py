@@ -125,6 +125,17 @@ def cli_config(*argv: str):
     return plan(train_request(build_parser().parse_args(["train", *argv])))[0].config
 
 
+def cli_status(*argv: str) -> int:
+    """The exit status of ``imssr ARGV`` run in this process (``imssr.cli.main``; argparse's errors
+    leave by :class:`SystemExit`): each start of the command in a process of its own costs seconds."""
+    from imssr.cli import main
+
+    try:
+        return main(list(argv))
+    except SystemExit as exit_:
+        return exit_.code
+
+
 def train_stopped_at(trainer, step: int) -> None:
     """Train ``trainer`` until a stop requested at agent step ``step``: it checkpoints that step
     (the open episode with it, unless an episode ends there with a checkpoint) and stops, as a

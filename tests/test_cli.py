@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from conftest import cli_help, image_folder, tiny_sets
+from conftest import cli_help, cli_status, image_folder, tiny_sets
 from imssr.training.logger import read_csv
 
 TINY = ["--steps", "250", "--seed-steps", "60", "--eval-every", "125", "--eval-episodes", "1",
@@ -90,22 +90,16 @@ def test_killed_run_resumes_to_completion(tmp_path):
     (["train", "--algo", "curl", "--task", "walker_walk", "--footage", "/no/such/videos"], "footage not found"),
 ])
 def test_errors_are_one_line(args, message, tmp_path, capsys):
-    """In this process (`imssr.cli.main`, as the command runs it: each start of the command costs
-    seconds); test_an_error_of_the_command_itself_is_one_line runs one in a process of its own."""
+    """In this process (:func:`cli_status`); test_an_error_of_the_command_itself_is_one_line runs
+    one in a process of its own."""
     if "--device" in args:
         import torch
 
         if torch.cuda.is_available():
             pytest.skip("CUDA present")
-    from imssr.cli import main
-
     if args[0] == "train" and "--out" not in args:
         args = [*args, "--out", str(tmp_path / "x")]
-    try:
-        code = main(args)
-    except SystemExit as exit_:  # argparse's errors
-        code = exit_.code
-    assert code == 2
+    assert cli_status(*args) == 2
     err = capsys.readouterr().err
     lines = [line for line in err.strip().splitlines() if line.strip()]
     assert message in lines[-1], err

@@ -12,7 +12,7 @@ import sys
 import pytest
 import torch
 
-from conftest import REPO, TORCH_THREADS, StopAtStep, tiny_config, tiny_sets, without_timing
+from conftest import REPO, TORCH_THREADS, StopAtStep, cli_status, tiny_config, tiny_sets, without_timing
 from imssr.errors import ImssrError
 from imssr.rundir import RunDir
 from imssr.training.seeds import SeedsTrainer
@@ -222,15 +222,9 @@ def imssr(*args):
     (["--seeds", "1-3,2", "--out", "X"], "seed 2 is named twice"),
 ])
 def test_seeds_errors_are_one_line(args, message, tmp_path, capsys):
-    from imssr.cli import main
-
-    try:
-        code = main(["train", "--algo", "curl", "--task", "cartpole_swingup", *[
-            a.replace("X", str(tmp_path / "x")) for a in args]])
-    except SystemExit as exit_:  # argparse's errors
-        code = exit_.code
+    assert cli_status("train", "--algo", "curl", "--task", "cartpole_swingup",
+                      *[a.replace("X", str(tmp_path / "x")) for a in args]) == 2
     err = capsys.readouterr().err
-    assert code == 2
     assert message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "x").exists()
 
