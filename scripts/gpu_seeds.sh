@@ -55,7 +55,7 @@ CHECK=(tests/test_cuda_graphs.py tests/test_no_sync.py tests/test_agent.py -k "o
 if [ "${TINY:-0}" = 1 ]; then
   SMALL=(--set agent.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8
          --set aux.batch_size=8)
-  PAPER=(--device "$DEVICE" --n 1 2 --modes loop streams+graphs --baseline-n 2 --steps 1 --warmup 3 --fill 100
+  PAPER=(--device "$DEVICE" --n 1 2 --modes loop vmap streams+graphs --baseline-n 2 --steps 1 --warmup 3 --fill 100
          --threads 1 "${SMALL[@]}")
   FAST=(--device "$DEVICE" --n 2 --modes streams+graphs --baseline-n 0 --steps 1 --warmup 3 --fill 100 --threads 1
         "${SMALL[@]}" --set agent.fused_adam=true)

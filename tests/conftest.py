@@ -126,14 +126,21 @@ def cli_config(*argv: str):
 
 
 def cli_status(*argv: str) -> int:
-    """The exit status of ``imssr ARGV`` run in this process (``imssr.cli.main``; argparse's errors
-    leave by :class:`SystemExit`): each start of the command in a process of its own costs seconds."""
-    from imssr.cli import main
+    """The exit status of ``imssr ARGV`` run in this process (the command's own entry point,
+    ``imssr.console.main``; argparse's errors leave by :class:`SystemExit`): each start of the
+    command in a process of its own costs seconds.  The process's torch threads and environment
+    are given back as they were."""
+    from imssr.console import main
 
+    threads, environ = torch.get_num_threads(), dict(os.environ)
     try:
         return main(list(argv))
     except SystemExit as exit_:
         return exit_.code
+    finally:
+        torch.set_num_threads(threads)
+        os.environ.clear()
+        os.environ.update(environ)
 
 
 def train_stopped_at(trainer, step: int) -> None:

@@ -103,6 +103,7 @@ def test_errors_are_one_line(args, message, tmp_path, capsys):
     err = capsys.readouterr().err
     lines = [line for line in err.strip().splitlines() if line.strip()]
     assert message in lines[-1], err
+    assert not (tmp_path / "x").exists()
 
 
 def test_an_error_of_the_command_itself_is_one_line(tmp_path):

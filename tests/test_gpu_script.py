@@ -32,7 +32,8 @@ def test_the_prepared_seeds_command_works_on_the_cpu(tmp_path):
     check = (seeds / "check.txt").read_text()
     assert "1 passed" in check and "needs a GPU" in check  # the CPU test ran, the GPU ones skipped
     table = (seeds / "seeds_paper.md").read_text()
-    for layout in ("| 2 | 2 processes |", "| 1 | 1 process, loop |", "| 2 | 1 process, streams+graphs |"):
+    for layout in ("| 2 | 2 processes |", "| 1 | 1 process, loop |", "| 2 | 1 process, vmap |",
+                   "| 2 | 1 process, streams+graphs |"):
         assert layout in table, table
     assert "| 2 | 1 process, streams+graphs |" in (seeds / "seeds_fast.md").read_text()
     profile = (seeds / "profile.txt").read_text()

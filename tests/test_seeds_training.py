@@ -25,7 +25,7 @@ def configs(steps: int = 150):
     cfgs = []
     for seed in SEEDS:
         cfg = tiny_config("im-curl", seed=seed, steps=steps, seed_steps=60, burst_updates=5,
-                          eval_every_steps=150, checkpoint_every_steps=125)
+                          eval_every_steps=75, checkpoint_every_steps=125)
         cfgs.append(cfg)
     return cfgs
 
@@ -68,7 +68,7 @@ def test_each_seed_is_a_standard_run(uninterrupted):
         assert config["train"]["seed"] == seed
         assert json.load(open(os.path.join(run, "status.json")))["state"] == "finished"
         assert len(rows(os.path.join(run, "train.csv"))) == 1  # one 125-step episode of 150 steps
-        assert [r["step"] for r in rows(os.path.join(run, "eval.csv"))] == ["150"]
+        assert [r["step"] for r in rows(os.path.join(run, "eval.csv"))] == ["75", "150"]
         assert RunDir(run).checkpoint().checkpoint.step == 150
     # The seeds learned apart: their own weights.
     a, b = (final_nets(r) for r in runs(uninterrupted))
@@ -148,7 +148,6 @@ def test_a_batch_says_each_seeds_lines_with_its_seed_and_a_warning_of_every_seed
     cfgs = configs(steps=80)
     for cfg in cfgs:
         cfg.train.seed_steps = 100
-        cfg.train.eval_every_steps = 75
     trainer = SeedsTrainer(cfgs, runs(tmp_path))
     try:
         for t in trainer.trainers:
