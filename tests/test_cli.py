@@ -139,23 +139,19 @@ def test_tasks_and_algos_listings():
     (["--out", ""], "--out is empty"),
 ])
 def test_bad_values_are_one_line_errors_before_anything_starts(args, message, tmp_path, capsys):
-    from imssr.cli import main
-
     argv = ["train", "--algo", "im-curl", "--task", "walker_walk", *args]
     if "--out" not in args:
         argv += ["--out", str(tmp_path / "run")]
-    assert main(argv) == 2
+    assert cli_status(*argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("imssr: error: ") and message in err[0], err
     assert not (tmp_path / "run").exists() and not os.path.exists("runs/walker_walk/im-curl")
 
 
 def test_binary_config_file_is_a_one_line_error(tmp_path, capsys):
-    from imssr.cli import main
-
     binary = tmp_path / "latest.pt"
     binary.write_bytes(bytes(range(256)) * 8)
-    assert main(["train", "--config", str(binary), "--out", str(tmp_path / "run")]) == 2
+    assert cli_status("train", "--config", str(binary), "--out", str(tmp_path / "run")) == 2
     assert capsys.readouterr().err.strip().splitlines() == \
         [f"imssr: error: config file {binary} is not a JSON text file (it is not UTF-8 text)"]
 
