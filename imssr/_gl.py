@@ -8,6 +8,7 @@ the documented fallback (``MUJOCO_GL=osmesa``, Debian package ``libosmesa6``).
 from __future__ import annotations
 
 import ctypes.util
+import importlib.util
 import os
 import sys
 from typing import Mapping, MutableMapping, Optional
@@ -35,6 +36,28 @@ def configure_gl() -> str:
     else:
         os.environ["PYOPENGL_PLATFORM"] = backend
     return backend
+
+
+def load_triton_first() -> None:
+    """Import triton, where it is installed and not yet loaded, before the first GL driver.
+
+    Mesa's GL drivers (llvmpipe, and the hardware drivers' shader compilers) link Debian's
+    ``libLLVM-15`` and are opened with ``RTLD_GLOBAL``, which puts every LLVM symbol in the
+    process's global scope.  Triton's ``libtriton.so`` carries its own, newer LLVM and exports
+    those same symbols; loaded after Mesa's, its references bind to LLVM 15's definitions and
+    the process dies with SIGSEGV inside the import.  torch imports triton on its own whenever
+    it is installed (PyPI's default torch on Linux brings it), as soon as an optimiser is made
+    (``torch.optim`` loads ``torch._dynamo``).  Loaded first, triton binds to its own LLVM
+    (CPython opens extensions with ``RTLD_NOW | RTLD_LOCAL``) and Mesa's then binds to LLVM 15:
+    both orders of use are safe.  A triton that fails to import is left to torch."""
+    if "triton" in sys.modules:
+        return
+    try:
+        if importlib.util.find_spec("triton") is None:
+            return
+        import triton  # noqa: F401
+    except Exception:  # noqa: BLE001 - torch decides what a broken triton means; rendering goes on
+        pass
 
 
 def check_gl() -> None:

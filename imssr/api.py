@@ -18,6 +18,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from imssr.config import RunConfig
+from imssr.crash import report_native_crashes
 from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
@@ -47,6 +48,7 @@ class Run:
     """
 
     def __init__(self, run_dir: RunDir | str, checkpoint: Optional[str] = None, device: str = "cpu"):
+        report_native_crashes()  # a notebook's kernel that dies says why in its log
         self.run_dir = as_run_dir(run_dir)
         self.dir = self.run_dir.path
         loaded = load_agent(self.run_dir, checkpoint, device=device, verb="loading")

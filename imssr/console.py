@@ -9,12 +9,14 @@ from __future__ import annotations
 import sys
 from typing import Optional
 
+from imssr.crash import report_native_crashes
 from imssr.errors import INTERRUPTED_EXIT
 from imssr.memlimit import calm_openblas
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     calm_openblas()  # before anything loads scipy (a sweep's runs inherit it)
+    report_native_crashes()
     try:
         from imssr.cli import main as cli_main
     except KeyboardInterrupt:

@@ -25,7 +25,8 @@ from typing import Any, Optional
 import gymnasium as gym
 import numpy as np
 
-from imssr._gl import check_gl, egl_device_error, egl_vendor_hint, nvidia_driver_loaded, unpin_refused_egl_device
+from imssr._gl import (check_gl, egl_device_error, egl_vendor_hint, load_triton_first, nvidia_driver_loaded,
+                       unpin_refused_egl_device)
 from imssr.envs.scenes import Scene, get_mode
 from imssr.envs.tasks import TaskSpec, get_task
 from imssr.errors import ImssrError
@@ -257,7 +258,10 @@ class DMCEnv(gym.Env):
 def _import_dm_control():
     """dm_control's ``suite`` module and ``Camera`` class.  dm_control opens its EGL display as
     it is imported; when that refuses the ``MUJOCO_EGL_DEVICE_ID`` imssr guessed for the run's
-    GPU, the import runs again without it (a failed import leaves no module behind)."""
+    GPU, the import runs again without it (a failed import leaves no module behind).  Triton,
+    where installed, is loaded before: its LLVM and the GL driver's must not meet in that order
+    (:func:`imssr._gl.load_triton_first`)."""
+    load_triton_first()
     for attempt in range(2):
         try:
             from dm_control import suite

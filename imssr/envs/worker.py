@@ -18,6 +18,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from imssr.crash import describe_exit, report_native_crashes
 from imssr.errors import ImssrError
 
 START_TIMEOUT_S = 300.0
@@ -34,6 +35,7 @@ def _serve(conn, make: Callable[[], Any]) -> None:  # pragma: no cover - runs in
     # training it stops still needs its envs for the checkpoint, and closes them itself.
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
+    report_native_crashes()
     try:
         try:
             env = make()
@@ -94,10 +96,16 @@ class EnvWorker:
         try:
             ok, value = self._conn.recv()
         except EOFError:
-            raise ImssrError(f"an env worker died (exit status {self._proc.exitcode})") from None
+            raise self._died() from None
         if not ok:
             raise value
         return value
+
+    def _died(self) -> ImssrError:
+        """The one-line error for a worker whose pipe broke: how it ended (a native crash prints
+        its traceback on the worker's stderr)."""
+        self._proc.join(timeout=1.0)  # its pipe closes a moment before its exit status is known
+        return ImssrError(f"an env worker died ({describe_exit(self._proc.exitcode)})")
 
     def _call(self, name: str, *args, **kwargs):
         self._settle()
@@ -108,7 +116,7 @@ class EnvWorker:
         try:
             self._conn.send(message)
         except OSError:  # a broken pipe: the worker is gone
-            raise ImssrError(f"an env worker died (exit status {self._proc.exitcode})") from None
+            raise self._died() from None
 
     def _settle(self) -> None:
         """Take the result of a step sent and not collected (nothing may overtake it)."""

@@ -20,6 +20,7 @@ import socket
 import time
 from typing import Optional
 
+from imssr.crash import add_crash_log, remove_crash_log
 from imssr.errors import ImssrError
 from imssr.files import disk_full_as_error, open_own
 
@@ -76,6 +77,7 @@ class DirectoryLock:
                     os.close(fd)
                     raise
                 self._fd = fd
+                add_crash_log(d)  # the writer's native crash, if any, lands beside what it wrote
                 return self
             raise ImssrError(f"could not lock {d}: its lock file keeps changing")
         except BaseException:
@@ -91,6 +93,7 @@ class DirectoryLock:
                 pass
             os.close(self._fd)
             self._fd = None
+            remove_crash_log(self.directory)
         self._remove_created()
 
     @property

@@ -17,6 +17,7 @@ import time
 from typing import Optional
 
 from imssr.contention import scheduling_group
+from imssr.crash import describe_exit
 from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.files import disk_full_as_error, open_append
 from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir, as_run_dir
@@ -212,7 +213,7 @@ class RunAttempt:
             error = (own or {}).get("error")
             if not error:
                 # A process a signal killed said nothing of it: its last output line is not the cause.
-                error = _killed_text(returncode) if returncode < 0 else _last_line(self.log_path, self.offset)
+                error = describe_exit(returncode) if returncode < 0 else _last_line(self.log_path, self.offset)
             result["error"] = error or f"exit status {returncode}"
             result["diverged"] = DIVERGED_PREFIX in result["error"]
         elif final_step < self.steps:
@@ -244,15 +245,6 @@ def wait_for_writers(runs: list[RunDir]) -> None:
     for run in runs:
         while run.in_use() and time.monotonic() < deadline:
             time.sleep(0.2)
-
-
-def _killed_text(returncode: int) -> str:
-    """``killed by signal 9 (SIGKILL)`` for a child's negative exit status."""
-    try:
-        name = f" ({signal.Signals(-returncode).name})"
-    except ValueError:
-        name = ""
-    return f"killed by signal {-returncode}{name}"
 
 
 def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
