@@ -143,6 +143,30 @@ def cli_status(*argv: str) -> int:
         os.environ.update(environ)
 
 
+def run_imssr(*args: str, check: bool = True, timeout: float = 600, **kw) -> subprocess.CompletedProcess:
+    """``python -m imssr ARGS`` in a process of its own (:func:`run_command`)."""
+    return run_python("-m", "imssr", *args, check=check, timeout=timeout, what=f"imssr {' '.join(args)}", **kw)
+
+
+def run_python(*args: str, **kw) -> subprocess.CompletedProcess:
+    """``python ARGS`` (this interpreter) in a process of its own; see :func:`run_command`."""
+    return run_command(sys.executable, *args, **kw)
+
+
+def run_command(*argv: str, check: bool = True, timeout: float = 600, what: str = "",
+                **kw) -> subprocess.CompletedProcess:
+    """``ARGV`` in a process of its own, its output captured as text.  With ``check``, a failure
+    raises an AssertionError that says how the process ended (its exit status, or the signal that
+    killed it: a native crash) and what it printed."""
+    from imssr.crash import describe_exit
+
+    proc = subprocess.run(list(argv), capture_output=True, text=True, timeout=timeout, **kw)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{what or ' '.join(argv)} failed, {describe_exit(proc.returncode)}:\n"
+                             f"{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
 def train_stopped_at(trainer, step: int) -> None:
     """Train ``trainer`` until a stop requested at agent step ``step``: it checkpoints that step
     (the open episode with it, unless an episode ends there with a checkpoint) and stops, as a

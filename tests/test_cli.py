@@ -8,18 +8,14 @@ import time
 
 import pytest
 
-from conftest import cli_help, cli_status, image_folder, tiny_sets
+from conftest import cli_help, cli_status, image_folder, run_imssr, tiny_sets
 from imssr.training.logger import read_csv
 
 TINY = ["--steps", "250", "--seed-steps", "60", "--eval-every", "125", "--eval-episodes", "1",
         "--replay-capacity", "3000", "--no-progress", *tiny_sets(), "--set", "train.burst_updates=0"]
 
 
-def imssr(*args, check=True, **kw):
-    proc = subprocess.run([sys.executable, "-m", "imssr", *args], capture_output=True, text=True, **kw)
-    if check and proc.returncode != 0:
-        raise AssertionError(f"imssr {' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}")
-    return proc
+imssr = run_imssr
 
 
 # Every algorithm trains in-process in test_algorithms.py; the CLI trains one, with the most

@@ -12,7 +12,7 @@ import sys
 import pytest
 import torch
 
-from conftest import REPO, TORCH_THREADS, StopAtStep, cli_status, tiny_config, tiny_sets, without_timing
+from conftest import REPO, TORCH_THREADS, StopAtStep, cli_status, run_imssr, tiny_config, tiny_sets, without_timing
 from imssr.errors import ImssrError
 from imssr.rundir import RunDir
 from imssr.training.seeds import SeedsTrainer
@@ -205,9 +205,7 @@ def test_the_resume_command_names_seeds_or_run_directories(tmp_path):
 
 
 def imssr(*args):
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, "-m", "imssr", *args], capture_output=True, text=True, env=env,
-                          timeout=600)
+    return run_imssr(*args, check=False, env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
 
 
 @pytest.mark.parametrize("args, message", [
