@@ -1,10 +1,8 @@
-"""The notebook API (imssr.train, imssr.load_run, Run): the README's example as written, what a
-loaded run does against the CLI's evaluation, and its one-line errors."""
+"""The notebook API (imssr.train, imssr.load_run, Run): what a loaded run does against the CLI's
+evaluation, and its one-line errors (tests/test_readme.py runs the README's example)."""
 import os
 import re
-import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,29 +14,6 @@ from imssr.files import read_csv
 from imssr.training.evaluate import evaluate_run
 
 from conftest import tiny_config, tiny_overrides, train_run
-
-README = Path(__file__).resolve().parents[1] / "README.md"
-
-
-def readme_example() -> str:
-    text = README.read_text()
-    match = re.search(r"<!-- notebook-example -->\n```python\n(.*?)```", text, flags=re.S)
-    assert match, "README.md lost its notebook example"
-    return match.group(1)
-
-
-def test_readme_notebook_example_runs_as_written(tmp_path):
-    code = readme_example()
-    assert len(code.strip().splitlines()) <= 6  # import + five lines
-    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONPATH=str(README.parent)))
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    rows = read_csv(tmp_path / "runs" / "tiny" / "eval.csv")
-    assert [r["step"] for r in rows][-1] == "120"
-    assert "wall_time" in proc.stdout and "[1 rows x 9 columns]" in proc.stdout  # the curves, a DataFrame
-    # Run.evaluate writes nothing into the run.
-    assert not (tmp_path / "runs" / "tiny" / "evaluate.csv").exists()
-
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
