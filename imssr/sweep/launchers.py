@@ -7,12 +7,14 @@ started by a Ray task, a SLURM job (through submitit) or the sweep itself.
 """
 from __future__ import annotations
 
+import ipaddress
 import logging
 import math
 import os
 import shutil
 import signal
 import socket
+import sys
 import time
 from dataclasses import dataclass
 from typing import Any, Optional
@@ -27,6 +29,18 @@ from imssr.sweep.runner import STOP_GRACE_S, RunAttempt, execute_runs
 # The local Ray started for a sweep only passes small results around: a small object
 # store keeps its start-up memory low on small machines.
 LOCAL_OBJECT_STORE_BYTES = 150 * 1024 ** 2
+LOCAL_RAY_ENV = {
+    # Ray's single-machine mode (its default on macOS and Windows): the node's address is
+    # loopback, and every server Ray starts for it (GCS, raylet, runtime-env and dashboard
+    # agents, the driver's and the workers' gRPC servers) binds to loopback alone.  Ray reads
+    # this when it is imported; its processes inherit it.
+    "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",
+}
+LOCAL_RAY_DEFAULT_ENV = {
+    # The token authentication Ray gives a new local cluster anyway, stated: Ray announces the
+    # mode on the sweep's output only when it chose it itself.  A mode the user set stays.
+    "RAY_AUTH_MODE": "token",
+}
 SLURM_DEFAULT_MINUTES = 24 * 60
 """A SLURM job's time limit when ``--slurm-time`` is not given."""
 
@@ -141,7 +155,7 @@ class RayLauncher(Launcher):
         """The attempt of each submitted task (:meth:`stop` signals its training)."""
 
     def check(self) -> None:
-        require("ray", "sweep")
+        _import_ray(self.cfg)
 
     def start(self) -> None:
         self.ray = _init_ray(self.cfg)
@@ -288,10 +302,33 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
                          f"({exc.strerror or exc}); start it with `ray start --head --port {port}`") from None
 
 
-def _init_ray(cfg: SweepConfig):
+def _import_ray(cfg: SweepConfig):
+    """``import ray``, with the environment the sweep's Ray needs set first (Ray reads it when
+    it is imported, and its processes inherit it)."""
     # No usage-stats prompt or upload from a batch job (and none on machines without network).
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    ray = require("ray", "sweep")
+    if not cfg.address:
+        _confine_local_ray()
+    return require("ray", "sweep")
+
+
+def _confine_local_ray() -> None:
+    """Set :data:`LOCAL_RAY_ENV` (and :data:`LOCAL_RAY_DEFAULT_ENV`) for a local Ray; fail in one
+    line if this process imported ray without it, since that ray would listen on every interface."""
+    missing = {k: v for k, v in LOCAL_RAY_ENV.items() if os.environ.get(k) != v}
+    if "ray" in sys.modules:
+        if missing:
+            settings = " ".join(f"{k}={v}" for k, v in missing.items())
+            raise ImssrError(f"a local sweep keeps Ray on loopback, which needs {settings} before ray is "
+                             f"imported, but this process imported ray without it: set it in the environment")
+        return  # ray has read its settings: a mode set now would differ between the driver and Ray's processes
+    for key, value in LOCAL_RAY_DEFAULT_ENV.items():
+        os.environ.setdefault(key, value)
+    os.environ.update(LOCAL_RAY_ENV)
+
+
+def _init_ray(cfg: SweepConfig):
+    ray = _import_ray(cfg)
     # Workers' output goes to each run's sweep.log, not to the driver's terminal.
     common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
                   configure_logging=True)
@@ -312,7 +349,22 @@ def _init_ray(cfg: SweepConfig):
         hint = "" if os.environ.get("RAY_AUTH_MODE") == "token" else \
             " (is it running? a head started by `ray start` needs RAY_AUTH_MODE=token here too)"
         raise ImssrError(f"could not connect to the Ray cluster at {cfg.address}: {first}{hint}") from None
+    if not cfg.address:
+        # Ray binds its servers to loopback only when the node's address is loopback: a Ray that
+        # took another address is stopped before it runs anything.
+        node_ip = ray.util.get_node_ip_address()
+        if not _is_loopback(node_ip):
+            ray.shutdown()
+            raise ImssrError(f"the local Ray took {node_ip} as its address instead of loopback, so it would "
+                             f"listen beyond this machine; it was shut down before running anything")
     return ray
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
 
 
 def _capacity(ray, cfg: SweepConfig) -> int:
