@@ -193,7 +193,7 @@ def test_a_run_with_a_damaged_eval_log_is_skipped_by_report_and_export_with_a_no
     write_report(root, str(tmp_path / "report"), reps=20)
     md = open(tmp_path / "report" / "report.md").read()
     assert "curl/seed_2: " in md and "eval.csv is damaged: not UTF-8 text (byte 0xff at offset" in md
-    assert "1 runs, 4 evaluations." in md
+    assert "1 run, 4 evaluations." in md
     export_runs(root, str(tmp_path / "dest"))  # no traceback: the damaged run is not read
 
 

@@ -69,7 +69,8 @@ def plot_curves(results: SweepResults, path: str) -> str:
             m = np.array([p[1] for p in pts])
             s = np.array([p[2] for p in pts])
             seeds = max(p[3] for p in pts)
-            ax.plot(x, m, marker="o", markersize=3, color=colors[label], label=f"{label} ({seeds} seeds)")
+            ax.plot(x, m, marker="o", markersize=3, color=colors[label],
+                    label=f"{label} ({seeds} {'seed' if seeds == 1 else 'seeds'})")
             ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.2, linewidth=0)
         ax.set_title(f"{task} ({mode})", fontsize=10)
         ax.set_xlabel("agent steps")

@@ -87,7 +87,7 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, 
     against = tables.markdown_against_paper(rows) if with_paper else ""
     parts = [
         f"# Sweep report: `{root_name}`\n",
-        f"{len(results.runs)} runs, {n_evals} evaluations.{failed} Cells: mean ± std over seeds (sample std, "
+        f"{_count(len(results.runs), 'run')}, {_count(n_evals, 'evaluation')}.{failed} Cells: mean ± std over seeds (sample std, "
         "ddof 1; – for one seed) of each seed's last evaluation return at or before the point's agent step; "
         "**bold**: best mean of the task at that point; `(n/N)`: only n of the N expected seeds reached the "
         "point; `k failed`: k of them failed in the sweep; the last column: n per row."
@@ -166,3 +166,8 @@ def makers_markdown(made_by: dict[tuple[str, str], dict[str, int]]) -> str:
         for i, (line, n) in enumerate(sorted(found.items())):
             lines.append(f"| {'`' + task + '`' if i == 0 else ''} | {label if i == 0 else ''} | {line} | {n} |")
     return "\n".join(lines) + "\n"
+
+
+def _count(n: int, noun: str) -> str:
+    """``1 run``, ``3 runs``."""
+    return f"{n:,} {noun}{'' if n == 1 else 's'}"
