@@ -7,8 +7,8 @@ A leased GPU machine (the prepared commands ``scripts/gpu_results.sh`` and
 dm_control, MuJoCo, gymnasium, omegaconf, docstring-parser and their own small needs, nor
 Debian's EGL and OpenGL loader libraries, and it cannot download anything.  Everything it gets
 travels with the repository, 64 MiB in all, and dm_control's wheel alone is 56 MB.  This script
-makes, in ``--out`` (default ``.gpu-bundle/`` in the checkout, which git ignores: name it in the
-device call's ``carry``):
+makes, in ``--out`` (default ``.gpu-bundle/`` in the checkout, which git ignores: name it among
+what the GPU machine is sent, a device call's ``carry``):
 
 - the wheels of :data:`CARRIED` for ``--python`` on x86-64 Linux, at the versions of
   ``constraints.txt``, downloaded with pip from the index pip is configured with;
@@ -17,8 +17,9 @@ device call's ``carry``):
   imports, MuJoCo keeps its bindings, its classic renderer and its plugins; each wheel stays
   valid (its RECORD lists the files kept, with their hashes) and says in
   ``*.dist-info/IMSSR_TRIMMED.txt`` what was left out;
-- the ``.deb`` files of :data:`DEBS` (``apt-get download``, amd64), unpacked on the GPU machine
-  only where its own EGL loader is missing (``--no-debs``: none);
+- the ``.deb`` files of :data:`DEBS` (``apt-get download``, amd64), each unpacked on the GPU
+  machine only where its library is missing there and no EGL or OpenGL loader is found
+  (``--no-debs``: none);
 - ``imssr-source.json``, the checkout's source stamp (``python -m imssr.provenance --stamp``):
   the commit each run's ``provenance.json`` names on a machine without ``.git``;
 - ``bundle.json``: the Python version, each file and its size.
@@ -61,8 +62,8 @@ docstring-parser."""
 IMAGE = ("torch", "numpy", "scipy", "tqdm", "matplotlib", "tensorboard", "pillow", "scikit-image", "scikit-learn",
          "imageio", "absl-py", "lxml", "protobuf", "pyparsing", "requests", "setuptools", "attrs", "wrapt",
          "cloudpickle", "typing-extensions", "PyYAML", "etils")
-"""The requirements of imssr and of the carried wheels that the GPU image holds (its package
-list: /work/.library/device/KINDS.md, "Python packages already there")."""
+"""The requirements of imssr and of the carried wheels that the GPU image holds (as its package
+list reads on the leased H200s: Python 3.12 with torch 2.11)."""
 
 LEFT_OUT = {
     "labmaze": "dm_control.locomotion's mazes, which the trimmed dm_control does not carry",
@@ -96,8 +97,9 @@ TRIM = {
 """Per trimmed wheel: the files kept (glob patterns on the paths inside the wheel), those dropped
 from them, and why (written into the wheel's ``IMSSR_TRIMMED.txt``)."""
 
-DEBS = ("libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0")
-"""Debian's EGL and OpenGL loaders (glvnd): NVIDIA's driver brings the vendor library they load."""
+DEBS = {"libegl1": "EGL", "libglvnd0": "GLdispatch", "libopengl0": "OpenGL", "libgl1": "GL", "libglx0": "GLX"}
+"""Debian's EGL and OpenGL loaders (glvnd), each with the library it provides: NVIDIA's driver
+brings the vendor library they load."""
 
 PLATFORMS = [f"manylinux_2_{n}_x86_64" for n in range(28, 4, -1)] + [
     "manylinux2014_x86_64", "manylinux2010_x86_64", "manylinux1_x86_64"]
@@ -248,8 +250,13 @@ def apt_download(packages, dest: str) -> list[str]:
     if shutil.which("apt-get") is None:
         raise BundleError("apt-get is not here to download Debian's EGL libraries: run on Debian or Ubuntu, "
                           "or pass --no-debs")
-    opts = ["-o", "APT::Architecture=amd64", "-q"]
-    if hasattr(os, "geteuid") and os.geteuid() == 0:
+    arch = subprocess.run(["dpkg", "--print-architecture"], capture_output=True, text=True).stdout.strip()
+    if arch != "amd64":
+        # apt-get downloads for the architecture its package lists describe: this machine's.
+        raise BundleError(f"apt-get here downloads {arch or 'this machine'}'s packages and the GPU machine is "
+                          "x86-64: make the folder on an x86-64 machine, or pass --no-debs")
+    opts = ["-q"]
+    if os.geteuid() == 0:
         opts += ["-o", "APT::Sandbox::User=root"]  # apt's own user cannot write a root-owned folder
     proc = subprocess.run(["apt-get", *opts, "download", *packages], cwd=dest, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -262,9 +269,11 @@ def write_stamp(dest: str) -> str:
     """The checkout's source stamp (what ``python -m imssr.provenance --stamp`` writes) in
     ``dest``; returns its commit, or why there is none."""
     sys.path.insert(0, REPO)
-    from imssr.errors import ImssrError
-    from imssr.provenance import write_stamp as stamp_checkout
-
+    try:
+        from imssr.errors import ImssrError
+        from imssr.provenance import write_stamp as stamp_checkout
+    except ImportError as exc:
+        return f"none (imssr does not import with {sys.executable}: {exc})"
     try:
         path = stamp_checkout(REPO, os.path.join(dest, STAMP))
     except ImssrError as exc:
@@ -347,7 +356,9 @@ def read_manifest(folder: str) -> dict:
             manifest = json.load(fh)
     except (OSError, ValueError):
         manifest = None
-    if not isinstance(manifest, dict) or not {"python", "wheels", "debs"} <= set(manifest):
+    if not (isinstance(manifest, dict) and isinstance(manifest.get("python"), str)
+            and all(isinstance(manifest.get(k), list) and all(isinstance(e, dict) and isinstance(e.get("file"), str)
+                                                              for e in manifest[k]) for k in ("wheels", "debs"))):
         raise BundleError(f"{folder} has no readable bundle.json: make it with python scripts/gpu_bundle.py")
     return manifest
 
@@ -368,8 +379,9 @@ def install(folder: str) -> list[str]:
     - the wheels, with pip and no index, unless each is installed at its version already (then
       nothing, so that a machine with its own packages keeps them); a folder made for another
       Python is a one-line error only where something is to install;
-    - the ``.deb`` files, unpacked into ``/`` (as root) only where no EGL or OpenGL loader is
-      found (``ldconfig``'s cache): a machine's own libraries are never overwritten;
+    - where no EGL or OpenGL loader is found (``ldconfig``'s cache), the ``.deb`` files of the
+      libraries missing, unpacked into ``/`` (as root): a machine's own libraries are never
+      overwritten;
     - the source stamp, copied beside the package where the checkout has neither ``.git`` nor a
       stamp of its own."""
     import ctypes.util
@@ -397,17 +409,20 @@ def install(folder: str) -> list[str]:
             raise BundleError(f"pip install from {folder} failed: {(errors or ['no output'])[0]}")
         names = [os.path.basename(w).split("-")[0] for w in to_install]
         notes.append(f"packages: installed from {folder} with no index: {' '.join(names)}")
+    # A .deb file's name begins with its package's name.
+    missing = [d["file"] for d in manifest["debs"]
+               if not ctypes.util.find_library(DEBS.get(d["file"].split("_")[0], d["file"]))]
     if all(ctypes.util.find_library(lib) for lib in ("EGL", "OpenGL")):
         notes.append("EGL and OpenGL loaders: the machine's own")
-    elif manifest["debs"]:
+    elif missing:
         if os.geteuid() != 0:
             raise BundleError(f"no EGL or OpenGL loader here, and unpacking {folder}'s .deb files into / needs root")
-        for deb in manifest["debs"]:
-            proc = subprocess.run(["dpkg", "-x", os.path.join(folder, deb["file"]), "/"], capture_output=True, text=True)
+        for deb in missing:
+            proc = subprocess.run(["dpkg", "-x", os.path.join(folder, deb), "/"], capture_output=True, text=True)
             if proc.returncode != 0:
-                raise BundleError(f"dpkg -x {deb['file']} failed: {(proc.stderr.strip().splitlines() or ['?'])[0]}")
+                raise BundleError(f"dpkg -x {deb} failed: {(proc.stderr.strip().splitlines() or ['?'])[0]}")
         subprocess.run(["ldconfig"], check=False)
-        notes.append(f"EGL and OpenGL loaders: unpacked from {folder}: {' '.join(d['file'] for d in manifest['debs'])}")
+        notes.append(f"EGL and OpenGL loaders: unpacked from {folder}: {' '.join(missing)}")
     else:
         notes.append(f"EGL and OpenGL loaders: none here and none in {folder}")
     if os.path.exists(os.path.join(REPO, ".git")):
