@@ -6,10 +6,10 @@
 #
 # Sets PY ($PYTHON when set, else .venv's Python when there is one, else python or python3), puts
 # the repository on PYTHONPATH, exports MUJOCO_GL (egl unless set) and PYTHONUNBUFFERED, makes
-# OUT_DIR and writes device.txt there: what was installed from the folder below, nvidia-smi, then what a run
-# started here would record in its provenance.json (`python -m imssr.provenance`: imssr and its
-# commit, Python, torch, CUDA, cuDNN, the driver, numpy, dm_control, mujoco, the device and the
-# CPU).
+# OUT_DIR and writes device.txt there: what was installed from the folder below, nvidia-smi, then
+# what a run started here would record in its provenance.json (`python -m imssr.provenance`: imssr
+# and its commit, Python, torch, CUDA, cuDNN, the driver, numpy, dm_control, mujoco, the device
+# and the CPU).
 #
 # The folder of packages (GPU_BUNDLE, default .gpu-bundle): a GPU machine with torch but without
 # dm_control, MuJoCo, gymnasium, omegaconf and docstring-parser, and without a package index,
