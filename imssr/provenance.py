@@ -118,10 +118,11 @@ def _package_modules(top: str) -> set[str]:
             for f in files if f.endswith(".py")}
 
 
-def write_stamp(top: Optional[str] = None) -> str:
+def write_stamp(top: Optional[str] = None, path: Optional[str] = None) -> str:
     """Write the source stamp of the checkout ``top`` (default: the one imssr is imported from):
-    its commit, whether it is clean, and the sha256 of every tracked file of the package.
-    Returns its path; a folder that is no git checkout is one line."""
+    its commit, whether it is clean, and the sha256 of every tracked file of the package; into
+    ``path`` (default: :data:`SOURCE_STAMP` in ``top``, where a copy reads it).  Returns its path;
+    a folder that is no git checkout is one line."""
     top = top or _checkout()
     commit, clean = _git(top) if os.path.exists(os.path.join(top, ".git")) else (None, None)
     if commit is None:
@@ -129,7 +130,7 @@ def write_stamp(top: Optional[str] = None) -> str:
     listed = subprocess.run(["git", "-C", top, "ls-files", "-z", "--", "imssr"], capture_output=True, text=True,
                             timeout=30, check=True).stdout
     files = {name: _sha256(os.path.join(top, name)) for name in sorted(listed.split("\0")) if name}
-    path = os.path.join(top, SOURCE_STAMP)
+    path = path or os.path.join(top, SOURCE_STAMP)
     atomic_write_text(path, json.dumps({"commit": commit, "clean": clean, "files": files}, indent=1) + "\n")
     return path
 

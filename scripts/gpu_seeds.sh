@@ -6,7 +6,8 @@
 #   OUT=/path/for/results bash scripts/gpu_seeds.sh
 #
 # What comes back, under $OUT/seeds/ (8 files, one folder deep), in the order they are made:
-#   device.txt       nvidia-smi; Python, torch, CUDA, cuDNN, numpy and dm_control versions
+#   device.txt       what was installed from .gpu-bundle; nvidia-smi; Python, torch, CUDA, cuDNN,
+#                    numpy, dm_control and mujoco versions, and the commit
 #   check.txt        pytest on the GPU of tests/test_cuda_graphs.py, tests/test_no_sync.py and
 #                    tests/test_agent.py: recorded updates and actions against eager ones (single
 #                    agents, a vmap batch), a member among 3 and among 16 on streams against its run
@@ -25,15 +26,15 @@
 #                    (above 1: kernels ran at the same time)
 #   alone.txt        bench/step_time.py: one seed with its environment (render and step included),
 #                    eager and recorded
-# On a GPU machine with torch but without dm_control, MuJoCo, omegaconf and docstring-parser, and
-# without a package index to fetch them from, bring their wheels in .whl/ and start with
-#   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-#     --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site || exit; OUT=$OUT bash scripts/gpu_seeds.sh
-# alone.txt renders with EGL: where `ldconfig -p | grep libEGL` prints nothing on the machine, carry
-# Debian's libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2 .debs and unpack them first.
+# On a GPU machine with torch but without dm_control, MuJoCo, gymnasium, omegaconf and
+# docstring-parser, and without a package index, first make .gpu-bundle in the checkout, after your
+# last commit, and bring it along with the code (a device call's carry names it):
+#   python scripts/gpu_bundle.py --python 3.12     # 22.6 MiB; 26.0 MiB with the checkout's files
+# scripts/gpu_common.sh installs its wheels with no index before anything imports imssr, and
+# unpacks its Debian EGL and OpenGL loaders (alone.txt renders with EGL) where the machine has none.
 # Each item has its own share of BUDGET_S (default 470 s) and is cut, not the script, when it runs
-# over.  DEVICE (cuda) and TINY=1 (tiny networks, a few steps: the CPU test in
-# tests/test_gpu_script.py); on the CPU the check's GPU tests skip.
+# over.  DEVICE (cuda), GPU_BUNDLE (default .gpu-bundle) and TINY=1 (tiny networks, a few steps:
+# the CPU test in tests/test_gpu_script.py); on the CPU the check's GPU tests skip.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT_DIR="${OUT:-/tmp/gpu-out}/seeds"

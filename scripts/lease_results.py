@@ -18,7 +18,8 @@ so a run counts only if it finishes inside the budget.  What it does:
    (``imssr train --config`` for one, ``--runs`` for several in one batch), in a fresh
    ``--work`` directory, each run with its sweep file's settings; the lease changes only where
    and how they execute (device, replay in host memory, environments in worker processes, no
-   TensorBoard: ``results.RUN_ONLY`` settings, which a report never takes for a variant).
+   TensorBoard, no checkpoint before the run's end: :data:`LEASE_SETTINGS`, ``results.RUN_ONLY``
+   settings, which a report never takes for a variant).
 3. **Measure, and keep what finishes.** Every few seconds it reads each process's ``train.csv``
    (a row per episode: agent step, wall time).  Once each process has two episodes of updates
    and one evaluation behind it, it knows the seconds per agent step of updates and per
@@ -74,11 +75,16 @@ from imssr.rundir import RunDir, run_path  # noqa: E402
 from imssr.sweep.grid import Run, SweepConfig, load_sweep_file, parse_seeds  # noqa: E402
 from imssr.sweep.runner import RunAttempt  # noqa: E402
 
-LEASE_SETTINGS = ("train.tensorboard=false", "train.replay_device=cpu", "train.env_workers=true")
+LEASE_SETTINGS = ("train.tensorboard=false", "train.replay_device=cpu", "train.env_workers=true",
+                  "train.checkpoint_every_steps=0", "train.save_buffer=false")
 """Where and how the runs execute, on top of the sweep file's settings (``--set`` adds to them):
 no TensorBoard files (nothing but the CSV logs comes back), replay frames in host memory (each
 run's store on the GPU would reserve its whole capacity), each environment in a worker process
-that steps while the agent learns.  All are ``imssr.report.results.RUN_ONLY`` settings."""
+that steps while the agent learns, and no checkpoint but the one a run writes at its end or when
+it is stopped, without its replay frames: the machine is given back with every file on it, so a
+checkpoint resumes nothing, and a run's frames written every few thousand agent steps (up to
+about 375 MB a run) cost the lease time.  Checkpoints change no number of a run
+(tests/test_checkpoint.py).  All are ``imssr.report.results.RUN_ONLY`` settings."""
 ARCHIVE_LIMIT = 15 * 2 ** 20
 """Bytes of run files (uncompressed) in one archive: below the 16 MiB a leased machine returns."""
 MAX_ARCHIVES = 4

@@ -52,6 +52,17 @@ def test_resume_after_kill_reaches_the_same_final_state(full_run, tmp_path):
         assert _strip(read_csv(full_dir / name)) == _strip(read_csv(tmp_path / name)), name
 
 
+def test_checkpoints_change_no_number_of_a_run(full_run, tmp_path):
+    """A run with no checkpoint before its end and none of its replay frames saved (what
+    scripts/lease_results.py trains with) equals the run that checkpointed with its frames after
+    each episode: agent, generators, counters and logs."""
+    cfg = _cfg()
+    cfg.train.checkpoint_every_steps, cfg.train.save_buffer = 0, False
+    train_run(cfg, tmp_path)
+    assert load_checkpoint(RunDir(str(tmp_path)).latest).replay_file is None
+    _assert_same_runs(full_run[0], tmp_path)
+
+
 def _short(steps, **train):
     # Episodes of 125 agent steps; learning from agent step 60, an evaluation every 125.
     return tiny_config("im-curl", steps=steps, seed_steps=60, eval_every_steps=125,

@@ -5,16 +5,19 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 
 from conftest import REPO
 
 
 def run_script(name: str, out, **env) -> tuple[subprocess.CompletedProcess, list[str]]:
-    """``scripts/NAME`` on the CPU at tiny sizes; it must succeed and leave what a device run
-    brings back: at most 8 files under ``out``, at most one folder deep.  Returns the process and
-    those files' paths relative to ``out``, sorted."""
+    """``scripts/NAME`` on the CPU at tiny sizes, with this test's Python and no folder of packages
+    to install (tests/test_gpu_bundle.py installs one); it must succeed and leave what a device
+    run brings back: at most 8 files under ``out``, at most one folder deep.  Returns the process
+    and those files' paths relative to ``out``, sorted."""
     proc = subprocess.run(["bash", os.path.join(REPO, "scripts", name)],
-                          env={**os.environ, "OUT": str(out), "TINY": "1", "DEVICE": "cpu", **env},
+                          env={**os.environ, "OUT": str(out), "TINY": "1", "DEVICE": "cpu", "PYTHON": sys.executable,
+                               "GPU_BUNDLE": os.path.join(str(out), "no-bundle"), **env},
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     files = sorted(os.path.relpath(os.path.join(d, f), out) for d, _, fs in os.walk(out) for f in fs)

@@ -458,6 +458,20 @@ def test_telling_apart_runs_of_one_seed_reads_each_run_a_fixed_number_of_times()
     assert reads[1] == 2 * reads[0]
 
 
+def test_runs_of_one_seed_that_differ_in_what_they_kept_are_copies_not_variants():
+    """Checkpoint settings (scripts/lease_results.py's runs keep none before their end) change no
+    number of a run: two runs of one seed that differ only there are labelled by their folders."""
+    from imssr.presets import make_config
+    from imssr.report.results import RunResult, set_apart
+
+    flat = make_config("curl", TASK).flat()
+    kept = {"train.checkpoint_every_steps": 0, "train.save_buffer": False, "train.keep_checkpoints": 3}
+    runs = [RunResult(Run("curl", TASK, 1, None, f"/sweeps/{name}/{TASK}/curl/seed_1"), 1000, 8, settings=settings)
+            for name, settings in (("sweep", flat), ("lease", {**flat, **kept}))]
+    set_apart(runs, "/sweeps")
+    assert [r.label for r in runs] == [f"curl [sweep/{TASK}/curl]", f"curl [lease/{TASK}/curl]"]
+
+
 def test_a_report_passes_over_the_runs_a_fixed_number_of_times(tmp_path, monkeypatch):
     """Each run its own row (copies of one run of one seed): tables, points and curves take a
     fixed number of passes over the runs, not one per row or curve."""

@@ -174,8 +174,10 @@ def collect(root: str) -> SweepResults:
 IDENTITY = ("algo", "env.task", "train.seed")
 """Settings that every run of a group may differ in (its seed) or that name the group already."""
 RUN_ONLY = ("train.device", "train.torch_threads", "train.progress", "train.wandb", "train.wandb_group",
-            "train.tensorboard", "train.replay_device", "train.gpu_share", "train.env_workers")
-"""Settings that say where and how a run was executed, not what it learned with: never a variant."""
+            "train.tensorboard", "train.replay_device", "train.gpu_share", "train.env_workers",
+            "train.checkpoint_every_steps", "train.save_buffer", "train.keep_checkpoints")
+"""Settings that say where and how a run was executed and what of it was kept, not what it
+learned with: never a variant (checkpoints change no number: tests/test_checkpoint.py)."""
 
 
 def set_apart(runs: list[RunResult], root: str) -> None:
