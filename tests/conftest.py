@@ -155,16 +155,23 @@ def run_python(*args: str, **kw) -> subprocess.CompletedProcess:
 
 def run_command(*argv: str, check: bool = True, timeout: float = 600, what: str = "",
                 **kw) -> subprocess.CompletedProcess:
-    """``ARGV`` in a process of its own, its output captured as text.  With ``check``, a failure
-    raises an AssertionError that says how the process ended (its exit status, or the signal that
-    killed it: a native crash) and what it printed."""
+    """``ARGV`` in a process group of its own, its output captured as text.  With ``check``, a
+    failure raises an AssertionError that says how the process ended (its exit status, or the
+    signal that killed it: a native crash) and what it printed.  Past ``timeout`` seconds the
+    whole group is killed (a shell's children too) and the test fails with what it printed."""
     from imssr.crash import describe_exit
 
-    proc = subprocess.run(list(argv), capture_output=True, text=True, timeout=timeout, **kw)
+    proc = subprocess.Popen(list(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True, **kw)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        raise AssertionError(f"{what or ' '.join(argv)} ran past {timeout:.0f} s:\n{out}\n{err}") from None
     if check and proc.returncode != 0:
-        raise AssertionError(f"{what or ' '.join(argv)} failed, {describe_exit(proc.returncode)}:\n"
-                             f"{proc.stdout}\n{proc.stderr}")
-    return proc
+        raise AssertionError(f"{what or ' '.join(argv)} failed, {describe_exit(proc.returncode)}:\n{out}\n{err}")
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
 def train_stopped_at(trainer, step: int) -> None:
