@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Iterator, NamedTuple, Opti
 
 from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
-from imssr.files import TEMP_GLOB, atomic_write_text, read_csv
+from imssr.files import OWN_FILE_RULE, TEMP_GLOB, atomic_write_text, read_csv
 from imssr.jsonio import dumps
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
 
@@ -407,7 +407,9 @@ class RunDir:
 
     def record_provenance(self, record: dict) -> str:
         """Append ``record`` (:func:`imssr.provenance.record`) to the run's provenance, atomically.
-        A file that cannot be read is kept beside as ``provenance.json.damaged`` and a new list begun."""
+        A file that cannot be read is kept beside as ``provenance.json.damaged`` and a new list
+        begun; a symbolic link in its place is refused (:meth:`refuse_linked_provenance`)."""
+        self.refuse_linked_provenance()
         records = self.read_provenance()
         if records is None:
             os.replace(self.provenance_path, self.provenance_path + ".damaged")
@@ -415,6 +417,14 @@ class RunDir:
         os.makedirs(self.path, exist_ok=True)
         atomic_write_text(self.provenance_path, dumps({"records": records + [record]}, indent=2) + "\n")
         return self.provenance_path
+
+    def refuse_linked_provenance(self) -> None:
+        """A one-line error when ``provenance.json`` is a symbolic link: the records are read back
+        and rewritten whole at every start, so through a link they would take in a file from
+        outside the run (or set that file aside as damaged), as a log written through one would
+        (:func:`~imssr.files.open_own`)."""
+        if os.path.islink(self.provenance_path):
+            raise ImssrError(f"{self.provenance_path} is a symbolic link; {OWN_FILE_RULE}")
 
     def read_provenance(self) -> Optional[list[dict]]:
         """The provenance records, oldest first: [] when there is no file (a run of imssr before

@@ -341,12 +341,13 @@ class Start:
     @classmethod
     def take(cls, cfg: RunConfig, run: Union[RunDir, str], new_run: bool, checked: bool = False) -> "Start":
         """``run`` locked (a second writer fails at once) with ``cfg`` validated (:func:`_checked`;
-        ``checked``: already, :func:`checked_configs`)."""
+        ``checked``: already, :func:`checked_configs`) and no link in place of its provenance."""
         run_dir = as_run_dir(run)
         if os.path.exists(run_dir.path) and not os.path.isdir(run_dir.path):
             raise ImssrError(f"--out {run_dir.path} is a file, not a directory")
         lock = run_dir.open()
         try:
+            run_dir.refuse_linked_provenance()
             return cls(cfg if checked else _checked(cfg, new_run), run_dir, lock)
         except BaseException:
             lock.release()
