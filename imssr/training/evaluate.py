@@ -194,14 +194,15 @@ def _check_writable(run: RunDir, video: bool, montage: bool) -> None:
     evaluation takes minutes, and its returns would be lost.  The logs that exist are opened to
     append, changing nothing; a file to create needs its folder writable."""
     logs = (run.evaluate_log, run.evaluate_episodes_log)
-    folders = ([run.path] if montage or not all(os.path.lexists(p) for p in logs) else []) + \
-        ([run.videos_dir] if video and os.path.isdir(run.videos_dir) else [])
+    folders = {run.path for made in (montage, not all(os.path.lexists(p) for p in logs)) if made}
+    if video:  # its folder is made in the run when missing
+        folders.add(run.videos_dir if os.path.isdir(run.videos_dir) else run.path)
     where = run.path
     try:
         for where in logs:
             if os.path.lexists(where):
                 os.close(open_own(where, os.O_WRONLY | os.O_APPEND))
-        for where in folders:
+        for where in sorted(folders):
             with tempfile.TemporaryFile(dir=where):
                 pass
     except OSError as exc:
