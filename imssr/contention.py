@@ -200,6 +200,12 @@ def busy_cores_now(interval_s: float = 0.2) -> Optional[float]:
     return others_busy_cores(before, after, os.cpu_count() or 1, left_before, left_after)
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity: a cgroup's or ``taskset``'s), else
+    the machine's."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def contention_warning(threads: int, load: float | None = None, cores: int | None = None) -> str | None:
     """A one-line warning if ``threads`` torch threads would contend with other busy processes.
 
@@ -213,7 +219,7 @@ def contention_warning(threads: int, load: float | None = None, cores: int | Non
     if threads <= 1:
         return None
     if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        cores = usable_cores()
     if load is None:
         try:
             load = os.getloadavg()[0]

@@ -7,8 +7,9 @@ whether tracked files differ from it; Python, torch, CUDA, cuDNN, the NVIDIA dri
 dm_control, mujoco), the device (its name: the GPU's, or the CPU model and whether it computes
 bfloat16 natively) and the command line.  No host name is recorded, and every absolute or
 home-relative path in the command line, also inside a ``--set`` value, is cut to its last part
-(``…/runs``): a committed record does not carry its author's machine.  (``config.json`` keeps the
-data folders a run reads as given, so that a resume reads the same.)
+(``…/runs``): a committed record does not carry its author's machine.  (A run's ``config.json``
+keeps the data folders it reads as given, so that a resume reads the same; ``imssr export`` cuts
+them in its copy alike.)
 
 A copy of a checkout without its ``.git`` (copied to a cluster or a machine without git) knows
 its commit from a source stamp, ``.imssr-source.json`` beside the package, which
@@ -182,17 +183,19 @@ after ``=``, ``[``, ``,``, ``(``, a space or a quote (``--out=/x``, ``--set aux.
 
 
 def command_line(argv: list[str]) -> list[str]:
-    """``argv`` with the program cut to its name and every absolute or home-relative path inside
-    an argument (:data:`PATH_IN_ARG`) cut to its last part, ``…/name``; an argument that still
-    names the home directory is cut as a whole."""
-    out = [os.path.basename(argv[0])] if argv else []
+    """``argv`` with the program cut to its name and the paths in each argument cut
+    (:func:`shorten_paths`)."""
+    return ([os.path.basename(argv[0])] if argv else []) + [shorten_paths(arg) for arg in argv[1:]]
+
+
+def shorten_paths(text: str) -> str:
+    """``text`` with every absolute or home-relative path inside it (:data:`PATH_IN_ARG`) cut to
+    its last part, ``…/name``; a text that still names the home directory is cut as a whole."""
+    text = PATH_IN_ARG.sub(lambda m: "…/" + os.path.basename(m.group(0).rstrip("/")), text)
     home = os.path.expanduser("~")
-    for arg in argv[1:]:
-        arg = PATH_IN_ARG.sub(lambda m: "…/" + os.path.basename(m.group(0).rstrip("/")), arg)
-        if home not in ("", "/") and home in arg:
-            arg = "…/" + os.path.basename(arg.rstrip("/"))
-        out.append(arg)
-    return out
+    if home not in ("", "/") and home in text:
+        text = "…/" + os.path.basename(text.rstrip("/"))
+    return text
 
 
 def summary(entry: dict) -> str:

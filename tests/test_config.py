@@ -120,9 +120,11 @@ def test_wrong_types_and_inconsistent_settings_are_one_line_errors(tmp_path):
                                        r"aborts the process when it cannot start a thread, and no CPU runs more at "
                                        r"once\), got 2147483647$"),
     ("train.torch_threads=100000", r"^train.torch_threads must be in \[0, 1024\] .*, got 100000$"),
-    ("env.shadow_size=2147483647", r"^env.shadow_size must be in \[1, 16384\] \(MuJoCo's shadow map is an OpenGL "
-                                   r"texture, and 16384 px is the largest side every renderer takes\), got 2147483647$"),
-    ("env.shadow_size=65536", r"^env.shadow_size must be in \[1, 16384\] .*, got 65536$"),
+    ("env.shadow_size=2147483647", r"^env.shadow_size must be in \[1, 4096\] \(MuJoCo's default; a larger map "
+                                   r"sharpens no shadow of a frame of at most 480 px and renders many times slower\), "
+                                   r"got 2147483647$"),
+    ("env.shadow_size=16384", r"^env.shadow_size must be in \[1, 4096\] .*, got 16384$"),
+    ("env.shadow_size=4097", r"^env.shadow_size must be in \[1, 4096\] .*, got 4097$"),
     ("agent.critic_beta1=1.5", r"^agent.critic_beta1 must be in \[0, 1\) \(torch's Adam\), got 1.5$"),
     ("agent.actor_beta1=-0.1", r"^agent.actor_beta1 must be in \[0, 1\) \(torch's Adam\), got -0.1$"),
     ("agent.alpha_beta1=1.0", r"^agent.alpha_beta1 must be in \[0, 1\) \(torch's Adam\), got 1.0$"),
@@ -140,7 +142,7 @@ def test_the_bounds_are_what_the_libraries_take():
     from imssr.networks import ConvTrunk
 
     cfg = apply_overrides(make_config("curl", "walker_walk"), [
-        "agent.crop_size=3", "agent.encoder_layers=1", "train.torch_threads=1024", "env.shadow_size=16384",
+        "agent.crop_size=3", "agent.encoder_layers=1", "train.torch_threads=1024", "env.shadow_size=4096",
         "agent.critic_beta1=0", "agent.actor_beta1=0.999999", "agent.alpha_beta1=0.5"])
     cfg.validate()
     assert ConvTrunk(9, 3, 1, 4)(torch.zeros(2, 9, 3, 3)).shape == (2, 4)

@@ -162,14 +162,15 @@ def test_shadow_map_size_changes_pixels_only_slightly():
             e.close()
 
 
-def test_a_shadow_map_larger_than_opengl_textures_is_refused_in_one_line():
-    """Past the largest texture side every renderer takes, a shadow map is refused by its name
-    before any GL context is made, not blamed on the EGL install."""
+def test_a_shadow_map_larger_than_mujocos_default_is_refused_in_one_line():
+    """Past MuJoCo's default side, a shadow map is refused by its name before any GL context is
+    made (past OpenGL's largest texture, the EGL install would be blamed)."""
     from imssr.envs import make_env
 
     with pytest.raises(imssr.ImssrError) as err:
         make_env("cartpole_swingup", seed=0, shadow_size=65536)
-    assert str(err.value) == "shadow_size must be in [1, 16384] (an OpenGL texture's side), got 65536"
+    assert str(err.value) == ("shadow_size must be in [1, 4096] (MuJoCo's default; a larger map renders many times "
+                              "slower and sharpens nothing), got 65536")
 
 
 @pytest.mark.skipif(os.environ.get("MUJOCO_GL", "egl") != "egl", reason="EGL only")

@@ -285,3 +285,33 @@ def test_runs_that_differ_only_in_a_setting_stay_apart_in_report_and_export(tmp_
     assert export_runs(str(root), str(dest)) and all(e.state == "unchanged" for e in export_runs(str(root), str(dest)))
     write_report(str(dest), str(tmp_path / "report2"), reps=20)
     assert sorted({r["label"] for r in read_csv(str(tmp_path / "report2" / "table.csv"))}) == labels
+
+
+def test_export_cuts_the_absolute_paths_of_a_config_that_the_run_keeps_whole(tmp_path):
+    """Data folders given as absolute paths (``aux.image_dir``, ``env.footage_dir``) stay whole in
+    the run's own config.json, which a resume and `imssr evaluate` read, and reach the export cut
+    to their last part, ``…/imgs``, as provenance.json's command line has them: an export is made
+    to be shared, and carries no file of its author's machine."""
+    root, dest = tmp_path / "sweep", tmp_path / "dest"
+    images, footage = tmp_path / "alice" / "imgs", tmp_path / "alice" / "clips"
+    os.makedirs(images)
+    os.makedirs(footage)
+    cfg = _tiny("curl", 1)
+    cfg.aux.image_dir, cfg.env.footage_dir = str(images), str(footage)
+    run = run_path(str(root), TASK, "curl", 1)
+    _train_finished(cfg, run)
+    own = json.load(open(os.path.join(run, "config.json")))
+    assert (own["aux"]["image_dir"], own["env"]["footage_dir"]) == (str(images), str(footage))
+
+    [item] = export_runs(str(root), str(dest))
+    assert item.state == "new"
+    for folder, _, names in os.walk(dest):
+        for name in names:
+            assert str(tmp_path) not in open(os.path.join(folder, name), encoding="utf-8").read(), name
+    shared = json.load(open(os.path.join(item.dest, "config.json")))
+    assert (shared["aux"]["image_dir"], shared["env"]["footage_dir"]) == ("…/imgs", "…/clips")
+    assert {k: v for k, v in shared.items() if k not in ("aux", "env")} == \
+        {k: v for k, v in own.items() if k not in ("aux", "env")}
+    assert [e.state for e in export_runs(str(root), str(dest))] == ["unchanged"]
+    write_report(str(dest), str(tmp_path / "report"), reps=20)
+    assert read_csv(str(tmp_path / "report" / "table.csv"))[0]["label"] == "curl"

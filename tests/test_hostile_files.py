@@ -178,6 +178,27 @@ def test_writes_in_a_run_directory_refuse_to_follow_a_link(tmp_path):
     assert outside.read_text() == "precious\n"
 
 
+def test_a_provenance_json_that_is_a_link_is_refused_before_the_run_starts(tmp_path):
+    """provenance.json is read back and rewritten whole at every start: a link in its place (to
+    someone's file outside the run) is refused in one line before anything is written, rather
+    than its target read into the run's records or the link set aside for a new list."""
+    from imssr.training import Trainer
+
+    outside = tmp_path / "notes.txt"
+    outside.write_text("precious, not JSON\n")
+    run = RunDir(str(tmp_path / "run"))
+    os.makedirs(run.path)
+    os.symlink(outside, run.provenance_path)
+    message = r"^{} is a symbolic link; imssr writes only to a file of its own there \(remove the link\)$"
+    with pytest.raises(ImssrError, match=message.format(run.provenance_path)):
+        Trainer(tiny_config("curl"), run.path)
+    assert not os.path.exists(run.config_path) and os.path.islink(run.provenance_path)
+    with pytest.raises(ImssrError, match=message.format(run.provenance_path)):
+        run.record_provenance({"event": "start"})
+    assert os.listdir(run.path) == ["provenance.json"]
+    assert outside.read_text() == "precious, not JSON\n"
+
+
 # -- bytes that are not UTF-8, JSON nested too deep -----------------------------------------
 
 def test_a_run_with_a_damaged_eval_log_is_skipped_by_report_and_export_with_a_note(tmp_path):

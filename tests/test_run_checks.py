@@ -138,6 +138,20 @@ def test_a_real_diverging_run_is_one_line_that_the_sweep_records(precision, tmp_
     assert "Traceback" not in log and "PhysicsError" not in log
 
 
+def test_more_torch_threads_than_cores_train_with_the_cores_and_say_so(tmp_path, capsys):
+    """train.torch_threads past the cores this process may run on: threads that spin against each
+    other are no faster and often many times slower, so the run takes the cores, in one line."""
+    cores = len(os.sched_getaffinity(0))
+    try:
+        Trainer(fast(torch_threads=1000), str(tmp_path / "run")).close()
+        assert torch.get_num_threads() == cores
+    finally:
+        torch.set_num_threads(TORCH_THREADS)
+    said = [line for line in capsys.readouterr().out.splitlines() if "thread" in line]
+    assert said[0] == (f"imssr: warning: train.torch_threads=1000 is more than the {cores} cores this process may "
+                       f"run on: it trains with {cores} torch threads"), said
+
+
 def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_smaller_budget(tmp_path, capsys):
     out = str(tmp_path / "run")
     try:

@@ -638,3 +638,35 @@ def test_without_config_json_or_checkpoint_there_is_nothing_to_resume(tmp_path, 
     os.makedirs(tmp_path / "run")
     assert main(["train", "--resume", "--out", str(tmp_path / "run")]) == 2
     assert f"nothing to resume: {tmp_path / 'run' / 'config.json'} does not exist" in capsys.readouterr().err
+
+
+@contextlib.contextmanager
+def read_only(directory):
+    """``directory`` read-only: a read-only bind mount of it (root, whom a folder's mode does not
+    stop), else its mode."""
+    if os.geteuid() != 0:
+        mode = os.stat(directory).st_mode
+        os.chmod(directory, 0o555)
+        try:
+            yield
+        finally:
+            os.chmod(directory, mode)
+        return
+    proc = subprocess.run(["mount", "--bind", "-o", "ro", directory, directory], capture_output=True, text=True)
+    if proc.returncode != 0:
+        pytest.skip(f"cannot mount a folder read-only here: {proc.stderr.strip()}")
+    try:
+        yield
+    finally:
+        subprocess.run(["umount", "-l", directory], check=False)
+
+
+def test_evaluate_on_a_read_only_run_refuses_before_it_evaluates(run, capsys):
+    """A run that cannot take the evaluation's results is one line before any episode is played,
+    not after the whole evaluation."""
+    with read_only(run):
+        assert main(["evaluate", "--run", run, "--episodes", "1"]) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith(f"imssr: error: imssr evaluate cannot write its results to {run} (") and \
+        err.endswith("): nothing was evaluated; evaluate a copy of the run in a folder you can write\n"), err
+    assert "return" not in out and not os.path.exists(RunDir(run).evaluate_log)

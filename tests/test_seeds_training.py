@@ -6,6 +6,7 @@ import csv
 import errno
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -475,3 +476,79 @@ def test_a_batch_that_finds_a_run_taken_leaves_no_trace(tmp_path):
     finally:
         lock.release()
     assert sorted(os.listdir(tmp_path)) == []
+
+
+# -- what a refused batch resume advises works when followed ---------------------------------
+
+ALONE = ["--algo", "curl", "--task", "cartpole_swingup_sparse", "--seed-steps", "60", "--eval-every", "40",
+         "--eval-episodes", "1", "--checkpoint-every", "40", "--no-progress", "--no-tensorboard", *tiny_sets(),
+         "--set", "train.burst_updates=0", "--set", "train.replay_capacity=1000",
+         "--set", f"train.torch_threads={TORCH_THREADS}"]
+
+
+def test_the_advice_for_runs_at_different_steps_works_as_given(tmp_path, capsys):
+    """Seed 1 trained alone to agent step 80 and seed 2 to 120 share no checkpoint. Resumed
+    together with a budget of 100, which seed 2 is already past, the line names the two commands
+    to run; run as given, they succeed, and both runs end at one step."""
+    first, second = str(tmp_path / "seed_1"), str(tmp_path / "seed_2")
+    assert cli_status("train", *ALONE, "--seed", "1", "--steps", "80", "--out", first) == 0
+    assert cli_status("train", *ALONE, "--seed", "2", "--steps", "120", "--out", second) == 0
+    capsys.readouterr()
+    assert cli_status("train", "--runs", first, second, "--resume", "--steps", "100", "--no-progress") == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and f"bring {first} to step 120 alone first" in err, err
+    alone, together = re.search(r"\((imssr train --out RUN_DIR --resume --steps \d+)\), then resume them together "
+                                r"with (--steps \d+)", err).groups()
+    assert cli_status(*alone.replace("RUN_DIR", first).split()[1:], "--no-progress") == 0
+    assert cli_status("train", "--runs", first, second, "--resume", *together.split(), "--no-progress") == 0, \
+        capsys.readouterr().err
+    assert [RunDir(run).checkpoint().checkpoint.step for run in (first, second)] == [120, 120]
+
+
+KILLED_IN_WRITE = """
+import os, signal, sys
+
+import imssr.rundir.checkpoint as checkpoint
+from imssr.files import temp_file_target
+
+sealed = checkpoint._write_sealed
+
+
+def killing(state, path):
+    # ``path`` is atomic_path's temporary file beside the checkpoint it becomes.
+    if os.path.join(os.path.dirname(path), temp_file_target(os.path.basename(path)) or "") == os.environ["KILL_AT"]:
+        os.kill(os.getpid(), signal.SIGKILL)  # as SIGKILL from outside, the temporary file made
+    sealed(state, path)
+
+
+checkpoint._write_sealed = killing
+from imssr.cli import main
+
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_batch_killed_in_its_first_runs_first_write_is_told_to_start_afresh(tmp_path, capsys):
+    """Killed as seed 1 writes its first checkpoint (a temporary file, no checkpoint in any run):
+    ``--resume`` says in one line to start every run afresh, and the same command without it
+    does."""
+    for cfg, run in zip(configs(), runs(tmp_path)):
+        cfg.train.torch_threads = TORCH_THREADS
+        RunDir(run).write_config(cfg)
+    proc = subprocess.run([sys.executable, "-c", KILLED_IN_WRITE, "train", "--runs", *runs(tmp_path)],
+                          capture_output=True, text=True, timeout=900,
+                          env={**os.environ, "KILL_AT": os.path.join(runs(tmp_path)[0], "checkpoints",
+                                                                     "step-000000125.pt"),
+                               "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    assert proc.returncode == -9, proc.stdout + proc.stderr
+    assert any(name.startswith(".tmp-") for name in os.listdir(os.path.join(runs(tmp_path)[0], "checkpoints")))
+    assert not any(RunDir(run).has_checkpoint() for run in runs(tmp_path))
+
+    before = files_of(tmp_path)
+    assert cli_status("train", "--runs", *runs(tmp_path), "--resume", "--no-progress") == 2
+    assert capsys.readouterr().err == (
+        "imssr: error: nothing to resume: no run of the batch holds a checkpoint (the batch stopped before its "
+        "first checkpoint was complete); start every run afresh: the same command without --resume\n")
+    assert files_of(tmp_path) == before
+    assert cli_status("train", "--runs", *runs(tmp_path), "--no-progress") == 0
+    assert [RunDir(run).checkpoint().checkpoint.step for run in runs(tmp_path)] == [150, 150]

@@ -33,8 +33,8 @@ def validate_config(cfg: Sections) -> None:
         (e.action_repeat >= 1, "env.action_repeat must be >= 1"),
         (e.frame_stack >= 1, "env.frame_stack must be >= 1"),
         (1 <= e.shadow_size <= MAX_SHADOW_SIZE,
-         f"env.shadow_size must be in [1, {MAX_SHADOW_SIZE}] (MuJoCo's shadow map is an OpenGL texture, and "
-         f"{MAX_SHADOW_SIZE} px is the largest side every renderer takes), got {e.shadow_size}"),
+         f"env.shadow_size must be in [1, {MAX_SHADOW_SIZE}] (MuJoCo's default; a larger map sharpens no shadow "
+         f"of a frame of at most {MAX_IMAGE_SIZE} px and renders many times slower), got {e.shadow_size}"),
         (0 < a.crop_size <= e.image_size, "agent.crop_size must be in (0, env.image_size]"),
         (a.crop_size >= MIN_CROP_SIZE,
          f"agent.crop_size must be at least {MIN_CROP_SIZE} (the encoder's first convolution is "

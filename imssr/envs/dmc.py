@@ -68,8 +68,8 @@ class DMCEnv(gym.Env):
         if frame_stack < 1:
             raise ImssrError(f"frame_stack must be >= 1, got {frame_stack}")
         if not 1 <= shadow_size <= MAX_SHADOW_SIZE:
-            raise ImssrError(f"shadow_size must be in [1, {MAX_SHADOW_SIZE}] (an OpenGL texture's side), "
-                             f"got {shadow_size}")
+            raise ImssrError(f"shadow_size must be in [1, {MAX_SHADOW_SIZE}] (MuJoCo's default; a larger map "
+                             f"renders many times slower and sharpens nothing), got {shadow_size}")
         check_gl()
         suite, Camera = _import_dm_control()
 

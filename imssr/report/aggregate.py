@@ -4,16 +4,20 @@ Scores are returns divided by 1000, the maximum episode return of every DMC task
 weigh alike.  Per mode and fraction of T: the interquartile mean (IQM) of each algo with a
 95% stratified-bootstrap confidence interval, where every task has at least
 :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds (with fewer, the IQM is about the
-mean and the interval about [min, max]: none is given, and a note says why).  Comparisons of
+mean and the interval about [min, max]: none is given, and a note says why), and where rliable
+(the ``report`` extra) is installed: without it the rest of the report is made, and a note and a
+warning say that the IQM needs it.  Comparisons of
 two algorithms are made within a task (:mod:`imssr.report.comparisons`), not pooled here.
 """
 from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 
+from imssr.errors import ImssrError
 from imssr.extras import require
 from imssr.files import atomic_write_csv
 from imssr.report.stats import MIN_SEEDS_FOR_BOOTSTRAP
@@ -51,11 +55,15 @@ def score_matrix(rows: list[Row], fraction_index: int, tasks: list[str]) -> np.n
     return np.array(cols, dtype=float).T / DMC_MAX_RETURN
 
 
-def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggregate], list[str]]:
+def compute(rows: list[Row], reps: int = 2000, seed: int = 0,
+            warn: Optional[Callable[[str], None]] = None) -> tuple[list[Aggregate], list[str]]:
     """IQM per label where every task it averages has at least
-    :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds."""
+    :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds.  Without rliable (the report
+    extra) there is none, and one note, also given to ``warn``, says why: the rest of a report
+    needs no extra, so it is made all the same."""
     out: list[Aggregate] = []
     notes: list[str] = []
+    missing: Optional[str] = None
     for mode in mode_order(r.mode for r in rows):
         by_label: dict[str, list[Row]] = {}
         for row in rows:
@@ -85,17 +93,35 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggr
                 matrices = {label: m for label, m in matrices.items() if label not in few}
             if not matrices:
                 continue
+            missing = missing or _missing_extra()
+            if missing:
+                continue
             point, ci = _iqm_estimates(matrices, reps, seed)
             for label, m in matrices.items():
                 out.append(Aggregate(mode, fraction, "IQM", label, float(point[label][0]),
                                      float(ci[label][0][0]), float(ci[label][1][0]), common, m.shape[0]))
+    if missing:
+        notes.append(missing)
+        if warn is not None:
+            warn(missing)
     return out, notes
+
+
+def _missing_extra() -> str:
+    """Why no IQM can be computed here ("no IQM: rliable is not installed ..."), or ""."""
+    try:
+        require("rliable.library", "report")
+        require("rliable.metrics", "report")
+    except ImssrError as exc:
+        return f"no IQM: {exc}"
+    return ""
 
 
 def _iqm_estimates(scores: dict, reps: int, seed: int):
     """rliable's IQM with its stratified-bootstrap interval, with a fixed seed, so a report is
     reproducible.  rliable (the report extra) is imported here, where an IQM is due: a report of
-    fewer seeds computes none and needs no extra."""
+    fewer seeds computes none and needs no extra, and one without it gives none
+    (:func:`compute`)."""
     rly = require("rliable.library", "report")
     metrics = require("rliable.metrics", "report")
 

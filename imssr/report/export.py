@@ -11,14 +11,24 @@ copies the latter of every *finished* run under a sweep root into
 Running or interrupted runs are left out: their logs would change under the copy, and a report
 of them belongs to the live sweep.  Copying again is idempotent: a file already there with the
 same bytes is left alone, so a loop that exports after every finished run writes each run once.
+
+An export is made to be shared, so it carries no path of its author's machine: the copy of
+``config.json`` has every absolute or home-relative path in a value (the data folders
+``aux.image_dir`` and ``env.footage_dir``) cut to its last part, ``…/imgs``, as
+``provenance.json``'s command line has it (:func:`imssr.provenance.shorten_paths`).  The run's
+own ``config.json`` keeps them whole: a resume and ``imssr evaluate`` read those folders.
 """
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
+from typing import Any
 
 from imssr.errors import ImssrError
 from imssr.files import atomic_path, open_own, temp_file_target
+from imssr.jsonio import dumps
+from imssr.provenance import shorten_paths
 from imssr.report.results import collect
 from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, PROVENANCE_FILE, TRAIN_LOG, run_path
 from imssr.sweep.grid import beta_label
@@ -104,6 +114,8 @@ def _copy_run(source: str, target: str) -> str:
         if not os.path.lexists(src):
             continue
         data = _read_own(src)
+        if name == CONFIG_FILE:
+            data = shared_config(data)
         dst = os.path.join(target, name)
         if os.path.islink(dst):
             raise ImssrError(f"{dst} is a symbolic link; the export writes only regular files")
@@ -119,6 +131,29 @@ def _copy_run(source: str, target: str) -> str:
             if fh.read() != data:
                 raise ImssrError(f"{dst} does not read back as written")
     return "new" if new else "updated" if changed else "unchanged"
+
+
+def shared_config(data: bytes) -> bytes:
+    """The bytes of a run's ``config.json`` as an export keeps them: every absolute or
+    home-relative path in a string value cut to its last part (module docstring), written as
+    :meth:`RunDir.write_config <imssr.rundir.RunDir.write_config>` writes a config; the bytes as
+    they are when no value holds such a path."""
+    try:
+        config = json.loads(data)
+    except ValueError:  # read before, by collect(): only a file changed since then lands here
+        raise ImssrError("a run's config.json changed while the export read it; run `imssr export` again") from None
+    shared = _shortened(config)
+    return data if shared == config else (dumps(shared, indent=2, sort_keys=True) + "\n").encode()
+
+
+def _shortened(value: Any) -> Any:
+    if isinstance(value, str):
+        return shorten_paths(value)
+    if isinstance(value, dict):
+        return {k: _shortened(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_shortened(v) for v in value]
+    return value
 
 
 def _read_own(path: str) -> bytes:

@@ -7,7 +7,8 @@ Files written under ``out``:
                        numbers beside with the difference and its 95% Welch interval
 - ``comparisons.csv``  per task: each algo with an intrinsic reward against its base, each
                        precision against fp32: n, P(X > Y) and the two-sided Mann-Whitney p
-- ``aggregates.csv``   rliable IQM across tasks with 95% bootstrap CIs (5 seeds per task or more)
+- ``aggregates.csv``   rliable IQM across tasks with 95% bootstrap CIs (5 seeds per task or more,
+                       and rliable installed: the ``report`` extra)
 - ``curves.png``       learning curves against agent steps, one panel per task and mode
 - ``beta0.png``        final return against beta_0 (only for a beta sweep)
 - ``report.md``        all of the above in one page, with the runs that failed (``sweep_status.json``,
@@ -58,7 +59,7 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None,
                      f"agent steps, so its 0.2T/0.5T/1.0T are other agent steps")
     made_by = makers(results)
     notes += mixed_makers(results, made_by)
-    aggregates, agg_notes = aggregate.compute(rows, reps=reps)
+    aggregates, agg_notes = aggregate.compute(rows, reps=reps, warn=_warn)
     notes += agg_notes
     pairs = comparisons.compute(rows)
     written = [
@@ -133,6 +134,10 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, 
     parts.append("## Notes\n")
     parts.append("\n".join(f"- {n}" for n in notes) + "\n" if notes else "Every expected seed reached every point.\n")
     return "\n".join(parts)
+
+
+def _warn(text: str) -> None:
+    print(f"imssr: warning: {text}", flush=True)
 
 
 def makers(results) -> dict[tuple[str, str], dict[str, int]]:

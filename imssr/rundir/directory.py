@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Iterator, NamedTuple, Opti
 
 from imssr.config import RunConfig, load_config
 from imssr.errors import DivergedError, ImssrError
-from imssr.files import TEMP_GLOB, atomic_write_text, read_csv
+from imssr.files import OWN_FILE_RULE, TEMP_GLOB, atomic_write_text, read_csv
 from imssr.jsonio import dumps
 from imssr.rundir.lock import LOCK_FILE, DirectoryLock, held_by
 
@@ -407,7 +407,9 @@ class RunDir:
 
     def record_provenance(self, record: dict) -> str:
         """Append ``record`` (:func:`imssr.provenance.record`) to the run's provenance, atomically.
-        A file that cannot be read is kept beside as ``provenance.json.damaged`` and a new list begun."""
+        A file that cannot be read is kept beside as ``provenance.json.damaged`` and a new list
+        begun; a symbolic link in its place is refused (:meth:`refuse_linked_provenance`)."""
+        self.refuse_linked_provenance()
         records = self.read_provenance()
         if records is None:
             os.replace(self.provenance_path, self.provenance_path + ".damaged")
@@ -415,6 +417,14 @@ class RunDir:
         os.makedirs(self.path, exist_ok=True)
         atomic_write_text(self.provenance_path, dumps({"records": records + [record]}, indent=2) + "\n")
         return self.provenance_path
+
+    def refuse_linked_provenance(self) -> None:
+        """A one-line error when ``provenance.json`` is a symbolic link: the records are read back
+        and rewritten whole at every start, so through a link they would take in a file from
+        outside the run (or set that file aside as damaged), as a log written through one would
+        (:func:`~imssr.files.open_own`)."""
+        if os.path.islink(self.provenance_path):
+            raise ImssrError(f"{self.provenance_path} is a symbolic link; {OWN_FILE_RULE}")
 
     def read_provenance(self) -> Optional[list[dict]]:
         """The provenance records, oldest first: [] when there is no file (a run of imssr before
@@ -874,15 +884,24 @@ def batch_checkpoints(runs: Sequence[RunDir], budget: int) -> list[CheckpointFil
     verifies, ``latest.pt`` or a numbered copy (:meth:`RunDir.stage_checkpoint` keeps one of the
     last step every run completed).  A run's ``note`` says when it is not ``latest.pt``.
 
-    One-line errors: no run has a checkpoint ("nothing to resume"); some have none (the batch
-    stopped during its first checkpoint: start afresh); the runs share no step (trained apart:
-    the line says which to bring where alone first, then to resume together with ``--steps
-    budget``); a run none of whose checkpoints verifies (:meth:`RunDir.checkpoint`'s error)."""
+    One-line errors: no run has a checkpoint ("nothing to resume"; a batch that began: start
+    afresh); some have none (the batch stopped during its first checkpoint: start afresh); the
+    runs share no step (trained apart: the line says which to bring where alone first, then to
+    resume together with ``--steps`` the budget, or the furthest run's step when that is past
+    it); a run none of whose checkpoints verifies (:meth:`RunDir.checkpoint`'s error)."""
     from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
 
     without = [run for run in runs if not run.has_checkpoint()]
     if len(without) == len(runs):
-        raise ImssrError(f"nothing to resume: {runs[0].latest} does not exist")
+        if len(runs) == 1:
+            raise ImssrError(f"nothing to resume: {runs[0].latest} does not exist")
+        # What a batch writes before its first checkpoint is whole (logs, a staged checkpoint or
+        # its temporary file) is cleared by a fresh start of the batch.
+        began = first_set_leftovers(runs) is not None or any(
+            glob.glob(os.path.join(run.checkpoint_dir, TEMP_GLOB)) for run in runs)
+        raise ImssrError("nothing to resume: no run of the batch holds a checkpoint"
+                         + (" (the batch stopped before its first checkpoint was complete)" if began else "")
+                         + "; start every run afresh: the same command without --resume")
     if without:
         raise ImssrError(f"nothing to resume as one batch: {_some(r.path for r in without)} "
                          f"{'holds' if len(without) == 1 else 'hold'} no checkpoint (the batch stopped during its "
@@ -906,12 +925,19 @@ def batch_checkpoints(runs: Sequence[RunDir], budget: int) -> list[CheckpointFil
         common = set.intersection(*(set(offer) for offer in offers))
         if not common:
             newest = [max(offer) for offer in offers]
-            behind = [run.path for run, step in zip(runs, newest) if step < max(newest)]
+            furthest = max(newest)
+            behind = [run.path for run, step in zip(runs, newest) if step < furthest]
+            ahead = [run.path for run, step in zip(runs, newest) if step == furthest]
             held = "; ".join(f"{run.path}: {', '.join(map(str, sorted(offer)))}" for run, offer in
                              list(zip(runs, offers))[:3]) + ("; ..." if len(runs) > 3 else "")
+            # A budget below the furthest run's step would refuse that run: the batch resumes
+            # with a budget it can reach.
+            past = "" if budget >= furthest else \
+                f" ({_some(ahead)} {'is' if len(ahead) == 1 else 'are'} already past --steps {budget})"
             raise ImssrError(f"the runs hold no checkpoint of one agent step in common (agent steps {held}): "
-                             f"bring {_some(behind)} to step {max(newest)} alone first (imssr train --out RUN_DIR "
-                             f"--resume --steps {max(newest)}), then resume them together with --steps {budget}")
+                             f"bring {_some(behind)} to step {furthest} alone first (imssr train --out RUN_DIR "
+                             f"--resume --steps {furthest}), then resume them together with "
+                             f"--steps {max(budget, furthest)}{past}")
         step = max(common)
         found = []
         for run, offer in zip(runs, offers):

@@ -25,10 +25,13 @@ MAX_IMAGE_SIZE = 480
 every DeepMind Control model (their shared visual settings)."""
 MAX_ADDRESSABLE_BYTES = sys.maxsize
 """Largest array a process can address (numpy's limit): bounds the replay buffer's frames."""
-MAX_SHADOW_SIZE = 16384
-"""Largest MuJoCo shadow map side (``env.shadow_size``): the map is an OpenGL texture, and 16384
-is the largest side every OpenGL 4.1 renderer must accept (``GL_MAX_TEXTURE_SIZE``; Mesa's
-llvmpipe accepts no more, and MuJoCo stops on an incomplete shadow framebuffer beyond it)."""
+MAX_SHADOW_SIZE = 4096
+"""Largest MuJoCo shadow map side (``env.shadow_size``): MuJoCo's own default (dm_control's
+suite renders 2048, the presets 512).  A frame is at most :data:`MAX_IMAGE_SIZE` px, so a larger
+map sharpens no shadow in it, while its cost grows with its area: on Mesa's llvmpipe a 64-px
+frame took 36 ms at 4096, 0.37 s at 16384 (with 1 GiB of depth texture per env and 3 s to make
+each), so that a SIGTERM waited seconds for the agent step, or the env's making, to end.  (The
+hard limit, 16384, is the largest OpenGL texture side every OpenGL 4.1 renderer takes.)"""
 MAX_TORCH_THREADS = 1024
 """Most torch intra-op threads (``train.torch_threads``): more than any CPU has hardware threads
 to run them on, far below what OpenMP can start (a thread per pid: Linux's default ``pid_max``

@@ -2,6 +2,8 @@
 evaluation of a saved run (``imssr evaluate``)."""
 from __future__ import annotations
 
+import os
+import tempfile
 import time
 from typing import Callable, Optional
 
@@ -10,7 +12,8 @@ import numpy as np
 from imssr.envs import env_from_config
 from imssr.envs.worker import step_all
 from imssr.envs.scenes import get_mode
-from imssr.errors import DivergedError
+from imssr.errors import DivergedError, ImssrError
+from imssr.files import open_own
 from imssr.plots.media import save_montage, save_video
 from imssr.rundir import RunDir, as_run_dir
 from imssr.seeds import evaluation_seed
@@ -150,6 +153,7 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
     if note:
         log(f"imssr: {note}")
     resolve_device(device)  # a bad device fails before any env is built
+    _check_writable(run, video=bool(video), montage=montage)
     seed = evaluation_seed(cfg.train.seed) if seed is None else seed
     agent = None
     pictures = {}
@@ -182,6 +186,28 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
     append_locked(run.evaluate_episodes_log, EVAL_EPISODE_COLUMNS, episodes_rows)
     append_locked(run.evaluate_log, EVAL_COLUMNS, rows)
     log(f"imssr: evaluation written to {run.evaluate_log} and {run.evaluate_episodes_log}")
+
+
+def _check_writable(run: RunDir, video: bool, montage: bool) -> None:
+    """A one-line error, before any episode is played, when the evaluation could not write its
+    results into ``run`` (a read-only file system or folder, a log that is not the user's): an
+    evaluation takes minutes, and its returns would be lost.  The logs that exist are opened to
+    append, changing nothing; a file to create needs its folder writable."""
+    logs = (run.evaluate_log, run.evaluate_episodes_log)
+    folders = {run.path for made in (montage, not all(os.path.lexists(p) for p in logs)) if made}
+    if video:  # its folder is made in the run when missing
+        folders.add(run.videos_dir if os.path.isdir(run.videos_dir) else run.path)
+    where = run.path
+    try:
+        for where in logs:
+            if os.path.lexists(where):
+                os.close(open_own(where, os.O_WRONLY | os.O_APPEND))
+        for where in sorted(folders):
+            with tempfile.TemporaryFile(dir=where):
+                pass
+    except OSError as exc:
+        raise ImssrError(f"imssr evaluate cannot write its results to {where} ({exc.strerror or exc}): nothing was "
+                         "evaluated; evaluate a copy of the run in a folder you can write") from None
 
 
 def _say(text: str) -> None:

@@ -21,7 +21,7 @@ import torch
 from imssr import provenance
 from imssr.config import RunConfig, check_seed
 from imssr.config.batching import seedless
-from imssr.contention import contention_warning
+from imssr.contention import contention_warning, usable_cores
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
@@ -341,12 +341,13 @@ class Start:
     @classmethod
     def take(cls, cfg: RunConfig, run: Union[RunDir, str], new_run: bool, checked: bool = False) -> "Start":
         """``run`` locked (a second writer fails at once) with ``cfg`` validated (:func:`_checked`;
-        ``checked``: already, :func:`checked_configs`)."""
+        ``checked``: already, :func:`checked_configs`) and no link in place of its provenance."""
         run_dir = as_run_dir(run)
         if os.path.exists(run_dir.path) and not os.path.isdir(run_dir.path):
             raise ImssrError(f"--out {run_dir.path} is a file, not a directory")
         lock = run_dir.open()
         try:
+            run_dir.refuse_linked_provenance()
             return cls(cfg if checked else _checked(cfg, new_run), run_dir, lock)
         except BaseException:
             lock.release()
@@ -396,10 +397,19 @@ def _checked(cfg: RunConfig, new_run: bool, validate: bool = True) -> RunConfig:
 
 
 def _set_threads(threads: int, device, saved: Optional[int]) -> None:
-    """Apply ``train.torch_threads`` (0: torch's default); warn when the threads would contend
-    with busy cores, and when a CPU run resumes with another thread count than the ``saved`` one
-    of its checkpoint."""
+    """Apply ``train.torch_threads`` (0: torch's default), at most one per core this process may
+    run on, saying so when it asks for more; warn when the threads would contend with busy cores,
+    and when a CPU run resumes with another thread count than the ``saved`` one of its
+    checkpoint."""
     if threads:
+        # torch's threads spin while they wait: more than the cores are no faster and often many
+        # times slower.  The config keeps its number (checked on the machine that wrote it), so
+        # the cap is this machine's.
+        cores = usable_cores()
+        if threads > cores:
+            _warn(f"imssr: warning: train.torch_threads={threads} is more than the {cores} cores this process may "
+                  f"run on: it trains with {cores} torch threads")
+            threads = cores
         torch.set_num_threads(threads)
     _warn(contention_warning(torch.get_num_threads()), thread_warning(saved, torch.get_num_threads(), device))
 
