@@ -172,7 +172,7 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
         rows.append(row)
         episodes_rows += episode_rows(row, returns)
         log(f"{mode}: return {row['return_mean']:.1f} ± {row['return_std']:.1f} over {len(returns)} "
-            f"episodes (checkpoint at frame {ckpt.frame}, step {ckpt.step})")
+            f"episode{'' if len(returns) == 1 else 's'} (checkpoint at frame {ckpt.frame}, step {ckpt.step})")
         if video:
             log(f"  video: {save_video(frames, run.video_path(f'{mode}.{video}'))}")
         if montage:
