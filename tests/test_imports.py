@@ -219,19 +219,25 @@ def test_a_missing_extra_is_one_line_naming_it(tmp_path):
     assert not (tmp_path / "sweep").exists()  # nothing written before the error
 
 
+def _report_without_rliable(root: str) -> subprocess.CompletedProcess:
+    """``imssr report ROOT`` in a process where rliable cannot be imported (as if the report
+    extra were not installed); it must exit 0."""
+    code = textwrap.dedent(f"""
+        import sys
+        sys.modules["rliable"] = None
+        from imssr.cli import main
+        assert main(["report", {root!r}, "--reps", "20"]) == 0
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    return proc
+
+
 def test_a_report_with_an_iqm_due_is_made_without_the_report_extra_but_for_the_iqm(tmp_path):
     """Five seeds, where an IQM is due, and no rliable: the tables, comparisons and curves are
     written all the same (they need no rliable), and one warning and the report's notes say that
     the IQM needs the report extra."""
-    five = _seeds(tmp_path / "five", 5)
-    code = textwrap.dedent(f"""
-        import sys
-        sys.modules["rliable"] = None  # as if the report extra were not installed
-        from imssr.cli import main
-        assert main(["report", {five!r}, "--reps", "20"]) == 0
-    """)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
+    proc = _report_without_rliable(_seeds(tmp_path / "five", 5))
     why = "no IQM: rliable is not installed (needed by imssr report): pip install 'imssr[report]'"
     warnings = [line for line in proc.stdout.splitlines() if "warning" in line]
     assert len(warnings) == 1 and warnings[0].startswith(f"imssr: warning: {why}"), proc.stdout
@@ -246,15 +252,7 @@ def test_a_report_with_an_iqm_due_is_made_without_the_report_extra_but_for_the_i
 
 def test_a_report_without_an_iqm_needs_no_report_extra(tmp_path):
     """Fewer than 5 seeds give no IQM or bootstrap interval: the report is made without rliable."""
-    four = _seeds(tmp_path / "four", 4)
-    code = textwrap.dedent(f"""
-        import sys
-        sys.modules["rliable"] = None  # as if the report extra were not installed
-        from imssr.cli import main
-        assert main(["report", {four!r}, "--reps", "20"]) == 0
-    """)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
+    _report_without_rliable(_seeds(tmp_path / "four", 4))
     assert "no IQM or bootstrap interval: curl has 4 seeds" in (tmp_path / "four" / "report" / "report.md").read_text()
 
 
