@@ -262,7 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "writes them), in one process as --seeds does; they may differ in the seed and in "
                         "intrinsic.beta0 / intrinsic.enabled only, e.g. CURL and IM-CURL (default: none)")
     d = sub.add_parser("demo", help="a short IM-CURL run on cartpole_swingup that shows learning "
-                                   "(about 12 min on 2 CPU cores): curve, GIF and the paper-scale command",
+                                   "(about 13 min on 2 CPU cores): curve, GIF and the paper-scale command",
                        epilog=EXIT_STATUS_TEXT)
     add_run_options(d, demo=True)
 
