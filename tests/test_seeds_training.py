@@ -218,6 +218,8 @@ def imssr(*args):
     (["--seeds", "0--2", "--out", "X"], "seeds must be an integer in [0, 2147483647]"),
     (["--seeds", "1,1", "--out", "X"], "seed 1 is named twice in --seeds 1,1: each seed trains one run; name it once"),
     (["--seeds", "1-3,2", "--out", "X"], "seed 2 is named twice"),
+    (["--seeds", "1,,2", "--out", "X"], "bad seeds '1,,2': an empty item between commas"),
+    (["--seeds", "1,2,", "--out", "X"], "bad seeds '1,2,': an empty item between commas"),
 ])
 def test_seeds_errors_are_one_line(args, message, tmp_path, capsys):
     assert cli_status("train", "--algo", "curl", "--task", "cartpole_swingup",
@@ -552,3 +554,4 @@ def test_a_batch_killed_in_its_first_runs_first_write_is_told_to_start_afresh(tm
     assert files_of(tmp_path) == before
     assert cli_status("train", "--runs", *runs(tmp_path), "--no-progress") == 0
     assert [RunDir(run).checkpoint().checkpoint.step for run in runs(tmp_path)] == [150, 150]
+
