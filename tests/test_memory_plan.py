@@ -120,3 +120,39 @@ def test_an_address_space_limit_is_counted_for_the_whole_replay(tmp_path):
     assert "this process's address-space limit (ulimit -v) is 8.00 GiB: raise it (ulimit -v unlimited), or train " \
            "fewer seeds at once, lower train.replay_capacity" in err
     assert len(err.splitlines()) == 1 and not (tmp_path / "batch").exists()
+
+
+def test_a_run_counts_its_environments_and_renderers_beside_replay_and_agent(tmp_path):
+    """Small networks and a short budget make replay and agents small; the rest of each run (its
+    environments and renderers, RUN_HOST_BYTES) is what a large batch of them cannot hold."""
+    from imssr.errors import ImssrError
+    from imssr.rundir import RunDir
+    from imssr.training.memory import RUN_HOST_BYTES, memory_plan
+
+    available = available_memory_bytes()
+    if available is None:
+        pytest.skip("no MemAvailable in /proc/meminfo")
+    cfg = tiny_config("curl", "cartpole_swingup")
+    needs = run_needs(cfg)
+    n = available // RUN_HOST_BYTES + 1
+    # Replay and agents alone would fit: what refuses the batch is the runs' own memory.
+    assert n * (needs.frames_bytes + needs.others_bytes + needs.agent_bytes + needs.activation_bytes) < available
+    with pytest.raises(ImssrError, match=rf"^{n:,} runs need .* and {n * RUN_HOST_BYTES / 1e9:.1f} GB for their "
+                                         rf"environments and renderers \(140 MB a run\); .* GB is available"):
+        memory_plan([cfg] * n, [RunDir(str(tmp_path / f"seed_{i}")) for i in range(n)])
+
+
+def test_a_thousand_small_seeds_are_refused_before_any_directory(tmp_path, capsys):
+    """`--seeds 1-1000` of small networks, frames and replay: refused in one line with the
+    arithmetic before the first run directory is made."""
+    available = available_memory_bytes()
+    if available is None or available > 1000 * 140e6:
+        pytest.skip("a machine with room for 1,000 runs")
+    out = tmp_path / "batch"
+    assert main(["train", "--algo", "curl", "--task", "cartpole_swingup", "--steps", "250", "--seeds", "1-1000",
+                 "--set", "agent.hidden_dim=32", "--set", "agent.encoder_filters=8", "--set", "env.image_size=64",
+                 "--set", "agent.crop_size=56", "--set", "train.replay_capacity=5000", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("imssr: error: 1,000 runs need ") and len(err.strip().splitlines()) == 1, err
+    assert "GB for their environments and renderers (140 MB a run)" in err and "train fewer seeds at once" in err
+    assert not out.exists()

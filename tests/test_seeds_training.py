@@ -218,6 +218,8 @@ def imssr(*args):
     (["--seeds", "0--2", "--out", "X"], "seeds must be an integer in [0, 2147483647]"),
     (["--seeds", "1,1", "--out", "X"], "seed 1 is named twice in --seeds 1,1: each seed trains one run; name it once"),
     (["--seeds", "1-3,2", "--out", "X"], "seed 2 is named twice"),
+    (["--seeds", "1,,2", "--out", "X"], "bad seeds '1,,2': an empty item between commas"),
+    (["--seeds", "1,2,", "--out", "X"], "bad seeds '1,2,': an empty item between commas"),
 ])
 def test_seeds_errors_are_one_line(args, message, tmp_path, capsys):
     assert cli_status("train", "--algo", "curl", "--task", "cartpole_swingup",
@@ -552,3 +554,38 @@ def test_a_batch_killed_in_its_first_runs_first_write_is_told_to_start_afresh(tm
     assert files_of(tmp_path) == before
     assert cli_status("train", "--runs", *runs(tmp_path), "--no-progress") == 0
     assert [RunDir(run).checkpoint().checkpoint.step for run in runs(tmp_path)] == [150, 150]
+
+
+def test_sigterm_while_the_batch_is_built_stops_it_there(tmp_path):
+    """SIGTERM as the members of a batch are built (a minute for dozens of them) ends the batch
+    at the next member with exit status 130 and one line, before any run is written."""
+    import signal
+    import time
+
+    out = tmp_path / "b"
+    cmd = [sys.executable, "-m", "imssr", "train", "--algo", "curl", "--task", "cartpole_swingup", "--steps", "250",
+           "--seeds", "1-30", "--no-progress", "--no-tensorboard", *tiny_sets(), "--set", "train.replay_capacity=3000",
+           "--out", str(out)]
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 120
+        # Every seed's directory is locked before the first member is built.
+        while not (out / "seed_30").exists():
+            assert proc.poll() is None and time.time() < deadline, proc.communicate()
+            time.sleep(0.05)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        sent = time.time()
+        stdout, stderr = proc.communicate(timeout=60)
+        took = time.time() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stdout + stderr
+    lines = [line for line in stderr.splitlines() if "as the batch started" in line]
+    assert len(lines) == 1 and re.search(r"stopped by SIGTERM as the batch started \(\d+ of 30 runs built\)",
+                                         lines[0]), stderr
+    assert took < 15, took
+    assert not any((out / f"seed_{s}" / "train.csv").exists() for s in range(1, 31))
+    assert not any((out / f"seed_{s}" / "config.json").exists() for s in range(1, 31))

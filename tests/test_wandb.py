@@ -4,6 +4,7 @@ import glob
 import json
 import os
 import subprocess
+import time
 import sys
 
 import pytest
@@ -102,3 +103,81 @@ def test_logger_flag_sets_the_config_and_keeps_no_tensorboard(tmp_path):
     with open(tmp_path / "c.json", "w") as fh:
         json.dump({"algo": "im-curl", "env": {"task": TASK}, "train": {"wandb": True}}, fh)
     assert cfg("--config", str(tmp_path / "c.json")).wandb is True
+
+
+def _csv_series(run_dir):
+    """``(series, frame)`` of every row of train.csv and eval.csv."""
+    from imssr.files import read_csv
+
+    rows = {("train", int(float(r["frame"]))) for r in read_csv(os.path.join(run_dir, "train.csv"))}
+    return rows | {(f"eval/{r['mode']}", int(float(r["frame"]))) for r in read_csv(os.path.join(run_dir, "eval.csv"))}
+
+
+def test_history_across_kill_and_fall_back_holds_every_csv_row_once(tmp_path):
+    """Killed (-9) at its first checkpoint and resumed to its end, then resumed again from that
+    checkpoint (latest.pt unreadable, the later ones gone): the W&B run's records, read back from
+    the three processes' offline files, hold every row of the CSVs once, in frame order, with the
+    CSVs' values."""
+    from imssr.files import read_csv
+    from imssr.training.wandb_records import history_rows, run_files, series_of
+
+    run_dir, wandb_dir = str(tmp_path / "run"), str(tmp_path / "wb")
+    env = dict(os.environ, WANDB_MODE="offline", WANDB_DIR=wandb_dir, OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "imssr", "train", *TINY_ARGS, "--logger", "csv,wandb",
+           "--set", "train.keep_checkpoints=3", "--out", run_dir]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoints = os.path.join(run_dir, "checkpoints")
+    kill_when_file_appears(proc, os.path.join(checkpoints, "step-000000125.pt"), 240,
+                           "no checkpoint before the kill", poll=0.05)
+    resume = [sys.executable, "-m", "imssr", "train", "--resume", "--out", run_dir, "--no-progress"]
+    resumed = subprocess.run(resume, env=env, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    with open(os.path.join(checkpoints, "latest.pt"), "wb") as fh:
+        fh.write(b"torn")
+    for later in glob.glob(os.path.join(checkpoints, "step-*.pt")):
+        if not later.endswith("step-000000125.pt"):
+            os.unlink(later)
+    again = subprocess.run(resume, env=env, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert "resuming from step-000000125.pt at agent step 125" in again.stdout, again.stdout
+    run_id = read_run_id(RunDir(run_dir))
+    assert len(run_files(wandb_dir, run_id)) == 3
+    rows = [row for path in run_files(wandb_dir, run_id) for row in history_rows(path)]
+    rows = [row for row in rows if any(k.startswith(("train/", "eval/")) for k in row)]
+    logged = [(series_of(next(k for k in row if "/" in k)), int(row["frame"])) for row in rows]
+    assert sorted(logged) == sorted(set(logged)), "a row logged twice"
+    assert set(logged) == _csv_series(run_dir)
+    assert [f for _, f in logged] == sorted(f for _, f in logged), "not in frame order"
+    returns = {int(float(r["frame"])): float(r["episode_return"]) for r in read_csv(os.path.join(run_dir, "train.csv"))}
+    for row in rows:
+        if "train/episode_return" in row:
+            assert row["train/episode_return"] == pytest.approx(returns[int(row["frame"])], rel=1e-5)
+
+
+def test_records_are_read_back_and_a_torn_file_gives_what_precedes_the_tear(tmp_path, monkeypatch):
+    """The history rows of a real offline W&B run, read back from its .wandb file in the order
+    logged; the file cut anywhere (a kill -9 mid-write) gives a prefix of them."""
+    import wandb
+
+    from imssr.training.wandb_records import history_rows, logged_series, run_files
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    run = wandb.init(project="p", id="abc123", dir=str(tmp_path), reinit="create_new",
+                     settings=wandb.Settings(console="off", quiet=True, save_code=False))
+    for i in range(300):  # more than one 32 KiB block
+        run.log({"train/x": i * 1.5, "train/pad": "y" * 200, "frame": 8 * i, "step": i})
+    run.log({"eval/training/return_mean": 3.0, "frame": 8 * 299, "step": 299})
+    run.finish()
+    (path,) = run_files(str(tmp_path), "abc123")
+    deadline = time.time() + 30
+    while len(history_rows(path)) < 301 and time.time() < deadline:  # W&B's service writes on after finish
+        time.sleep(0.1)
+    rows = history_rows(path)
+    assert [(r["train/x"], r["frame"]) for r in rows[:300]] == [(i * 1.5, 8 * i) for i in range(300)]
+    assert logged_series(str(tmp_path), "abc123") == {("train", 8 * i) for i in range(300)} | {("eval/training", 2392)}
+    data = open(path, "rb").read()
+    for cut in (len(data) // 3, len(data) // 2 + 5, len(data) - 3):  # the last: in the run's exit record
+        with open(path, "wb") as fh:
+            fh.write(data[:cut])
+        torn = history_rows(path)
+        assert torn == rows[:len(torn)] and (len(torn) < len(rows)) == (cut < len(data) - 3)

@@ -308,7 +308,9 @@ def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
             continue
         part = str(item).strip()
         if not part:
-            continue
+            # 1,,2 or 1,2, is a seed left out or a typo: which one is not ours to guess.
+            raise ImssrError(f"bad seeds {text!r}: an empty item between commas; "
+                             "expected integers like 1,2,3 or a range like 1-5")
         # A leading minus is a negative seed (refused as such), not a range.
         match = _SEED_ITEM.match(part)
         if match is None:

@@ -167,6 +167,19 @@ class Logger:
                 with disk_full_as_error(run.tb_dir):
                     self.tb = SummaryWriter(run.tb_dir, purge_step=None if resume_frame is None else resume_frame + 1)
 
+    def relog_to_wandb(self) -> None:
+        """On resume, log the CSV rows (up to the checkpoint) that the W&B run lacks, in frame
+        order: those that W&B had not written when an earlier process was killed."""
+        if self.wandb is None or not self.wandb.active:
+            return
+        rows = [(r, "train", ("frame", "step", "episode")) for r in read_csv(self.train.path)]
+        rows += [(r, f"eval/{r.get('mode')}", ("frame", "step", "mode", "episodes"))
+                 for r in read_csv(self.eval.path)]
+        rows.sort(key=lambda item: float(item[0]["frame"]))
+        for row, prefix, skip in rows:
+            values = {f"{prefix}/{k}": float(v) for k, v in row.items() if k not in skip and _is_number(v)}
+            self.wandb.log(values, int(float(row["frame"])), int(float(row["step"])))
+
     def rewrite_eval(self, history: list[dict]) -> None:
         """Rewrite the evaluation CSVs from a checkpoint's history (``row`` + ``returns``)."""
         for log in (self.eval, self.eval_episodes):

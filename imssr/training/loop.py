@@ -118,6 +118,7 @@ class Trainer:
         if found is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
             self.logger.rewrite_eval(self.state.eval_history)
+            self.logger.relog_to_wandb()
             print(f"imssr: resuming from agent step {self.step:,} (frame {self.frame:,}) of "
                   f"{cfg.train.steps:,}", flush=True)
         _warn(no_update_warning(self.state.learning_starts, cfg.total_steps))

@@ -13,9 +13,12 @@ Per run (a seed of ``imssr train --seeds``, a run directory of ``--runs``, or a 
   step: :meth:`FrameReplayBuffer.bytes_per_slot`), always in host memory;
 - the agent: its weights, gradients and Adam moments (four float32 copies of its trainable
   parameters, one of the rest), and one update's activations (the encoder's feature maps, kept
-  for the backward pass, of the RL and the auxiliary batch), on the agent's device.  On a GPU a
-  batch's members update at once (``vmap``), on the CPU one after another, so the CPU holds one
-  member's activations.
+  for the backward pass, of the RL and the auxiliary batch), on the agent's device, for every
+  member of a batch: on a GPU its members update at once (``vmap``); on the CPU they update one
+  after another, yet the process grows by about one update's activations per member (measured:
+  docs/performance.md), so they are counted per member there too;
+- the rest of the run in host memory (:data:`RUN_HOST_BYTES`): its training and evaluation
+  environments with their renderers, frame stacks and the buffers of its loop, measured.
 
 Host memory is compared with what the kernel says is available (``MemAvailable``) and, under an
 address-space limit (``ulimit -v``), the whole replay (its arrays are mapped at their full
@@ -53,6 +56,15 @@ SIMULATOR_STEPS = 1000
 agent steps, each one slot more than its transitions."""
 
 
+RUN_HOST_BYTES = 140_000_000
+"""Host memory a run holds beyond its replay and its agent: its environments (training and
+evaluation, each with a MuJoCo renderer and its GL context), frame stacks and the loop's buffers.
+Measured as the growth of a ``--seeds 1-N`` process's peak resident memory per seed, less the
+replay, agent and activation bytes the plan counts (docs/performance.md, "Memory a run holds
+beside replay and agent"): 136 MB at the tiny sizes (64-px frames and shadows) and 99 MB at the
+presets' (100-px frames, 512-px shadows), on the CPU; one constant, the larger with some room."""
+
+
 @dataclass(frozen=True)
 class RunNeeds:
     """What one run will hold (see the module's doc)."""
@@ -69,6 +81,8 @@ class RunNeeds:
     """The agent's weights, gradients and Adam moments."""
     activation_bytes: int
     """One update's activations (the encoder's feature maps kept for the backward pass)."""
+    host_bytes: int = RUN_HOST_BYTES
+    """The rest of the run in host memory (:data:`RUN_HOST_BYTES`)."""
 
     @property
     def frames_bytes(self) -> int:
@@ -152,9 +166,8 @@ def memory_plan(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> MemoryPlan
     placement = _placement(cfg, needs, n, device)
     on_gpu = device.type == "cuda"
     frames_in_ram = placement.device.type == "cpu" and not placement.disk
-    # On the CPU a batch's members update one after another: one member's activations at a time.
-    agents = n * needs.agent_bytes + (n if on_gpu else 1) * needs.activation_bytes
-    _check_host(needs, n, frames_in_ram, 0 if on_gpu else agents, placement.disk)
+    agents = n * (needs.agent_bytes + needs.activation_bytes)
+    _check_host(needs, n, frames_in_ram, 0 if on_gpu else agents, placement.disk, n * needs.host_bytes)
     if on_gpu:
         _check_gpu(needs, n, placement.device.type == "cuda", agents, device, cfg.train.gpu_share)
     if placement.disk:
@@ -188,19 +201,22 @@ def _runs(n: int) -> str:
     return "this run needs" if n == 1 else f"{n:,} runs need"
 
 
-def _check_host(needs: RunNeeds, n: int, frames: bool, agents: int, disk: bool) -> None:
-    """Host memory: the replay (frames when they live there) and the agents on the CPU, against
-    what is available and what an address-space limit leaves."""
+def _check_host(needs: RunNeeds, n: int, frames: bool, agents: int, disk: bool, runs: int) -> None:
+    """Host memory: the replay (frames when they live there), the agents on the CPU and the rest
+    of the runs (``runs`` bytes: environments, renderers), against what is available, and the
+    replay and agents against what an address-space limit leaves."""
     per_slot = (needs.frame_bytes if frames else 0) + needs.other_bytes
     replay = n * needs.slots * per_slot
     what = f"{replay / GB:.1f} GB of host memory for replay ({needs.slots:,} slots x {per_slot:,} B each)"
     if agents:
         what += f" and {agents / GB:.1f} GB for agents"
+    what += (f" and {runs / GB:.1f} GB for {'its' if n == 1 else 'their'} environments and renderers "
+             f"({needs.host_bytes / 1e6:,.0f} MB a run)")
     ways = "train fewer seeds at once" if n > 1 else "train with a smaller replay"
     ways += ", lower train.replay_capacity" + ("" if disk or not frames else
                                                 ", or put the frames on disk with --set train.replay_device=disk")
     available = available_memory_bytes()
-    if available is not None and replay + agents > available:
+    if available is not None and replay + agents + runs > available:
         raise ImssrError(f"{_runs(n)} {what}; {available / GB:.1f} GB is available: {ways}")
     limit, used = address_space_limit(), address_space_in_use()
     if limit is not None and used is not None:

@@ -102,15 +102,18 @@ class SeedsTrainer:
         try:
             try:
                 for i, (start, label) in enumerate(zip(starts, self.labels)):
+                    self._stop_if_asked(len(cfgs))
                     with member_lines(label, held[label]):
                         self.trainers.append(Trainer(start.cfg, start.run, resume, stop=self.stop, start=start,
                                                      placement=placement, batch=self._place(i)))
+                self._stop_if_asked(len(cfgs))
             finally:  # a run that failed to start: each line with its run, the error after them
                 say_held(held, once=len(self.trainers) == len(cfgs))
             if len({t.state.learning_starts for t in self.trainers}) > 1:
                 raise ImssrError("the seeds' seed phases end at different agent steps (a refilled replay buffer): "
                                  "resume them one by one")
             self.batch = make_batch([t.agent for t in self.trainers], cfgs[0].agent.batch_layout)
+            self._stop_if_asked(len(cfgs))
             for i, t in enumerate(self.trainers):
                 t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
             held = {label: [] for label in self.labels}
@@ -130,6 +133,14 @@ class SeedsTrainer:
                 start.lock.release()
             self.close()
             raise
+
+    def _stop_if_asked(self, n: int) -> None:
+        """A stop request while the batch is being built ends it there: building every member of a
+        large batch takes minutes, and nothing is trained or written before the batch begins."""
+        if self.stop.signal_name is not None:
+            raise TrainingInterrupted(f"stopped by {self.stop.signal_name} as the batch started "
+                                      f"({len(self.trainers)} of {n} runs built), before any training; the runs "
+                                      "are as they were: run the same command again", 0, None)
 
     @property
     def step(self) -> int:

@@ -1,7 +1,13 @@
 """A run's Weights & Biases run (the ``wandb`` extra, imported only when ``train.wandb`` is on).
 
 The W&B run id is kept in the run directory (``wandb_run.json``), written before the W&B run starts, so a
-``--resume`` (after a kill -9 too) continues the same W&B run (``resume="allow"``).  W&B is a
+``--resume`` (after a kill -9 too) continues the same W&B run (``resume="allow"``).  A resume
+reads back what the run's earlier processes left in their ``.wandb`` files (a kill -9 loses what
+W&B had not yet written there) and logs each series at each frame once: the CSV rows W&B lacks
+are logged again (:meth:`imssr.training.logger.Logger.relog_to_wandb`), the rows it holds are
+not, so a resume from a checkpoint older than W&B's last row adds no second row at a frame.  What
+W&B holds is what the files under this machine's W&B directory say (``WANDB_DIR``, else the run
+directory): a resume on another machine, without them, logs the run's rows again.  W&B is a
 side channel: once the extra is there, nothing it does may stop a training.  An unwritable W&B
 directory, a failed start or a failed log call prints one warning line and turns W&B off for
 the rest of the process; the CSV logs (and TensorBoard) go on.
@@ -18,6 +24,11 @@ from imssr.config import RunConfig
 from imssr.extras import require
 from imssr.files import atomic_write_text
 from imssr.rundir import RunDir
+from imssr.training.wandb_records import logged_series, series_of
+
+FLUSH_SECONDS = 1.0
+"""How often W&B writes what it was given to the run's ``.wandb`` file (its own default: 15 s):
+what a kill -9 can take from W&B (the CSV rows it lacks are logged again on resume)."""
 
 def run_tags(cfg: RunConfig) -> list[str]:
     """The run's W&B tags: algo, task, seed and (algos with an intrinsic reward) beta_0."""
@@ -52,6 +63,7 @@ class WandbRun:
         # A missing extra is the user's error (they asked for W&B): one line, before training.
         self._wandb = require("wandb", "wandb")
         self._warn, self.run = warn, None
+        self.held: set[tuple[str, int]] = set()
         run_id = read_run_id(run) if resume else None
         if run_id is None:
             # From the OS's entropy: the seeded random streams of the run are left alone.
@@ -65,12 +77,15 @@ class WandbRun:
             return
         t = cfg.train
         try:
+            if resume:
+                self.held = logged_series(directory, run_id)
             self.run = self._wandb.init(
                 project=t.wandb_project, group=t.wandb_group or None, tags=run_tags(cfg),
                 name=f"{cfg.algo} {cfg.env.task} seed {t.seed}", config=cfg.to_dict(), id=run_id,
                 resume="allow", dir=directory, reinit="create_new",
                 # imssr prints its own progress; W&B's console capture would duplicate it.
-                settings=self._wandb.Settings(console="off", quiet=True, save_code=False))
+                settings=self._wandb.Settings(console="off", quiet=True, save_code=False,
+                                              x_transaction_log_flush_interval=FLUSH_SECONDS))
             # Scalars are plotted against environment frames, as TensorBoard's global step.
             self.run.define_metric("frame")
             for prefix in ("train/*", "eval/*", "media/*"):
@@ -83,17 +98,27 @@ class WandbRun:
         return self.run is not None
 
     def log(self, values: dict, frame: int, step: int) -> None:
-        """Scalars (``prefix/name``) at environment frame ``frame`` (agent step ``step``)."""
-        self._call(lambda: self.run.log({**values, "frame": frame, "step": step}))
+        """Scalars (``prefix/name``, one prefix) at environment frame ``frame`` (agent step
+        ``step``), unless the W&B run holds that prefix at that frame."""
+        if values and not self.holds(next(iter(values)), frame):
+            self._call(lambda: self.run.log({**values, "frame": frame, "step": step}))
+
+    def holds(self, key: str, frame: int) -> bool:
+        """Whether an earlier process of the W&B run logged ``key``'s series at ``frame``."""
+        return (series_of(key), frame) in self.held
 
     def log_video(self, key: str, path: str, frame: int, step: int) -> None:
         """A gif or mp4 file as a W&B video."""
         fmt = os.path.splitext(path)[1].lstrip(".")
+        if self.holds(key, frame):
+            return
         self._call(lambda: self.run.log({key: self._wandb.Video(path, format=fmt),
                                          "frame": frame, "step": step}))
 
     def log_image(self, key: str, path: str, frame: int, step: int) -> None:
         """A PNG file as a W&B image."""
+        if self.holds(key, frame):
+            return
         self._call(lambda: self.run.log({key: self._wandb.Image(path), "frame": frame, "step": step}))
 
     def finish(self) -> None:
