@@ -139,7 +139,8 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
         overrides: ``section.field=value`` strings, as ``--set``.
         resume: continue the run in ``out`` from its checkpoint (the saved config, a larger budget
             allowed).
-        progress: show the progress bar.
+        progress: show progress (``train.progress``): a bar on a terminal, else (a notebook, a
+            log) a line every minute; False: neither.
 
     An interrupt (SIGINT: the notebook's stop button, Ctrl-C) stops after the current agent step
     with a checkpoint and raises ``KeyboardInterrupt``; ``resume=True`` continues from there.

@@ -280,6 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="save the first episode of each scene as RUN/videos/MODE.gif|mp4 (default: none)")
     e.add_argument("--montage", action="store_true", help="save montage.png: one frame per scene")
     e.add_argument("--footage", metavar="PATH", help="footage for video scenes (default: the run's)")
+    e.add_argument("--no-progress", action="store_true",
+                   help="no progress bar, nor a progress line every minute, while the episodes run")
 
     an = sub.add_parser("analyze", help="measure a run's intrinsic signal against state novelty and "
                         "nuisance sensitivity (paper, Section III), per checkpoint: CSV, figure, montage")
@@ -450,7 +452,7 @@ def cmd_evaluate(args) -> int:
 
     evaluate_run(RunDir(args.run), checkpoint=args.checkpoint, episodes=args.episodes, modes=args.modes,
                  seed=args.seed, device=args.device, video=args.video, montage=args.montage,
-                 footage=args.footage)
+                 footage=args.footage, progress=not args.no_progress)
     return 0
 
 

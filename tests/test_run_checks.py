@@ -193,13 +193,14 @@ def test_progress_lines_when_stdout_is_not_a_terminal(tmp_path, capsys):
 
     assert PROGRESS_EVERY_S == 60.0
     # Mostly the seed phase: two updates after the first episode.
-    t = Trainer(fast(steps=22, seed_steps=20, checkpoint_every_steps=0), str(tmp_path / "run"))
+    t = Trainer(fast(steps=22, seed_steps=20, checkpoint_every_steps=0, progress=True), str(tmp_path / "run"))
     t.progress_every_s = 0.0  # a line every agent step; pytest's captured stdout is no terminal
     try:
         t.train()
     finally:
         t.close()
-    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("imssr: agent step")]
+    # The agent steps' lines (a phase's, the final checkpoint's, end in "so far").
+    lines = [line for line in capsys.readouterr().out.splitlines() if "frames/s" in line]
     assert len(lines) == 22, lines
     pattern = (r"imssr: agent step \d+/22 \(\d+\.\d%\), [\d,]+ frames/s, ETA (\d+:\d\d:\d\d|after agent step 22), "
                r"last episode return (none yet|-?\d+\.\d)")

@@ -148,7 +148,7 @@ def test_a_batch_says_each_seeds_lines_with_its_seed_and_a_warning_of_every_seed
     seed phase outlasts the budget, so no seed ever updates) comes once, as for a run alone."""
     cfgs = configs(steps=80)
     for cfg in cfgs:
-        cfg.train.seed_steps = 100
+        cfg.train.seed_steps, cfg.train.progress = 100, True
     trainer = SeedsTrainer(cfgs, runs(tmp_path))
     try:
         for t in trainer.trainers:

@@ -72,10 +72,10 @@ def test_the_worker_trains_the_config_the_sweep_writes(tmp_path):
     exactly it, and it is what `imssr train` builds from the sweep's settings as flags (seed,
     budget, beta_0, the GPU share as the device, --cpus-per-run as the torch threads)."""
     flags = {"im-soda": ["--algo", "im-soda", "--task", "finger_spin", "--seed", "4", "--steps", "50", "--beta0",
-                         "0.2", "--device", "cuda", "--no-progress", "--set", "train.torch_threads=2",
+                         "0.2", "--device", "cuda", "--set", "train.torch_threads=2",
                          "--set", "agent.batch_size=8", "--set", "train.eval_episodes=2",
                          "--set", "train.gpu_share=0.5"],
-             "curl+rnd": ["--algo", "curl+rnd", "--task", TASK, "--seed", "1", "--frames", "3001", "--no-progress",
+             "curl+rnd": ["--algo", "curl+rnd", "--task", TASK, "--seed", "1", "--frames", "3001",
                           "--set", "train.torch_threads=1"]}
     for cfg in [SweepConfig(root=str(tmp_path), algos=["im-soda"], tasks=["finger_spin"], seeds=[4], steps=50,
                             beta0=[0.2], gpus_per_run=0.5, cpus_per_run=2.5,
@@ -87,7 +87,8 @@ def test_the_worker_trains_the_config_the_sweep_writes(tmp_path):
             assert cli_config("--config", path, "--out", run.dir) == built
             assert cli_config(*flags[run.algo], "--out", run.dir) == built
             assert built.train.device == ("cuda" if cfg.gpus_per_run else "cpu")
-            assert (built.train.torch_threads, built.train.progress) == (max(1, int(cfg.cpus_per_run)), False)
+            # Progress on: the worker writes into sweep.log, a progress line a minute.
+            assert (built.train.torch_threads, built.train.progress) == (max(1, int(cfg.cpus_per_run)), True)
 
 
 def test_run_arguments_and_done_marker(tmp_path):

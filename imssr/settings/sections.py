@@ -258,7 +258,8 @@ class TrainConfig:
     eval_video_format: str = "gif"
     """File format of the evaluation videos: gif or mp4."""
     progress: bool = True
-    """Show a progress bar with frames per second."""
+    """Show progress: on a terminal a bar with frames per second, else (a log) a line every minute,
+    also inside the burst of updates, evaluations, checkpoints and a resume's loading; false: none."""
     torch_threads: int = 0
     """torch intra-op threads (0 leaves torch's default); at most 1024."""
     env_workers: bool = False

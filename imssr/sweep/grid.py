@@ -230,7 +230,8 @@ class Run:
         trains (``imssr train --config RUN/config.json``): the preset of its algo and task (a run
         that has a checkpoint: its own ``config.json``, as ``imssr train --resume`` reads it),
         then the sweep's seed, budget, device, threads and loggers, then the overrides."""
-        values: dict[str, Any] = {"train.seed": self.seed, "train.progress": False,
+        # Progress on: the training writes into its sweep.log, no terminal, so a line a minute, no bar.
+        values: dict[str, Any] = {"train.seed": self.seed, "train.progress": True,
                                   "train.torch_threads": max(1, int(cfg.cpus_per_run))}
         if cfg.steps is not None:
             values["train.steps"] = cfg.steps

@@ -116,7 +116,7 @@ class RunAttempt:
         if len(self.runs) == 1:
             cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
         else:
-            cmd = [sys.executable, "-m", "imssr", "train", "--no-progress", "--runs", *(r.path for r in self.runs)]
+            cmd = [sys.executable, "-m", "imssr", "train", "--runs", *(r.path for r in self.runs)]
         if self.resumed:
             cmd.append("--resume")
         env = dict(os.environ, PYTHONUNBUFFERED="1")

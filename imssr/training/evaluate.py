@@ -19,6 +19,7 @@ from imssr.rundir import RunDir, as_run_dir
 from imssr.seeds import evaluation_seed
 from imssr.training.build import agent_at, resolve_device
 from imssr.training.logger import EVAL_COLUMNS, EVAL_EPISODE_COLUMNS, Logger, append_locked, episode_rows
+from imssr.training.progress import advance, phase
 from imssr.training.state import RunState
 
 
@@ -73,6 +74,7 @@ def evaluate_members(act, envs: list, episodes: int, record: bool = False
         for k in live:
             if results[k][2] is None:
                 results[k][0].append(float(np.asarray(totals[k])))
+        advance()  # the phase that shows this evaluation's progress, if one is open
     return results
 
 
@@ -123,7 +125,7 @@ def evaluate_in_training(agent, eval_envs: dict, t, state: RunState, logger: Log
 def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episodes: int = 10,
                  modes: Optional[str] = None, seed: Optional[int] = None, device: str = "cpu",
                  video: Optional[str] = None, montage: bool = False, footage: Optional[str] = None,
-                 log: Optional[Callable[[str], None]] = None) -> None:
+                 log: Optional[Callable[[str], None]] = None, progress: bool = True) -> None:
     """Evaluate a saved run's checkpoint in each scene; append the results to
     ``RUN/evaluate.csv`` (one row per scene) and ``RUN/evaluate_episodes.csv`` (one per episode).
 
@@ -140,7 +142,9 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
         video: ``gif`` or ``mp4``: save each scene's first episode as ``RUN/videos/MODE.EXT``.
         montage: save ``RUN/montage.png``, one frame per scene.
         footage: footage for video scenes; None: the run's.
-        log: where progress lines go (default: stdout, flushed).
+        log: where the result lines go (default: stdout, flushed).
+        progress: show each scene's episodes as they run (a bar on a terminal, else a line
+            every minute: :func:`~imssr.training.progress.phase`).
     """
     log = log or _say
     run = as_run_dir(run_dir).require()
@@ -165,7 +169,8 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
         try:
             if agent is None:
                 agent = agent_at(ckpt, cfg, device=device, env=env).agent
-            returns = evaluate(agent, env, episodes, record=frames)
+            with phase(f"evaluating in {mode}", episodes, "episodes", show=progress):
+                returns = evaluate(agent, env, episodes, record=frames)
         finally:
             env.close()
         row = eval_row(ckpt.frame, ckpt.step, mode, returns)

@@ -11,6 +11,7 @@ too (:class:`~imssr.training.state.Episode`), which a resume steps through again
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass
 from typing import Optional, Sequence, Union
@@ -36,7 +37,7 @@ from imssr.training.divergence import DivergenceCheck
 from imssr.training.evaluate import evaluate, evaluate_in_training, non_finite_text
 from imssr.training.logger import open_logger
 from imssr.training.memory import replay_slots, run_placement
-from imssr.training.progress import PROGRESS_EVERY_S, Progress, eval_summary
+from imssr.training.progress import PROGRESS_EVERY_S, Phase, Progress, eval_summary, phase
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
 
@@ -66,7 +67,7 @@ class Trainer:
     """
 
     progress_every_s: float = PROGRESS_EVERY_S
-    """Seconds between progress lines when stdout is not a terminal (see :data:`PROGRESS_EVERY_S`)."""
+    """Seconds between progress lines when stdout is not a terminal, a long phase's too (:data:`PROGRESS_EVERY_S`)."""
 
     def __init__(self, cfg: RunConfig, run: Union[RunDir, str], resume: bool = False, refill_buffer: bool = False,
                  stop: Optional[StopRequest] = None, *, start: Optional[Start] = None,
@@ -104,7 +105,8 @@ class Trainer:
         self.checkpoints = Checkpointer(self.run_dir, cfg, parts, refill_buffer=refill_buffer, batch=batch)
         os.makedirs(self.run_dir.path, exist_ok=True)
         if found is not None:
-            self.checkpoints.restore(found)
+            with self.phase(f"resuming from agent step {found.checkpoint.step:,}: loading the checkpoint"):
+                self.checkpoints.restore(found)
 
     def begin(self) -> None:
         """Write what a training starts with (config.json, a provenance record, the logs: on
@@ -133,15 +135,23 @@ class Trainer:
         """The environment frame the run is at (:attr:`state` holds it)."""
         return self.state.frame
 
+    def phase(self, what: str, total: Optional[int] = None, unit: str = "", done: int = 0,
+              show: bool = True) -> contextlib.AbstractContextManager[Phase]:
+        """A long phase's progress (:func:`~imssr.training.progress.phase`) as this run shows progress: when
+        ``show`` and ``train.progress``, in a log a line every :attr:`progress_every_s` seconds."""
+        return phase(what, total, unit, done, show=show and self.cfg.train.progress, every_s=self.progress_every_s)
+
     def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         """Checkpoint now (:meth:`Checkpointer.save`)."""
-        self.checkpoints.save(episode, burst)
+        with self.phase(f"agent step {self.step:,}: writing the checkpoint"):
+            self.checkpoints.save(episode, burst)
 
     def run_eval(self) -> list[dict]:
         """Evaluate now in every scene of ``train.eval_modes`` (:func:`evaluate_in_training`)."""
-        batch = self.checkpoints.batch
-        return evaluate_in_training(self.agent, self.eval_envs, self.cfg.train, self.state, self.logger,
-                                    evaluate if batch is None else batch.episodes_of)
+        batch, t = self.checkpoints.batch, self.cfg.train
+        with self.phase(f"agent step {self.step:,}: evaluation", len(self.eval_envs) * t.eval_episodes, "episodes"):
+            return evaluate_in_training(self.agent, self.eval_envs, t, self.state, self.logger,
+                                        evaluate if batch is None else batch.episodes_of)
 
     def train(self) -> None:
         """Train to ``cfg.train.steps`` agent steps: act, learn, step the env; evaluate and
@@ -219,12 +229,14 @@ class Trainer:
         """One update, or the burst of ``train.burst_updates`` once, when the first seed phase
         ends (not after a refill), from its update ``done`` on; the episode sums their metrics.
         A stop request inside the burst does not wait for its end (:meth:`_save_in_burst`)."""
-        step = self.state.step
-        for update in range(done, self.updates_due()):
-            if update > done and self.stop.signal_name is not None:
-                self._save_in_burst(episode, action, update)
-                raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
-            episode.add_metrics(self.agent.update(self.replay, step))
+        step, due = self.state.step, self.updates_due()
+        with self.phase(f"agent step {step:,}: burst of updates", due, "updates", done, show=due > 1) as burst:
+            for update in range(done, due):
+                if update > done and self.stop.signal_name is not None:
+                    self._save_in_burst(episode, action, update)
+                    raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
+                episode.add_metrics(self.agent.update(self.replay, step))
+                burst.advance()
 
     def updates_due(self) -> int:
         """This agent step's updates: ``train.burst_updates`` when the first seed phase ends, else 1."""

@@ -1,10 +1,15 @@
 """What a person watching a training run sees: a progress bar on a terminal, else (a SLURM or
-nohup log) a line every :data:`PROGRESS_EVERY_S` seconds, and a line per evaluation; in a batch
-of runs (``--seeds``, ``--runs``) each run's lines say which seed they are of (:func:`member_lines`)."""
+nohup log) a line every :data:`PROGRESS_EVERY_S` seconds, and a line per evaluation; the long
+phases between two agent steps (the burst of updates, an evaluation, a checkpoint, the loading
+of one) show their own (:func:`phase`); in a batch of runs (``--seeds``, ``--runs``) each run's
+lines say which seed they are of (:func:`member_lines`).  ``train.progress=false`` shows none of
+it: neither bars nor progress lines."""
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import sys
+import threading
 import time
 from typing import Callable, Iterator, Optional
 
@@ -12,7 +17,15 @@ from tqdm import tqdm
 
 PROGRESS_EVERY_S = 60.0
 """Seconds of wall time between progress lines when stdout is not a terminal (a SLURM or nohup
-log): agent step, frames per second, ETA and the last episode's return."""
+log): agent step, frames per second, ETA and the last episode's return; inside a long phase
+(:func:`phase`), what the phase has done so far."""
+
+BAR_REFRESH_S = 1.0
+"""Seconds between redraws of a phase's bar, so that its elapsed time runs while nothing advances."""
+
+PHASE_LINE_MIN_S = 0.01
+"""The fewest seconds between two lines of a phase: ``every_s`` of 0 (a progress line every
+agent step, as tests ask) would otherwise print lines without a pause while the phase lasts."""
 
 
 class Eta:
@@ -75,8 +88,8 @@ class Progress:
         total: the budget in agent steps.
         step, frame: where this process starts (a resume starts past 0).
         desc: the bar's label.
-        bar: show a progress bar (``train.progress``; tqdm shows none when stderr is no terminal).
-        every_s: seconds between progress lines when there is no bar and stdout is no terminal.
+        bar: show progress (``train.progress``): a bar, or lines (:func:`display`); False: neither.
+        every_s: seconds between progress lines (a log, :func:`display`).
         learning_starts: the agent step from which the agent updates (:class:`Eta`).
     """
 
@@ -91,11 +104,11 @@ class Progress:
                  every_s: float = PROGRESS_EVERY_S, learning_starts: int = 0):
         self.total, self.every_s = total, every_s
         self.eta = Eta(total, learning_starts)
-        self.bar = _Bar(total=total, initial=min(step, total), unit="step", disable=None if bar else True,
+        shown = display(bar)
+        self.bar = _Bar(total=total, initial=min(step, total), unit="step", disable=shown != "bar",
                         dynamic_ncols=True, desc=desc, bar_format=_Bar.FORMAT)
         self.bar.eta = self.eta.text(step)
-        # A line every every_s seconds where no progress bar shows (a log file).
-        self.lines = self.bar.disable and not _isatty(sys.stdout)
+        self.lines = shown == "lines"
         self.started, self.start_frame = time.monotonic(), frame
         self.next_line = self.started + every_s
 
@@ -124,6 +137,112 @@ class Progress:
 
     def close(self) -> None:
         self.bar.close()
+
+
+def display(show: bool) -> Optional[str]:
+    """How progress shows in this process: ``"bar"`` when stderr is a terminal, ``"lines"`` when
+    neither stderr nor stdout is (a SLURM or nohup log, a notebook), else (stdout alone on a
+    terminal, ``2>log``) None; None too when ``show`` (``train.progress``) is off."""
+    if not show:
+        return None
+    if _isatty(sys.stderr):
+        return "bar"
+    return None if _isatty(sys.stdout) else "lines"
+
+
+class Phase:
+    """A long phase between two agent steps as :func:`phase` shows it: ``done`` of ``total``
+    ``unit`` (None: a phase that counts nothing, a checkpoint's write)."""
+
+    def __init__(self, what: str, total: Optional[int], unit: str, done: int, bar: Optional[tqdm]):
+        self.what, self.total, self.unit, self.done, self.bar = what, total, unit, done, bar
+
+    def advance(self, n: int = 1) -> None:
+        """``n`` more ``unit`` done."""
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def line(self, seconds: float) -> str:
+        """``imssr: agent step 1,000: burst of updates, 230/1,000 updates done, 0:04:12 so far``."""
+        count = "" if self.total is None else f", {self.done:,}/{self.total:,} {self.unit} done"
+        return f"imssr: {self.what}{count}, {_hms(seconds)} so far"
+
+
+_current: contextvars.ContextVar[Optional[Phase]] = contextvars.ContextVar("imssr_phase", default=None)
+
+
+def advance(n: int = 1) -> None:
+    """``n`` more units of the innermost open :func:`phase` done (none open: nothing): for code
+    deep below the phase's opener, such as each episode of an evaluation."""
+    current = _current.get()
+    if current is not None:
+        current.advance(n)
+
+
+@contextlib.contextmanager
+def phase(what: str, total: Optional[int] = None, unit: str = "", done: int = 0, show: bool = True,
+          every_s: Optional[float] = None) -> Iterator[Phase]:
+    """Show the progress of a long phase between two agent steps (the run's own progress moves
+    only from one agent step to the next): the block gets a :class:`Phase` at ``done`` of
+    ``total`` ``unit``, which :meth:`Phase.advance` (or :func:`advance`, from code below) counts up.
+
+    How it shows is :func:`display`'s: on a terminal, a bar of its own below the run's, removed
+    when the block ends; in a log, a line (:meth:`Phase.line`) every ``every_s`` seconds (None:
+    :data:`PROGRESS_EVERY_S`) while the block lasts, so none for a shorter block; with ``show``
+    off, nothing.  A daemon thread redraws the bar (its elapsed time runs while nothing advances,
+    as in a checkpoint's write) or writes the lines.  It reads the count and the clock only, never
+    torch or a random generator, so the training's numbers are those of a run without it; and it
+    has stopped when the block is left, by an exception too, so nothing is printed after it."""
+    shown = display(show)
+    every_s = PROGRESS_EVERY_S if every_s is None else every_s
+    bar = None
+    if shown == "bar":
+        bar = tqdm(total=total, initial=done, desc=what, unit=f" {unit}" if unit else "it", leave=False,
+                   dynamic_ncols=True, bar_format=None if total is not None else "{desc}: {elapsed}")
+    current, stop = Phase(what, total, unit, done, bar), threading.Event()
+    thread = None if shown is None else threading.Thread(
+        target=_show_phase, args=(current, stop, every_s, _line_writer(sys.stdout)), name="imssr-progress",
+        daemon=True)
+    token = _current.set(current)
+    try:
+        if thread is not None:
+            thread.start()
+        yield current
+    finally:
+        stop.set()
+        if thread is not None and thread.is_alive():
+            thread.join()
+        if bar is not None:
+            bar.close()
+        _current.reset(token)
+
+
+def _show_phase(current: Phase, stop: threading.Event, every_s: float, write: Callable[[str], None]) -> None:
+    """The thread of :func:`phase`: until ``stop``, redraw ``current``'s bar, or write its line
+    every ``every_s`` seconds."""
+    started = time.monotonic()
+    while not stop.wait(BAR_REFRESH_S if current.bar is not None else max(every_s, PHASE_LINE_MIN_S)):
+        try:
+            if current.bar is not None:
+                current.bar.refresh()
+            else:
+                write(current.line(time.monotonic() - started))
+        except (OSError, ValueError):  # a stream closed under the thread: the training goes on
+            return
+
+
+def _line_writer(stream) -> Callable[[str], None]:
+    """What writes a line of a phase's thread to ``stream``: the line and its newline in one write,
+    flushed (a batch's run's stdout, :func:`member_lines`: with the run's label, at once even where
+    the run's other lines are held)."""
+    if isinstance(stream, _MemberStdout):
+        return stream.write_now
+
+    def write(line: str) -> None:
+        stream.write(line + "\n")
+        stream.flush()
+    return write
 
 
 def progress_line(step: int, total: int, frames: int, seconds: float, eta: str,
@@ -178,6 +297,11 @@ class _MemberStdout:
             else:
                 self.stream.write(with_member(self.label, line) + "\n")
         return len(text)
+
+    def write_now(self, line: str) -> None:
+        """``line``, with the label, on ``stream`` now, even where the block holds its lines."""
+        self.stream.write(with_member(self.label, line) + "\n")
+        self.stream.flush()
 
     def flush(self) -> None:
         if self.held is None:

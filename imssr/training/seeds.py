@@ -304,17 +304,21 @@ class SeedsTrainer:
         episode sums its own metrics.  A stop request inside the burst checkpoints every seed
         with the count done."""
         first = self._lead(lanes)
-        for update in range(done, first.updates_due()):
-            if update > done and self.stop.signal_name is not None:
-                for lane, action in zip(lanes, actions):
+        due = first.updates_due()
+        with first.phase(f"agent step {first.step:,}: burst of updates of {len(self._active(lanes))} seeds", due,
+                         "updates", done, show=due > 1) as burst:
+            for update in range(done, due):
+                if update > done and self.stop.signal_name is not None:
+                    for lane, action in zip(lanes, actions):
+                        if lane.failed is None:
+                            self._guarded(lane, lambda: lane.trainer._save_in_burst(lane.episode, action, update))
+                    self._commit()
+                    raise self._interrupted()
+                metrics = self.batch.update([lane.trainer.replay for lane in lanes], first.step)
+                for i, lane in enumerate(lanes):
                     if lane.failed is None:
-                        self._guarded(lane, lambda: lane.trainer._save_in_burst(lane.episode, action, update))
-                self._commit()
-                raise self._interrupted()
-            metrics = self.batch.update([lane.trainer.replay for lane in lanes], first.step)
-            for i, lane in enumerate(lanes):
-                if lane.failed is None:
-                    lane.episode.add_metrics(self.batch.member_metrics(metrics, i))
+                        lane.episode.add_metrics(self.batch.member_metrics(metrics, i))
+                burst.advance()
 
     def _stop_if_requested(self, lanes: list[_Lane]) -> None:
         if self.stop.signal_name is None or not self._active(lanes) or self.step >= self.trainers[0].cfg.total_steps:
