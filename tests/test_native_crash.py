@@ -71,8 +71,9 @@ def test_the_notebook_helpers_render_then_load_the_agent(run):
 def test_the_python_api_renders_then_trains_with_env_workers(tmp_path):
     """The README's Python API order (an env first, then a Trainer), with the run's envs in
     worker processes that render as well."""
-    overrides = {**TINY, "train.steps": 16, "train.seed_steps": 8, "train.eval_every_steps": 16,
-                 "train.eval_episodes": 1, "train.env_workers": True, "train.progress": False}
+    overrides = {**TINY, "train.steps": 16, "train.seed_steps": 8, "train.burst_updates": 0,
+                 "train.eval_every_steps": 16, "train.eval_episodes": 1, "train.env_workers": True,
+                 "train.progress": False}
     code = f"""
         import imssr
         imssr.make_env("cartpole_swingup", seed=0).reset()
