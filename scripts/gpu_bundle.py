@@ -252,8 +252,8 @@ def apt_download(packages, dest: str) -> list[str]:
                           "or pass --no-debs")
     arch = subprocess.run(["dpkg", "--print-architecture"], capture_output=True, text=True).stdout.strip()
     if arch != "amd64":
-        # apt-get downloads for the architecture its package lists describe: this machine's.
-        raise BundleError(f"apt-get here downloads {arch or 'this machine'}'s packages and the GPU machine is "
+        # apt-get downloads for the architecture its package lists describe: the one it runs on.
+        raise BundleError(f"apt-get here downloads {arch or 'another architecture'}'s packages and the GPU machine is "
                           "x86-64: make the folder on an x86-64 machine, or pass --no-debs")
     opts = ["-q"]
     if os.geteuid() == 0:

@@ -29,6 +29,13 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 torch.set_num_threads(TORCH_THREADS)
 
 
+# The local sweeps that tests run in this process start Ray as `imssr sweep` does, in Ray's
+# single-machine mode (loopback only), which Ray reads when it is first imported: a process that
+# imported ray without it is refused (imssr.sweep.launchers.LOCAL_RAY_ENV).
+from imssr.sweep.launchers import LOCAL_RAY_ENV  # noqa: E402
+
+os.environ.update(LOCAL_RAY_ENV)
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

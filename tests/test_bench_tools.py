@@ -71,8 +71,10 @@ def test_the_seeds_benches_build_their_agents_with_the_overrides():
     assert all(g["fused"] for o in batch.optimizers.values() for g in o.param_groups) and len(replays) == 2
 
 
-SYSTEM_PATHS = ("/tmp/", "/dev/null", "/usr/bin/env", "/proc/", "/path/for/")
-"""The absolute paths a script may name: temporary and system files, and the placeholder of its usage."""
+SYSTEM_PATHS = ("/tmp/", "/dev/null", "/usr/bin/env", "/proc/", "/path/for/", "/usr/share/glvnd/", "/etc/glvnd/",
+                "/usr/local/nvidia/")
+"""The absolute paths a script may name: temporary and system files (glvnd's EGL vendor files, and
+where NVIDIA's container runtime mounts the driver), and the placeholder of its usage."""
 
 
 def test_scripts_and_benches_name_no_directory_of_a_particular_machine():

@@ -316,7 +316,7 @@ def _confine_local_ray() -> None:
     """Set :data:`LOCAL_RAY_ENV` (and :data:`LOCAL_RAY_DEFAULT_ENV`) for a local Ray; fail in one
     line if this process imported ray without it, since that ray would listen on every interface."""
     missing = {k: v for k, v in LOCAL_RAY_ENV.items() if os.environ.get(k) != v}
-    if "ray" in sys.modules:
+    if sys.modules.get("ray") is not None:  # (None: an import of ray that is blocked)
         if missing:
             settings = " ".join(f"{k}={v}" for k, v in missing.items())
             raise ImssrError(f"a local sweep keeps Ray on loopback, which needs {settings} before ray is "
