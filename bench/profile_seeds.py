@@ -25,7 +25,7 @@ from torch.profiler import ProfilerActivity, profile
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from seeds import agent_step  # noqa: E402  (bench/seeds.py: the same agents, buffers and step)
 
-from imssr.agents.streams import allow_concurrent_streams  # noqa: E402
+from imssr.agents.members import allow_concurrent_streams  # noqa: E402
 
 
 def profile_one(args, n: int, mode: str) -> None:

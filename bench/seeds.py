@@ -44,7 +44,7 @@ import torch
 
 from imssr.agents import SACAgent
 from imssr.agents.layouts import make_batch
-from imssr.agents.streams import allow_concurrent_streams
+from imssr.agents.members import allow_concurrent_streams
 from imssr.algos import get_algo
 from imssr.config import apply_overrides
 from imssr.presets import make_config

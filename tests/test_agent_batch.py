@@ -18,7 +18,7 @@ from conftest import filled_buffer, small_agent, tiny_config
 from imssr import draws
 from imssr.agents.batched import AgentBatch
 from imssr.agents.layouts import make_batch
-from imssr.agents.streams import MemberStreams
+from imssr.agents.members import Members
 from imssr.agents.sac import SACAgent
 from imssr.errors import ImssrError
 
@@ -236,7 +236,7 @@ def test_streams_keep_each_members_own_agent_and_refuse_stacking():
     member without it: nothing is stacked); AgentBatch, which stacks, refuses that layout."""
     members = [member("curl", 1), member("curl+rnd", 2)]
     batch = make_batch(members, "streams")
-    assert isinstance(batch, MemberStreams) and batch.members == members and batch.streams is None
+    assert isinstance(batch, Members) and batch.members == members and batch.streams is None
     assert batch.intrinsic_on == [False, True]
     replays = buffers()[:2]
     metrics = batch.update(replays, 0)
@@ -293,7 +293,7 @@ def test_a_batch_raises_cudas_work_queues_unless_the_user_set_them(monkeypatch):
     """CUDA reads CUDA_DEVICE_MAX_CONNECTIONS when it starts: a batch asks for 32 queues (CUDA's
     default 8 would queue several members' streams behind each other); a value the user set
     stands."""
-    from imssr.agents.streams import allow_concurrent_streams
+    from imssr.agents.members import allow_concurrent_streams
 
     monkeypatch.setattr(torch.cuda, "is_initialized", lambda: False)  # on a GPU, a test before may have started it
     monkeypatch.delenv("CUDA_DEVICE_MAX_CONNECTIONS", raising=False)

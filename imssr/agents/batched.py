@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 
 MODES = BATCH_LAYOUTS
 """How a batch runs its members' computation (``agent.batch_layout``; see the module's doc;
-``streams``: :class:`~imssr.agents.streams.MemberStreams`)."""
+``streams``: :class:`~imssr.agents.members.Members`)."""
 
 
 def resolve_mode(mode: str, device: torch.device) -> str:

@@ -150,7 +150,7 @@ class StepGraphs:
                     graph.register_generator_state(generator)
             # cuBLAS keeps one workspace per stream, and a recording keeps the address of the one
             # it was made with: recordings made on one stream would share it, members of a batch
-            # on streams of their own (agents/streams.py) would race on it when they replay at the
+            # on streams of their own (agents/members.py) would race on it when they replay at the
             # same time, and destroying one recording would free it under the others.  Cleared
             # before and after, the recording allocates a workspace of its own in its own pool
             # (as torch's inductor does for its recordings).

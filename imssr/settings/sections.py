@@ -140,7 +140,7 @@ class AgentConfig:
     member, the very ops of each run alone.  ``streams``: each member an agent of its own whose
     work goes to a CUDA stream of its own, so that the members' kernels run side by side (with
     :attr:`cuda_graphs`, one replay per member and agent step); bit for bit each run alone on
-    the CPU (``imssr.agents.streams``).  ``auto``: ``vmap`` on CUDA, ``loop`` on the CPU.  No
+    the CPU (``imssr.agents.members``).  ``auto``: ``vmap`` on CUDA, ``loop`` on the CPU.  No
     effect on a run alone."""
 
     @property

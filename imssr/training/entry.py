@@ -213,7 +213,7 @@ def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list
     from imssr.training.memory import memory_plan
 
     if request.seeds is not None or request.runs:
-        from imssr.agents.streams import allow_concurrent_streams
+        from imssr.agents.members import allow_concurrent_streams
 
         allow_concurrent_streams()
     planned = plan(request)

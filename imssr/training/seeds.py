@@ -23,7 +23,7 @@ import numpy as np
 
 from imssr.agents.batched import AgentBatch
 from imssr.agents.layouts import make_batch
-from imssr.agents.streams import MemberStreams
+from imssr.agents.members import Members
 from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
 from imssr.envs.worker import EnvWorker
@@ -42,7 +42,7 @@ class MemberAgent:
     """Member ``i`` of an :class:`AgentBatch` as its seed's trainer sees an agent: deterministic
     actions for evaluation, and the member's state in a single agent's layout for checkpoints."""
 
-    def __init__(self, batch: Union[AgentBatch, MemberStreams], i: int, agent):
+    def __init__(self, batch: Union[AgentBatch, Members], i: int, agent):
         self.batch, self.i = batch, i
         self.signal = agent.signal  # what the divergence check names
         self.cfg = agent.cfg

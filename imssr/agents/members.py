@@ -1,6 +1,6 @@
 """Many seeds of one experiment as agents of their own whose GPU work overlaps (``streams``).
 
-:class:`MemberStreams` is the ``streams`` layout of a batch of seeds
+:class:`Members` is the ``streams`` layout of a batch of seeds
 (:func:`imssr.agents.layouts.make_batch`): each member is a whole
 :class:`~imssr.agents.sac.SACAgent`, untouched, and an agent step runs every member's own
 update (and action) in turn.  On CUDA each member issues its work on a CUDA stream of its own,
@@ -53,7 +53,7 @@ def allow_concurrent_streams() -> None:
         os.environ.setdefault("CUDA_DEVICE_MAX_CONNECTIONS", CONCURRENT_STREAMS)
 
 
-class MemberStreams:
+class Members:
     """``N`` member agents of one configuration stepped in lockstep, each on a CUDA stream of its
     own (see the module's doc).  The interface of :class:`~imssr.agents.batched.AgentBatch`."""
 
