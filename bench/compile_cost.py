@@ -25,7 +25,8 @@ import torch
 import torch._dynamo
 from torch._dynamo.utils import counters
 
-from imssr.agents import SACAgent
+from imssr.agents import SACAgent, make_agent
+from imssr.agents.build import compile_networks
 from imssr.config import apply_overrides
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
@@ -48,10 +49,10 @@ def build(algo: str, layers: int, a, compile_mode: str) -> SACAgent:
                            f"aux.batch_size={a.batch}", f"agent.crop_size={a.crop}",
                            f"env.image_size={a.size}", "agent.compile=off"]).validate()
     cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, layers - 1)
-    agent = SACAgent((3 * cfg.env.frame_stack, a.size, a.size), 1, cfg.agent, cfg.aux, cfg.intrinsic,
-                     device=a.device, seed=0)
+    agent = make_agent((3 * cfg.env.frame_stack, a.size, a.size), 1, cfg.agent, cfg.aux, cfg.intrinsic,
+                       device=a.device, seed=0)
     if compile_mode != "off":
-        agent._compile(None if compile_mode == "default" else compile_mode, backend=a.backend)
+        compile_networks(agent.nets, None if compile_mode == "default" else compile_mode, backend=a.backend)
     return agent
 
 

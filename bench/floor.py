@@ -38,7 +38,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 from torch.utils.flop_counter import FlopCounterMode
 
-from imssr.agents import SACAgent
+from imssr.agents import SACAgent, make_agent
 from imssr.algos import get_algo
 from imssr.config import apply_overrides
 from imssr.networks import encoder
@@ -117,8 +117,8 @@ def build(args, precision: str):
     cfg = apply_overrides(cfg, [*args.set, f"agent.precision={precision}", *batch]).validate()
     e = cfg.env
     obs_shape = (3 * e.frame_stack, e.image_size, e.image_size)
-    agent = SACAgent(obs_shape, args.action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
-                     cfg.intrinsic, device=args.device, seed=1)
+    agent = make_agent(obs_shape, args.action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
+                       cfg.intrinsic, device=args.device, seed=1)
     rng = np.random.default_rng(0)
     replay = FrameReplayBuffer(args.fill + 10, (3, e.image_size, e.image_size), args.action_dim, e.frame_stack, seed=1)
     replay.add_first(rng.integers(0, 256, (3, e.image_size, e.image_size), dtype=np.uint8))

@@ -16,7 +16,7 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 import imssr  # noqa: F401
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.config import apply_overrides
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
@@ -42,7 +42,7 @@ def main() -> None:
     buf.add_first(rng.integers(0, 256, (3, 100, 100), dtype=np.uint8))
     for _ in range(600):
         buf.add(rng.uniform(-1, 1, 1), 0.0, 1.0, rng.integers(0, 256, (3, 100, 100), dtype=np.uint8))
-    agent = SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic)
+    agent = make_agent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic)
     for s in range(2):
         agent.update(buf, s)
     t0 = time.perf_counter()

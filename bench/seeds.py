@@ -42,9 +42,8 @@ import time
 import numpy as np
 import torch
 
-from imssr.agents import SACAgent
-from imssr.agents.layouts import make_batch
-from imssr.agents.members import allow_concurrent_streams
+from imssr.agents import make_agent
+from imssr.agents.members import Members, allow_concurrent_streams
 from imssr.algos import get_algo
 from imssr.config import apply_overrides
 from imssr.presets import make_config
@@ -60,10 +59,10 @@ def build(args, seeds: list[int]):
     obs_shape = (3 * e.frame_stack, e.image_size, e.image_size)
     agents, replays = [], []
     for seed in seeds:
-        agents.append(SACAgent(obs_shape, action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
-                               cfg.intrinsic, device=args.device, seed=seed))
+        agents.append(make_agent(obs_shape, action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
+                                 cfg.intrinsic, device=args.device, seed=seed))
         replays.append(filled(args.fill, e.image_size, e.frame_stack, action_dim, seed))
-    agent = make_batch(agents, args.mode) if args.batched else agents[0]
+    agent = Members(agents) if args.batched else agents[0]
     return agent, replays, obs_shape
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 import imssr  # noqa: F401
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
 
@@ -51,7 +51,7 @@ def main():
         if not cfg.aux.own_batch:  # tasks trained on the RL batch
             cfg.aux.batch_size = a.batch
         cfg.intrinsic.form = a.form
-        agents[algo] = (SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic), filled())
+        agents[algo] = (make_agent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic), filled())
     times = {k: [] for k in agents}
     for step in range(a.steps + 3):
         for name, (agent, buf) in agents.items():

@@ -6,8 +6,6 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from imssr import draws
-
 
 def random_crop(x: torch.Tensor, size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
     """Independent random ``size x size`` crop per sample of ``(B, C, H, W)``.
@@ -18,8 +16,8 @@ def random_crop(x: torch.Tensor, size: int, generator: Optional[torch.Generator]
     """
     b, c, h, w = x.shape
     high_y, high_x = max(h - size, 1), max(w - size, 1)
-    oy = draws.randint(high_y, (b,), generator, x.device)
-    ox = draws.randint(high_x, (b,), generator, x.device)
+    oy = torch.randint(0, high_y, (b,), generator=generator, device=x.device)
+    ox = torch.randint(0, high_x, (b,), generator=generator, device=x.device)
     return crop_at(x, oy, ox, size)
 
 
@@ -52,7 +50,7 @@ def random_overlay(x: torch.Tensor, images: torch.Tensor, alpha: float = 0.5,
     pixels in [0, 255].
     """
     b, c = x.shape[:2]
-    idx = draws.randint(images.shape[0], (b,), generator, x.device)
+    idx = torch.randint(0, images.shape[0], (b,), generator=generator, device=x.device)
     chosen = images[idx].float().repeat(1, c // 3, 1, 1)
     return torch.lerp(x.float(), chosen, alpha)
 
@@ -67,7 +65,8 @@ def random_conv(x: torch.Tensor, generator: Optional[torch.Generator] = None) ->
     """
     b, c, h, w = x.shape
     k = c // 3
-    weights = draws.randn((b * 3, 3, 3, 3), generator, x.device, torch.get_default_dtype())
+    weights = torch.randn((b * 3, 3, 3, 3), generator=generator, device=x.device,
+                          dtype=torch.get_default_dtype())
     # (B, k, 3, H, W) -> (k, B*3, H, W): frames as the batch, samples as groups.
     frames = (x.float() / 255.0).reshape(b, k, 3, h, w).transpose(0, 1).reshape(k, b * 3, h, w)
     out = F.conv2d(F.pad(frames, (1, 1, 1, 1), mode="replicate"), weights, groups=b)

@@ -16,8 +16,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from imssr import draws
-
 
 def autocast(device: torch.device, precision: str) -> ContextManager:
     """The context of an agent's forward passes: bfloat16 autocast for ``bf16``, else nothing."""
@@ -76,9 +74,7 @@ class FrozenBF16:
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         layer = self.layer
         device = x.device.type
-        if (not torch.is_autocast_enabled(device) or torch.get_autocast_dtype(device) != torch.bfloat16
-                or draws.is_member_batched(layer.weight)):
-            # A member's weights inside a batch's vmap are views of that call only: autocast casts them.
+        if not torch.is_autocast_enabled(device) or torch.get_autocast_dtype(device) != torch.bfloat16:
             return type(layer).forward(layer, x)
         params = (layer.weight, layer.bias)
         key = tuple(None if p is None else (p.data_ptr(), p._version) for p in params)
@@ -208,11 +204,19 @@ def warn_if_bf16_is_slow(device: torch.device, precision: str) -> Optional[str]:
     return line
 
 
+def configure_process(cfg, device: torch.device) -> None:
+    """Set the process-wide switches a run's agent settings ``cfg`` (``agent.*``) ask for on
+    ``device`` (:func:`configure_cuda`), and say once if bf16 will be slow on this CPU: once per
+    process, by whoever builds a run's agents, not by each agent."""
+    warn_if_bf16_is_slow(device, cfg.precision)
+    configure_cuda(device, cfg.tf32)
+
+
 def configure_cuda(device: torch.device, tf32: str) -> None:
     """On CUDA: cuDNN picks its fastest convolution algorithms for the (fixed) input shapes, and
     TensorFloat-32 as ``tf32`` (``agent.tf32``) says: ``default`` sets PyTorch's own defaults
     (TF32 in cuDNN convolutions, not in matmuls), ``true`` allows it in both, ``false`` in
-    neither.  The switches are process-wide, so each agent sets both.  No-op on CPU."""
+    neither.  The switches are process-wide.  No-op on CPU."""
     if device.type != "cuda":
         return
     torch.backends.cudnn.benchmark = True

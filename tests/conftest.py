@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import imssr  # noqa: F401 - configures MUJOCO_GL before dm_control loads
-from imssr.agents import SACAgent
+from imssr.agents import SACAgent, make_agent
 from imssr.batch import NextObsContext
 from imssr.presets import make_config
 from imssr.training.logger import EVAL_COLUMNS
@@ -377,7 +377,7 @@ def small_agent(algo: str, schedule: str = "sequential", precision: str = "fp32"
     cfg.agent.encoder_layers, cfg.agent.encoder_filters, cfg.agent.crop_size = 4, 8, 52
     cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, 1)
     cfg.aux.image_pool_size = 8
-    agent = SACAgent((9, 60, 60), 2, cfg.agent, cfg.aux, intrinsic or cfg.intrinsic, seed=seed, device=device)
+    agent = make_agent((9, 60, 60), 2, cfg.agent, cfg.aux, intrinsic or cfg.intrinsic, seed=seed, device=device)
     if dtype is not None:
         for module in (agent.nets, agent.aux, agent.signal):
             if module is not None:

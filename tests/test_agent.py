@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import assert_same_nets, filled_buffer, tiny_config
-from imssr.agents import SACAgent
+from conftest import assert_same_nets, filled_buffer, small_agent, tiny_config
+from imssr.agents import make_agent
 from imssr.augmentations import center_crop
 from imssr.batch import NextObsContext
 from imssr.errors import ImssrError
@@ -12,7 +12,7 @@ from imssr.errors import ImssrError
 
 def _agent(seed=0, algo="curl"):
     cfg = tiny_config(algo)
-    return SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
+    return make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
 
 
 def test_actions_in_bounds_and_deterministic_mode():
@@ -193,3 +193,20 @@ def test_pixels_convert_each_distinct_input_once():
     del obs
     gc.collect()
     assert len(encoder._PIXELS) == entries - 3
+
+
+@pytest.mark.parametrize("schedule", ["sequential", "fused"])
+@pytest.mark.parametrize("algo", ["curl", "im-curl", "soda", "im-soda", "pad", "im-pad", "svea", "im-svea",
+                                  "curl+rnd", "soda+re3"])
+def test_act_and_update_leave_torchs_global_random_state_untouched(algo, schedule):
+    """Every draw of an agent's update and action comes from its own generators: torch's global
+    generator, which a batch's members and the rest of the process share, stays as it was."""
+    agent = small_agent(algo, schedule)
+    replay = filled_buffer(action_dim=2, size=60)
+    obs = np.random.default_rng(0).integers(0, 256, (9, 60, 60), dtype=np.uint8)
+    before = torch.get_rng_state()
+    for step in range(2):  # the actor's and the targets' steps included
+        agent.update(replay, step)
+        agent.act(obs, deterministic=False)
+        agent.act(obs, deterministic=True)
+    assert torch.equal(torch.get_rng_state(), before)

@@ -157,7 +157,7 @@ def test_adapter_gives_the_signal_the_agent_adds_to_its_reward():
     ours = adapter.intrinsic_signal(agent, sample)
     agent.gen.set_state(gen_state); agent.intrinsic_gen.set_state(int_state)
     batch = agent.to_batch(sample)
-    agent.critic_objective(batch, 1)
+    agent.critic_objective(batch, agent.beta(1))
     assert torch.equal(ours, seen[0])
 
 

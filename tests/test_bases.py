@@ -6,13 +6,13 @@ import torch
 import torch.nn.functional as F
 
 from conftest import filled_buffer, next_obs_context, tiny_config
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.augmentations import center_crop
 
 
 def _agent(algo, seed=0, action_dim=2):
     cfg = tiny_config(algo)
-    return SACAgent((9, 100, 100), action_dim, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
+    return make_agent((9, 100, 100), action_dim, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
 
 
 @pytest.mark.parametrize("algo", ["soda", "pad"])
@@ -128,7 +128,7 @@ def test_svea_critic_loss_matches_the_weighted_sum():
         target = batch.reward + batch.discount * 0.99 * tq
         expected = sum(w * sum(F.mse_loss(q, target) for q in n.critic(v, batch.action)) for v, w in views)
     agent.noise_gen.set_state(noise_state)
-    got = agent.critic_objective(batch, 0)[1]["critic_loss"]
+    got = agent.critic_objective(batch, agent.beta(0))[1]["critic_loss"]
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
 
 

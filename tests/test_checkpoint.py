@@ -277,10 +277,10 @@ def test_agent_state_from_another_device_type_loads(full_run):
     _, full = full_run
     state = full.agent.state_dict()
     state["noise_gen"] = torch.zeros(16, dtype=torch.uint8)  # a CUDA generator's state size
-    from imssr.agents import SACAgent
+    from imssr.agents import make_agent
 
     cfg = _cfg()
-    other = SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic)
+    other = make_agent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic)
     other.load_state_dict(state)
     obs = np.zeros((9, 100, 100), np.uint8)
     assert np.array_equal(other.act(obs, True), full.agent.act(obs, True))

@@ -8,7 +8,8 @@ import torch._dynamo
 from torch._dynamo.utils import counters
 
 from conftest import filled_buffer, small_agent
-from imssr.agents.sac import INDUCTOR_MODES, SACAgent
+from imssr.agents import build
+from imssr.agents.build import INDUCTOR_MODES, compile_networks
 from imssr.config import COMPILE_MODES
 
 
@@ -45,7 +46,7 @@ def test_compile_captures_the_conv_trunk_and_changes_no_number(dynamo, algo, sch
     replays = [filled_buffer(60, action_dim=2, size=60) for _ in range(2)]
     eager, compiled = small_agent(algo, schedule), small_agent(algo, schedule)
     recorder = Recorder()
-    compiled._compile(None, backend=recorder)
+    compile_networks(compiled.nets, None, backend=recorder)
     for step in range(2):
         expected, got = eager.update(replays[0], step), compiled.update(replays[1], step)
         assert set(got) == set(expected)
@@ -62,7 +63,7 @@ def test_compile_captures_the_conv_trunk_and_changes_no_number(dynamo, algo, sch
 def test_act_runs_compiled_layers(dynamo):
     agent = small_agent("curl", "sequential")
     recorder = Recorder()
-    agent._compile(None, backend=recorder)
+    compile_networks(agent.nets, None, backend=recorder)
     action = agent.act(torch.randint(0, 256, (9, 60, 60), dtype=torch.uint8).numpy(), deterministic=False)
     assert action.shape == (2,)
     assert recorder.count(*CONVS) >= agent.cfg.encoder_layers and recorder.count(*LINEARS) >= 4
@@ -72,7 +73,7 @@ def test_compile_never_asks_inductor_for_cuda_graphs(monkeypatch):
     """``agent.compile`` makes kernels; CUDA graphs are ``agent.cuda_graphs``'s alone (inductor's
     own would nest inside its recordings)."""
     modes = []
-    monkeypatch.setattr(SACAgent, "_compile", lambda self, mode, backend="inductor": modes.append(mode))
+    monkeypatch.setattr(build, "compile_networks", lambda nets, mode, backend="inductor": modes.append(mode))
     for mode in ("default", "max-autotune"):
         small_agent("curl", agent_fields={"compile": mode})
     assert modes == [None, "max-autotune-no-cudagraphs"]
@@ -85,7 +86,7 @@ def test_compiled_kernels_recorded_with_the_step_change_no_number(dynamo):
     replays = [filled_buffer(60, action_dim=2, size=60) for _ in range(2)]
     eager = small_agent("im-curl")
     both = small_agent("im-curl", agent_fields={"cuda_graphs": True})
-    both._compile(None, backend="eager")
+    compile_networks(both.nets, None, backend="eager")
     for step in range(3):
         expected, got = eager.update(replays[0], step), both.update(replays[1], step)
         for key in expected:  # beta_t enters a recordable step as a float64 tensor: compare values

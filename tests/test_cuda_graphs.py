@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from conftest import filled_buffer, small_agent
-from imssr.agents.batched import AgentBatch
 from imssr.agents.graphs import StepGraphs, set_capturable, tree_map
+from imssr.agents.members import Members
 from imssr.errors import ImssrError
 from test_agent_batch import flat
 
@@ -68,23 +68,24 @@ def test_a_single_agent_with_cuda_graphs_on_cpu_is_the_run_without(algo):
 
 @pytest.mark.parametrize("algo", ["im-curl", "im-soda", "curl+rnd"])
 def test_a_batch_with_cuda_graphs_on_cpu_is_the_batch_without(algo):
-    def batch(graphs: bool) -> AgentBatch:
+    def batch(graphs: bool) -> Members:
         # A base member beside an IM- member: beta_t enters per member.
         first = algo.removeprefix("im-")
-        return AgentBatch([small_agent(a, seed=s, agent_fields={"cuda_graphs": graphs})
-                           for a, s in ((first, 1), (algo, 2))], mode="loop")
+        return Members([small_agent(a, seed=s, agent_fields={"cuda_graphs": graphs})
+                        for a, s in ((first, 1), (algo, 2))])
 
     plain, graphed = batch(False), batch(True)
     replays = [[filled_buffer(action_dim=2, seed=s, size=60) for s in (1, 2)] for _ in range(2)]
     for step in range(STEPS):
         mp = plain.update(replays[0], step)
         mg = graphed.update(replays[1], step)
-        for k in mp:
-            assert torch.equal(mp[k], mg[k]), (step, k)
+        for i in range(2):
+            for k in mp[i]:  # beta_t enters a recordable step as a float64 tensor: compare values
+                assert float(mp[i][k]) == float(mg[i][k]), (step, i, k)
     obs = torch.stack([torch.as_tensor(r.sample(1)["obs"][0]) for r in replays[0]]).numpy()
     assert torch.equal(plain.act(obs, True), graphed.act(obs, True))
     for i in range(2):
-        a, b = flat(plain.member_state_dict(i)), flat(graphed.member_state_dict(i))
+        a, b = flat(plain.members[i].state_dict()), flat(graphed.members[i].state_dict())
         for key, x in a.items():
             assert torch.equal(x, b[key]) if isinstance(x, torch.Tensor) else x == b[key], (i, key)
 
@@ -117,13 +118,17 @@ def test_a_failed_recording_is_one_line_and_final():
             graphs("k", lambda inputs: inputs, {"x": torch.ones(1)})
 
 
-def test_beta_enters_as_a_float64_tensor_per_agent_or_member():
-    from imssr.agents.batched import MemberSchedules
-    from imssr.intrinsic.reward import BetaSchedule
-    single = BetaSchedule(0.5, "step", 0.8, 10).tensor(25, torch.device("cpu"))
-    assert single.dtype == torch.float64 and single.shape == () and float(single) == 0.5 * 0.8 ** 2
-    members = MemberSchedules([BetaSchedule(0.5, "constant"), None], torch.device("cpu")).tensor(3, torch.device("cpu"))
-    assert members.dtype == torch.float64 and members.tolist() == [0.5, 0.0]
+def test_beta_enters_a_recordable_step_as_a_float64_tensor():
+    """``beta_t`` is computed once per agent step and handed to the step: a float when it runs
+    eagerly, a float64 0-dim input tensor when it may be recorded."""
+    seen = []
+    for graphs in (False, True):
+        agent = small_agent("im-curl", seed=1, agent_fields={"cuda_graphs": graphs})
+        learn = agent.learn
+        agent.learn = lambda inputs, step: seen.append(inputs["beta"]) or learn(inputs, step)
+        agent.update(filled_buffer(action_dim=2, size=60), 0)
+    assert seen[0] == agent.schedule(0) and isinstance(seen[0], float)
+    assert seen[1].dtype == torch.float64 and seen[1].shape == () and float(seen[1]) == seen[0]
 
 
 def test_bf16_frozen_weight_cache_is_left_to_eager_runs():
@@ -250,51 +255,18 @@ def test_a_state_loaded_after_recording_is_recorded_again_on_cuda(deterministic_
 
 
 @CUDA
-@pytest.mark.parametrize("algo", ["im-curl", "im-soda", "curl+rnd"])
-def test_a_recorded_batch_follows_the_eager_batch_on_cuda(deterministic_cudnn, algo):
-    def batch(graphs: bool) -> AgentBatch:
-        first = algo.removeprefix("im-")
-        return AgentBatch([small_agent(a, seed=s, device="cuda", agent_fields={"tf32": "false", "cuda_graphs": graphs})
-                           for a, s in ((first, 1), (algo, 2), (algo, 3))], mode="vmap")
-
-    eager, graphed = batch(False), batch(True)
-    replays = [[filled_buffer(action_dim=2, seed=s, size=60) for s in (1, 2, 3)] for _ in range(2)]
-    for step in range(10):
-        me = eager.update(replays[0], step)
-        mg = graphed.update(replays[1], step)
-    for k in me:
-        assert torch.allclose(me[k].double(), mg[k].double(), rtol=1e-4, atol=1e-4), k
-    obs = torch.stack([torch.as_tensor(r.sample(1)["obs"][0]) for r in replays[0]]).numpy()
-    for deterministic in (True, False, True, False, True, False):
-        assert torch.allclose(eager.act(obs, deterministic), graphed.act(obs, deterministic), atol=1e-3)
-    assert len(graphed.template.graphs.steps) == 4
-    for i in range(3):
-        a, b = flat(eager.member_state_dict(i)), flat(graphed.member_state_dict(i))
-        for key, x in a.items():
-            if key.endswith(".capturable"):
-                continue
-            if isinstance(x, torch.Tensor) and x.dtype.is_floating_point and x.numel():
-                assert float((x.double() - b[key].double().to(x.device)).abs().max()) <= \
-                    1e-4 * max(float(x.abs().max()), 1.0), (i, key)
-            elif isinstance(x, torch.Tensor):
-                assert torch.equal(x.cpu(), b[key].cpu()), (i, key)  # generator states: the same draws
-
-
-@CUDA
 @pytest.mark.parametrize("n", [3, 16])
 def test_a_member_among_many_on_streams_is_its_run_alone_on_cuda(deterministic_cudnn, n):
-    """``agent.batch_layout=streams``: every member's recorded update replays on its own stream,
+    """A batch of members: every member's recorded update replays on its own stream,
     beside the others; with deterministic cuDNN algorithms, member 1 (IM-CURL) and the last
     member are the very runs of the same seeds alone, bit for bit, and the actions of all come
     back as one tensor."""
-    from imssr.agents.layouts import make_batch
-
     fields = {"tf32": "false", "cuda_graphs": True}
 
     def agent(i: int):
         return small_agent("curl" if i == 0 else "im-curl", seed=i + 1, device="cuda", agent_fields=fields)
 
-    batch = make_batch([agent(i) for i in range(n)], "streams")
+    batch = Members([agent(i) for i in range(n)])
     assert len(batch.streams) == n
     alone = {i: agent(i) for i in (1, n - 1)}
     replays = [filled_buffer(action_dim=2, seed=i + 1, size=60) for i in range(n)]
@@ -304,7 +276,7 @@ def test_a_member_among_many_on_streams_is_its_run_alone_on_cuda(deterministic_c
         expected = {i: a.update(replays_alone[i], step) for i, a in alone.items()}
         for i, m in expected.items():
             for k, v in m.items():
-                assert torch.equal(v, batch.member_metrics(metrics, i)[k]), (i, k)
+                assert torch.equal(v, metrics[i][k]), (i, k)
     obs = torch.stack([torch.as_tensor(r.sample(1)["obs"][0]) for r in replays_alone.values()])
     full = torch.zeros((n, *obs.shape[1:]), dtype=obs.dtype)
     for row, i in zip(obs, alone):

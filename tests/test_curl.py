@@ -2,14 +2,14 @@
 import torch
 
 from conftest import filled_buffer, tiny_config
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.auxiliary import AUX_TASKS, AuxiliaryTask
 from imssr.batch import NextObsContext
 
 
 def _agent(seed=0):
     cfg = tiny_config("im-curl")
-    return SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed), cfg
+    return make_agent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed), cfg
 
 
 def test_per_sample_loss_is_rowwise_cross_entropy_of_logits():

@@ -4,14 +4,14 @@ import pytest
 import torch
 
 from conftest import filled_buffer, tiny_config
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.batch import NextObsContext
 from imssr.intrinsic import RE3, RND
 
 
 def _agent(algo):
     cfg = tiny_config(algo)
-    return SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0), cfg
+    return make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0), cfg
 
 
 def _ctx(batch):
@@ -35,8 +35,8 @@ def test_rnd_error_is_per_sample_and_falls_on_seen_observations():
     err = rnd(_ctx(batch))
     assert err.shape == (8,) and not err.requires_grad and torch.all(err >= 0)
     target_before = [p.clone() for p in rnd.target.parameters()]
-    for s in range(30):
-        agent.update_signal(batch, s)
+    for _ in range(30):
+        agent.update_signal(batch)
     assert float(rnd(_ctx(batch)).mean()) < 0.5 * float(err.mean())
     # The target network is fixed.
     assert all(torch.equal(a, b) for a, b in zip(target_before, rnd.target.parameters()))
@@ -69,7 +69,7 @@ def test_peer_state_round_trip(algo):
     buf = filled_buffer(action_dim=2)
     for s in range(2):
         agent.update(buf, s)
-    other = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=4)
+    other = make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=4)
     other.load_state_dict(agent.state_dict())
     for (k, v), (_, w) in zip(agent.signal.state_dict().items(), other.signal.state_dict().items()):
         assert torch.equal(v, w), k

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from conftest import cli_config, filled_buffer, load_script, next_obs_context, tiny_config
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.augmentations import random_crop
 from imssr.config import load_config
 from imssr.envs import PAPER_TASKS
@@ -86,7 +86,7 @@ def test_encoder_has_no_relu_after_its_last_convolution_unless_asked():
     for final in (False, True):
         cfg = tiny_config("curl")
         cfg.agent.final_relu = final
-        agent = SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, None, seed=0)
+        agent = make_agent((9, 100, 100), 1, cfg.agent, cfg.aux, None, seed=0)
         out = agent.nets.critic.encoder.trunk(torch.as_tensor(filled_buffer().sample(4)["obs"][:, :, :84, :84]))
         # A convolution's output has negative values; a ReLU's has none.
         assert bool((out < 0).any()) is not final
@@ -100,7 +100,7 @@ def _same_batch(agent, sample):
 
 
 def _critic_loss(agent, batch, step=0):
-    return agent.critic_objective(batch, step)[1]["critic_loss"]
+    return agent.critic_objective(batch, agent.beta(step))[1]["critic_loss"]
 
 
 @torch.no_grad()
@@ -135,8 +135,8 @@ def test_the_bonus_added_to_the_reward_is_the_authors_signal(algo):
     cfg = tiny_config(algo)
     cfg.intrinsic.beta0, cfg.intrinsic.schedule = beta, "constant"
     base_cfg = tiny_config(ALGOS[algo].base)
-    im = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
-    base = SACAgent((9, 100, 100), 2, base_cfg.agent, base_cfg.aux, None, seed=0)
+    im = make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
+    base = make_agent((9, 100, 100), 2, base_cfg.agent, base_cfg.aux, None, seed=0)
     sample = filled_buffer(action_dim=2).sample(8)
     batch = _same_batch(im, sample)
     if algo == "im-curl":
@@ -156,7 +156,7 @@ def test_the_bonus_added_to_the_reward_is_the_authors_signal(algo):
 
 def test_the_training_forms_remain_as_options():
     cfg = tiny_config("im-soda")
-    agent = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
+    agent = make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
 
     ctx = next_obs_context(agent, batch)
@@ -170,7 +170,7 @@ def test_the_training_forms_remain_as_options():
 
 def test_soda_crops_its_two_branches_independently():
     cfg = tiny_config("soda")
-    agent = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, None, seed=0)
+    agent = make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, None, seed=0)
     soda = agent.aux
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
     gen = batch.generator
@@ -230,9 +230,9 @@ def test_normalize_constant_and_non_finite_batches():
     # A non-finite loss shows in r_int_raw, which the training loop checks with the other
     # metrics (tests/test_run_checks.py): nothing here waits for the device.
     cfg = tiny_config("im-curl").intrinsic
-    bonus, stats = IntrinsicReward(cfg)(torch.tensor([0.1, float("nan"), 0.3]), 7)
+    bonus, stats = IntrinsicReward(cfg)(torch.tensor([0.1, float("nan"), 0.3]), cfg.beta0)
     assert torch.isnan(stats["r_int_raw"]) and torch.isnan(bonus).all()
-    _, stats = IntrinsicReward(cfg)(torch.tensor([0.1, float("inf"), 0.3]), 7)
+    _, stats = IntrinsicReward(cfg)(torch.tensor([0.1, float("inf"), 0.3]), cfg.beta0)
     assert not torch.isfinite(stats["r_int_raw"])
 
 

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from conftest import assert_same_nets, filled_buffer, tiny_config
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.batch import Encoding, NextObsContext
 from imssr.config import apply_overrides
 from imssr.errors import ImssrError
@@ -21,7 +21,7 @@ def _agent(algo="curl", seed=0, beta0=None, **agent):
         cfg.intrinsic.beta0 = beta0
     for k, v in agent.items():
         setattr(cfg.agent, k, v)
-    return SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
+    return make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
 
 
 @pytest.mark.parametrize("algo", ["curl", "pad"])
@@ -50,8 +50,8 @@ def test_fused_gradient_is_the_sum_of_the_critic_and_task_gradients(algo):
     g_task = torch.autograd.grad(task_loss, enc + own, allow_unused=True)
     agent.gen.set_state(gen)
     agent.noise_gen.set_state(noise)
-    loss, metrics, obs_trunk = agent.fused_objective(batch, 0, None, with_task_loss=True)
-    optimizer_step(loss, agent.critic_opt, agent.aux.optimizer)  # as update_fused steps it
+    loss, metrics, obs_trunk = agent.fused_objective(batch, agent.beta(0), with_task_loss=True)
+    optimizer_step(loss, agent.critic_opt, agent.aux.optimizer)  # as the fused update steps it
     # The agent's passes run over other batch sizes (o and o' together): rounding differs.
     torch.testing.assert_close(metrics["critic_loss"], critic_loss.detach(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(metrics["aux_loss"], task_loss.detach(), rtol=1e-5, atol=1e-6)
@@ -102,7 +102,7 @@ def test_fused_im_pad_update_hands_its_training_loss_to_the_reward():
 
     agent.signal.task_loss = spy
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    metrics = agent.fused_objective(batch, 0, None, with_task_loss=True)[1]
+    metrics = agent.fused_objective(batch, agent.beta(0), with_task_loss=True)[1]
     ((handed, got, recomputed),) = seen
     assert handed is not None and not got.requires_grad
     torch.testing.assert_close(got, handed.detach())
@@ -111,7 +111,7 @@ def test_fused_im_pad_update_hands_its_training_loss_to_the_reward():
     # Sequential schedule: nothing to hand over, the reward computes the loss itself.
     seen.clear()
     batch = agent.to_batch(filled_buffer(action_dim=2).sample(8))
-    agent.critic_objective(batch, 1)
+    agent.critic_objective(batch, agent.beta(1))
     assert seen[0][0] is None
 
 
@@ -155,7 +155,7 @@ def test_pad_on_its_own_batch_is_not_fused_and_still_trains_the_shared_layers():
     cfg = tiny_config("pad")
     cfg.agent.update_schedule = "fused"
     assert cfg.aux.own_batch  # Table III: PAD's SSL batch is its own (256)
-    agent = SACAgent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
+    agent = make_agent((9, 100, 100), 2, cfg.agent, cfg.aux, cfg.intrinsic, seed=0)
     assert not agent.fuse_aux
     convs = agent.nets.critic.encoder.trunk.convs
     owned = {id(p) for g in agent.aux.optimizer.param_groups for p in g["params"]}

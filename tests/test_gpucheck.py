@@ -3,13 +3,13 @@ networks and budgets; its figures mean nothing), and the report it writes."""
 import torch
 
 from imssr import gpucheck
-from imssr.agents import SACAgent
+from imssr.agents import build
 
 
 def test_the_gpu_check_runs_every_item_and_writes_one_report(monkeypatch, tmp_path, capsys):
     # Dynamo's eager backend: the same capture as inductor, without minutes of C++ compilation.
-    compile_ = SACAgent._compile
-    monkeypatch.setattr(SACAgent, "_compile", lambda self, mode, backend="inductor": compile_(self, mode, "eager"))
+    compile_ = build.compile_networks
+    monkeypatch.setattr(build, "compile_networks", lambda nets, mode, backend="inductor": compile_(nets, mode, "eager"))
     out = tmp_path / "gpucheck.md"
     status = gpucheck.main(["--tiny", "--device", "cpu", "--out", str(out), "--bases", "curl",
                             "--compile-modes", "default", "--skip", "bench"])

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from conftest import filled_buffer, tiny_config
-from imssr.agents import SACAgent
+from imssr.agents import make_agent
 from imssr.errors import ImssrError
 from imssr.intrinsic import BetaSchedule, IntrinsicReward, normalize
 
@@ -42,7 +42,7 @@ def test_beta_schedules():
 def test_intrinsic_reward_scales_normalised_losses():
     cfg = tiny_config("im-curl").intrinsic
     cfg.beta0, cfg.schedule = 0.5, "constant"
-    bonus, stats = IntrinsicReward(cfg)(torch.tensor([1.0, 3.0]), step=0)
+    bonus, stats = IntrinsicReward(cfg)(torch.tensor([1.0, 3.0]), beta=cfg.beta0)
     assert bonus.shape == (2, 1)
     # Unbiased std of (1, 3) is sqrt(2): z = -+1/sqrt(2).
     torch.testing.assert_close(bonus.flatten(), 0.5 * torch.tensor([-1.0, 1.0]) / math.sqrt(2))
@@ -53,7 +53,7 @@ def _run(algo, beta0=None, steps=6, seed=0):
     cfg = tiny_config(algo)
     if beta0 is not None:
         cfg.intrinsic.beta0 = beta0
-    agent = SACAgent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
+    agent = make_agent((9, 100, 100), 1, cfg.agent, cfg.aux, cfg.intrinsic, seed=seed)
     buf = filled_buffer(seed=1)
     metrics = [agent.update(buf, s) for s in range(steps)]
     return agent, metrics

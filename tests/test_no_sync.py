@@ -39,7 +39,7 @@ def host_reads_raise(monkeypatch, allowed: set[int]):
 def optimizer_step_counters(agent: SACAgent) -> set[int]:
     """Adam's step counters: torch keeps them on the host by design (without ``capturable``),
     and its per-tensor and foreach Adam read them there: not a device sync."""
-    return {id(s["step"]) for opt in agent.optimizers() for s in opt.state.values()}
+    return {id(s["step"]) for opt in agent.graphs.optimizers for s in opt.state.values()}
 
 
 # Update paths the presets do not take: PAD on the RL batch (the fused schedule's joint o + o'

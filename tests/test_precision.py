@@ -112,7 +112,7 @@ def test_float32_islands_under_autocast():
         assert ln(low).dtype == torch.float32
         with full_precision(low):
             assert (low.float() @ w).dtype == torch.float32
-        bonus, stats = IntrinsicReward(make_config("im-curl", "cartpole_swingup").intrinsic)(low[:, 0], 0)
+        bonus, stats = IntrinsicReward(make_config("im-curl", "cartpole_swingup").intrinsic)(low[:, 0], 0.05)
         assert bonus.dtype == torch.float32 and stats["r_int_raw"].dtype == torch.float32
 
 

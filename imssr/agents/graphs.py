@@ -27,7 +27,7 @@ static buffers, so the CPU tests go through every step of the path but the recor
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Hashable, Iterable, Optional
+from typing import Any, Callable, Hashable, Iterable, Optional, Sequence
 
 import torch
 
@@ -83,17 +83,18 @@ class StepGraphs:
     """Runs a step function, recorded as a CUDA graph per key on CUDA (see the module's doc)."""
 
     def __init__(self, device: torch.device, enabled: bool, warmup: int = 2,
-                 generators: Callable[[], list[torch.Generator]] = list,
-                 prepare: Callable[[], None] = lambda: None):
+                 generators: Sequence[torch.Generator] = (), optimizers: Sequence[torch.optim.Optimizer] = ()):
         self.device, self.enabled, self.warmup = torch.device(device), enabled, warmup
-        self.generators = generators
+        self.generators = tuple(generators)
+        """What a recording registers: every generator the step draws from."""
+        self.optimizers = tuple(optimizers)
+        """Every optimiser the step steps, made capturable (:func:`set_capturable`) before each
+        warm-up and recording."""
         self.record = self.enabled and self.device.type == "cuda"
         """Whether calls are recorded (CUDA); otherwise they run eagerly on the static buffers."""
         self.calls: dict[Hashable, int] = {}
         self.steps: dict[Hashable, tuple[Optional[torch.cuda.CUDAGraph], Tree, Tree]] = {}
         """Per key: the recording (None off CUDA), its static inputs and its outputs."""
-        self.prepare: Callable[[], None] = prepare
-        """Called before each warm-up and recording: readies the optimisers (:func:`set_capturable`)."""
         self.failed: Optional[str] = None
         """Why a recording failed: a failed capture can leave CUDA's state unusable, so no step of
         this process records or runs again."""
@@ -109,7 +110,7 @@ class StepGraphs:
             calls = self.calls.get(key, 0)
             self.calls[key] = calls + 1
             if self.record:
-                self.prepare()
+                set_capturable(self.optimizers, True)
             if self.record and calls < self.warmup:
                 return self._warm(fn, inputs)
             static = tree_map(lambda t: t.clone(), inputs)
@@ -146,7 +147,7 @@ class StepGraphs:
         try:
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.device(self.device):
-                for generator in self.generators():
+                for generator in self.generators:
                     graph.register_generator_state(generator)
             # cuBLAS keeps one workspace per stream, and a recording keeps the address of the one
             # it was made with: recordings made on one stream would share it, members of a batch

@@ -1,9 +1,9 @@
-"""Many seeds of one experiment as agents of their own whose GPU work overlaps (``streams``).
+"""Many seeds of one experiment as agents of their own whose GPU work overlaps.
 
-:class:`Members` is the ``streams`` layout of a batch of seeds
-(:func:`imssr.agents.layouts.make_batch`): each member is a whole
-:class:`~imssr.agents.sac.SACAgent`, untouched, and an agent step runs every member's own
-update (and action) in turn.  On CUDA each member issues its work on a CUDA stream of its own,
+:class:`Members` is a batch of seeds (``imssr train --seeds``, packed sweeps): each member is a
+whole :class:`~imssr.agents.sac.SACAgent`, untouched, and an agent step runs every member's own
+update (and action) in turn.  What may share a batch is decided before the agents are built
+(:mod:`imssr.config.batching`).  On CUDA each member issues its work on a CUDA stream of its own,
 all forked from the current stream and joined back into it before the step's host work, so the
 GPU may run one member's kernels beside another's: a seed's update at batch 128 launches
 hundreds of kernels that each fill a small part of the GPU, and kernels queued on one stream
@@ -26,16 +26,13 @@ each member's stream waits for the current stream before it is given new work.
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, Callable, Optional, Sequence, TypeVar
+from typing import Callable, Optional, Sequence, TypeVar
 
+import numpy as np
 import torch
 
-from imssr.agents.batched import batch_refusal
 from imssr.agents.sac import Metrics, SACAgent
 from imssr.errors import ImssrError
-
-if TYPE_CHECKING:
-    import numpy as np
 
 T = TypeVar("T")
 
@@ -55,20 +52,17 @@ def allow_concurrent_streams() -> None:
 
 class Members:
     """``N`` member agents of one configuration stepped in lockstep, each on a CUDA stream of its
-    own (see the module's doc).  The interface of :class:`~imssr.agents.batched.AgentBatch`."""
+    own (see the module's doc)."""
 
-    mode = "streams"
-
-    def __init__(self, members: Sequence[SACAgent]):
-        if not members:
+    def __init__(self, agents: Sequence[SACAgent]):
+        if not agents:
             raise ImssrError("a batch of agents needs at least one member")
-        reason = batch_refusal(members, stacked=False)
-        if reason is not None:
-            raise ImssrError(reason)
-        self.members = list(members)
+        self.members = list(agents)
+        """The agents, in the batch's order."""
         self.n = len(self.members)
+        """How many members."""
         self.device = self.members[0].device
-        self.intrinsic_on = [m.intrinsic is not None for m in self.members]
+        """The members' device."""
         self.streams: Optional[list[torch.cuda.Stream]] = (
             [torch.cuda.Stream(self.device) for _ in self.members] if self.device.type == "cuda" else None)
         """One stream per member on CUDA; None elsewhere (the members run in turn)."""
@@ -92,13 +86,13 @@ class Members:
 
     def update(self, replays: Sequence, step: int) -> list[Metrics]:
         """All updates of agent step ``step`` for every member, each sampling its own replay
-        buffer (``replays[i]``); one metrics dict per member (:meth:`member_metrics`)."""
+        buffer (``replays[i]``); one metrics dict per member, its run alone's."""
         if len(replays) != self.n:
             raise ImssrError(f"{len(replays)} replay buffers for {self.n} members")
         return self.each(lambda i, m: m.update(replays[i], step))
 
     @torch.no_grad()
-    def act(self, obs, deterministic: bool) -> torch.Tensor:
+    def act(self, obs: np.ndarray, deterministic: bool) -> torch.Tensor:
         """Each member's action ``(N, |A|)`` for its own observation stack ``obs[i]``: the
         observations go to the device in one copy and the actions come back as one tensor, so a
         caller reads them all with one copy."""
@@ -109,19 +103,3 @@ class Members:
                             {"obs": x[i:i + 1]})
 
         return torch.cat(self.each(act))
-
-    def member_act(self, i: int, obs) -> "np.ndarray":
-        """Member ``i``'s deterministic action for one observation stack (evaluation)."""
-        return self.members[i].act(obs, deterministic=True)
-
-    def member_metrics(self, metrics: list[Metrics], i: int) -> Metrics:
-        """Member ``i``'s metrics: its own agent's, the keys its run alone logs."""
-        return metrics[i]
-
-    def member_state_dict(self, i: int) -> dict:
-        """Member ``i``'s state: its agent's :meth:`SACAgent.state_dict`."""
-        return self.members[i].state_dict()
-
-    def load_member_state_dict(self, i: int, state: dict, restore_rng: bool = True) -> None:
-        """Set member ``i`` from its checkpoint (:meth:`SACAgent.load_state_dict`)."""
-        self.members[i].load_state_dict(state, restore_rng)

@@ -99,6 +99,5 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
 
     def after_step(self, step: int) -> None:
         """Hook after each step of the task's parameters: momentum updates of its own targets.
-        It must act element by element on the weights (an EMA): a batch of member agents runs it
-        once on all members' stacked weights.  Under ``agent.cuda_graphs`` it is recorded with the
-        update and replayed: it must do the same at every step (no branch on ``step``)."""
+        Under ``agent.cuda_graphs`` it is recorded with the update and replayed: it must do the
+        same at every step (no branch on ``step``)."""

@@ -77,10 +77,10 @@ class BetaSchedule:
             return self.beta0
         return self.beta0 * self.decay ** math.floor(step / self.every_steps)
 
-    def tensor(self, step: int, device: torch.device) -> torch.Tensor:
-        """``beta_t`` at ``step`` as a float64 tensor on ``device`` (a CUDA graph's input): a fill,
-        not a copy from the host, which would wait for the device."""
-        return torch.full((), self(step), dtype=torch.float64, device=device)
+    @classmethod
+    def of(cls, cfg: IntrinsicCore) -> "BetaSchedule":
+        """The schedule the ``intrinsic`` section ``cfg`` describes."""
+        return cls(cfg.beta0, cfg.schedule, cfg.decay, cfg.decay_every_steps)
 
 
 class IntrinsicReward:
@@ -88,13 +88,12 @@ class IntrinsicReward:
 
     def __init__(self, cfg: IntrinsicCore):
         self.cfg = cfg
-        self.schedule = BetaSchedule(cfg.beta0, cfg.schedule, cfg.decay, cfg.decay_every_steps)
 
-    def __call__(self, losses: torch.Tensor, step: int,
-                 beta: "torch.Tensor | None" = None) -> tuple[torch.Tensor, dict[str, torch.Tensor | float]]:
+    def __call__(self, losses: torch.Tensor,
+                 beta: "float | torch.Tensor") -> tuple[torch.Tensor, dict[str, torch.Tensor | float]]:
         """Return the bonus to add to the reward, shape ``(B, 1)``, and log values (tensors on
-        the losses' device: nothing here waits for the device).  ``beta``: ``beta_t`` given as a
-        float64 tensor (a CUDA graph reads it from its input), else the schedule's at ``step``.
+        the losses' device: nothing here waits for the device).  ``beta``: ``beta_t``
+        (:class:`BetaSchedule`), a float or, under CUDA graphs, a float64 0-dim tensor.
 
         A non-finite loss turns every reward of the batch into NaN through the batch statistics,
         and the critic with it.  It also makes ``r_int_raw`` (the losses' mean) non-finite,
@@ -107,9 +106,8 @@ class IntrinsicReward:
             losses = upcast(losses.detach().flatten())
             c = self.cfg
             r_int = normalize(losses, c.normalization, c.norm_eps, c.unbiased_std, c.norm_rtol)
-            beta = self.schedule(step) if beta is None else beta
-            # A member of a batch of agents, or a CUDA graph, gets its beta as a float64 tensor: it
-            # multiplies as the Python float does, rounded to the losses' dtype.
+            # A CUDA graph reads beta as a float64 tensor: it multiplies as the Python float does,
+            # rounded to the losses' dtype.
             scale = beta.to(r_int.dtype) if isinstance(beta, torch.Tensor) else beta
             # r_int is normalised (zscore: mean 0, std 1 by construction), so the raw
             # loss's spread and the bonus actually added are logged too.

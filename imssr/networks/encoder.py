@@ -13,7 +13,6 @@ from typing import Iterator
 import torch
 from torch import nn
 
-from imssr import draws
 from imssr.precision import FP32LayerNorm
 from imssr.settings import conv_output_size
 
@@ -53,8 +52,8 @@ def pixels(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format, reus
     trunks (o through the critic's and, after its step, the actor's; o' through the online and
     the target trunk), and each conversion writes four bytes per pixel; the float copy is only
     ever read (the first layer is a convolution, whose input nothing changes in place), so every
-    trunk may read the same one.  ``reuse=False`` (inside vmap or torch.compile, where a tensor's
-    identity means nothing) converts afresh."""
+    trunk may read the same one.  ``reuse=False`` (inside torch.compile, where a tensor's identity
+    means nothing) converts afresh."""
     if not reuse:
         return three_passes(obs, dtype, fmt)
     key = (id(obs), obs._version, dtype, fmt)
@@ -69,8 +68,7 @@ def pixels(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format, reus
 def three_passes(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format) -> torch.Tensor:
     """:func:`pixels`' conversion as a relayout of the 1-byte pixels (not of the 4-byte floats),
     a cast and an in-place divide: on a CPU faster than :func:`one_pass`, whose mixed-type divide
-    there casts into a float temporary first (``bench/pixels_speed.py``), and what vmap maps (it
-    cannot write a member's result into a fresh tensor given as ``out``)."""
+    there casts into a float temporary first (``bench/pixels_speed.py``)."""
     return obs.contiguous(memory_format=fmt).to(dtype).div_(255.0)
 
 
@@ -135,13 +133,10 @@ class ConvTrunk(nn.Module):
     def prepare(self, obs: torch.Tensor) -> torch.Tensor:
         """Pixels in [0, 255] -> floats in [0, 1], in the trunk's memory layout; once per
         distinct uint8 input (:func:`pixels`)."""
-        # A member of a batch of agents (torch.func.vmap) keeps the standard layout: vmap cannot
-        # lay out one member's view, and its convolutions run grouped over the members anyway.
-        batched = draws.is_member_batched(obs)
-        fmt = torch.channels_last if self.channels_last and not batched else torch.contiguous_format
+        fmt = torch.channels_last if self.channels_last else torch.contiguous_format
         dtype = self.convs[0].weight.dtype  # float32; float64 for an agent cast to it
         if obs.dtype == torch.uint8:
-            return pixels(obs, dtype, fmt, reuse=not batched and not torch.compiler.is_compiling())
+            return pixels(obs, dtype, fmt, reuse=not torch.compiler.is_compiling())
         return (obs.to(dtype) / 255.0).contiguous(memory_format=fmt)
 
     def shared_features(self, obs: torch.Tensor) -> torch.Tensor:

@@ -7,7 +7,6 @@ from typing import NamedTuple, Optional
 import torch
 from torch import nn
 
-from imssr import draws
 from imssr.networks.encoder import Encoder, Projection
 from imssr.precision import full_precision, upcast
 
@@ -71,7 +70,7 @@ class Actor(nn.Module):
         if not sample:
             mean = torch.tanh(mu)
             return PolicyOutput(mean=mean, action=mean, log_prob=None, log_std=log_std)
-        noise = draws.randn(mu.shape, generator, mu.device, mu.dtype)
+        noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         pi = mu + noise * log_std.exp()
         log_pi = (-0.5 * noise.pow(2) - log_std).sum(-1, keepdim=True) \
             - 0.5 * math.log(2 * math.pi) * mu.shape[-1]

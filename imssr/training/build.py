@@ -13,11 +13,13 @@ import torch
 
 from imssr._gl import gl_renderer, pin_egl_device, software_rendering_warning
 from imssr.agents import SACAgent
+from imssr.agents.build import make_agent
 from imssr.algos import get_algo
 from imssr.config import RunConfig
 from imssr.envs import env_from_config
 from imssr.envs.worker import EnvWorker
 from imssr.errors import ImssrError
+from imssr.precision import configure_process
 from imssr.replay import make_replay_buffer
 from imssr.rng import seed_everything
 from imssr.rundir import RunDir
@@ -50,9 +52,11 @@ def _torch_device(name: str) -> torch.device:
 
 
 def build_agent(cfg: RunConfig, obs_shape, action_dim: int, device) -> SACAgent:
-    algo = get_algo(cfg.algo)
-    return SACAgent(obs_shape, action_dim, cfg.agent, aux_cfg=cfg.aux if algo.aux else None,
-                    intrinsic_cfg=cfg.intrinsic, device=device, seed=cfg.train.seed)
+    """The agent of the run ``cfg`` on ``device`` (:func:`~imssr.agents.build.make_agent`), after
+    the process-wide switches its settings ask for (:func:`~imssr.precision.configure_process`)."""
+    configure_process(cfg.agent, torch.device(device))
+    return make_agent(obs_shape, action_dim, cfg.agent, aux_cfg=cfg.aux if get_algo(cfg.algo).aux else None,
+                      intrinsic_cfg=cfg.intrinsic, device=device, seed=cfg.train.seed)
 
 
 @dataclass

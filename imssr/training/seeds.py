@@ -4,9 +4,8 @@ Each seed is a run of its own: a :class:`~imssr.training.loop.Trainer` with its 
 (``DIR/seed_<n>/``: config, CSV logs, checkpoints), envs, replay buffer, seed-phase generator and
 loop state, so ``evaluate``, ``plot``, ``report``, ``export`` and ``--resume`` see standard runs.
 Only the agent is shared: the seeds' agents become the members of one batch
-(:func:`~imssr.agents.layouts.make_batch`, in the layout ``agent.batch_layout`` names), which
-acts for all seeds at once and makes every seed's update in one go.  Each seed still draws, samples and steps what its run alone
-would (:mod:`imssr.agents.batched`).
+(:class:`~imssr.agents.members.Members`), which acts for all seeds at once and makes every seed's
+update in one go.  Each seed still draws, samples and steps what its run alone would.
 
 The seeds share the agent step: they start, take the seed phase, burst, evaluate and checkpoint
 at the same steps.  A stop request checkpoints every seed at the current step; a seed whose
@@ -21,8 +20,6 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from imssr.agents.batched import AgentBatch
-from imssr.agents.layouts import make_batch
 from imssr.agents.members import Members
 from imssr.config import RunConfig
 from imssr.config.batching import lockstep_conflict
@@ -37,27 +34,6 @@ from imssr.training.loop import Start, Trainer, checked_configs
 from imssr.training.progress import Progress, member_labels, member_lines, say_held
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
-
-class MemberAgent:
-    """Member ``i`` of an :class:`AgentBatch` as its seed's trainer sees an agent: deterministic
-    actions for evaluation, and the member's state in a single agent's layout for checkpoints."""
-
-    def __init__(self, batch: Union[AgentBatch, Members], i: int, agent):
-        self.batch, self.i = batch, i
-        self.signal = agent.signal  # what the divergence check names
-        self.cfg = agent.cfg
-
-    def act(self, obs: np.ndarray, deterministic: bool) -> np.ndarray:
-        if not deterministic:
-            raise ImssrError("a member of a batch samples actions with its batch (AgentBatch.act)")
-        return self.batch.member_act(self.i, obs)
-
-    def state_dict(self) -> dict:
-        return self.batch.member_state_dict(self.i)
-
-    def load_state_dict(self, state: dict, restore_rng: bool = True) -> None:
-        self.batch.load_member_state_dict(self.i, state, restore_rng)
-
 
 @dataclass
 class _Lane:
@@ -112,10 +88,8 @@ class SeedsTrainer:
             if len({t.state.learning_starts for t in self.trainers}) > 1:
                 raise ImssrError("the seeds' seed phases end at different agent steps (a refilled replay buffer): "
                                  "resume them one by one")
-            self.batch = make_batch([t.agent for t in self.trainers], cfgs[0].agent.batch_layout)
+            self.batch = Members([t.agent for t in self.trainers])
             self._stop_if_asked(len(cfgs))
-            for i, t in enumerate(self.trainers):
-                t.agent = t.checkpoints.agent = t.parts.agent = MemberAgent(self.batch, i, t.agent)
             held = {label: [] for label in self.labels}
             try:
                 for start, t, label in zip(starts, self.trainers, self.labels):
@@ -317,7 +291,7 @@ class SeedsTrainer:
                 metrics = self.batch.update([lane.trainer.replay for lane in lanes], first.step)
                 for i, lane in enumerate(lanes):
                     if lane.failed is None:
-                        lane.episode.add_metrics(self.batch.member_metrics(metrics, i))
+                        lane.episode.add_metrics(metrics[i])
                 burst.advance()
 
     def _stop_if_requested(self, lanes: list[_Lane]) -> None:
