@@ -188,12 +188,12 @@ class CastCount(TorchDispatchMode):
 def test_bf16_casts_frozen_weights_once_per_change_with_the_same_numbers(monkeypatch, algo):
     """The target networks' (and SODA's target's) bf16 copies are made again only after an EMA
     step: fewer casts per update than autocast alone, and bit for bit the same update."""
-    import imssr.agents.sac as sac
+    import imssr.agents.build as build
 
-    cache = sac.cache_frozen_weights
+    cache = build.cache_frozen_weights
     agents, casts, metrics = {}, {}, {}
     for cached in (False, True):
-        monkeypatch.setattr(sac, "cache_frozen_weights", cache if cached else lambda *modules: 0)
+        monkeypatch.setattr(build, "cache_frozen_weights", cache if cached else lambda *modules: 0)
         agent = agents[cached] = small_agent(algo, "sequential", precision="bf16")
         assert any(isinstance(m.__dict__.get("forward"), FrozenBF16) for m in agent.nets.modules()) == cached
         replay = filled_buffer(60, action_dim=2, size=60)

@@ -49,6 +49,9 @@ buffer), ``aux_sample`` (the auxiliary task's own batch, when it trains on one a
 ``beta`` (``beta_t``, with an intrinsic reward: a float, or under ``agent.cuda_graphs`` a
 float64 0-dim tensor, which a recording reads as its input)."""
 
+Beta = Optional["float | torch.Tensor"]
+"""``beta_t`` as an update hands it down (see :data:`Inputs`); None without an intrinsic reward."""
+
 
 class SACNetworks(nn.Module):
     """Critic (owning the conv trunk), its target copy, the actor and log alpha."""
@@ -152,7 +155,8 @@ class SACAgent:
         fuse = self.fuse_aux and self.aux_due(step)
         with self.autocast():
             if step % c.critic_update_every == 0:
-                trunk = self.update_critic(batch, inputs.get("beta"), fuse, step, metrics)
+                critic_metrics, trunk = self.update_critic(batch, inputs.get("beta"), fuse, step)
+                metrics.update(critic_metrics)
             if step % c.actor_update_every == 0:
                 metrics.update(self.update_actor_and_alpha(batch, trunk))
             if step % c.target_update_every == 0:
@@ -188,26 +192,26 @@ class SACAgent:
                      next_obs=random_crop(sample["next_obs"], size, self.gen),
                      raw_obs=sample["obs"], raw_next_obs=sample["next_obs"], generator=self.gen)
 
-    def update_critic(self, batch: Batch, beta, fuse: bool, step: int, metrics: Metrics) -> Optional[torch.Tensor]:
-        """The critic's step (with the task's loss read from its pass if ``fuse``: each optimiser
+    def update_critic(self, batch: Batch, beta: Beta, fuse: bool, step: int) -> tuple[Metrics, Optional[torch.Tensor]]:
+        """The critic's step, with the task's loss read from its pass if ``fuse`` (each optimiser
         steps its own parameters, the shared encoder's once, the critic's, on the summed
-        gradient; then the task's :meth:`AuxiliaryTask.after_step`); its metrics go in
-        ``metrics``.  Returns the pass's trunk of o, detached, under the fused schedule (the
-        actor's input, as DrQ-v2), else None (the actor encodes o afresh after this step)."""
-        loss, critic_metrics, trunk = self.fused_objective(batch, beta, with_task_loss=fuse)
+        gradient; then the task's :meth:`AuxiliaryTask.after_step`).  Returns its metrics and,
+        under the fused schedule, the pass's trunk of o, detached (the actor's input, as
+        DrQ-v2); else None (the actor encodes o afresh after this step)."""
+        loss, metrics, trunk = self.fused_objective(batch, beta, with_task_loss=fuse)
         optimizer_step(loss, self.critic_opt, *([self.aux.optimizer] if fuse else []))
         if fuse:
             self.aux.after_step(step)
-        metrics.update(critic_metrics)
-        return trunk if self.cfg.update_schedule == "fused" else None
+        return metrics, (trunk if self.cfg.update_schedule == "fused" else None)
 
-    def critic_objective(self, batch: Batch, beta=None) -> tuple[torch.Tensor, Metrics]:
+    def critic_objective(self, batch: Batch, beta: Beta = None) -> tuple[torch.Tensor, Metrics]:
         """The sequential schedule's critic loss (:meth:`critic_loss` on a fresh :meth:`encode`
         of ``batch`` and its :meth:`bellman_target` with ``beta_t = beta``) and its metrics."""
         loss, metrics, _ = self.fused_objective(batch, beta, with_task_loss=False)
         return loss, metrics
 
-    def fused_objective(self, batch: Batch, beta, with_task_loss: bool) -> tuple[torch.Tensor, Metrics, torch.Tensor]:
+    def fused_objective(self, batch: Batch, beta: Beta,
+                        with_task_loss: bool) -> tuple[torch.Tensor, Metrics, torch.Tensor]:
         """The critic's loss on one :meth:`encode` of ``batch`` and its :meth:`bellman_target`,
         plus the task's mean per-sample loss read from the same pass if ``with_task_loss``; the
         metrics; and that pass's trunk of o, detached (the fused schedule's actor input)."""
@@ -248,7 +252,7 @@ class SACAgent:
         return enc
 
     @torch.no_grad()
-    def bellman_target(self, batch: Batch, enc: Encoding, beta=None) -> tuple[torch.Tensor, Metrics]:
+    def bellman_target(self, batch: Batch, enc: Encoding, beta: Beta = None) -> tuple[torch.Tensor, Metrics]:
         """``y = r + beta_t * r_int + gamma * d * (min_i Q*_i(z*', a') - alpha log pi(a'|o'))``,
         ``a' ~ pi(. | o')``, and the intrinsic reward's statistics.  The reward is the paper's
         Eq. (1) with Algorithm 1's ``r_int``: the signal of o', normalised in the batch.
