@@ -148,9 +148,9 @@ def test_adapter_gives_the_signal_the_agent_adds_to_its_reward():
     class Recording(type(agent.intrinsic)):
         """The agent's own IntrinsicReward, keeping the raw signal it is handed."""
 
-        def __call__(self, losses, step, beta=None):
+        def __call__(self, losses, beta):
             seen.append(losses.detach().clone())
-            return super().__call__(losses, step, beta)
+            return super().__call__(losses, beta)
 
     agent.intrinsic.__class__ = Recording  # a call goes through the class, not the instance
     gen_state, int_state = agent.gen.get_state(), agent.intrinsic_gen.get_state()

@@ -66,9 +66,10 @@ def test_the_seeds_benches_build_their_agents_with_the_overrides():
         algo="curl", task="cartpole_swingup", action_dim=1, fill=20, device="cpu", batched=True, mode="loop",
         set=[*tiny_overrides(TINY_NETWORKS), "agent.fused_adam=true"])
     batch, replays, _ = seeds.build(args, [1, 2])
-    template = batch.template
+    template = batch.members[0]
     assert template.cfg.batch_size == 8 and template.cfg.encoder_filters == 8
-    assert all(g["fused"] for o in batch.optimizers.values() for g in o.param_groups) and len(replays) == 2
+    assert all(g["fused"] for m in batch.members for o in m.graphs.optimizers for g in o.param_groups)
+    assert len(replays) == 2
 
 
 SYSTEM_PATHS = ("/tmp/", "/dev/null", "/usr/bin/env", "/proc/", "/path/for/", "/usr/share/glvnd/", "/etc/glvnd/",
