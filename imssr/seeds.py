@@ -8,11 +8,11 @@ The values are part of every fixed-seed result: changing one changes the runs.
 from __future__ import annotations
 
 NOISE_SEED_OFFSET = 1
-"""The agent's policy-noise generator (``SACAgent.noise_gen``): seed + 1, apart from its
-augmentation generator (seed + 0)."""
+"""The agent's policy-noise generator (``noise_gen``, :mod:`imssr.agents.generators`): seed + 1,
+apart from its augmentation generator (seed + 0)."""
 
 INTRINSIC_SEED_OFFSET = 2
-"""The agent's intrinsic-reward generator (``SACAgent.intrinsic_gen``, the extra views of the
+"""The agent's intrinsic-reward generator (``intrinsic_gen``, the extra views of the
 signal): seed + 2, so that computing the intrinsic reward never shifts the base algorithm's
 streams (beta = 0 is the baseline exactly).  :func:`imssr.analysis.adapter.fix_draws` reseeds
 it with the same offset."""
