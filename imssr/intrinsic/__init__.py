@@ -1,6 +1,6 @@
 """Intrinsic rewards: the raw signal of o' (IM-SSR's SSL loss, RND, RE3), then in-batch
-normalisation and the beta schedule (:class:`IntrinsicReward`); the signals by name in
-:mod:`~imssr.intrinsic.registry`.
+normalisation (:class:`IntrinsicReward`) and the beta schedule (:class:`BetaSchedule`); the
+signals by name in :mod:`~imssr.intrinsic.registry`.
 
 Each signal is two modules: ``<name>_spec.py`` (its settings, rules and preset rows; no torch),
 which the config reads, and its torch module, which the agent builds.  Importing this package
