@@ -48,7 +48,6 @@ import torch
 
 from imssr.agents.members import Members, allow_concurrent_streams
 from imssr.config import apply_overrides
-from imssr.precision import configure_cuda
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
 from imssr.training import build_agent
@@ -64,12 +63,11 @@ MODES = [f"{layout}{graphs}" for layout in LAYOUTS for graphs in ("", "+graphs")
 def build(args, seeds: list[int]):
     """The seeds' agents (one batch of :class:`Members` in ``args.layout``, or a single agent
     for ``single``) and their filled replay buffers, each agent built as a run of that seed
-    builds it."""
+    builds it (:func:`~imssr.training.build_agent`, with the process-wide switches its settings
+    ask for)."""
     cfg = apply_overrides(make_config(args.algo, args.task), args.set).validate()
     e = cfg.env
     obs_shape = (3 * e.frame_stack, e.image_size, e.image_size)
-    # What a training process sets once from its run's config (cuDNN's autotuning, TF32).
-    configure_cuda(torch.device(args.device), cfg.agent.tf32)
     agents = [build_agent(dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=seed)), obs_shape,
                           args.action_dim, args.device) for seed in seeds]
     replays = [filled(args.fill, e.image_size, e.frame_stack, args.action_dim, seed) for seed in seeds]

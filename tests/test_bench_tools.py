@@ -69,7 +69,7 @@ def test_the_seeds_benches_build_their_agents_with_the_overrides():
         set=[*tiny_overrides(TINY_NETWORKS), "agent.fused_adam=true"])
     batch, replays, _ = seeds.build(args, [1, 2])
     assert [m.cfg.batch_size for m in batch.members] == [8, 8] and batch.members[0].cfg.encoder_filters == 8
-    assert all(g["fused"] for m in batch.members for o in m.optimizers() for g in o.param_groups) and len(replays) == 2
+    assert all(g["fused"] for m in batch.members for g in m.critic_opt.param_groups) and len(replays) == 2
     # Each member is its seed's agent as a run of that seed builds it, and the seeds differ.
     args.layout = "single"
     alone, _, _ = seeds.build(args, [2])
