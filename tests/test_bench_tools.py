@@ -22,7 +22,8 @@ def test_profile_seeds_profiles_a_single_agent_and_each_mode():
     out = _run("profile_seeds.py", "--n", "2", "--modes", "members", "turn+graphs", "--steps", "1", "--warmup", "1",
                "--fill", "100", "--threads", "1", "--rows", "3", *TINY)
     headings = [line for line in out.splitlines() if line.startswith("## ")]
-    assert [h.split(":")[0] for h in headings] == ["## 1 seed, single", "## 2 seeds, members", "## 2 seeds, turn+graphs"]
+    assert [h.split(":")[0] for h in headings] == ["## 1 seed, single", "## 2 seeds, members",
+                                                   "## 2 seeds, turn+graphs"]
     assert all("CPU operators busy" in h for h in headings) and "aten::" in out
 
 
