@@ -1,11 +1,12 @@
 """Where the time of N seeds' agent step goes: torch.profiler over a single agent and a batch.
 
-    python bench/profile_seeds.py [--device cuda] [--algo curl] [--n 5] [--modes vmap loop]
+    python bench/profile_seeds.py [--device cuda] [--algo curl] [--n 5] [--modes members turn]
         [--steps 5] [--warmup 3] [--fill 1000] [--rows 20] [--set SECTION.FIELD=VALUE ...]
 
 The agents, replay buffers and agent step (the policy's action, then the update) of
-``bench/seeds.py``: first one single-seed agent, then ``--n`` seeds as one
-:class:`~imssr.agents.batched.AgentBatch` in each of ``--modes``.  For each it prints the wall
+``bench/seeds.py``: first one single-seed agent, then ``--n`` seeds as one batch of
+:class:`~imssr.agents.members.Members` in each of ``--modes`` (``members``: on CUDA each member
+on a stream of its own; ``turn``: one after another on one stream).  For each it prints the wall
 time per agent step (all seeds), the device's busy time per step (the sum of its kernels' times;
 CPU: the operators' self time) and the operators that take most of it.  Busy time near the wall
 time means the device is the limit; far below, the host (Python, dispatch, launches); above it
@@ -23,14 +24,13 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from seeds import agent_step  # noqa: E402  (bench/seeds.py: the same agents, buffers and step)
+from seeds import MODES, agent_step  # noqa: E402  (bench/seeds.py: the same agents, buffers and step)
 
 from imssr.agents.members import allow_concurrent_streams  # noqa: E402
 
 
 def profile_one(args, n: int, mode: str) -> None:
-    layout, graphs = mode.split("+")[0], mode.endswith("+graphs")
-    args.batched, args.mode = layout != "single", layout
+    args.layout, graphs = mode.split("+")[0], mode.endswith("+graphs")
     base_set = list(args.set)
     args.set = base_set + (["agent.cuda_graphs=true"] if graphs else [])
     one_step = agent_step(args, n)
@@ -68,8 +68,7 @@ def main(argv=None) -> int:
     p.add_argument("--algo", default="curl")
     p.add_argument("--task", default="cartpole_swingup")
     p.add_argument("--n", type=int, default=5)
-    p.add_argument("--modes", nargs="+", default=["vmap", "loop"],
-                   choices=[f"{m}{g}" for m in ("loop", "vmap", "streams") for g in ("", "+graphs")])
+    p.add_argument("--modes", nargs="+", default=["members", "turn"], choices=MODES)
     p.add_argument("--single", choices=["single", "single+graphs", "none"], default="single",
                    help="the single-seed agent profiled first (none: skip it)")
     p.add_argument("--steps", type=int, default=5)

@@ -1,27 +1,30 @@
 """Seeds in one process against seeds in separate processes: aggregate agent steps per second.
 
     python bench/seeds.py [--device cpu|cuda] [--algo curl] [--task cartpole_swingup]
-        [--n 1 2 4 8 16] [--modes loop vmap vmap+graphs] [--steps 20] [--warmup 3] [--threads 0]
-        [--fill 1000] [--baseline-n 1 2 4] [--baseline-graphs] [--set SECTION.FIELD=VALUE ...] [--csv PATH]
+        [--n 1 2 4] [--modes members turn members+graphs turn+graphs] [--steps 20] [--warmup 3]
+        [--threads 0] [--fill 1000] [--baseline-n 1 2 4] [--baseline-graphs]
+        [--set SECTION.FIELD=VALUE ...] [--csv PATH]
 
-For each N the same work is timed in one run: N seeds as one batch in one process (``imssr
-train --seeds``), once per ``--modes`` (``agent.batch_layout``: ``loop``: member after member;
-``vmap``: all members as one vectorised computation; ``streams``: each member's own agent, on a
-CUDA stream of its own;
-``+graphs``: with ``agent.cuda_graphs=true``, each step's update and action recorded once as CUDA
-graphs and replayed), and N processes with one single-seed agent each, timed together (what a sweep of single-seed
-runs does: each warms up, then all start their timed steps at once), the baseline of the ratios.  A step is the agent's part of a training step, for every
-seed: the policy's action for a new observation, then the update of that agent step (the paper's
-preset of ``--algo``, the sequential schedule, fp32), sampling each seed's own replay buffer of
-``--fill`` random-frame transitions.  The environment is left out: it costs each seed the same in both layouts.
+For each N the same work is timed in one run: N separate processes with one single-seed agent
+each, timed together (what a sweep of single-seed runs does: each warms up, then all start their
+timed steps at once), the baseline of the ratios; then N seeds in one process, once per
+``--modes``: ``members`` is the batch ``imssr train --seeds`` runs (each seed's own agent; on
+CUDA each on a stream of its own, elsewhere one after another), ``turn`` the same members one
+after another on one stream (on the CPU the same as ``members``), and ``+graphs`` adds
+``agent.cuda_graphs=true`` (each step's update and action recorded once as CUDA graphs and
+replayed).  A step is the agent's part of a training step, for every seed: the policy's action
+for a new observation, then the update of that agent step (the paper's preset of ``--algo``, the
+sequential schedule, fp32), sampling each seed's own replay buffer of ``--fill`` random-frame
+transitions.  The environment is left out: it costs each seed the same in both layouts.
 ``--threads`` torch threads in all (0: torch's default), split evenly among the separate
 processes (at least one each), so both layouts use the same cores.  ``--baseline-graphs`` adds a
 row of N separate processes with ``agent.cuda_graphs=true`` (the single-seed run recorded).
 
-Printed: a Markdown table, one row per N and layout: aggregate agent steps/s, the ratio to the
-separate processes, and the peak memory per seed (CUDA: device memory; CPU: the process's peak
-resident memory, imports included).  On CUDA every timed step ends with a synchronisation.
-A CPU smoke run (checks that everything runs; its figures say nothing about a GPU)::
+Printed: a Markdown table, each row as soon as it is measured (a bench stopped by a time limit
+keeps the rows it made; so does ``--csv``): aggregate agent steps/s, the ratio to the separate
+processes, and the peak memory per seed (CUDA: device memory; CPU: the process's peak resident
+memory, imports included).  On CUDA every timed step ends with a synchronisation.  A CPU smoke
+run (checks that everything runs; its figures say nothing)::
 
     python bench/seeds.py --n 1 2 --steps 2 --warmup 1 --fill 200 --set agent.batch_size=8 \\
         --set aux.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 \\
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import os
 import platform
@@ -42,28 +46,38 @@ import time
 import numpy as np
 import torch
 
-from imssr.agents import make_agent
 from imssr.agents.members import Members, allow_concurrent_streams
-from imssr.algos import get_algo
 from imssr.config import apply_overrides
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
+from imssr.training import build_agent
+
+LAYOUTS = ("members", "turn")
+"""The layouts of N seeds in one process: ``members``, the batch ``imssr train --seeds`` runs
+(:class:`~imssr.agents.members.Members`: on CUDA each member on a stream of its own, elsewhere one
+after another); ``turn``, the same members one after another on one stream (on the CPU the same
+as ``members``)."""
+MODES = [f"{layout}{graphs}" for layout in LAYOUTS for graphs in ("", "+graphs")]
 
 
 def build(args, seeds: list[int]):
-    """The seeds' agents (one batch, or a single agent) and their filled replay buffers."""
-    cfg = make_config(args.algo, args.task)
-    cfg = apply_overrides(cfg, args.set).validate()
-    action_dim = args.action_dim
+    """The seeds' agents (one batch of :class:`Members` in ``args.layout``, or a single agent
+    for ``single``) and their filled replay buffers, each agent built as a run of that seed
+    builds it (:func:`~imssr.training.build_agent`, with the process-wide switches its settings
+    ask for)."""
+    cfg = apply_overrides(make_config(args.algo, args.task), args.set).validate()
     e = cfg.env
     obs_shape = (3 * e.frame_stack, e.image_size, e.image_size)
-    agents, replays = [], []
-    for seed in seeds:
-        agents.append(make_agent(obs_shape, action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
-                                 cfg.intrinsic, device=args.device, seed=seed))
-        replays.append(filled(args.fill, e.image_size, e.frame_stack, action_dim, seed))
-    agent = Members(agents) if args.batched else agents[0]
-    return agent, replays, obs_shape
+    agents = [build_agent(dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=seed)), obs_shape,
+                          args.action_dim, args.device) for seed in seeds]
+    replays = [filled(args.fill, e.image_size, e.frame_stack, args.action_dim, seed) for seed in seeds]
+    if args.layout == "single":
+        return agents[0], replays, obs_shape
+    batch = Members(agents)
+    if args.layout == "turn":
+        # Members without streams runs its members one after another on the current stream.
+        batch.streams = None
+    return batch, replays, obs_shape
 
 
 def filled(n: int, size: int, frame_stack: int, action_dim: int, seed: int) -> FrameReplayBuffer:
@@ -85,19 +99,19 @@ def agent_step(args, n: int):
 
     def one_step(step: int) -> None:
         obs = rng.integers(0, 256, (n, *obs_shape), dtype=np.uint8)
-        if args.batched:
-            agent.act(obs, deterministic=False)
-            agent.update(replays, step)
-        else:
+        if args.layout == "single":
             agent.act(obs[0], deterministic=False)
             agent.update(replays[0], step)
+        else:
+            agent.act(obs, deterministic=False)
+            agent.update(replays, step)
 
     return one_step
 
 
 def worker(args) -> None:
     """Time ``--steps`` agent steps of ``--members`` seeds; print one JSON line."""
-    if args.batched:
+    if args.layout != "single":
         allow_concurrent_streams()  # as imssr train does for a batch
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -123,12 +137,14 @@ def worker(args) -> None:
     print(json.dumps({"seconds": seconds, "steps": args.steps * args.members, "memory": memory}), flush=True)
 
 
-def launch(args, members: int, batched: str, threads: int) -> subprocess.Popen:
-    cmd = [sys.executable, __file__, "--worker", "--members", str(members), "--device", args.device,
-           "--algo", args.algo, "--task", args.task, "--steps", str(args.steps), "--warmup", str(args.warmup),
-           "--threads", str(threads), "--fill", str(args.fill), "--action-dim", str(args.action_dim)]
-    mode, graphs = batched.split("+")[0], batched.endswith("+graphs")
-    cmd += ["--batched", "--mode", mode] if mode else []
+def launch(args, members: int, mode: str, threads: int) -> subprocess.Popen:
+    """A worker process timing ``members`` seeds in ``mode`` (``single``, or a layout of
+    :data:`LAYOUTS`, each with an optional ``+graphs``) on ``threads`` torch threads."""
+    layout, graphs = mode.split("+")[0], mode.endswith("+graphs")
+    cmd = [sys.executable, __file__, "--worker", "--members", str(members), "--layout", layout,
+           "--device", args.device, "--algo", args.algo, "--task", args.task, "--steps", str(args.steps),
+           "--warmup", str(args.warmup), "--threads", str(threads), "--fill", str(args.fill),
+           "--action-dim", str(args.action_dim)]
     for item in [*args.set, *(["agent.cuda_graphs=true"] if graphs else [])]:
         cmd += ["--set", item]
     return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
@@ -157,28 +173,32 @@ def collect(procs: list[subprocess.Popen]) -> list[dict]:
     return out
 
 
-def measure(args, n: int) -> list[dict]:
-    """The rows of ``n`` seeds: the separate processes first (the baseline), then each mode."""
+def label(mode: str) -> str:
+    """A row's name for ``mode``: ``members``, ``members in turn``, each with ``, graphs``."""
+    layout = {"members": "members", "turn": "members in turn"}[mode.split("+")[0]]
+    return layout + (", graphs" if mode.endswith("+graphs") else "")
+
+
+def measure(args, n: int):
+    """The rows of ``n`` seeds, each as soon as it is measured: the separate processes first (the
+    baseline of the ratios), then each of ``--modes``."""
     total = args.threads or torch.get_num_threads()
-    rows, base = [], float("nan")
+    base = float("nan")
+    processes = f"{n} process{'es' if n > 1 else ''}"
     if args.baseline_n is None or n in args.baseline_n:
-        separate = collect([launch(args, 1, "", max(1, total // n)) for _ in range(n)])
-        # Separate processes time one window (collect's barrier); the slowest one's time is the wall
-        # time of the N seeds.
-        base = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
-        rows.append({"n": n, "layout": f"{n} process{'es' if n > 1 else ''}", "steps_s": base, "ratio": 1.0,
-                     "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20})
-        if args.baseline_graphs:
-            separate = collect([launch(args, 1, "+graphs", max(1, total // n)) for _ in range(n)])
+        for graphs in ("", "+graphs") if args.baseline_graphs else ("",):
+            separate = collect([launch(args, 1, "single" + graphs, max(1, total // n)) for _ in range(n)])
+            # Separate processes time one window (collect's barrier); the slowest one's time is the
+            # wall time of the N seeds.
             rate = sum(r["steps"] for r in separate) / max(r["seconds"] for r in separate)
-            rows.append({"n": n, "layout": f"{n} process{'es' if n > 1 else ''}, graphs", "steps_s": rate,
-                         "ratio": rate / base, "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20})
+            base = rate if not graphs else base
+            yield {"n": n, "layout": processes + (", graphs" if graphs else ""), "steps_s": rate,
+                   "ratio": rate / base, "mib_per_seed": sum(r["memory"] for r in separate) / n / 2**20}
     for mode in args.modes:
         (batch,) = collect([launch(args, n, mode, total)])
         rate = batch["steps"] / batch["seconds"]
-        rows.append({"n": n, "layout": f"1 process, {mode}", "steps_s": rate, "ratio": rate / base,
-                     "mib_per_seed": batch["memory"] / n / 2**20})
-    return rows
+        yield {"n": n, "layout": f"1 process, {label(mode)}", "steps_s": rate, "ratio": rate / base,
+               "mib_per_seed": batch["memory"] / n / 2**20}
 
 
 def main(argv=None) -> int:
@@ -186,9 +206,8 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--algo", default="curl")
     p.add_argument("--task", default="cartpole_swingup")
-    p.add_argument("--n", type=int, nargs="+", default=[1, 2, 4, 8, 16])
-    p.add_argument("--modes", nargs="+", default=["loop", "vmap"],
-                   choices=[f"{m}{g}" for m in ("loop", "vmap", "streams") for g in ("", "+graphs")])
+    p.add_argument("--n", type=int, nargs="+", default=[1, 2, 4])
+    p.add_argument("--modes", nargs="+", default=["members"], choices=MODES)
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--threads", type=int, default=0)
@@ -202,8 +221,7 @@ def main(argv=None) -> int:
                    help="also time N separate processes with agent.cuda_graphs=true")
     p.add_argument("--csv")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--batched", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--mode", default="auto", help=argparse.SUPPRESS)
+    p.add_argument("--layout", default="single", choices=("single", *LAYOUTS), help=argparse.SUPPRESS)
     p.add_argument("--members", type=int, default=1, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
@@ -212,7 +230,7 @@ def main(argv=None) -> int:
     print(f"# bench/seeds.py: {args.algo} on {args.device} ({platform.processor() or platform.machine()}), "
           f"{args.threads or torch.get_num_threads()} threads, {args.steps} timed steps after {args.warmup}")
     print("| N | layout | agent steps/s (all seeds) | ratio to N processes | MiB per seed |")
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|", flush=True)
     rows = []
     for n in args.n:
         for r in measure(args, n):
@@ -220,12 +238,13 @@ def main(argv=None) -> int:
             ratio = "-" if r["ratio"] != r["ratio"] else f"{r['ratio']:.2f}"
             print(f"| {n} | {r['layout']} | {r['steps_s']:.2f} | {ratio} | {r['mib_per_seed']:.0f} |",
                   flush=True)
-        if args.csv:
-            # Rewritten after every N, so a bench stopped by a time limit keeps the rows it finished.
-            with open(args.csv, "w", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=list(rows[0]))
-                w.writeheader()
-                w.writerows(rows)
+            if args.csv:
+                # Rewritten after every row, so a bench stopped by a time limit keeps the rows it made.
+                with open(args.csv + ".tmp", "w", newline="") as f:
+                    w = csv.DictWriter(f, fieldnames=list(rows[0]))
+                    w.writeheader()
+                    w.writerows(rows)
+                os.replace(args.csv + ".tmp", args.csv)
     return 0
 
 

@@ -9,16 +9,19 @@
 #   device.txt       what was installed from .gpu-bundle; nvidia-smi; Python, torch, CUDA, cuDNN,
 #                    numpy, dm_control and mujoco versions, and the commit
 #   check.txt        pytest on the GPU of tests/test_cuda_graphs.py, tests/test_no_sync.py and
-#                    tests/test_agent.py: recorded updates and actions against eager ones (single
-#                    agents, a vmap batch), a member among 3 and among 16 on streams against its run
-#                    alone (bit for bit with deterministic cuDNN), the eager update under CUDA's sync
-#                    detector, the one-pass pixel conversion against the three passes
+#                    tests/test_agent.py: recorded updates and actions against eager ones, a member
+#                    among 3 and among 16 on streams against its run alone (bit for bit with
+#                    deterministic cuDNN), the eager update under CUDA's sync detector, the one-pass
+#                    pixel conversion against the three passes
 #   seeds_paper.md   bench/seeds.py at the paper's numerics (fp32, torch's default TF32 use, foreach
-#                    Adam): 16, 8 and 1 seeds (the rows that matter most first) in each layout
-#                    (vmap eager and recorded, members in turn recorded, members on streams
-#                    recorded) and 16 separate processes
+#                    Adam): 16, 8 and 1 seeds (the rows that matter most first), 16 separate
+#                    processes, then the members on streams (what imssr train --seeds runs on
+#                    CUDA), the same recorded (agent.cuda_graphs) and the members in turn on one
+#                    stream, recorded; each row written as soon as it is measured, so a share cut
+#                    by its time limit keeps the rows it made
 #   seeds_paper.csv  the same rows as CSV
-#   seeds_fast.md    the same for 16 seeds with agent.tf32=true and agent.fused_adam=true
+#   seeds_fast.md    the same for 16 seeds on streams, recorded, with agent.tf32=true and
+#                    agent.fused_adam=true
 #   seeds_fast.csv   the same rows as CSV
 #   profile.txt      bench/floor.py's floor of one seed's agent step at the device's own measured
 #                    copy bandwidth and matmul rate, then bench/profile_seeds.py, 16 seeds on
@@ -43,11 +46,12 @@ BUDGET_S="${BUDGET_S:-470}"
 SCRIPT=gpu_seeds
 source scripts/gpu_common.sh
 
-LAYOUTS=(vmap vmap+graphs loop+graphs streams+graphs)
+# bench/seeds.py's layouts: members on streams (eager, then recorded), members in turn, recorded.
+LAYOUTS=(members members+graphs turn+graphs)
 PAPER=(--device "$DEVICE" --n 16 8 1 --modes "${LAYOUTS[@]}" --baseline-n 16 --steps 20 --warmup 6 --fill 1000)
-FAST=(--device "$DEVICE" --n 16 --modes vmap+graphs streams+graphs --baseline-n 0 --steps 20 --warmup 6 --fill 1000
+FAST=(--device "$DEVICE" --n 16 --modes members+graphs --baseline-n 0 --steps 20 --warmup 6 --fill 1000
       --set agent.tf32=true --set agent.fused_adam=true)
-PROFILE=(--device "$DEVICE" --n 16 --modes streams+graphs loop+graphs --single none --steps 5 --warmup 6 --fill 1000
+PROFILE=(--device "$DEVICE" --n 16 --modes members+graphs turn+graphs --single none --steps 5 --warmup 6 --fill 1000
          --rows 12 --floor)
 ALONE=(--device "$DEVICE" --task cartpole_swingup --variants curl "curl:agent.cuda_graphs=true" --steps 60 --warmup 6
        --seed-steps 300)
@@ -56,12 +60,12 @@ CHECK=(tests/test_cuda_graphs.py tests/test_no_sync.py tests/test_agent.py -k "o
 if [ "${TINY:-0}" = 1 ]; then
   SMALL=(--set agent.batch_size=8 --set agent.hidden_dim=32 --set agent.feature_dim=16 --set agent.encoder_filters=8
          --set aux.batch_size=8)
-  PAPER=(--device "$DEVICE" --n 1 2 --modes loop vmap streams+graphs --baseline-n 2 --steps 1 --warmup 3 --fill 100
+  PAPER=(--device "$DEVICE" --n 1 2 --modes "${LAYOUTS[@]}" --baseline-n 2 --steps 1 --warmup 3 --fill 100
          --threads 1 "${SMALL[@]}")
-  FAST=(--device "$DEVICE" --n 2 --modes streams+graphs --baseline-n 0 --steps 1 --warmup 3 --fill 100 --threads 1
+  FAST=(--device "$DEVICE" --n 2 --modes members+graphs --baseline-n 0 --steps 1 --warmup 3 --fill 100 --threads 1
         "${SMALL[@]}" --set agent.fused_adam=true)
-  PROFILE=(--device "$DEVICE" --n 2 --modes streams+graphs --single none --steps 1 --warmup 3 --fill 100 --rows 5
-           --floor "${SMALL[@]}")
+  PROFILE=(--device "$DEVICE" --n 2 --modes members+graphs turn+graphs --single none --steps 1 --warmup 3 --fill 100
+           --rows 5 --floor "${SMALL[@]}")
   ALONE=(--device "$DEVICE" --task cartpole_swingup --variants curl "curl:agent.cuda_graphs=true" --steps 2 --warmup 1
          --seed-steps 20 --batch 8 --threads 1)
   CHECK=(tests/test_cuda_graphs.py -k "on_cuda or static_buffers" -p no:cacheprovider -n 0 -q -rs)

@@ -19,10 +19,11 @@ def _run(script, *args):
 
 
 def test_profile_seeds_profiles_a_single_agent_and_each_mode():
-    out = _run("profile_seeds.py", "--n", "2", "--modes", "loop", "vmap", "--steps", "1", "--warmup", "1",
+    out = _run("profile_seeds.py", "--n", "2", "--modes", "members", "turn+graphs", "--steps", "1", "--warmup", "1",
                "--fill", "100", "--threads", "1", "--rows", "3", *TINY)
     headings = [line for line in out.splitlines() if line.startswith("## ")]
-    assert [h.split(":")[0] for h in headings] == ["## 1 seed, single", "## 2 seeds, loop", "## 2 seeds, vmap"]
+    assert [h.split(":")[0] for h in headings] == ["## 1 seed, single", "## 2 seeds, members",
+                                                   "## 2 seeds, turn+graphs"]
     assert all("CPU operators busy" in h for h in headings) and "aten::" in out
 
 
@@ -62,14 +63,20 @@ def test_the_seeds_benches_build_their_agents_with_the_overrides():
         import seeds
     finally:
         sys.path.remove(os.path.join(REPO, "bench"))
+    import torch
+
     args = seeds.main.__globals__["argparse"].Namespace(
-        algo="curl", task="cartpole_swingup", action_dim=1, fill=20, device="cpu", batched=True, mode="loop",
+        algo="curl", task="cartpole_swingup", action_dim=1, fill=20, device="cpu", layout="members",
         set=[*tiny_overrides(TINY_NETWORKS), "agent.fused_adam=true"])
     batch, replays, _ = seeds.build(args, [1, 2])
-    template = batch.members[0]
-    assert template.cfg.batch_size == 8 and template.cfg.encoder_filters == 8
-    assert all(g["fused"] for m in batch.members for o in m.graphs.optimizers for g in o.param_groups)
-    assert len(replays) == 2
+    assert [m.cfg.batch_size for m in batch.members] == [8, 8] and batch.members[0].cfg.encoder_filters == 8
+    assert all(g["fused"] for m in batch.members for g in m.critic_opt.param_groups) and len(replays) == 2
+    # Each member is its seed's agent as a run of that seed builds it, and the seeds differ.
+    args.layout = "single"
+    alone, _, _ = seeds.build(args, [2])
+    weights = [m.state_dict()["nets"] for m in (*batch.members, alone)]
+    assert all(torch.equal(weights[1][k], weights[2][k]) for k in weights[1])
+    assert not all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
 
 
 SYSTEM_PATHS = ("/tmp/", "/dev/null", "/usr/bin/env", "/proc/", "/path/for/", "/usr/share/glvnd/", "/etc/glvnd/",
