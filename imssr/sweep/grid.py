@@ -86,14 +86,13 @@ class SweepConfig:
     """GPUs of each SLURM job; > 0 trains on ``cuda`` unless ``train.device`` is overridden."""
     slurm_array_parallelism: int = 0
     """SLURM jobs of the sweep's job array running at once; 0: as many as SLURM allows (256)."""
-    runs_per_process: int = 0
+    runs_per_process: int = 1
     """Runs trained in one process as one batch of agents, at most this many (``imssr train
-    --runs``: one update for all, each the run it would be alone); runs that differ only in the
-    seed and in the intrinsic reward's beta_0 or on/off can share a process (a grid point's seeds, a
-    base algo and its IM- variant, a beta_0 sweep).  1: one run per process; 0: all that can share
-    when the runs train on CUDA (one batched step instead of processes time-slicing the GPU),
-    else 1 (on the CPU separate processes use the cores as well: docs/performance.md).  A process
-    takes the CPUs and GPUs of one run."""
+    --runs``: each the run it would be alone); runs that differ only in the seed and in the
+    intrinsic reward's beta_0 or on/off can share a process (a grid point's seeds, a base algo and
+    its IM- variant, a beta_0 sweep).  1: one run per process, the fastest layout measured on the CPU
+    and on CUDA (docs/performance.md); 0: all that can share.  A process takes the CPUs and GPUs of
+    one run."""
     logger: str = ""
     """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's
     default.  With ``wandb``, runs are grouped under the root's name in W&B and tagged with their

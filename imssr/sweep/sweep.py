@@ -252,8 +252,7 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
     groups: list[list[RunStatus]] = []
     open_groups: dict[tuple, list[tuple[list[RunStatus], list]]] = {}
     for st in queued:
-        limit = runs_per_process or (0 if st.config.train.device.startswith("cuda") else 1)
-        if limit == 1 or agent_refusal(st.config.agent):
+        if runs_per_process == 1 or agent_refusal(st.config.agent):
             groups.append([st])
             continue
         shared, weighted, own = batch_key(st.config)
@@ -263,7 +262,7 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
             continue
         key = (shared, weighted, steps[-1], st.steps)
         for group, owns in open_groups.get(key, []):
-            if (limit == 0 or len(group) < limit) and (own is None or owns[0] in (None, own)):
+            if (runs_per_process == 0 or len(group) < runs_per_process) and (own is None or owns[0] in (None, own)):
                 group.append(st)
                 owns[0] = owns[0] or own
                 break
