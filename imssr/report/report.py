@@ -11,10 +11,8 @@ Files written under ``out``:
                        and rliable installed: the ``report`` extra)
 - ``curves.png``       learning curves against agent steps, one panel per task and mode
 - ``beta0.png``        final return against beta_0 (only for a beta sweep)
-- ``report.md``        all of the above in one page, with the runs that failed (``sweep_status.json``,
-                       each run's ``status.json``) and notes on what is missing
-
-T and its fractions count agent steps, as the paper's do; frames are given beside them.
+- ``report.md``        all of the above in one page, with the runs that failed and notes on what
+                       is missing
 """
 from __future__ import annotations
 
@@ -153,8 +151,7 @@ def makers(results) -> dict[tuple[str, str], dict[str, int]]:
 
 
 def mixed_makers(results, made_by: dict[tuple[str, str], dict[str, int]]) -> list[str]:
-    """One warning per row whose runs were made by more than one code version or device
-    (``made_by``: :func:`makers` of ``results``)."""
+    """One warning per row whose runs were made by more than one code version or device."""
     keys: dict[tuple[str, str], set] = {}
     for result in results.runs:
         for r in result.provenance:

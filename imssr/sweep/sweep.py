@@ -1,20 +1,11 @@
 """Dispatch a sweep's runs, idempotently, with bounded retries and a status file.
 
-Each attempt of a run is ``imssr train`` in a subprocess (:class:`imssr.sweep.runner.RunAttempt`),
-started by the launcher ``--launcher`` names (:mod:`imssr.sweep.launchers`: a Ray task, a SLURM
-job through submitit, or the sweep itself); planning, retries and the status file are here,
-the same for every launcher.  Before anything starts, every run is
-classified from its directory (:class:`imssr.rundir.RunDir`): ``done.json`` with a budget (in
-agent steps) at least the sweep's means done (skipped), a checkpoint means resume (unless the
-sweep's config differs from the run's in a setting a resume may not change: then the run is
-failed, not started), nothing means a fresh start.  Each run to train gets its resolved
-``config.json``, which its worker trains (``imssr train --config RUN/config.json``).  A failed
-attempt is retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
-still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.  A run that
-diverged is not retried (it diverges again from the same checkpoint); one stopped by a signal
-(preemption: ``imssr train`` checkpoints and exits 130) is interrupted, not failed, and resumes.
-The sweep root's own files (``sweep.json``, ``sweep_status.json``, its lock) are written and read
-by :class:`~imssr.sweep.directory.SweepDir`.
+Planning, retries and the status file are here, the same for every launcher
+(:mod:`imssr.sweep.launchers`).  Each run is classified from its directory first: done (skipped),
+a checkpoint (resumed, unless the sweep's config differs in a setting a resume may not change:
+then failed, not started) or a fresh start; each run to train gets its resolved ``config.json``.
+A failed attempt is retried up to ``retries`` times; a diverged run is not retried (it diverges
+again from the same checkpoint); one stopped by a signal is interrupted, not failed, and resumes.
 """
 from __future__ import annotations
 
@@ -140,14 +131,9 @@ class _Progress:
 
 def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0,
               submitit_cluster: str = "slurm") -> list[RunStatus]:
-    """Run every run of the sweep that is not done, through ``cfg.launcher``; return the final
-    status of each.  ``submitit_cluster``: submitit's executor for ``--launcher slurm``
-    (``local`` runs the jobs on this machine).
-
-    The sweep holds a lock on its root (:meth:`SweepDir.lock`), so a second sweep over the
-    same root fails at once ("ROOT is in use by PID n"); each run's training locks its own
-    directory as ``imssr train`` does.
-    """
+    """Run every run of the sweep that is not done, through ``cfg.launcher``, holding the root's
+    lock; return the final status of each.  ``submitit_cluster``: submitit's executor for
+    ``--launcher slurm`` (``local`` runs the jobs on this machine)."""
     launcher = make_launcher(cfg, submitit_cluster)
     launcher.check()  # before anything is written
     with SweepDir(cfg.root).lock():
