@@ -1,10 +1,8 @@
 """``imssr analyze``: measure the two terms that the paper's Section III bounds the intrinsic
 reward by, on the states of a trained run (docs/analysis.md).
 
-For ``N`` states of the run (its replay, or rollouts of its policy) and each analysed checkpoint:
-the intrinsic signal as the agent computes it, the encoder's sensitivity to nuisances (the same
-physics state rendered in test scenes) and the state's novelty in the true state space.  The run
-directory is only read (no lock, as ``imssr evaluate``); the outputs go to ``RUN/analysis/``.
+The run directory is only read (no lock, as ``imssr evaluate``); the outputs go to
+``RUN/analysis/``.
 """
 from __future__ import annotations
 
@@ -14,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from imssr.analysis.adapter import batch_size, fix_draws, has_signal
+from imssr.analysis.adapter import batch_size, fix_draws
 from imssr.analysis.measures import (first_visit, knn_distance, nuisance_distance, signal_of_states, standardise,
                                      state_coordinates)
 from imssr.analysis.report import plot_correlations, save_extremes, spearman_ci, write_rows
@@ -120,7 +118,6 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
         def load(ckpt: Checkpoint):
             return restore_agent(agent, ckpt)
 
-        assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)
         rollout_env = (env_from_config(e, seed=opts.seed + ANALYSIS_ROLLOUT_SEED_OFFSET, footage_split="train")
                        if e.mode != "training" else env)

@@ -6,6 +6,7 @@ not started (``sweep.json``) and those that failed every attempt (``sweep_status
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -84,10 +85,6 @@ class SweepResults:
     skipped: dict[str, str] = field(default_factory=dict)
     """Run directory (absolute) -> why it is left out: a ``config.json`` or ``eval.csv`` that
     cannot be read."""
-    _tasks: Optional[dict[str, tuple[int, Optional[int]]]] = field(default=None, init=False, repr=False,
-                                                                    compare=False)
-    """Task -> ``(budget, action repeat)``, made when first asked (:meth:`_per_task`)."""
-
     def failure(self, run: Run) -> Optional[str]:
         """The last error of ``run`` when it failed (:attr:`failures`); None otherwise."""
         return self.failures.get(os.path.abspath(run.dir))
@@ -99,29 +96,28 @@ class SweepResults:
     def budget(self, task: str) -> int:
         """The sweep's T for ``task`` in agent steps: the planned budget, else the largest
         budget of its runs."""
-        return self._per_task()[task][0]
+        return self._per_task[task][0]
 
     def action_repeat(self, task: str) -> Optional[int]:
         """The action repeat of ``task``'s runs; None when they differ (then a point in agent
         steps is no single frame count)."""
-        return self._per_task()[task][1]
+        return self._per_task[task][1]
 
+    @functools.cached_property
     def _per_task(self) -> dict[str, tuple[int, Optional[int]]]:
-        # One pass over the plan and the runs (complete once collect() returns): tables ask per
-        # row and point, which must not cost a pass over thousands of runs each time.
-        if self._tasks is None:
-            planned: dict[str, int] = {}
-            for p in self.planned:
-                planned[p.run.task] = max(p.steps, planned.get(p.run.task, p.steps))
-            ran: dict[str, int] = {}
-            repeats: dict[str, set[int]] = {}
-            for r in self.runs:
-                ran[r.run.task] = max(r.steps, ran.get(r.run.task, r.steps))
-                repeats.setdefault(r.run.task, set()).add(r.action_repeat)
-            self._tasks = {task: (planned.get(task, ran.get(task)),
-                                  next(iter(repeats[task])) if len(repeats.get(task, ())) == 1 else None)
-                           for task in {*planned, *ran}}
-        return self._tasks
+        """Task -> ``(budget, action repeat)``, from one pass over the plan and the runs (complete
+        once :func:`collect` returns): tables ask per row and point."""
+        planned: dict[str, int] = {}
+        for p in self.planned:
+            planned[p.run.task] = max(p.steps, planned.get(p.run.task, p.steps))
+        ran: dict[str, int] = {}
+        repeats: dict[str, set[int]] = {}
+        for r in self.runs:
+            ran[r.run.task] = max(r.steps, ran.get(r.run.task, r.steps))
+            repeats.setdefault(r.run.task, set()).add(r.action_repeat)
+        return {task: (planned.get(task, ran.get(task)),
+                       next(iter(repeats[task])) if len(repeats.get(task, ())) == 1 else None)
+                for task in {*planned, *ran}}
 
     def frames_at(self, task: str, step: int) -> Optional[int]:
         """Agent step ``step`` of ``task`` in environment frames (None: mixed action repeats)."""

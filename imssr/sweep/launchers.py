@@ -176,14 +176,10 @@ class RayLauncher(Launcher):
 
     def stop(self, handles: list[Any]) -> None:
         # Each training gets one SIGTERM and checkpoints where it is; wait for that before
-        # ray.shutdown kills the workers and their children.  On a private local Ray the
-        # trainings run here, and a training that holds its run's lock is signalled directly:
-        # its task then returns as the training exits.  A cancel (which raises
-        # KeyboardInterrupt inside the task, whose execute_run then stops the training as
-        # RunAttempt.stop does) is best effort: on a loaded machine it can miss the wait below,
-        # so it serves only where the training is not ours to signal (a cluster) or has not
-        # taken its lock yet.  Never both for one training: a second SIGTERM stops it at once,
-        # without its checkpoint.
+        # ray.shutdown kills the workers.  On a private local Ray a training that holds its run's
+        # lock is signalled directly; a cancel (KeyboardInterrupt inside the task) can miss the
+        # wait on a loaded machine, so it serves only where the training is not ours to signal
+        # or has no lock yet.  Never both: a second SIGTERM stops it without its checkpoint.
         for handle in handles:
             attempt = self.attempts.get(handle)
             run_dir = None if self.cfg.address or attempt is None else attempt.run_dirs[0]
