@@ -59,9 +59,7 @@ def check_gl() -> None:
     """Raise a one-line :class:`ImssrError` when the backend's library is missing."""
     backend = os.environ.get("MUJOCO_GL", "egl")
     if backend not in SUPPORTED_BACKENDS:
-        raise ImssrError(
-            f"MUJOCO_GL={backend!r} is not supported; use one of {', '.join(SUPPORTED_BACKENDS)}"
-        )
+        raise ImssrError(f"MUJOCO_GL={backend!r} is not supported; use one of {', '.join(SUPPORTED_BACKENDS)}")
     if backend == "glfw" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         # GLFW opens a window: without a display it fails deep inside dm_control, after warnings.
         raise ImssrError("MUJOCO_GL=glfw needs a display, and neither DISPLAY nor WAYLAND_DISPLAY is set: "
@@ -72,10 +70,8 @@ def check_gl() -> None:
             if backend == "egl":
                 hint = (f" and {egl_vendor_hint(nvidia_driver_loaded())}"
                         " (or set MUJOCO_GL=osmesa and install libosmesa6)")
-            raise ImssrError(
-                f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
-                f"install the Debian package {package} (apt-get install {package}){hint}"
-            )
+            raise ImssrError(f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
+                             f"install the Debian package {package} (apt-get install {package}){hint}")
 
 
 NVIDIA_DRIVER_FILE = "/proc/driver/nvidia/version"

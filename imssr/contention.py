@@ -35,33 +35,28 @@ levels the scheduler weighs it ~1/10 (at 19, ~1/70), so this process's threads g
 soon as they want one (a ``nice -n 19 imssr sweep`` beside ``imssr demo``)."""
 
 
-def autogroup_scheduling() -> bool:
-    """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``): CPU time
-    is then shared between sessions first, and a nice value counts only inside its session."""
-    try:
-        with open("/proc/sys/kernel/sched_autogroup_enabled") as fh:
-            return fh.read().strip() == "1"
-    except OSError:
-        return False
-
-
-def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
-    """(name, nice) of the autogroup of process ``pid`` from ``/proc/PID/autogroup``; None when
-    it has none (the boot-time group, whose file is empty) or the file cannot be read."""
-    try:
-        with open(f"/proc/{pid}/autogroup") as fh:
-            name, _, nice = fh.read().split()
-        return name, int(nice)
-    except (OSError, ValueError):
-        return None
-
-
 def _read(path: str) -> Optional[str]:
     """A small /proc or /sys file's text (bytes that are not UTF-8 replaced), or None."""
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
             return fh.read()
     except OSError:
+        return None
+
+
+def autogroup_scheduling() -> bool:
+    """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``): CPU time
+    is then shared between sessions first, and a nice value counts only inside its session."""
+    return (_read("/proc/sys/kernel/sched_autogroup_enabled") or "").strip() == "1"
+
+
+def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
+    """(name, nice) of the autogroup of process ``pid`` from ``/proc/PID/autogroup``; None when
+    it has none (the boot-time group, whose file is empty) or the file cannot be read."""
+    try:
+        name, _, nice = (_read(f"/proc/{pid}/autogroup") or "").split()
+        return name, int(nice)
+    except ValueError:
         return None
 
 

@@ -36,19 +36,10 @@ class DMCEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"]}
 
-    def __init__(
-        self,
-        task: str | TaskSpec,
-        seed: int = 0,
-        mode: str = "training",
-        action_repeat: Optional[int] = None,
-        image_size: int = 100,
-        frame_stack: int = 3,
-        camera_id: Optional[int] = None,
-        footage_split: str = "train",
-        footage_path: str = "",
-        shadow_size: int = 512,
-    ):
+    def __init__(self, task: str | TaskSpec, seed: int = 0, mode: str = "training",
+                 action_repeat: Optional[int] = None, image_size: int = 100, frame_stack: int = 3,
+                 camera_id: Optional[int] = None, footage_split: str = "train", footage_path: str = "",
+                 shadow_size: int = 512):
         get_mode(mode)
         spec = task if isinstance(task, TaskSpec) else get_task(task)
         if action_repeat is not None and action_repeat < 1:
@@ -93,8 +84,7 @@ class DMCEnv(gym.Env):
             _drop_half_made_context_errors()
             raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} ({cause}); {fix}") from None
 
-        # Test scenes; their footage comes from the ``footage_split`` pool (the
-        # trainer gives evaluation envs the unseen ``test`` pool).
+        # Evaluation envs draw footage from the unseen ``test`` pool.
         self.scene: Optional[Scene] = None
         if mode != "training":
             self.scene = Scene(self._env.physics, mode, seed, image_size, self.camera_id,
@@ -103,9 +93,8 @@ class DMCEnv(gym.Env):
         self._act_low = aspec.minimum.astype(np.float64)
         self._act_high = aspec.maximum.astype(np.float64)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=aspec.shape, dtype=np.float32)
-        self.observation_space = gym.spaces.Box(
-            0, 255, shape=(3 * frame_stack, image_size, image_size), dtype=np.uint8
-        )
+        self.observation_space = gym.spaces.Box(0, 255, shape=(3 * frame_stack, image_size, image_size),
+                                                dtype=np.uint8)
         self._frames: deque[np.ndarray] = deque(maxlen=frame_stack)
         # Filled in place by physics_state(): recording costs no allocation per step.
         self._state = np.zeros(sum(x.size for x in self.physics._physics_state_items()), np.float64)

@@ -12,14 +12,8 @@ from typing import Callable, Optional
 from imssr.errors import ImssrError
 
 # The tasks the paper reports, in its table order.
-PAPER_TASKS = (
-    "cartpole_swingup_sparse",
-    "finger_spin",
-    "pendulum_swingup",
-    "reacher_easy",
-    "walker_walk",
-    "walker_walk_sparse",
-)
+PAPER_TASKS = ("cartpole_swingup_sparse", "finger_spin", "pendulum_swingup", "reacher_easy", "walker_walk",
+               "walker_walk_sparse")
 
 # Table III: action repeat 2 for finger_spin, 8 for cartpole_swingup_sparse and
 # pendulum_swingup, 4 otherwise; dense cartpole_swingup (not a paper task) takes 8 as
@@ -131,10 +125,8 @@ def get_task(name: str) -> TaskSpec:
     for domain, task in SUITE_TASKS:
         if f"{domain}_{task}" == name:
             return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT))
-    raise ImssrError(
-        f"unknown task {name!r}; paper tasks: {', '.join(PAPER_TASKS)} "
-        f"(`imssr tasks` lists all {len(list_tasks())})"
-    )
+    raise ImssrError(f"unknown task {name!r}; paper tasks: {', '.join(PAPER_TASKS)} "
+                     f"(`imssr tasks` lists all {len(list_tasks())})")
 
 
 def task_dims(name: str) -> tuple[int, int]:

@@ -26,9 +26,8 @@ from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, PROVENANCE_F
 from imssr.sweep.grid import beta_label
 
 RESULT_FILES = (CONFIG_FILE, PROVENANCE_FILE, *CSV_LOGS)
-"""What a run keeps in an export: its config, its provenance (runs of imssr before it have none)
-and every CSV log (``evaluate*.csv`` when ``imssr evaluate`` wrote them); no checkpoint, replay,
-TensorBoard or video file."""
+"""What a run keeps in an export: its config, its provenance and every CSV log; no checkpoint,
+replay, TensorBoard or video file."""
 
 REQUIRED_FILES = (CONFIG_FILE, EVAL_LOG, TRAIN_LOG)
 """A finished run without one of these is damaged and is not exported."""

@@ -27,8 +27,7 @@ from imssr.report.results import collect, write_evaluations
 from imssr.report.stats import MIN_SEEDS_FOR_BOOTSTRAP
 
 PAPER_T = 500_000
-"""The paper's T in agent steps (Table III, "Number of training steps"): its 0.2T, 0.5T and 1.0T
-are 100,000, 250,000 and 500,000 agent steps, on every task whatever its action repeat."""
+"""The paper's T in agent steps (Table III, "Number of training steps"), on every task."""
 
 
 def write_report(root: str, out: str, paper_results: Optional[str] = None,

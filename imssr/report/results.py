@@ -46,14 +46,12 @@ class RunResult:
     """The settings that set this run apart from another run of the same algo, task, seed and
     precision (``intrinsic.normalization=zscore``); empty when no other run shares them."""
     provenance: list[dict] = field(default_factory=list)
-    """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] for a run of imssr
-    before them or one whose file cannot be read."""
+    """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] when it has none."""
     state: str = ""
     """How the run stands when read (:meth:`RunDir.outcome <imssr.rundir.RunDir.outcome>`):
     ``new``, ``running``, ``interrupted``, ``finished``, ``failed`` or ``diverged``."""
     error: str = ""
-    """The error line of a run whose last training failed or diverged (``status.json``); ""
-    otherwise."""
+    """The error line of a run whose last training failed or diverged (``status.json``)."""
 
     @property
     def frames(self) -> int:
@@ -80,11 +78,9 @@ class SweepResults:
     notes: list[str]
     failures: dict[str, str] = field(default_factory=dict)
     """Run directory (absolute) -> last error, for every run that failed: listed as failed in
-    ``sweep_status.json``, or whose own last training failed or diverged (``status.json``; a
-    member of ``imssr train --seeds``, a run trained by hand)."""
+    ``sweep_status.json``, or whose own last training failed or diverged (``status.json``)."""
     skipped: dict[str, str] = field(default_factory=dict)
-    """Run directory (absolute) -> why it is left out: a ``config.json`` or ``eval.csv`` that
-    cannot be read."""
+    """Run directory (absolute) -> why it is left out (an unreadable ``config.json`` or ``eval.csv``)."""
     def failure(self, run: Run) -> Optional[str]:
         """The last error of ``run`` when it failed (:attr:`failures`); None otherwise."""
         return self.failures.get(os.path.abspath(run.dir))

@@ -60,13 +60,10 @@ AUTOGROUP_WAIT_S = 30.0
 
 
 def lower_session_priority(pid: int, niceness: int, wait_s: float = AUTOGROUP_WAIT_S) -> str:
-    """Give the session of ``pid`` the nice value ``niceness``; returns what went wrong, "" when
-    it worked or there is nothing to do.
-
-    Under autogroup scheduling CPU time is shared between sessions first and nice values count
-    only inside one, so a training in a session of its own would ignore ``nice -n 19 imssr
-    sweep``: its session's group gets the value.  Without CAP_SYS_ADMIN the kernel takes one
-    such change per 0.1 s machine-wide: parallel starts take turns, jittered."""
+    """Give the session of ``pid`` the nice value ``niceness`` (under autogroup scheduling a nice
+    value counts only inside a session, so a training's own session would ignore ``nice -n 19
+    imssr sweep``); returns what went wrong, "" when it worked or there is nothing to do.  The
+    kernel takes one such change per 0.1 s machine-wide: parallel starts take turns, jittered."""
     path = f"/proc/{pid}/autogroup"
     group = scheduling_group(pid)
     if group is None or group[1] is None:

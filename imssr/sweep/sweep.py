@@ -58,8 +58,7 @@ def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
 
 def config_conflict(run: RunDir, cfg: RunConfig) -> str:
     """Why ``cfg`` cannot resume the run in ``run`` (its ``config.json`` differs in a setting that
-    a resume may not change: :meth:`RunConfig.resume_conflicts`); empty when it can.
-    The sweep then leaves the run's config.json as it is, so that it still describes the run."""
+    a resume may not change: :meth:`RunConfig.resume_conflicts`); empty when it can."""
     if not run.has_config():
         return ""
     try:
