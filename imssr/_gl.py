@@ -41,15 +41,10 @@ def configure_gl() -> str:
 def load_triton_first() -> None:
     """Import triton, where it is installed and not yet loaded, before the first GL driver.
 
-    Mesa's GL drivers (llvmpipe, and the hardware drivers' shader compilers) link Debian's
-    ``libLLVM-15`` and are opened with ``RTLD_GLOBAL``, which puts every LLVM symbol in the
-    process's global scope.  Triton's ``libtriton.so`` carries its own, newer LLVM and exports
-    those same symbols; loaded after Mesa's, its references bind to LLVM 15's definitions and
-    the process dies with SIGSEGV inside the import.  torch imports triton on its own whenever
-    it is installed (PyPI's default torch on Linux brings it), as soon as an optimiser is made
-    (``torch.optim`` loads ``torch._dynamo``).  Loaded first, triton binds to its own LLVM
-    (CPython opens extensions with ``RTLD_NOW | RTLD_LOCAL``) and Mesa's then binds to LLVM 15:
-    both orders of use are safe.  A triton that fails to import is left to torch."""
+    Mesa's GL drivers link Debian's ``libLLVM-15`` with ``RTLD_GLOBAL``; triton carries its own,
+    newer LLVM with the same symbols, and loaded after Mesa's (torch imports it as soon as an
+    optimiser is made) it binds to LLVM 15's and dies with SIGSEGV.  Loaded first, each binds to
+    its own.  A triton that fails to import is left to torch."""
     if "triton" in sys.modules:
         return
     try:
@@ -64,9 +59,7 @@ def check_gl() -> None:
     """Raise a one-line :class:`ImssrError` when the backend's library is missing."""
     backend = os.environ.get("MUJOCO_GL", "egl")
     if backend not in SUPPORTED_BACKENDS:
-        raise ImssrError(
-            f"MUJOCO_GL={backend!r} is not supported; use one of {', '.join(SUPPORTED_BACKENDS)}"
-        )
+        raise ImssrError(f"MUJOCO_GL={backend!r} is not supported; use one of {', '.join(SUPPORTED_BACKENDS)}")
     if backend == "glfw" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         # GLFW opens a window: without a display it fails deep inside dm_control, after warnings.
         raise ImssrError("MUJOCO_GL=glfw needs a display, and neither DISPLAY nor WAYLAND_DISPLAY is set: "
@@ -77,10 +70,8 @@ def check_gl() -> None:
             if backend == "egl":
                 hint = (f" and {egl_vendor_hint(nvidia_driver_loaded())}"
                         " (or set MUJOCO_GL=osmesa and install libosmesa6)")
-            raise ImssrError(
-                f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
-                f"install the Debian package {package} (apt-get install {package}){hint}"
-            )
+            raise ImssrError(f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
+                             f"install the Debian package {package} (apt-get install {package}){hint}")
 
 
 NVIDIA_DRIVER_FILE = "/proc/driver/nvidia/version"
@@ -136,21 +127,13 @@ EGL_PINNED_VARIABLE = "IMSSR_PINNED_EGL_DEVICE_ID"
 """Holds the ``MUJOCO_EGL_DEVICE_ID`` that :func:`pin_egl_device` set (absent when it set none)."""
 
 
-def egl_device_refused(message: str) -> bool:
-    """Whether dm_control's error ``message`` refuses ``MUJOCO_EGL_DEVICE_ID`` (an index past
-    the devices EGL lists)."""
-    return "MUJOCO_EGL_DEVICE_ID" in message
-
-
 def unpin_refused_egl_device(message: str, environ: MutableMapping[str, str] = os.environ) -> Optional[str]:
     """After dm_control failed with ``message``: when it refused a ``MUJOCO_EGL_DEVICE_ID`` that
     imssr set, remove it (EGL then picks the first device that works) and return the value it
-    had; None otherwise (the user's own value, or another failure), nothing changed.
-
-    Under cgroup device limits (SLURM's ConstrainDevices, containers) EGL lists only the GPUs
+    had; None otherwise.  Under cgroup device limits (SLURM, containers) EGL lists only the GPUs
     the run may use, numbered from 0, so the machine's index of the run's GPU can be past them."""
     pinned = environ.get(EGL_PINNED_VARIABLE)
-    if not egl_device_refused(message) or pinned is None or environ.get("MUJOCO_EGL_DEVICE_ID") != pinned:
+    if "MUJOCO_EGL_DEVICE_ID" not in message or pinned is None or environ.get("MUJOCO_EGL_DEVICE_ID") != pinned:
         return None
     del environ["MUJOCO_EGL_DEVICE_ID"], environ[EGL_PINNED_VARIABLE]
     return pinned
@@ -160,7 +143,7 @@ def egl_device_error(message: str, environ: Mapping[str, str] = os.environ) -> O
     """The one-line explanation of dm_control's error ``message`` when it refused
     ``MUJOCO_EGL_DEVICE_ID``, naming who set the value and what to set instead; None for other
     errors."""
-    if not egl_device_refused(message):
+    if "MUJOCO_EGL_DEVICE_ID" not in message:  # not a refused device
         return None
     value = environ.get("MUJOCO_EGL_DEVICE_ID", "")
     who = ("imssr set it from the run's GPU" if environ.get(EGL_PINNED_VARIABLE) == value

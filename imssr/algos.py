@@ -1,10 +1,8 @@
 """The algorithms: every base ``X`` (an auxiliary task) and its variants ``im-X`` (IM-SSR),
 ``X+rnd`` and ``X+re3`` (exploration peers that swap only the intrinsic signal).
 
-A registry of names, made of the plug-ins' declarations (:data:`~imssr.auxiliary.registry.AUX_PLUGINS`
-and :data:`~imssr.intrinsic.registry.SIGNAL_PLUGINS`) and apart from :mod:`imssr.presets` (their
-values), so that the config's validation can check that ``algo`` agrees with ``aux.name`` and
-``intrinsic.*`` without importing the presets, which import the config.
+A registry of names made of the plug-ins' declarations, apart from :mod:`imssr.presets`, so that
+the config's validation can check ``algo`` without importing the presets, which import the config.
 """
 from __future__ import annotations
 
@@ -36,9 +34,6 @@ class AlgoSpec:
         return self.aux
 
 
-# Each base is an auxiliary task; every base X has im-X (its own per-sample loss
-# as intrinsic reward) and the exploration peers X+rnd and X+re3, which swap
-# only the signal.
 BASES = {name: (p.label, p.description) for name, p in AUX_PLUGINS.items()}
 """Base name -> its paper label and description, in the registry's order."""
 SIGNALS = {name: (p.algo_name, p.label, p.description) for name, p in SIGNAL_PLUGINS.items()}

@@ -5,9 +5,7 @@
     run = imssr.load_run("runs/nb")                   # or checkpoint="5000" / a file
     run.act(obs); run.evaluate(mode="color_hard", episodes=5); run.curves()
 
-:func:`train` is ``imssr train`` (the same config, run directory, checkpoints and resume);
-:class:`Run` only reads its run directory: ``imssr evaluate`` is the command that appends
-evaluations to the run's files.
+:func:`train` is ``imssr train``; :class:`Run` only reads its run directory.
 """
 from __future__ import annotations
 
@@ -99,10 +97,9 @@ class Run:
         return {**eval_row(self.frame, self.step, mode, returns), "returns": returns}
 
     def curves(self, name: str = "eval"):
-        """The run's log ``RUN/<name>.csv`` (``eval``: one row per evaluation and scene; ``train``:
-        one per episode; see :data:`CURVES`) as a pandas DataFrame when pandas is installed (the
-        ``report`` extra), else a list of dicts with numbers as numbers; empty when the run has
-        not written it."""
+        """The run's log ``RUN/<name>.csv`` (:data:`CURVES`) as a pandas DataFrame when pandas is
+        installed, else a list of dicts with numbers as numbers; empty when the run has not
+        written it."""
         if name not in CURVES:
             raise ImssrError(f"unknown log {name!r}; choose from {', '.join(CURVES)}")
         path = self.run_dir.log(name)

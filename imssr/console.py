@@ -1,8 +1,7 @@
 """The ``imssr`` command's entry point (``python -m imssr`` too).
 
-It loads the command-line interface, whose modules take seconds to import (torch, dm_control),
-inside a guard: a Ctrl-C in those seconds is one line and exit status 130, not a traceback.
-``import imssr`` itself loads no torch, so the unguarded part is a fraction of a second.
+It loads the command-line interface, which takes seconds to import (torch, dm_control), inside
+a guard: a Ctrl-C in those seconds is one line and exit status 130, not a traceback.
 """
 from __future__ import annotations
 

@@ -1,17 +1,10 @@
 """CPU contention: how many cores other processes keep busy, and which of them yield to this one.
 
-A training warns when its torch threads would contend with busy cores (:func:`contention_warning`):
-torch's intra-op pool spins on every thread, and threads that wait for a core run many times
-slower.  Processes that yield the CPU to this one do not count: those 10 or more nice levels
-below it (:data:`YIELDING_NICE`), taking into account what they compete inside of, an autogroup
-(a session, under Linux's autogroup scheduling) or a CPU cgroup (:func:`scheduling_group`).
-``imssr sweep`` reads the same scheduling groups to give each training's session the sweep's
-nice value (:func:`imssr.sweep.runner.lower_session_priority`).
-
-This module lies at the package's top level, not in :mod:`imssr.sweep`: every training warns
-(``imssr train``, the demo, :mod:`imssr.api`), and the training loop must not import the sweep
-package that runs trainings as subprocesses of its own.  The readings are Linux's ``/proc``:
-elsewhere the 1-minute load average alone decides whether a training warns.
+A training warns when its torch threads would contend with busy cores (:func:`contention_warning`).
+Processes that yield the CPU to this one do not count: those :data:`YIELDING_NICE` or more nice
+levels below it, within what they compete inside of, an autogroup or a CPU cgroup
+(:func:`scheduling_group`), which ``imssr sweep`` reads as well.  The readings are Linux's
+``/proc``: elsewhere the 1-minute load average alone decides.
 """
 from __future__ import annotations
 
@@ -42,33 +35,28 @@ levels the scheduler weighs it ~1/10 (at 19, ~1/70), so this process's threads g
 soon as they want one (a ``nice -n 19 imssr sweep`` beside ``imssr demo``)."""
 
 
-def autogroup_scheduling() -> bool:
-    """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``): CPU time
-    is then shared between sessions first, and a nice value counts only inside its session."""
-    try:
-        with open("/proc/sys/kernel/sched_autogroup_enabled") as fh:
-            return fh.read().strip() == "1"
-    except OSError:
-        return False
-
-
-def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
-    """(name, nice) of the autogroup of process ``pid`` from ``/proc/PID/autogroup``; None when
-    it has none (the boot-time group, whose file is empty) or the file cannot be read."""
-    try:
-        with open(f"/proc/{pid}/autogroup") as fh:
-            name, _, nice = fh.read().split()
-        return name, int(nice)
-    except (OSError, ValueError):
-        return None
-
-
 def _read(path: str) -> Optional[str]:
     """A small /proc or /sys file's text (bytes that are not UTF-8 replaced), or None."""
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
             return fh.read()
     except OSError:
+        return None
+
+
+def autogroup_scheduling() -> bool:
+    """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``): CPU time
+    is then shared between sessions first, and a nice value counts only inside its session."""
+    return (_read("/proc/sys/kernel/sched_autogroup_enabled") or "").strip() == "1"
+
+
+def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
+    """(name, nice) of the autogroup of process ``pid`` from ``/proc/PID/autogroup``; None when
+    it has none (the boot-time group, whose file is empty) or the file cannot be read."""
+    try:
+        name, _, nice = (_read(f"/proc/{pid}/autogroup") or "").split()
+        return name, int(nice)
+    except ValueError:
         return None
 
 
@@ -106,12 +94,10 @@ def cpu_cgroup(pid: int | str = "self") -> Optional[str]:
 
 def scheduling_group(pid: int | str = "self", autogroups: Optional[bool] = None
                      ) -> Optional[tuple[str, Optional[int]]]:
-    """What process ``pid`` competes for the CPU inside of, with its nice value where one applies:
-    its autogroup ``(name, nice)`` under autogroup scheduling (``autogroups``; None: read it),
-    which applies only to tasks of the root CPU cgroup; ``("cgroup:PATH", None)`` in a CPU
-    cgroup (which competes by its cgroup weight, not by a nice value); None when it competes as
-    a task on its own.  A cgroup namespace can hide a container's cgroup behind "/": then its
-    tasks are taken for the root's."""
+    """What process ``pid`` competes for the CPU inside of: its autogroup ``(name, nice)`` under
+    autogroup scheduling (``autogroups``; None: read it) in the root CPU cgroup;
+    ``("cgroup:PATH", None)`` in a CPU cgroup (which competes by its weight); None when it
+    competes as a task on its own."""
     group = cpu_cgroup(pid)
     if group not in (None, "/"):
         return f"cgroup:{group}", None
@@ -123,10 +109,8 @@ def scheduling_group(pid: int | str = "self", autogroups: Optional[bool] = None
 def yields_to(task_nice: int, group: Optional[tuple[str, Optional[int]]], own_nice: int,
               own_group: Optional[tuple[str, Optional[int]]]) -> bool:
     """Whether a process of nice value ``task_nice`` in scheduling group ``group`` yields the CPU
-    to one of ``own_nice`` in ``own_group`` (:func:`scheduling_group`): inside one group the
-    tasks' nice values compare; across groups each group competes as one, at its group's nice
-    value (a task outside any group at its own); across CPU cgroups the weights decide, which
-    this does not read: such a process is taken to contend."""
+    to one of ``own_nice`` in ``own_group``: inside one group the tasks' nice values compare,
+    across groups the groups' (across CPU cgroups the weights decide: taken to contend)."""
     if group is not None and own_group is not None and group[0] == own_group[0]:
         return task_nice - own_nice >= YIELDING_NICE
     theirs = group[1] if group is not None else task_nice
@@ -207,15 +191,11 @@ def usable_cores() -> int:
 
 
 def contention_warning(threads: int, load: float | None = None, cores: int | None = None) -> str | None:
-    """A one-line warning if ``threads`` torch threads would contend with other busy processes.
-
-    torch's intra-op pool spins on every thread; when the cores are already busy
-    (another run, a test suite) a 2-thread update on a 2-core machine was measured
-    running many times slower than with 1 thread.  ``load`` is how many cores other processes
-    keep busy and ``cores`` the usable cores (both read from the OS when None): the smaller of
-    the 1-minute load average and the cores busy during a 0.2 s look at ``/proc/stat``, so that
-    a job that ended seconds ago (``scripts/setup.sh`` before ``imssr demo``) does not count.
-    """
+    """A one-line warning if ``threads`` torch threads would contend with other busy processes:
+    torch's intra-op pool spins on every thread, and a 2-thread update on a busy 2-core machine
+    was measured many times slower than with 1.  ``load``: the cores other processes keep busy,
+    the smaller of the 1-minute load average and a 0.2 s look (a job that just ended does not
+    count); ``cores``: the usable cores (both read when None)."""
     if threads <= 1:
         return None
     if cores is None:

@@ -1,13 +1,10 @@
 """Native crashes leave a trace: a Python traceback on stderr and in the directory being written.
 
-A segmentation fault in a native library (a GL driver, MuJoCo, torch) ends the process before
-any Python code can run, so without help it prints nothing and a run's files say only that it
-stopped.  :mod:`faulthandler` writes the traceback from its signal handler, to one file
-descriptor.  While a process holds run directories (or a sweep root) for writing, that
-descriptor is a pipe to a small shell process, in a session of its own so that a terminal's
-Ctrl-C leaves it alone, which waits for the pipe to close: when the process ends normally it has
-read nothing and writes nothing; after a crash it copies the report to stderr and appends it to
-``crash.log`` in each directory.  Otherwise the report goes to stderr alone.
+A segmentation fault in a native library ends the process before any Python code can run.
+:mod:`faulthandler` writes the traceback to one file descriptor: while a process holds run
+directories for writing, a pipe to a small shell process in a session of its own (a terminal's
+Ctrl-C leaves it alone), which after a crash copies the report to stderr and appends it to
+``crash.log`` in each directory; otherwise stderr alone.
 """
 from __future__ import annotations
 

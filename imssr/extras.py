@@ -1,11 +1,7 @@
 """Optional dependencies: training and evaluating one run need none of them.
 
-``imssr sweep`` needs Ray (the ``sweep`` extra; ``--launcher slurm``: submitit, the ``slurm``
-extra), ``imssr report``'s IQM (5 seeds per task or more) needs rliable and the pandas it reads
-with (the ``report`` extra), ``--logger wandb`` needs wandb (the ``wandb`` extra).  Each is
-imported where it is used, through :func:`require`, so that a missing one is one line naming the
-extra that installs it: an error, or a warning where the rest of the command goes on (a report
-without its IQM).
+Each is imported where it is used, through :func:`require`, so that a missing one is one line
+naming the extra that installs it (:data:`EXTRAS`).
 """
 from __future__ import annotations
 

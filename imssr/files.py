@@ -22,15 +22,10 @@ from imssr.errors import ImssrError
 
 @contextlib.contextmanager
 def atomic_path(path: str, needed: Optional[int] = None) -> Iterator[str]:
-    """Yield a temporary path beside ``path``; on success, fsync and rename it over ``path``.
-
-    A reader never sees a half-written file: it sees the old file or the new one.  The
-    temporary file is created with mode ``0o666`` so that the process umask decides the
-    final permissions, as for any file the user creates (``tempfile.mkstemp`` would make
-    every output private, 0600).  A full disk (``ENOSPC``, a quota, a short write) becomes
-    one :func:`no_space_message` line naming ``path`` and ``needed`` bytes (when given);
-    the old file stays in place and the temporary file is removed.
-    """
+    """Yield a temporary path beside ``path``; on success, fsync and rename it over ``path``, so
+    a reader sees the old file or the new one.  The temporary file's mode is ``0o666`` less the
+    umask, as for any file the user creates (``tempfile.mkstemp`` would make it 0600).  A full disk
+    is one :func:`no_space_message` line naming ``path`` and ``needed`` bytes; the old file stays."""
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     tmp = _create_temp(directory, os.path.basename(path))
@@ -145,11 +140,9 @@ OWN_FILE_RULE = "imssr writes only to a file of its own there (remove the link)"
 
 
 def open_own(path: str, flags: int, rule: str = OWN_FILE_RULE) -> int:
-    """``os.open(path, flags | O_NOFOLLOW | O_CLOEXEC, 0o666)`` (the umask decides the mode of a
-    new file).  A symbolic link there is refused in one line, "PATH is a symbolic link; RULE": a
-    run directory's files are its own, and writing through a link planted in a shared directory
-    would write into (or truncate) a file outside the run, as reading through one would carry a
-    file from elsewhere into the run's results."""
+    """``os.open(path, flags | O_NOFOLLOW | O_CLOEXEC, 0o666)``; a symbolic link there is refused
+    in one line, "PATH is a symbolic link; RULE": a link planted in a shared directory would make
+    a run write into a file outside it, or read one from elsewhere into its results."""
     try:
         return os.open(path, flags | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
     except OSError as exc:

@@ -1,17 +1,11 @@
 """Checksums of the files a run depends on: checkpoints and replay buffers.
 
-A zip file (a torch checkpoint, a numpy ``.npz``) is *sealed* by writing the sha256 of its
-bytes into the zip archive comment, the field that ends every zip file.  A sealed file is
-still a plain zip: ``torch.load`` and ``np.load`` read it as before, and the checksum travels
-inside the file, so the atomic rename that publishes the file publishes its checksum with it
-(no kill can leave a file and a checksum of another version side by side, and a reader never
-sees one without the other).  The digest covers the file as it was written, before the seal:
-every byte up to the comment-length field, then that field as zero.
-
-Every checkpoint and replay index imssr writes is sealed, so a file without a seal where the
-file ends is not trusted: :func:`zip_seal_problem` tells a seal that does not match, a seal that
-is no longer at the file's end (the file was cut short or had bytes appended: a zip reader still
-opens such a file, so only its seal tells), and a file with no seal at all.
+A zip file (a torch checkpoint, a numpy ``.npz``) is *sealed* by writing the sha256 of its bytes
+into the zip archive comment, the field that ends every zip file: still a plain zip for
+``torch.load`` and ``np.load``, and the atomic rename that publishes the file publishes its
+checksum with it.  The digest covers every byte up to the comment-length field, then that field
+as zero.  Every checkpoint and replay index imssr writes is sealed, so a file without a seal
+where the file ends (cut short, extended, or never sealed) is not trusted.
 """
 from __future__ import annotations
 
@@ -28,13 +22,9 @@ CHUNK = 1 << 22
 
 
 class HashingWriter:
-    """A write-only file object that passes writes on to ``fh`` and keeps what they did.
-
-    ``digest`` (with ``hashing``) is the sha256 of the bytes written, in order (for writers
-    that only append, e.g. ``np.save``).  ``error`` is the first ``OSError`` of a write:
-    torch's zip writer replaces it with a ``RuntimeError`` of its own ("unexpected pos"), so
-    the caller re-raises the real cause (a full disk) from here.
-    """
+    """A write-only file object that passes writes on to ``fh``: ``digest`` (with ``hashing``)
+    is the sha256 of the bytes written, in order; ``error`` the first ``OSError`` of a write,
+    which torch's zip writer replaces with a ``RuntimeError`` of its own ("unexpected pos")."""
 
     def __init__(self, fh: BinaryIO, hashing: bool = True):
         self.fh = fh
@@ -77,11 +67,8 @@ def sha256_of(fh: BinaryIO, size: int) -> "hashlib._Hash":
 
 
 def seal_zip(path: str) -> str:
-    """Write the sha256 of the zip file at ``path`` into its archive comment; return the digest.
-
-    The file must end with an end-of-central-directory record without comment, as torch and
-    numpy write them.
-    """
+    """Write the sha256 of the zip file at ``path`` (ending with a directory record without
+    comment, as torch and numpy write them) into its archive comment; return the digest."""
     with open(path, "rb+") as fh:
         size = fh.seek(0, 2)
         if size >= _EOCD_LEN:

@@ -1,10 +1,6 @@
-"""JSON that every reader accepts: no bare ``NaN`` / ``Infinity`` in the files imssr writes, and
-JSON files read back with one-line errors.
-
-Python's :mod:`json` writes non-finite floats as ``NaN`` and ``Infinity``, which are not JSON
-(``jq``, JavaScript and strict parsers refuse them).  :func:`dumps` writes them as ``null``
-and refuses anything else that would not be JSON (``allow_nan=False``).  :func:`read_json` reads a
-JSON file; whatever keeps it from being JSON text is one :class:`~imssr.errors.ImssrError` line.
+"""JSON that every reader accepts: non-finite floats written as ``null`` (Python's ``NaN`` and
+``Infinity`` are not JSON: ``jq`` and strict parsers refuse them), and JSON files read back with
+one-line errors.
 """
 from __future__ import annotations
 

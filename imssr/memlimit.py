@@ -1,11 +1,9 @@
 """The process's address-space limit (``ulimit -v``, ``RLIMIT_AS``), which HPC login nodes set,
 and what a run that meets it is told.
 
-Under such a limit two things go wrong deep inside libraries: scipy's bundled OpenBLAS, which
-dm_control loads with its suite, retries a refused ``mmap`` forever while it starts its threads
-(the process spins at 100% CPU with no output), and torch's allocator raises a ``RuntimeError``
-with a C++ traceback.  :func:`calm_openblas` avoids the first; :func:`out_of_memory_text` turns
-the second into one line.
+Under such a limit scipy's bundled OpenBLAS retries a refused ``mmap`` forever (avoided by
+:func:`calm_openblas`) and torch's allocator raises a C++ traceback (one line by
+:func:`out_of_memory_text`).
 """
 from __future__ import annotations
 

@@ -1,22 +1,16 @@
 """Which code and which machine made a run: one record per start and per resume.
 
-A run directory's ``provenance.json`` lists them in order (:meth:`imssr.rundir.RunDir.record_provenance`),
-so a run resumed on another machine or after an upgrade says so.  A record holds the versions
-that can change a run's numbers (imssr and, when it runs from a git checkout, the commit and
-whether tracked files differ from it; Python, torch, CUDA, cuDNN, the NVIDIA driver, numpy,
-dm_control, mujoco), the device (its name: the GPU's, or the CPU model and whether it computes
-bfloat16 natively) and the command line.  No host name is recorded, and every absolute or
-home-relative path in the command line, also inside a ``--set`` value, is cut to its last part
-(``…/runs``): a committed record does not carry its author's machine.  (A run's ``config.json``
-keeps the data folders it reads as given, so that a resume reads the same; ``imssr export`` cuts
-them in its copy alike.)
+A run directory's ``provenance.json`` lists them in order, so a run resumed on another machine
+or after an upgrade says so: the versions that can change a run's numbers (imssr with its git
+commit, Python, torch, CUDA, cuDNN, the NVIDIA driver, numpy, dm_control, mujoco), the device and
+the command line.  No host name is recorded, and every absolute or home-relative path in the
+command line is cut to its last part (``…/runs``): a committed record does not carry its
+author's machine.
 
-A copy of a checkout without its ``.git`` (copied to a cluster or a machine without git) knows
-its commit from a source stamp, ``.imssr-source.json`` beside the package, which
-``python -m imssr.provenance --stamp`` writes in the checkout before the copy: the commit, whether
-the checkout was clean, and the sha256 of every tracked file of the package.  The copy's records
-take the commit from it, and count as clean only if the package's files are still those.
-``python -m imssr.provenance`` prints this machine's record (what a run started here would say).
+A copy of a checkout without its ``.git`` knows its commit from a source stamp,
+``.imssr-source.json`` beside the package, which ``python -m imssr.provenance --stamp`` writes
+before the copy (the commit, whether it was clean, the sha256 of every tracked file of the
+package).  ``python -m imssr.provenance`` prints this machine's record.
 """
 from __future__ import annotations
 
@@ -120,10 +114,8 @@ def _package_modules(top: str) -> set[str]:
 
 
 def write_stamp(top: Optional[str] = None, path: Optional[str] = None) -> str:
-    """Write the source stamp of the checkout ``top`` (default: the one imssr is imported from):
-    its commit, whether it is clean, and the sha256 of every tracked file of the package; into
-    ``path`` (default: :data:`SOURCE_STAMP` in ``top``, where a copy reads it).  Returns its path;
-    a folder that is no git checkout is one line."""
+    """Write the source stamp of the checkout ``top`` (default: the one imssr is imported from)
+    into ``path`` (default: :data:`SOURCE_STAMP` in ``top``); returns its path."""
     top = top or _checkout()
     commit, clean = _git(top) if os.path.exists(os.path.join(top, ".git")) else (None, None)
     if commit is None:

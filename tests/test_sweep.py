@@ -512,16 +512,13 @@ def test_runs_that_can_share_a_batch_are_packed_into_processes(tmp_path):
                       steps=125, overrides=TINY)
     queued = plan_runs(cfg)
     names = lambda groups: [[st.run.name for st in g] for g in groups]  # noqa: E731
-    assert all(len(g) == 1 for g in pack(queued, 0))  # on the CPU: one run per process
-    assert all(len(g) == 1 for g in pack(queued, 1))
+    assert all(len(g) == 1 for g in pack(queued, 1))  # the default: one run per process, CPU or CUDA
     assert names(pack(queued, 3)) == [
         [f"curl {TASK} seed 1", f"curl {TASK} seed 2", f"im-curl {TASK} seed 1"],
         [f"im-curl {TASK} seed 2"],
         [f"curl+rnd {TASK} seed 1", f"curl+rnd {TASK} seed 2"]]  # RND's own weights: a batch of its own
     statuses = plan_runs(replace(cfg, algos=["curl", "im-curl"]))
-    for st in statuses:  # as the sweep resolves them for a GPU (no GPU needed to plan)
-        st.config.train.device = "cuda"
-    assert [len(g) for g in pack(statuses, 0)] == [4]  # on CUDA: all that can share
+    assert [len(g) for g in pack(statuses, 0)] == [4]  # 0: all that can share
     fused = plan_runs(replace(cfg, algos=["curl"], overrides=TINY + ["agent.update_schedule=fused"]))
     assert [len(g) for g in pack(fused, 3)] == [2]  # either schedule trains in a batch
     compiled = plan_runs(replace(cfg, algos=["curl"], overrides=TINY + ["agent.compile=default"]))
@@ -539,7 +536,7 @@ def test_a_dry_run_shows_which_runs_train_in_one_process(tmp_path, capsys):
         f"  {TASK}/curl/seed_1 {TASK}/curl/seed_2 {TASK}/im-curl/seed_1",
         f"  {TASK}/im-curl/seed_2",
         f"  {TASK}/curl+rnd/seed_1 {TASK}/curl+rnd/seed_2"], out
-    assert main(args) == 0  # on the CPU: a process each
+    assert main(args) == 0  # by default: a process each
     assert "6 runs to train, each in a process of its own" in capsys.readouterr().out.splitlines()
 
 

@@ -1,9 +1,5 @@
-"""The analysis's only contact with the agent's internals.
-
-Everything ``imssr analyze`` needs from a :class:`~imssr.agents.SACAgent` goes through these
-functions, so that a change of the agent's update changes this file only.  The one that knows
-how the update is computed is :func:`intrinsic_signal`; the others read public attributes.
-"""
+"""The analysis's only contact with the agent's internals: a change of the agent's update
+changes this file only."""
 from __future__ import annotations
 
 import numpy as np
@@ -17,26 +13,15 @@ from imssr.seeds import INTRINSIC_SEED_OFFSET
 def intrinsic_signal(agent, sample: dict[str, np.ndarray]) -> torch.Tensor:
     """The agent's raw intrinsic signal of each ``o'`` of ``sample`` (a replay batch), shape ``(B,)``:
     the per-sample SSL loss of ``o'`` (or RND's error, RE3's distance) before the in-batch
-    normalisation and ``beta_t`` of Algorithm 1, i.e. the left-hand side of the paper's bound.
-
-    Built as the agent builds it for its Bellman target (:meth:`SACAgent.intrinsic_signal` on
-    :meth:`SACAgent.encode` of the batch: random crops from ``agent.gen``, extra views from
-    ``agent.intrinsic_gen``), without a gradient.  The fused schedule's IM-PAD hands the training
-    pass's loss over instead of recomputing it; here it is recomputed (equal up to float
-    rounding).  Like the agent's, a contrastive loss depends on the batch it is in (the other
-    samples are its negatives).
-    """
+    normalisation and ``beta_t`` of Algorithm 1, the left-hand side of the paper's bound.  Built
+    as the agent builds it for its Bellman target, without a gradient; a contrastive loss depends
+    on the batch it is in (the other samples are its negatives)."""
     if agent.signal is None:
         raise ImssrError("the run's algorithm has no intrinsic reward to analyse (choose an im-, +rnd or "
                          "+re3 algorithm's run)")
     with torch.no_grad():
         batch = agent.to_batch(sample)
         return agent.intrinsic_signal(batch, agent.encode(batch)).detach().flatten()
-
-
-def has_signal(agent) -> bool:
-    """Whether the agent adds an intrinsic reward at all."""
-    return agent.signal is not None
 
 
 def batch_size(agent) -> int:

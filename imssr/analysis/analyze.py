@@ -1,10 +1,8 @@
 """``imssr analyze``: measure the two terms that the paper's Section III bounds the intrinsic
 reward by, on the states of a trained run (docs/analysis.md).
 
-For ``N`` states of the run (its replay, or rollouts of its policy) and each analysed checkpoint:
-the intrinsic signal as the agent computes it, the encoder's sensitivity to nuisances (the same
-physics state rendered in test scenes) and the state's novelty in the true state space.  The run
-directory is only read (no lock, as ``imssr evaluate``); the outputs go to ``RUN/analysis/``.
+The run directory is only read (no lock, as ``imssr evaluate``); the outputs go to
+``RUN/analysis/``.
 """
 from __future__ import annotations
 
@@ -14,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from imssr.analysis.adapter import batch_size, fix_draws, has_signal
+from imssr.analysis.adapter import batch_size, fix_draws
 from imssr.analysis.measures import (first_visit, knn_distance, nuisance_distance, signal_of_states, standardise,
                                      state_coordinates)
 from imssr.analysis.report import plot_correlations, save_extremes, spearman_ci, write_rows
@@ -23,7 +21,6 @@ from imssr.envs import env_from_config
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.rundir import RunDir, as_run_dir
-from imssr.rundir.checkpoint import Checkpoint
 from imssr.seeds import ANALYSIS_ENV_SEED_OFFSET, ANALYSIS_ROLLOUT_SEED_OFFSET, ANALYSIS_SCENE_SEED_OFFSET
 from imssr.training.build import agent_at, resolve_device, restore_agent
 
@@ -116,18 +113,13 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
     try:
         # The newest analysed checkpoint's agent; every other checkpoint loads into the same one.
         agent = agent_at(ckpts[steps[-1]], cfg, device=opts.device, env=env).agent
-
-        def load(ckpt: Checkpoint):
-            return restore_agent(agent, ckpt)
-
-        assert has_signal(agent)  # intrinsic.enabled
         rng = np.random.default_rng(opts.seed)
         rollout_env = (env_from_config(e, seed=opts.seed + ANALYSIS_ROLLOUT_SEED_OFFSET, footage_split="train")
                        if e.mode != "training" else env)
         if rollout_env is not env:
             envs["rollouts"] = rollout_env
         sample = collect(run, cfg, latest, opts.states, rng, opts.source, rollout_env,
-                         lambda: load(ckpts[steps[-1]]))
+                         lambda: restore_agent(agent, ckpts[steps[-1]]))
         log(f"imssr: analysing {len(sample)} states of {run.path} ({sample.note}) at agent step(s) "
             f"{', '.join(f'{s:,}' for s in steps)}")
         # The same physics states in n0 (training) and in each test scene n.
@@ -137,19 +129,17 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
             exact = int(sum(np.array_equal(a, b) for a, b in zip(clean, sample.batch["next_obs"])))
         shifted = {}
         for i, mode in enumerate(opts.modes):
-            if mode == "training":
-                shifted[mode] = np.stack([env.render_stack(s) for s in sample.stack_physics])
-                continue
-            envs[mode] = env_from_config(e, seed=opts.seed + ANALYSIS_SCENE_SEED_OFFSET + i, mode=mode,
-                                         footage_split="test")
-            shifted[mode] = np.stack([envs[mode].render_stack(s) for s in sample.stack_physics])
+            if mode != "training":
+                envs[mode] = env_from_config(e, seed=opts.seed + ANALYSIS_SCENE_SEED_OFFSET + i, mode=mode,
+                                             footage_split="test")
+            shifted[mode] = np.stack([envs.get(mode, env).render_stack(s) for s in sample.stack_physics])
         novelty_all, per_step_novelty, first = _novelty(sample, env, steps, opts.neighbors)
         for note in _novelty_notes(novelty_all, per_step_novelty, opts.neighbors, len(sample.pool_step)):
             log(f"imssr: note: {note}")
         padding = sample.buffer.gather(sample.buffer.sample_indices(batch_size(agent)))
         rows, corr = [], []
         for step in steps:
-            load(ckpts[step])
+            restore_agent(agent, ckpts[step])
             # The same crops and extra views at every checkpoint: only the weights differ.
             fix_draws(agent, opts.seed)
             signal = signal_of_states(agent, sample.batch, padding)

@@ -1,15 +1,10 @@
 """The three per-state quantities of ``imssr analyze`` (paper, Section III, inequality finalbound).
 
-* :func:`signal_of_states`: the left-hand side, ``rho(z', z)``: the agent's raw per-sample SSL
-  loss of ``o'``, before the in-batch normalisation and ``beta_t`` (Algorithm 1), through
-  :func:`imssr.analysis.adapter.intrinsic_signal`.
-* :func:`nuisance_distance`: term (ii), ``rho(h(x, n), h(x, n0))``, measured as the Euclidean
-  distance between the encoder's latents of the same physics state ``x`` (its whole frame stack)
-  rendered in a test scene ``n`` and in ``training`` ``n0``.
+* :func:`signal_of_states`: the left-hand side, ``rho(z', z)``, the agent's raw intrinsic signal.
+* :func:`nuisance_distance`: term (ii), ``rho(h(x, n), h(x, n0))``, the distance between the
+  encoder's latents of the same physics state rendered in a test scene and in ``training``.
 * :func:`knn_distance` over :func:`state_coordinates`: a proxy for term (i), which needs the
-  ideal encoder ``h*`` and cannot be measured directly: how rarely the encoder has seen states
-  like ``x``, as the distance to the k-th nearest other recorded state in standardised physics
-  coordinates; :func:`first_visit` gives the agent step at which a state like it was first seen.
+  ideal encoder and cannot be measured: the distance to the k-th nearest other recorded state.
 """
 from __future__ import annotations
 

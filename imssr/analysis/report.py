@@ -6,6 +6,7 @@ from typing import Sequence
 import numpy as np
 
 from imssr.files import atomic_write_csv
+from imssr.plots import pyplot
 from imssr.plots.media import save_png
 
 
@@ -64,11 +65,7 @@ def write_rows(path: str, rows: list[dict]) -> str:
 def plot_correlations(rows: list[dict], corr: list[dict], modes: Sequence[str], path: str, title: str) -> str:
     """One row of panels per checkpoint: the intrinsic signal against novelty and against the
     nuisance distance of each scene, each panel titled with Spearman's rho and its CI."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     steps = sorted({r["checkpoint_step"] for r in rows})
     xs = ["novelty"] + [f"nuisance_{m}" for m in modes]
     labels = {"novelty": "novelty (k-NN distance, std. physics units)"}
@@ -99,13 +96,8 @@ def save_extremes(high: list[tuple[np.ndarray, str]], low: list[tuple[np.ndarray
                   title: str) -> str:
     """The top-k highest-bonus states (top row) above the k lowest (bottom row): ``(H, W, 3)``
     frames with their captions, as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     cols = max(len(high), len(low), 1)
-    fig, axes = plt.subplots(2, cols, figsize=(2.3 * cols, 5.4), squeeze=False)
+    fig, axes = pyplot().subplots(2, cols, figsize=(2.3 * cols, 5.4), squeeze=False)
     for ax in axes.flat:
         ax.axis("off")
     for row, items in enumerate((high, low)):

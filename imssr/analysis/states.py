@@ -1,18 +1,8 @@
 """The states an analysis looks at, with the physics they were rendered from.
 
-A :class:`StateSample` is ``N`` transitions ``(o, a, r, o')`` as the agent samples them, plus the
-physics state of every frame of the stack of ``o'`` (so the stack can be rendered again in any
-scene) and a *pool*: every recorded state of the source with the agent step it was stored at,
-the population that novelty is measured against.
-
-Two sources:
-
-* ``replay``: the run's saved replay buffer (the one ``latest.pt`` names), which records each
-  frame's physics state and agent step (:mod:`imssr.replay.buffer`);
-* ``rollouts``: when no buffer was saved, or it predates physics recording, fresh episodes of
-  the run's policy (the checkpoint analysed last, stochastic as in training) in its training
-  scene.  The agent steps of those states are unknown (-1): no "first visited" step, and the
-  novelty pool is those episodes only.
+Two sources: ``replay``, the run's saved replay buffer, which records each frame's physics state
+and agent step; ``rollouts``, when no buffer was saved or it predates physics recording, fresh
+episodes of the run's policy in its training scene (their agent steps unknown: -1).
 """
 from __future__ import annotations
 
@@ -124,11 +114,8 @@ def rollout_buffer(agent, env, n_states: int) -> FrameReplayBuffer:
 
 def collect(run: RunDir, cfg: RunConfig, latest: Checkpoint, n: int, rng: np.random.Generator, source: str,
             env, agent_for_rollouts) -> StateSample:
-    """States from the run's replay, or from rollouts (``source``: see :data:`SOURCES`).
-
-    ``agent_for_rollouts()`` returns the agent that rolls out (called only when needed);
-    ``env`` is a training-scene env of the run's task that records physics states.
-    """
+    """States from the run's replay, or from rollouts (``source``: see :data:`SOURCES`) of the
+    agent ``agent_for_rollouts()`` returns (called only when needed) in ``env``."""
     if source not in SOURCES:
         raise ImssrError(f"unknown source {source!r}; valid: {', '.join(SOURCES)}")
     why = ""

@@ -2,19 +2,14 @@
 
 Sources, in order of precedence:
 
-* a user-supplied path (``--footage DIR`` / ``env.footage_dir`` / ``$IMSSR_FOOTAGE_DIR``):
-  a video file (mp4, avi, mov, mkv, webm, gif), a folder of video files, a
-  folder of frame folders (DAVIS-2017's ``JPEGImages/480p/<video>/*.jpg``
-  layout; the ``JPEGImages/480p`` part may be given or found), or one folder of frames;
-* built-in footage that works offline, made at run time from the photographs
-  that installed packages ship (scikit-image, scikit-learn, matplotlib) and
-  dm_control's own sky textures (labmaze): slow pans, zooms and drifts across
-  each picture, played forwards then backwards so clips loop without a jump.
+* a user-supplied path (``--footage DIR`` / ``env.footage_dir`` / ``$IMSSR_FOOTAGE_DIR``): a
+  video file, a folder of video files, a folder of frame folders (DAVIS-2017's
+  ``JPEGImages/480p/<video>/*.jpg``), or one folder of frames;
+* built-in footage made offline from the photographs installed packages ship and dm_control's
+  sky textures: slow pans, zooms and drifts, played forwards then backwards so clips loop.
 
-Clips are split into disjoint ``train`` and ``test`` pools (built in: by source
-picture, none shared with the overlay images; user clips: alternating), so an
-agent trained on one scene is tested on unseen footage.
-A clip is a uint8 array ``(T, size, size, 3)``.
+Clips are split into disjoint ``train`` and ``test`` pools, so an agent is tested on unseen
+footage.  A clip is a uint8 array ``(T, size, size, 3)``.
 """
 from __future__ import annotations
 
@@ -143,11 +138,8 @@ def load_footage(path: str, size: int, max_frames: int = 500, max_clips: int = 6
 
 
 def footage_pool(size: int, split: str = "test", path: str = "") -> tuple[np.ndarray, ...]:
-    """Clips for ``split``: from ``path`` / ``$IMSSR_FOOTAGE_DIR`` if given, else built in.
-
-    A user source with several clips is split alternately into train and test;
-    a single clip serves both.
-    """
+    """Clips for ``split``: from ``path`` / ``$IMSSR_FOOTAGE_DIR`` if given (several clips split
+    alternately into train and test, a single clip serving both), else built in."""
     if split not in SPLITS:
         raise ImssrError(f"unknown footage split {split!r}; valid: {', '.join(SPLITS)}")
     source = path or os.environ.get(FOOTAGE_DIR_ENV, "")

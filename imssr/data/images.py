@@ -1,16 +1,9 @@
 """Pools of natural images for random overlay (SODA) and, later, distracting scenes.
 
-Two sources:
-
-* a user-supplied folder (any tree of ``.jpg`` / ``.jpeg`` / ``.png``, e.g. a
-  Places365 download), given as ``aux.image_dir`` or ``$IMSSR_IMAGE_DIR``;
-* a built-in pool that works offline: photographs that installed packages
-  ship (scikit-image's ``skimage/data``, scikit-learn's sample images,
-  matplotlib's sample data), cut into many square patches at random positions
-  and scales.  Nothing is downloaded and no image is stored in this repository.
-  The overlay's photographs are disjoint from those built-in footage uses.
-
-A pool is a uint8 array ``(N, 3, size, size)``; pools are cached per process.
+Two sources: a user-supplied folder (any tree of ``.jpg`` / ``.jpeg`` / ``.png``, e.g. a
+Places365 download, as ``aux.image_dir`` or ``$IMSSR_IMAGE_DIR``), else the photographs that
+installed packages ship, cut into square patches at random positions and scales (nothing is
+downloaded).  A pool is a uint8 array ``(N, 3, size, size)``, cached per process.
 """
 from __future__ import annotations
 
@@ -105,13 +98,9 @@ def _image_files(root: Path) -> list[Path]:
 
 @functools.lru_cache(maxsize=8)
 def load_image_folder(path: str, size: int, max_images: int = 1024, seed: int = 0) -> np.ndarray:
-    """Up to ``max_images`` images under ``path`` (recursively), centre-square resized to ``size``.
-
-    Large folders (Places365 has 1.8M files) are subsampled with ``seed``.  An unreadable file
-    (truncated, not an image) is skipped and, in a subsampled folder, replaced by another drawn
-    with the same seed; the skips are counted in one warning line ("skipped 3 of 1,027
-    unreadable images in DIR").  A folder without one readable image is an error.
-    """
+    """Up to ``max_images`` images under ``path`` (recursively), centre-square resized to
+    ``size``; a larger folder is subsampled with ``seed``.  An unreadable file is skipped (and
+    replaced by another drawn with the same seed), counted in one warning line."""
     root = Path(path).expanduser()
     if not root.exists():
         raise ImssrError(f"image folder not found: {root} (aux.image_dir or ${IMAGE_DIR_ENV})")
@@ -122,8 +111,8 @@ def load_image_folder(path: str, size: int, max_images: int = 1024, seed: int = 
         raise ImssrError(f"no .jpg/.jpeg/.png images under {root}")
     order: list[int] = list(range(len(files)))
     if len(files) > max_images:
-        # The first max_images are the pool (as before skipping existed, so a folder without
-        # bad files gives the same pool); the rest, in a seeded order, replace unreadable ones.
+        # The first max_images drawn are the pool; the rest, in a seeded order, replace
+        # unreadable ones, so a folder without bad files gives the same pool either way.
         rng = np.random.default_rng(seed)
         pick = sorted(rng.choice(len(files), max_images, replace=False))
         chosen = set(pick)

@@ -1,9 +1,5 @@
-"""Environments: the dm_control pixel wrapper and the task registry.
-
-The task registry and the scene names load with the package; the wrapper (:mod:`imssr.envs.dmc`,
-which needs numpy's and torch's random states) on first use, so that ``import imssr`` and the
-CLI's answers that need no environment stay light.
-"""
+"""Environments: the dm_control pixel wrapper (loaded on first use, so that ``import imssr``
+stays light) and the task registry."""
 from imssr.envs.scenes import MODES
 from imssr.envs.tasks import PAPER_TASKS, TaskSpec, get_task, list_tasks
 

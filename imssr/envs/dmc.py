@@ -1,19 +1,13 @@
 """A direct dm_control wrapper with the gymnasium API and pixel observations.
 
 Design choices, each for speed or faithfulness:
-* one ``mujoco.engine.Camera`` is built per environment and reused for every
-  frame (``physics.render`` builds and frees a scene per call); each frame is
-  copied because the camera reuses its output buffer;
-* only the last physics sub-step of an action repeat is rendered;
-* the shadow map is 512 px instead of the suite's 2048 (``shadow_size``): a
-  third of the render time for a difference of hundredths of a grey level;
+* one ``mujoco.engine.Camera`` per environment, reused for every frame (``physics.render``
+  builds and frees a scene per call); only the last physics sub-step of an action repeat is
+  rendered, with a 512 px shadow map instead of the suite's 2048 (``shadow_size``);
 * rewards are summed per sub-step (after the task's reward transform);
 * the frame stack is channels-first and repeats the first frame after reset;
 * test scenes (``mode``) change pixels only, through :class:`imssr.envs.scenes.Scene`;
-* the physics state (``qpos, qvel, act``: dm_control's ``physics.get_state()``) of the newest
-  frame is read into one preallocated array (:meth:`DMCEnv.physics_state`) and any recorded
-  state can be rendered again, alone or as a frame stack, in any scene (:meth:`DMCEnv.render_stack`);
-  ``imssr analyze`` renders the same states under other nuisances this way.
+* any recorded physics state can be rendered again in any scene (:meth:`DMCEnv.render_stack`).
 """
 from __future__ import annotations
 
@@ -36,29 +30,16 @@ from imssr.settings import MAX_SHADOW_SIZE, EnvConfig
 
 
 class DMCEnv(gym.Env):
-    """Pixel-based DeepMind Control task.
-
-    Observations are ``uint8`` arrays of shape ``(3 * frame_stack, H, W)``;
-    actions live in ``[-1, 1]^|A|`` and are rescaled to the task's bounds.
-    An episode ends by time limit (``truncated``), never by ``terminated``
-    unless the task itself reports a zero discount.
-    """
+    """Pixel-based DeepMind Control task: ``uint8`` observations ``(3 * frame_stack, H, W)``,
+    actions in ``[-1, 1]^|A|`` rescaled to the task's bounds; an episode ends by time limit
+    (``truncated``), ``terminated`` only when the task reports a zero discount."""
 
     metadata = {"render_modes": ["rgb_array"]}
 
-    def __init__(
-        self,
-        task: str | TaskSpec,
-        seed: int = 0,
-        mode: str = "training",
-        action_repeat: Optional[int] = None,
-        image_size: int = 100,
-        frame_stack: int = 3,
-        camera_id: Optional[int] = None,
-        footage_split: str = "train",
-        footage_path: str = "",
-        shadow_size: int = 512,
-    ):
+    def __init__(self, task: str | TaskSpec, seed: int = 0, mode: str = "training",
+                 action_repeat: Optional[int] = None, image_size: int = 100, frame_stack: int = 3,
+                 camera_id: Optional[int] = None, footage_split: str = "train", footage_path: str = "",
+                 shadow_size: int = 512):
         get_mode(mode)
         spec = task if isinstance(task, TaskSpec) else get_task(task)
         if action_repeat is not None and action_repeat < 1:
@@ -103,8 +84,7 @@ class DMCEnv(gym.Env):
             _drop_half_made_context_errors()
             raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} ({cause}); {fix}") from None
 
-        # Test scenes; their footage comes from the ``footage_split`` pool (the
-        # trainer gives evaluation envs the unseen ``test`` pool).
+        # Evaluation envs draw footage from the unseen ``test`` pool.
         self.scene: Optional[Scene] = None
         if mode != "training":
             self.scene = Scene(self._env.physics, mode, seed, image_size, self.camera_id,
@@ -113,9 +93,8 @@ class DMCEnv(gym.Env):
         self._act_low = aspec.minimum.astype(np.float64)
         self._act_high = aspec.maximum.astype(np.float64)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=aspec.shape, dtype=np.float32)
-        self.observation_space = gym.spaces.Box(
-            0, 255, shape=(3 * frame_stack, image_size, image_size), dtype=np.uint8
-        )
+        self.observation_space = gym.spaces.Box(0, 255, shape=(3 * frame_stack, image_size, image_size),
+                                                dtype=np.uint8)
         self._frames: deque[np.ndarray] = deque(maxlen=frame_stack)
         # Filled in place by physics_state(): recording costs no allocation per step.
         self._state = np.zeros(sum(x.size for x in self.physics._physics_state_items()), np.float64)
@@ -201,10 +180,8 @@ class DMCEnv(gym.Env):
 
     def physics_state(self) -> np.ndarray:
         """The full physics state of the newest frame, float64, as dm_control's
-        ``physics.get_state()`` lays it out.  The array is reused by the next call: copy it to keep it.
-
-        Reading it draws no random number and changes nothing in the simulation.
-        """
+        ``physics.get_state()`` lays it out, read without a random draw.  The array is reused by
+        the next call: copy it to keep it."""
         np.concatenate(self.physics._physics_state_items(), out=self._state)
         return self._state
 
@@ -220,13 +197,10 @@ class DMCEnv(gym.Env):
             self.physics.set_state(state)
 
     def render_stack(self, states: np.ndarray) -> np.ndarray:
-        """Render recorded physics states ``(k, D)``, oldest first, as one ``(3k, H, W)`` stack.
-
-        In a test scene the stack is a fresh episode of it (a new draw of its colours, footage
-        and camera), stepped between frames as :meth:`step` does; a state equal to the one
-        before is the stack's repeated first frame after a reset and is copied, as the env does.
-        In ``training`` a recorded state renders exactly its recorded frame.
-        """
+        """Render recorded physics states ``(k, D)``, oldest first, as one ``(3k, H, W)`` stack:
+        in a test scene a fresh episode of it, stepped between frames as :meth:`step` does (a
+        state equal to the one before is copied, as after a reset); in ``training`` exactly the
+        recorded frames."""
         states = np.asarray(states, dtype=np.float64)
         if self.scene is not None:
             self.scene.reset()
@@ -256,11 +230,9 @@ class DMCEnv(gym.Env):
 
 
 def _import_dm_control():
-    """dm_control's ``suite`` module and ``Camera`` class.  dm_control opens its EGL display as
-    it is imported; when that refuses the ``MUJOCO_EGL_DEVICE_ID`` imssr guessed for the run's
-    GPU, the import runs again without it (a failed import leaves no module behind).  Triton,
-    where installed, is loaded before: its LLVM and the GL driver's must not meet in that order
-    (:func:`imssr._gl.load_triton_first`)."""
+    """dm_control's ``suite`` module and ``Camera`` class, imported after Triton
+    (:func:`imssr._gl.load_triton_first`).  dm_control opens its EGL display as it is imported;
+    when that refuses the ``MUJOCO_EGL_DEVICE_ID`` imssr guessed, the import runs again without it."""
     load_triton_first()
     for attempt in range(2):
         try:
@@ -294,13 +266,8 @@ def _gl_backend() -> str:
 
 
 def make_env(task: str, seed: int = 0, mode: str = "training", **kwargs) -> DMCEnv:
-    """Build a pixel DeepMind Control environment by the paper's task name.
-
-    ``mode`` is a scene from :data:`imssr.envs.scenes.MODES`.  ``kwargs`` go to
-    :class:`DMCEnv` (``action_repeat``, ``image_size``, ``frame_stack``,
-    ``camera_id``, ``footage_split``, ``footage_path``).  The action repeat defaults to the paper's
-    per-task value.
-    """
+    """A pixel DeepMind Control environment of ``task`` in scene ``mode``
+    (:data:`imssr.envs.scenes.MODES`); ``kwargs`` go to :class:`DMCEnv`."""
     return DMCEnv(task, seed=seed, mode=mode, **kwargs)
 
 

@@ -1,10 +1,8 @@
 """gymnasium ids: ``gymnasium.make("imssr/<task>-v0", mode=..., seed=...)`` for every task.
 
-Registration runs on ``import imssr`` and must stay cheap, so the ids come from
-:data:`imssr.envs.tasks.SUITE_TASKS` (a fixed list checked against the pinned dm_control
-by tests/test_gym_ids.py) and the entry point is a string: dm_control and mujoco load
-only when an env is made.  The scene is the ``mode`` keyword, not part of the id, so
-one id per task covers every scene of ``imssr modes``.
+Registration runs on ``import imssr`` and must stay cheap: the ids come from a fixed list
+(:data:`imssr.envs.tasks.SUITE_TASKS`) and the entry point is a string, so dm_control loads only
+when an env is made.  The scene is the ``mode`` keyword, so one id per task covers every scene.
 """
 from __future__ import annotations
 
@@ -21,9 +19,9 @@ def register_envs() -> None:
     """Register one gymnasium id per task (idempotent: registered ids are skipped)."""
     import gymnasium
 
-    from imssr.envs.tasks import static_task_names
+    from imssr.envs.tasks import list_tasks
 
-    for task in static_task_names():
+    for task in list_tasks():
         env_id = gym_id(task)
         if env_id in gymnasium.registry:
             continue

@@ -1,9 +1,7 @@
 """Test scenes: DMControl-GB colour/video modes and Distracting-Control-style shifts.
 
-Only pixels change: a :class:`Scene` edits visual fields of the compiled model
-in place (material colours, the skybox texture) and the camera pose used for
-one render; it never touches the physics state, so rewards and dynamics equal
-``training`` under the same seed and actions.
+Only pixels change: a :class:`Scene` edits material colours, the skybox texture and the camera
+pose of one render, never the physics state, so rewards and dynamics equal ``training``.
 
 * ``color_easy`` / ``color_hard``: per episode, new colours for every material
   (agent, target, decorations, floor tint) and a tinted sky; easy stays within
@@ -15,8 +13,7 @@ one render; it never touches the physics state, so rewards and dynamics equal
   the episode, colours drift step by step, and footage plays in the background
   (sky only for easy; sky and floor otherwise); intensities grow with the level.
 
-All randomness comes from the scene's own generator, seeded from the env seed,
-so the same seed gives the same pixels.
+All randomness comes from the scene's own generator, seeded from the env seed.
 """
 from __future__ import annotations
 

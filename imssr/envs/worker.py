@@ -1,11 +1,8 @@
 """An environment in a process of its own (``train.env_workers``).
 
-:class:`EnvWorker` stands in for an env (``reset``, ``step``, ``physics_state``, the RNG state,
-``close``, the spaces) and forwards each call to a worker process that built the env itself, with
-its own MuJoCo and EGL context.  :meth:`EnvWorker.step_async` sends an action and returns at once;
-the next :meth:`EnvWorker.step` with that action returns its result, so a training can step the
-envs of all its seeds at once, and step them while the agent updates.  The calls reach the env in
-the order they are made, so the env sees exactly what it would see in the training's own process.
+:class:`EnvWorker` stands in for an env and forwards each call, in order, to a worker process
+that built the env itself, with its own MuJoCo and EGL context.  :meth:`EnvWorker.step_async`
+returns at once, so a training can step the envs of all its seeds at once, and while it updates.
 """
 from __future__ import annotations
 
@@ -182,10 +179,9 @@ class EnvWorker:
 
 
 def _watch(worker: EnvWorker) -> None:
-    """Keep ``worker`` for :func:`end_workers`, which also runs at the interpreter's exit:
-    registered with the first worker, after multiprocessing's own exit handler, it runs before
-    that one, which sends the daemon workers SIGTERM (they ignore it) and joins them without a
-    timeout."""
+    """Keep ``worker`` for :func:`end_workers`, registered at exit with the first worker: after
+    multiprocessing's own handler, so it runs before that one, which would join the daemon
+    workers (deaf to SIGTERM) without a timeout."""
     global _AT_EXIT
     if not _AT_EXIT:
         atexit.register(end_workers)

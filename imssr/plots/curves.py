@@ -5,6 +5,7 @@ import os
 
 from imssr.errors import ImssrError
 from imssr.files import atomic_path, read_csv
+from imssr.plots import pyplot
 from imssr.rundir import RunDir, as_run_dir
 
 
@@ -12,11 +13,7 @@ def plot_learning_curve(run_dir: RunDir | str, out_path: str | None = None) -> s
     """Plot the run's evaluation return (mean ± std over episodes) against agent steps, with
     environment frames on the top axis when the run's config gives the action repeat; returns
     the PNG's path (``out_path``, default ``RUN/learning_curve.png``)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     run = as_run_dir(run_dir)
     rows = read_csv(run.eval_log, complete_only=True)
     if not rows:

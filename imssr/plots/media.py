@@ -9,20 +9,16 @@ from imssr.config import VIDEO_FORMATS
 from imssr.envs import MODES, get_task, make_env
 from imssr.errors import ImssrError
 from imssr.files import atomic_path
+from imssr.plots import pyplot
 
 
 def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> str:
     """One ``(H, W, 3)`` frame per mode side by side (4 per row), labelled, as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     if not frames:
         raise ImssrError("no frames for the montage")
     cols = min(4, len(frames))
     rows = -(-len(frames) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.8 * rows + (0.3 if title else 0)),
+    fig, axes = pyplot().subplots(rows, cols, figsize=(2.6 * cols, 2.8 * rows + (0.3 if title else 0)),
                              squeeze=False)
     for ax in axes.flat:
         ax.axis("off")
@@ -38,12 +34,10 @@ def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> s
 def save_png(fig, path: str) -> str:
     """Write a matplotlib figure as a PNG at 100 dpi, atomically (parent folders made), and
     close it."""
-    import matplotlib.pyplot as plt
-
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    pyplot().close(fig)
     return path
 
 

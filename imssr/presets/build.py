@@ -31,15 +31,10 @@ def make_config(algo: str, task: str, network: str = "dmcgb") -> RunConfig:
 
 def load_partial_config(path: str, algo: str | None = None, task: str | None = None,
                         network: str = "dmcgb") -> RunConfig:
-    """A config file merged onto the preset of its algo and task (``imssr train --config``).
-
-    Every field the file gives wins; every field it leaves out is the preset's
-    (:func:`make_config`), so ``{"algo": "curl", "env": {"task": "walker_walk"}}``
-    is the preset of CURL on walker_walk (action repeat 4), and a complete file (a run's
-    ``config.json``) reads back exactly as it was written.  The file's ``algo`` and
-    ``env.task`` win over ``algo`` and ``task`` (the CLI's ``--algo`` / ``--task``, which
-    must then agree); a config that names neither is an error.
-    """
+    """A config file merged onto the preset of its algo and task (``imssr train --config``):
+    every field the file gives wins, every other is the preset's, so a complete file (a run's
+    ``config.json``) reads back as written.  The file's ``algo`` and ``env.task`` win over
+    ``algo`` and ``task``; a config that names neither is an error."""
     data = read_config_file(path)
     if not isinstance(data, dict):
         raise ImssrError(f"a config must be a JSON object, got {type(data).__name__}")
@@ -68,14 +63,10 @@ def run_config(algo: str | None = None, task: str | None = None, *, network: str
                values: Mapping[str, Any] | None = None, frames: int | None = None,
                batch_size: int | None = None, beta0: float | None = None,
                overrides: Sequence[str] = ()) -> RunConfig:
-    """The validated config of one run, as ``imssr train`` and every sweep run build it.
-
-    Its base is :func:`base_config`'s.  Then, in order: ``values`` (``section.field`` -> value,
-    the CLI's flags that set one field each), ``frames`` (the budget in frames: ``train.steps``
-    rounded up), ``batch_size`` (the RL batch, and the auxiliary batch of a task that trains on
-    it), ``beta0`` (algos with an intrinsic reward only) and the ``section.field=value``
-    ``overrides`` (``--set``).
-    """
+    """The validated config of one run, as ``imssr train`` and every sweep run build it:
+    :func:`base_config`'s, then ``values`` (``section.field`` -> value), ``frames`` (the budget in
+    frames, rounded up to agent steps), ``batch_size`` (the RL batch, and the auxiliary batch of a
+    task that trains on it), ``beta0`` and the ``overrides`` (``--set``), in that order."""
     cfg = base_config(algo, task, network=network, config_file=config_file, base=base, demo=demo)
     values = dict(values or {})
     if frames is not None:
@@ -125,19 +116,10 @@ def base_config(algo: str | None = None, task: str | None = None, *, network: st
 
 
 def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup", network: str = "dmcgb") -> RunConfig:
-    """README command 1: a short IM-SSR run whose learning curve rises on 2 CPU cores.
-
-    Chosen by measurement (docs/performance.md, "The demo"): the dense ``cartpole_swingup``
-    (action repeat 8, as in CURL) with the authors' network and optimiser; RL batch 64; the fused
-    update schedule (one encoder pass and one backward for critic + CURL, 0.8x the sequential
-    step: not update-for-update the paper's schedule, docs/architecture.md); a 250-step seed
-    phase followed by a burst of 250 updates (the burst equals the seed phase, as in the
-    authors' loop); 1,000 agent steps (8 episodes, 1,000 updates) with an evaluation of 5
-    episodes every 250 agent steps.  Learning shows from the first evaluation after the burst;
-    past about 1,000 updates a young policy's evaluations swing (and in some seeds fall back),
-    so the demo stops there.  The sparse paper task needs far more.  A demonstration, not a
-    result.
-    """
+    """README command 1: a short IM-SSR run whose learning curve rises on 2 CPU cores, its
+    settings (:data:`~imssr.presets.tables.DEMO`) chosen by measurement (docs/performance.md, "The
+    demo").  Past about 1,000 updates a young policy's evaluations swing, so the demo stops
+    there.  A demonstration, not a result."""
     cfg = make_config(algo, task, network)
     for row in DEMO:
         set_field(cfg, row.field, row.value)

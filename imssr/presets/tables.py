@@ -1,11 +1,9 @@
 """The paper's settings, each with its source: the rows every preset is made of.
 
-Where each value comes from: the authors' code (``duchenzhuang/dmc-disentangle``, a fork of
-DMC-GB that produced the paper's numbers) where the paper's tables are silent, Table III and
-Table V where they speak.  :func:`preset_settings` gathers the rows of one algorithm on one task
-(docs/provenance.md prints them all, ``imssr config --explain`` one preset's);
-:mod:`imssr.presets.build` makes configs of them.  The rows of each base and each intrinsic signal
-are its plug-in's (``PLUGIN`` of its ``*_spec.py``); the rows every algorithm shares are here.
+The authors' code (``duchenzhuang/dmc-disentangle``, a fork of DMC-GB that produced the paper's
+numbers) where the paper's tables are silent, Table III and Table V where they speak.  The rows
+of each base and signal are its plug-in's (its ``*_spec.py``); those every algorithm shares are
+here.  :func:`preset_settings` gathers one preset's (``imssr config --explain``).
 """
 from __future__ import annotations
 
@@ -36,11 +34,8 @@ SCRIPT_BETA0 = {(b, task): note for b, p in AUX_PLUGINS.items() for task, note i
 
 
 def paper_beta0(algo: str, task: str) -> float:
-    """beta_0 for ``algo`` on ``task``: Table V for IM-CURL / IM-SODA, 0.05 for IM-PAD / IM-SVEA.
-
-    RND and RE3 use the IM- variant's value of the same base, so a comparison
-    changes only the signal.
-    """
+    """beta_0 for ``algo`` on ``task``: Table V for IM-CURL / IM-SODA, 0.05 for IM-PAD / IM-SVEA;
+    RND and RE3 the IM- variant's, so a comparison changes only the signal."""
     return _beta0(get_algo(algo), task).value
 
 
@@ -174,11 +169,8 @@ NETWORKS = {
 
 
 def preset_settings(algo: str, task: str, network: str = "dmcgb") -> list[Setting]:
-    """Every value the preset of ``algo`` on ``task`` sets, with its source, in order.
-
-    A later setting of the same field wins (the intrinsic reward's and the network's over the
-    common ones).
-    """
+    """Every value the preset of ``algo`` on ``task`` sets, with its source, in order; a later
+    setting of the same field wins."""
     spec = get_algo(algo)
     tspec = get_task(task)
     if network not in NETWORKS:

@@ -1,13 +1,9 @@
 """Aggregate metrics across tasks with rliable (Agarwal et al. 2021).
 
-Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks
-weigh alike.  Per mode and fraction of T: the interquartile mean (IQM) of each algo with a
-95% stratified-bootstrap confidence interval, where every task has at least
-:data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds (with fewer, the IQM is about the
-mean and the interval about [min, max]: none is given, and a note says why), and where rliable
-(the ``report`` extra) is installed: without it the rest of the report is made, and a note and a
-warning say that the IQM needs it.  Comparisons of
-two algorithms are made within a task (:mod:`imssr.report.comparisons`), not pooled here.
+Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks weigh
+alike.  Per mode and fraction of T: each algo's interquartile mean (IQM) with a 95%
+stratified-bootstrap interval.  Comparisons of two algorithms are made within a task
+(:mod:`imssr.report.comparisons`), not pooled here.
 """
 from __future__ import annotations
 
@@ -58,9 +54,8 @@ def score_matrix(rows: list[Row], fraction_index: int, tasks: list[str]) -> np.n
 def compute(rows: list[Row], reps: int = 2000, seed: int = 0,
             warn: Optional[Callable[[str], None]] = None) -> tuple[list[Aggregate], list[str]]:
     """IQM per label where every task it averages has at least
-    :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds.  Without rliable (the report
-    extra) there is none, and one note, also given to ``warn``, says why: the rest of a report
-    needs no extra, so it is made all the same."""
+    :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds (with fewer, the IQM is about the
+    mean and the interval about [min, max]); without rliable none, and a note (also to ``warn``)."""
     out: list[Aggregate] = []
     notes: list[str] = []
     missing: Optional[str] = None
@@ -118,10 +113,8 @@ def _missing_extra() -> str:
 
 
 def _iqm_estimates(scores: dict, reps: int, seed: int):
-    """rliable's IQM with its stratified-bootstrap interval, with a fixed seed, so a report is
-    reproducible.  rliable (the report extra) is imported here, where an IQM is due: a report of
-    fewer seeds computes none and needs no extra, and one without it gives none
-    (:func:`compute`)."""
+    """rliable's IQM with its stratified-bootstrap interval, with a fixed seed (a report is
+    reproducible)."""
     rly = require("rliable.library", "report")
     metrics = require("rliable.metrics", "report")
 

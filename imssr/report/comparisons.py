@@ -1,15 +1,8 @@
-"""Comparisons within one task: the runs of one row against those of another, point by point.
-
-Two kinds of pair, each within one task, mode and fraction of T (never pooled across tasks or
-algorithms, where seeds of different things would stand in for each other):
-
-- an algorithm with an intrinsic reward (IM-X, X+RND, X+RE3, any beta_0) against its base X at
-  the same precision;
-- an algorithm at another precision (bf16, bf16 with float32 Q heads) against itself at fp32.
-
-Each gives n on both sides, the difference of means, P(X > Y) (the effect size) and the two-sided
-Mann-Whitney p-value (:func:`imssr.report.stats.compare`): two-sided, since no direction was
-fixed before the runs.
+"""Comparisons within one task, mode and fraction of T (never pooled, where seeds of different
+things would stand in for each other): an algorithm with an intrinsic reward against its base at
+the same precision, and an algorithm at another precision against itself at fp32.  Each gives n
+on both sides, the difference of means, P(X > Y) and the two-sided Mann-Whitney p-value
+(two-sided: no direction was fixed before the runs).
 """
 from __future__ import annotations
 

@@ -1,22 +1,14 @@
 """``imssr export``: the results of a sweep's finished runs, small enough for version control.
 
-A run directory holds gigabytes that only training needs (checkpoints, the replay file) and a
-few hundred kilobytes that a report needs: ``config.json`` and the CSV logs.  ``export_runs``
-copies the latter of every *finished* run under a sweep root into
+``export_runs`` copies ``config.json`` and the CSV logs (no checkpoint or replay file) of every
+*finished* run under a sweep root into
 
     DEST/<precision>/<task>/<algo>/seed_<n>            (a beta_0 sweep: .../<algo>/beta0_<b>/seed_<n>)
 
-(``<precision>``: ``agent.precision_label``, ``fp32``, ``bf16`` or ``bf16-fp32q``), a tree that
-``imssr report DEST`` reads as it reads the sweep itself, each precision in rows of its own.
-Running or interrupted runs are left out: their logs would change under the copy, and a report
-of them belongs to the live sweep.  Copying again is idempotent: a file already there with the
-same bytes is left alone, so a loop that exports after every finished run writes each run once.
-
-An export is made to be shared, so it carries no path of its author's machine: the copy of
-``config.json`` has every absolute or home-relative path in a value (the data folders
-``aux.image_dir`` and ``env.footage_dir``) cut to its last part, ``…/imgs``, as
-``provenance.json``'s command line has it (:func:`imssr.provenance.shorten_paths`).  The run's
-own ``config.json`` keeps them whole: a resume and ``imssr evaluate`` read those folders.
+a tree that ``imssr report DEST`` reads as it reads the sweep.  Running or interrupted runs are
+left out: their logs would change under the copy.  Copying again writes only what changed.  The
+copy of ``config.json`` carries no path of its author's machine: every absolute or home-relative
+path in a value is cut to its last part, ``…/imgs`` (the run's own copy keeps them whole).
 """
 from __future__ import annotations
 
@@ -34,9 +26,8 @@ from imssr.rundir import CONFIG_FILE, CSV_LOGS, EVAL_LOG, FINISHED, PROVENANCE_F
 from imssr.sweep.grid import beta_label
 
 RESULT_FILES = (CONFIG_FILE, PROVENANCE_FILE, *CSV_LOGS)
-"""What a run keeps in an export: its config, its provenance (runs of imssr before it have none)
-and every CSV log (``evaluate*.csv`` when ``imssr evaluate`` wrote them); no checkpoint, replay,
-TensorBoard or video file."""
+"""What a run keeps in an export: its config, its provenance and every CSV log; no checkpoint,
+replay, TensorBoard or video file."""
 
 REQUIRED_FILES = (CONFIG_FILE, EVAL_LOG, TRAIN_LOG)
 """A finished run without one of these is damaged and is not exported."""
@@ -134,10 +125,9 @@ def _copy_run(source: str, target: str) -> str:
 
 
 def shared_config(data: bytes) -> bytes:
-    """The bytes of a run's ``config.json`` as an export keeps them: every absolute or
-    home-relative path in a string value cut to its last part (module docstring), written as
-    :meth:`RunDir.write_config <imssr.rundir.RunDir.write_config>` writes a config; the bytes as
-    they are when no value holds such a path."""
+    """The bytes of a run's ``config.json`` as an export keeps them: paths cut (module docstring),
+    written as :meth:`RunDir.write_config <imssr.rundir.RunDir.write_config>` does; the bytes as
+    they are when no value holds a path."""
     try:
         config = json.loads(data)
     except ValueError:  # read before, by collect(): only a file changed since then lands here

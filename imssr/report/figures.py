@@ -6,18 +6,10 @@ from typing import Optional
 
 import numpy as np
 
-from imssr.files import atomic_path
+from imssr.plots import pyplot
+from imssr.plots.media import save_png
 from imssr.report.results import SweepResults
 from imssr.report.tables import Row, label_order, mode_order
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _grid(plt, n: int, width: float = 4.2, height: float = 3.2):
@@ -27,14 +19,6 @@ def _grid(plt, n: int, width: float = 4.2, height: float = 3.2):
     for ax in axes.flat[n:]:
         ax.axis("off")
     return fig, list(axes.flat[:n])
-
-
-def _save(plt, fig, path: str) -> str:
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
 
 
 def curve_points(results: SweepResults) -> dict[tuple[str, str, str], list[tuple[int, float, float, int]]]:
@@ -51,7 +35,7 @@ def curve_points(results: SweepResults) -> dict[tuple[str, str, str], list[tuple
 def plot_curves(results: SweepResults, path: str) -> str:
     """One panel per (task, mode), one line per algo: mean over seeds with a ±std band, against
     agent steps (frames on the top axis when the task's runs share an action repeat)."""
-    plt = _pyplot()
+    plt = pyplot()
     panels = [(task, mode) for task in sorted({r.run.task for r in results.runs})
               for mode in mode_order(m for r in results.runs if r.run.task == task for m, *_ in r.evals)]
     if not panels:
@@ -82,19 +66,17 @@ def plot_curves(results: SweepResults, path: str) -> str:
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
-    return _save(plt, fig, path)
+    fig.tight_layout()
+    return save_png(fig, path)
 
 
 def plot_beta(rows: list[Row], path: str) -> Optional[str]:
-    """Final return (1.0T; mean ± std over seeds) against beta_0 on a log axis, per task and mode.
-
-    Base algos (and beta_0 = 0, which is the base algorithm) have no place on a log axis;
-    they are drawn as horizontal reference lines with their ±std band.
-    """
+    """Final return (1.0T; mean ± std over seeds) against beta_0 on a log axis, per task and mode;
+    base algos and beta_0 = 0 as horizontal reference lines with their ±std band."""
     swept = [r for r in rows if r.beta0 is not None and r.cells[-1].n]
     if not swept:
         return None
-    plt = _pyplot()
+    plt = pyplot()
     panels = sorted({(r.task, r.mode) for r in swept}, key=lambda p: (p[0], p[1] != "training", p[1]))
     fig, axes = _grid(plt, len(panels))
     for ax, (task, mode) in zip(axes, panels):
@@ -118,7 +100,8 @@ def plot_beta(rows: list[Row], path: str) -> Optional[str]:
         ax.set_title(f"{task} ({mode})", fontsize=10)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    return _save(plt, fig, path)
+    fig.tight_layout()
+    return save_png(fig, path)
 
 
 def _frames_axis(ax, action_repeat: int) -> None:

@@ -11,10 +11,8 @@ Files written under ``out``:
                        and rliable installed: the ``report`` extra)
 - ``curves.png``       learning curves against agent steps, one panel per task and mode
 - ``beta0.png``        final return against beta_0 (only for a beta sweep)
-- ``report.md``        all of the above in one page, with the runs that failed (``sweep_status.json``,
-                       each run's ``status.json``) and notes on what is missing
-
-T and its fractions count agent steps, as the paper's do; frames are given beside them.
+- ``report.md``        all of the above in one page, with the runs that failed and notes on what
+                       is missing
 """
 from __future__ import annotations
 
@@ -29,8 +27,7 @@ from imssr.report.results import collect, write_evaluations
 from imssr.report.stats import MIN_SEEDS_FOR_BOOTSTRAP
 
 PAPER_T = 500_000
-"""The paper's T in agent steps (Table III, "Number of training steps"): its 0.2T, 0.5T and 1.0T
-are 100,000, 250,000 and 500,000 agent steps, on every task whatever its action repeat."""
+"""The paper's T in agent steps (Table III, "Number of training steps"), on every task."""
 
 
 def write_report(root: str, out: str, paper_results: Optional[str] = None,
@@ -153,8 +150,7 @@ def makers(results) -> dict[tuple[str, str], dict[str, int]]:
 
 
 def mixed_makers(results, made_by: dict[tuple[str, str], dict[str, int]]) -> list[str]:
-    """One warning per row whose runs were made by more than one code version or device
-    (``made_by``: :func:`makers` of ``results``)."""
+    """One warning per row whose runs were made by more than one code version or device."""
     keys: dict[tuple[str, str], set] = {}
     for result in results.runs:
         for r in result.provenance:

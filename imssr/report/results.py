@@ -1,18 +1,12 @@
-"""Reading a sweep directory back: every run's identity, budget and evaluations.
+"""Reading a sweep directory back: every run's identity, budget (in agent steps) and evaluations.
 
-Budgets and evaluation points count agent steps; frames (``step * action_repeat``) are kept
-beside them.
-
-Runs are found by their ``config.json`` at any depth below the root, so a report also works
-on hand-assembled directories and on sweeps that are still running; each is named by a
-:class:`~imssr.sweep.grid.Run`.  The files ``imssr sweep`` writes under the root, read through
-:class:`~imssr.sweep.directory.SweepDir`, add the runs that were planned but have not written
-anything yet (``sweep.json``) and the runs that failed every attempt, with their last error
-(``sweep_status.json``).  How each run stands (finished, failed, diverged, ...) is its own
-:meth:`RunDir.outcome <imssr.rundir.RunDir.outcome>`, read once here for the report and the export.
+Runs are found by their ``config.json`` at any depth below the root, so a report also works on
+hand-assembled directories and on running sweeps; the sweep's own files add the runs planned but
+not started (``sweep.json``) and those that failed every attempt (``sweep_status.json``).
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -52,14 +46,12 @@ class RunResult:
     """The settings that set this run apart from another run of the same algo, task, seed and
     precision (``intrinsic.normalization=zscore``); empty when no other run shares them."""
     provenance: list[dict] = field(default_factory=list)
-    """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] for a run of imssr
-    before them or one whose file cannot be read."""
+    """The run's ``provenance.json`` records (:mod:`imssr.provenance`); [] when it has none."""
     state: str = ""
     """How the run stands when read (:meth:`RunDir.outcome <imssr.rundir.RunDir.outcome>`):
     ``new``, ``running``, ``interrupted``, ``finished``, ``failed`` or ``diverged``."""
     error: str = ""
-    """The error line of a run whose last training failed or diverged (``status.json``); ""
-    otherwise."""
+    """The error line of a run whose last training failed or diverged (``status.json``)."""
 
     @property
     def frames(self) -> int:
@@ -86,15 +78,9 @@ class SweepResults:
     notes: list[str]
     failures: dict[str, str] = field(default_factory=dict)
     """Run directory (absolute) -> last error, for every run that failed: listed as failed in
-    ``sweep_status.json``, or whose own last training failed or diverged (``status.json``; a
-    member of ``imssr train --seeds``, a run trained by hand)."""
+    ``sweep_status.json``, or whose own last training failed or diverged (``status.json``)."""
     skipped: dict[str, str] = field(default_factory=dict)
-    """Run directory (absolute) -> why it is left out: a ``config.json`` or ``eval.csv`` that
-    cannot be read."""
-    _tasks: Optional[dict[str, tuple[int, Optional[int]]]] = field(default=None, init=False, repr=False,
-                                                                    compare=False)
-    """Task -> ``(budget, action repeat)`` (:meth:`_per_task`), made when first asked."""
-
+    """Run directory (absolute) -> why it is left out (an unreadable ``config.json`` or ``eval.csv``)."""
     def failure(self, run: Run) -> Optional[str]:
         """The last error of ``run`` when it failed (:attr:`failures`); None otherwise."""
         return self.failures.get(os.path.abspath(run.dir))
@@ -106,30 +92,28 @@ class SweepResults:
     def budget(self, task: str) -> int:
         """The sweep's T for ``task`` in agent steps: the planned budget, else the largest
         budget of its runs."""
-        return self._per_task()[task][0]
+        return self._per_task[task][0]
 
     def action_repeat(self, task: str) -> Optional[int]:
         """The action repeat of ``task``'s runs; None when they differ (then a point in agent
         steps is no single frame count)."""
-        return self._per_task()[task][1]
+        return self._per_task[task][1]
 
+    @functools.cached_property
     def _per_task(self) -> dict[str, tuple[int, Optional[int]]]:
-        """Task -> ``(budget, action repeat)``, from one pass over the plan and the runs when first
-        asked (they are complete once :func:`collect` returns): tables ask it per row and per
-        point, which must not cost a pass over thousands of runs each time."""
-        if self._tasks is None:
-            planned: dict[str, int] = {}
-            for p in self.planned:
-                planned[p.run.task] = max(p.steps, planned.get(p.run.task, p.steps))
-            ran: dict[str, int] = {}
-            repeats: dict[str, set[int]] = {}
-            for r in self.runs:
-                ran[r.run.task] = max(r.steps, ran.get(r.run.task, r.steps))
-                repeats.setdefault(r.run.task, set()).add(r.action_repeat)
-            self._tasks = {task: (planned.get(task, ran.get(task)),
-                                  next(iter(repeats[task])) if len(repeats.get(task, ())) == 1 else None)
-                           for task in {*planned, *ran}}
-        return self._tasks
+        """Task -> ``(budget, action repeat)``, from one pass over the plan and the runs (complete
+        once :func:`collect` returns): tables ask per row and point."""
+        planned: dict[str, int] = {}
+        for p in self.planned:
+            planned[p.run.task] = max(p.steps, planned.get(p.run.task, p.steps))
+        ran: dict[str, int] = {}
+        repeats: dict[str, set[int]] = {}
+        for r in self.runs:
+            ran[r.run.task] = max(r.steps, ran.get(r.run.task, r.steps))
+            repeats.setdefault(r.run.task, set()).add(r.action_repeat)
+        return {task: (planned.get(task, ran.get(task)),
+                       next(iter(repeats[task])) if len(repeats.get(task, ())) == 1 else None)
+                for task in {*planned, *ran}}
 
     def frames_at(self, task: str, step: int) -> Optional[int]:
         """Agent step ``step`` of ``task`` in environment frames (None: mixed action repeats)."""
@@ -158,7 +142,11 @@ def collect(root: str) -> SweepResults:
                          + (f"; and {len(why) - 3} more" if len(why) > 3 else "") if why else
                          f"no runs under {root} (a run directory holds config.json and eval.csv)")
     set_apart(runs, root)
-    planned = _read_plan(root, notes)
+    try:
+        planned = SweepDir(root).read_plan()
+    except (OSError, ImssrError) as exc:
+        notes.append(f"{PLAN_FILE}: unreadable ({exc}); expected seeds come from the runs found")
+        planned = []
     failures = SweepDir(root).failed_runs()
     for result in runs:
         if result.state in (FAILED, DIVERGED):
@@ -181,10 +169,9 @@ learned with: never a variant (checkpoints change no number: tests/test_checkpoi
 
 
 def set_apart(runs: list[RunResult], root: str) -> None:
-    """Give distinct labels to runs that share algo, task, seed and precision but differ in other
-    settings (two sweeps over one root that differ in a ``--set``): a report must never average
-    them as one group's seeds.  Each run of such a (task, label) group gets :attr:`RunResult.variant`:
-    its values of the settings in which the group's runs differ."""
+    """Give runs that share algo, task, seed and precision but differ in other settings (two sweeps
+    over one root that differ in a ``--set``) their :attr:`RunResult.variant`, the values of the
+    settings in which they differ, so that a report never averages them as one group's seeds."""
     groups: dict[tuple[str, str], list[RunResult]] = {}
     for result in runs:
         groups.setdefault((result.run.task, result.label), []).append(result)
@@ -270,19 +257,10 @@ def _read_run(run_dir: str, root: str, notes: list[str], skipped: dict[str, str]
 
 
 def _count(text: str, most: int) -> Optional[int]:
-    """``text`` as a count of agent steps or frames, an integer in ``[0, most]`` (``most``: the
-    bound of ``train.steps``, or of its frames); None for any other number (``inf``, ``nan``,
-    ``1e30``, ``-5``, ``2.5``); ValueError when it is no number at all."""
+    """``text`` as a count of agent steps or frames, an integer in ``[0, most]``; None for any
+    other number (``inf``, ``1e30``, ``-5``, ``2.5``); ValueError when it is no number at all."""
     number = float(text)
     return int(number) if math.isfinite(number) and number.is_integer() and 0 <= number <= most else None
-
-
-def _read_plan(root: str, notes: list[str]) -> list[PlannedRun]:
-    try:
-        return SweepDir(root).read_plan()
-    except (OSError, ImssrError) as exc:
-        notes.append(f"{PLAN_FILE}: unreadable ({exc}); expected seeds come from the runs found")
-        return []
 
 
 def write_evaluations(results: SweepResults, path: str) -> str:

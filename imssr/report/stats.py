@@ -1,18 +1,11 @@
 """The statistics a report states, chosen for what a few seeds can carry.
 
-- Spread: the sample standard deviation (ddof 1), the unbiased variance's root; with one seed
-  there is none.
-- Two sets of runs (two algorithms on one task, or one algorithm at two precisions): the
-  probability that a run of X ends above a run of Y, P(X > Y) = U / (n_x n_y) with ties counted
-  half (the Mann-Whitney effect size, rliable's "probability of improvement" on one task), and
-  the two-sided p-value of the Mann-Whitney test against "no difference", exact over every split
-  of the pooled runs (a permutation test of U) when there are at most
-  :data:`EXACT_SPLITS` splits, else estimated from :data:`PERMUTATIONS` random splits.  With
-  three seeds against three the smallest two-sided p is 0.1: such a comparison can never be
-  "significant", and the report says so by giving n beside every p.
-- Against a published mean: the difference of means and its 95% Welch interval (each side's
-  standard error from its own std and seeds), never "inside the published spread", which almost
-  any result is when the spread is a standard deviation over seeds.
+- Spread: the sample standard deviation (ddof 1); with one seed there is none.
+- Two sets of runs: P(X > Y) = U / (n_x n_y), ties counted half (rliable's "probability of
+  improvement" on one task), and the two-sided Mann-Whitney p-value, a permutation test of U.
+  With three seeds against three the smallest p is 0.1, so the report gives n beside every p.
+- Against a published mean: the difference of means and its 95% Welch interval, never "inside
+  the published spread", which almost any result is when the spread is a std over seeds.
 """
 from __future__ import annotations
 

@@ -1,19 +1,10 @@
 """The paper's table layout: mean ± std over seeds at 0.2T, 0.5T and 1.0T per task and mode.
 
-T counts agent steps, as the paper's does (500,000 steps; 0.2T, 0.5T and 1.0T are 100,000,
-250,000 and 500,000 steps, whatever the task's action repeat).  The point ``p`` of a
-fraction ``f`` is the first agent step at or after ``f * T`` (``ceil(f * T)``), and a seed's
-value there is its last evaluation at or before step ``p``: the evaluation at ``p`` itself when
-the evaluation interval divides it, as the paper's 10,000 steps divide its points.  A run made
-when budgets counted frames evaluated at the first step at or after each scheduled frame, which
-is the same step.  A seed whose evaluations stop before ``p`` (an unfinished run) has no value
-there, and the cell says how many of the expected seeds it averages.  Std is the sample standard
-deviation over seeds (ddof 1, :func:`imssr.report.stats.sample_std`), so one seed has none.  A
-published number comes with its seeds where the source says them, and a cell beside one gets the
-difference of means with its 95% Welch interval.  A seed whose run failed
-(:attr:`SweepResults.failures <imssr.report.results.SweepResults.failures>`: ``sweep_status.json``
-or the run's own ``status.json``) and that has no value at a point is counted as failed there
-("(2/3, 1 failed)"), not as merely missing.
+T counts agent steps, as the paper's does, whatever the task's action repeat.  The point of a
+fraction ``f`` is the first agent step at or after ``f * T``, and a seed's value there is its last
+evaluation at or before it (the paper's 10,000-step interval divides its points).  A seed whose
+evaluations stop before the point has no value there, and the cell says how many of the expected
+seeds it averages, and how many of those failed ("(2/3, 1 failed)").
 """
 from __future__ import annotations
 

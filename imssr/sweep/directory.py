@@ -1,31 +1,23 @@
 """A sweep directory: the one place that knows the sweep's own files, as
-:class:`~imssr.rundir.RunDir` knows a run's.
-
-Layout of ``ROOT/`` (``imssr sweep --root``; every name below is a constant of this module or of
-:mod:`imssr.rundir`)::
+:class:`~imssr.rundir.RunDir` knows a run's.  Layout of ``ROOT/``::
 
     sweep.json             the expanded grid: the sweep's settings and every run (:class:`PlannedRun`)
-                           with its budget in agent steps and frames and its numerics; the report
-                           reads it for T and the seeds each group should have
     sweep_status.json      every run's state as the last ``imssr sweep`` over ROOT left it
-                           (:class:`RunStatus`), rewritten on every change; the report reads the
-                           runs that failed every attempt
+                           (:class:`RunStatus`), rewritten on every change
     .imssr.lock            held while a sweep runs over ROOT (:mod:`imssr.rundir.lock`)
     .submitit/<job id>/    ``--launcher slurm``: submitit's job files and SLURM's output
     <task>/<algo>/[beta0_<value>/]seed_<n>/
-                           one run each (:func:`imssr.rundir.run_path`, :class:`~imssr.rundir.RunDir`);
-                           its ``sweep.log`` holds the output of every attempt the sweep started
+                           one run each; its ``sweep.log`` holds the output of every attempt
 
-Both JSON files are written whole or not at all (:func:`imssr.files.atomic_write_text`, strict
-JSON) and read back verified: a file that is not JSON, or not a plan or a status as written here,
-is one :class:`~imssr.errors.ImssrError` line naming it.
+Both JSON files are written atomically and read back verified: a damaged one is one
+:class:`~imssr.errors.ImssrError` line naming it.
 """
 from __future__ import annotations
 
 import os
 import time
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
@@ -111,9 +103,8 @@ class RunStatus:
 
     @classmethod
     def from_dict(cls, row: Any, root: str, what: str = "the run") -> "RunStatus":
-        """A row read back (``root``: the directory it is relative to); a row of an older sweep
-        lacks the counters added since, which read as their defaults.  ValueError: not a row
-        (its message names the row as ``what``)."""
+        """A row read back (``root``: the directory it is relative to; a missing counter reads as
+        its default).  ValueError: not a row (its message names the row as ``what``)."""
         fields = _Fields(row, what)
         run = fields.run(root)
         state = fields.get("state", str)
@@ -190,21 +181,24 @@ class SweepDir:
         return self.plan_path
 
     def read_plan(self) -> list[PlannedRun]:
-        """The planned runs, in the plan's order ([] when there is no plan); a one-line error when
-        the file is damaged."""
-        if not os.path.exists(self.plan_path):
+        """The planned runs, in the plan's order ([] when there is no plan)."""
+        def planned(row: Any, what: str) -> PlannedRun:
+            fields = _Fields(row, what)
+            return PlannedRun(fields.run(self.path), fields.get("steps", int), fields.get("frames", int, None),
+                              fields.get("precision", str, "fp32"))
+
+        return self._rows(self.plan_path, "sweep plan", planned)
+
+    def _rows(self, path: str, what: str, read: Callable[[Any, str], Any] = lambda row, _: row) -> list:
+        """``read(row, "run N")`` of each row of the file's ``runs`` ([] when there is no file); a
+        one-line error naming the file as ``what`` when it is damaged."""
+        if not os.path.exists(path):
             return []
-        data = read_json(self.plan_path, "sweep plan")
         try:
-            rows = _Fields(data, "the file").get("runs", list)
-            planned = []
-            for i, row in enumerate(rows):
-                fields = _Fields(row, f"run {i + 1}")
-                planned.append(PlannedRun(fields.run(self.path), fields.get("steps", int), fields.get("frames", int, None),
-                                          fields.get("precision", str, "fp32")))
+            rows = _Fields(read_json(path, what), "the file").get("runs", list)
+            return [read(row, f"run {i + 1}") for i, row in enumerate(rows)]
         except ValueError as exc:
-            raise ImssrError(f"sweep plan {self.plan_path} is damaged: {exc}") from None
-        return planned
+            raise ImssrError(f"{what} {path} is damaged: {exc}") from None
 
     # -- sweep_status.json ---------------------------------------------------------------
     def write_status(self, statuses: list[RunStatus], started: float, retries: int, finished: bool = False) -> str:
@@ -218,14 +212,10 @@ class SweepDir:
 
     def read_status(self) -> list[RunStatus]:
         """Every run's row as the last sweep wrote it ([] when there is none; without the resolved
-        config); a one-line error when the file is damaged.  A row ``running`` while no sweep
-        holds the root's lock, and no training the run's, is read as ``interrupted``: its sweep
-        was killed before it could say so, and its training stopped (the next sweep resumes the
-        run).  A training that outlives its sweep (a SLURM job) is still ``running``."""
-        try:
-            statuses = [RunStatus.from_dict(row, self.path, f"run {i + 1}") for i, row in enumerate(self._status_rows())]
-        except ValueError as exc:
-            raise ImssrError(f"sweep status {self.status_path} is damaged: {exc}") from None
+        config).  A row ``running`` while neither a sweep holds the root's lock nor a training the
+        run's is read as ``interrupted``: its sweep was killed before it could say so."""
+        statuses = self._rows(self.status_path, "sweep status",
+                              lambda row, what: RunStatus.from_dict(row, self.path, what))
         if any(st.state == "running" for st in statuses) and held_by(self.path) is None:
             for st in statuses:
                 if st.state == "running" and not st.run.run_dir.in_use():
@@ -233,22 +223,11 @@ class SweepDir:
                     st.note = st.note or "its sweep ended while it ran (killed): the next sweep resumes it"
         return statuses
 
-    def _status_rows(self) -> list:
-        """The rows of ``sweep_status.json`` as JSON ([] when there is none), each still to be read."""
-        if not os.path.exists(self.status_path):
-            return []
-        try:
-            return _Fields(read_json(self.status_path, "sweep status"), "the file").get("runs", list)
-        except ValueError as exc:
-            raise ImssrError(f"sweep status {self.status_path} is damaged: {exc}") from None
-
     def failed_runs(self) -> dict[str, str]:
-        """The runs the last sweep gave up on (state ``failed``): run directory (absolute) -> the
-        last attempt's error line.  A run finished since (it has ``done.json``) is not failed; a
-        status file that cannot be read lists none, and a row that cannot be read is left out
-        (the others' failures still reach the report)."""
+        """The runs the last sweep gave up on and that have not finished since: run directory
+        (absolute) -> the last attempt's error line.  An unreadable file or row lists none."""
         try:
-            rows = self._status_rows()
+            rows = self._rows(self.status_path, "sweep status")
         except (ImssrError, OSError):
             return {}
         out = {}

@@ -1,14 +1,8 @@
 """Sweep grids: what to run (algos x tasks x seeds [x beta_0]) and where each run lives.
 
-:class:`SweepConfig` is a sweep's settings, one typed field each, read as the run's config is
-(:func:`~imssr.config.dataclass_field_types`, :func:`~imssr.config.dataclass_field_docs`): a
-value of a sweep file or a flag becomes its field's declared type (:func:`sweep_config`), and the
-CLI's flags and their help come from the fields.  :class:`Run` names one run of a grid, for the
-sweep that trains it and for the report that reads it back.
-
-A run's directory is a pure function of its grid point, ``ROOT/<task>/<algo>/seed_<n>``
-(``ROOT/<task>/<algo>/beta0_<value>/seed_<n>`` in a beta_0 sweep), so re-running a sweep
-finds its earlier runs again; ``imssr.sweep.sweep`` decides what each one still needs.
+:class:`SweepConfig` is a sweep's settings, one typed field each, whose docstrings are the CLI's
+help.  :class:`Run` names one run of a grid, whose directory is a pure function of its grid point
+(``ROOT/<task>/<algo>/[beta0_<value>/]seed_<n>``), so re-running a sweep finds its runs again.
 """
 from __future__ import annotations
 
@@ -86,14 +80,13 @@ class SweepConfig:
     """GPUs of each SLURM job; > 0 trains on ``cuda`` unless ``train.device`` is overridden."""
     slurm_array_parallelism: int = 0
     """SLURM jobs of the sweep's job array running at once; 0: as many as SLURM allows (256)."""
-    runs_per_process: int = 0
+    runs_per_process: int = 1
     """Runs trained in one process as one batch of agents, at most this many (``imssr train
-    --runs``: one update for all, each the run it would be alone); runs that differ only in the
-    seed and in the intrinsic reward's beta_0 or on/off can share a process (a grid point's seeds, a
-    base algo and its IM- variant, a beta_0 sweep).  1: one run per process; 0: all that can share
-    when the runs train on CUDA (one batched step instead of processes time-slicing the GPU),
-    else 1 (on the CPU separate processes use the cores as well: docs/performance.md).  A process
-    takes the CPUs and GPUs of one run."""
+    --runs``: each the run it would be alone); runs that differ only in the seed and in the
+    intrinsic reward's beta_0 or on/off can share a process (a grid point's seeds, a base algo and
+    its IM- variant, a beta_0 sweep).  1: one run per process, the fastest layout measured on the CPU
+    and on CUDA (docs/performance.md); 0: all that can share.  A process takes the CPUs and GPUs of
+    one run."""
     logger: str = ""
     """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's
     default.  With ``wandb``, runs are grouped under the root's name in W&B and tagged with their
@@ -193,9 +186,8 @@ class SweepConfig:
 
 @dataclass(frozen=True)
 class Run:
-    """Which run: one grid point and its directory, a single ``imssr train`` run.  The sweep plans
-    and trains runs by it, its files list them by it (:mod:`imssr.sweep.directory`), and the
-    report names each run it reads back by it."""
+    """Which run: one grid point and its directory, a single ``imssr train`` run, for the sweep
+    that trains it and for the report that reads it back."""
 
     algo: str
     """Algorithm name."""
@@ -226,10 +218,9 @@ class Run:
         return cfg.gpus > 0 and not any(o.startswith("train.device=") for o in cfg.overrides)
 
     def resolved_config(self, cfg: SweepConfig) -> RunConfig:
-        """The run's whole config, which the sweep writes to its ``config.json`` and the worker
-        trains (``imssr train --config RUN/config.json``): the preset of its algo and task (a run
-        that has a checkpoint: its own ``config.json``, as ``imssr train --resume`` reads it),
-        then the sweep's seed, budget, device, threads and loggers, then the overrides."""
+        """The run's whole config, which the sweep writes to its ``config.json``: the preset of its
+        algo and task (a run with a checkpoint: its own ``config.json``), then the sweep's seed,
+        budget, device, threads and loggers, then the overrides."""
         # Progress on: the training writes into its sweep.log, no terminal, so a line a minute, no bar.
         values: dict[str, Any] = {"train.seed": self.seed, "train.progress": True,
                                   "train.torch_threads": max(1, int(cfg.cpus_per_run))}
@@ -297,8 +288,7 @@ MAX_SEEDS = 100_000
 
 def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
     """``1,2,3``, ``1-5``, ``1-3,7`` or a JSON list of integers -> seeds, each once: a seed named
-    twice is dropped (``repeats``) or refused in one line (``imssr train --seeds``, where each
-    seed is one run directory trained once); a negative seed is refused in one line."""
+    twice is dropped (``repeats``) or refused in one line (``imssr train --seeds``)."""
     items = text if isinstance(text, list) else str(text).split(",")
     seeds: list[int] = []
     for item in items:
@@ -343,8 +333,7 @@ _SEED_ITEM = re.compile(r"^(-?[0-9]+)(?:\s*-\s*(-?[0-9]+))?$")
 
 
 def _seed(value: int) -> int:
-    """``value``, or a one-line error when it is negative (the upper bound, :data:`MAX_SEED`, is
-    the config's and the sweep's check, after a range's size is)."""
+    """``value``, or a one-line error when it is negative (:data:`MAX_SEED` is checked later)."""
     if value < 0:
         raise ImssrError(f"seeds must be {SEED_RULE}, got {value}")
     return value
@@ -384,9 +373,8 @@ def setting_type(name: str) -> tuple[Any, bool]:
 
 
 def _coerce(name: str, value: Any) -> Any:
-    """A value of the :class:`SweepConfig` field ``name`` (a sweep file's, or a flag's) in the
-    field's declared type: text of a list (``a,b``, seeds ``1-5``) is parsed, and a value of the
-    wrong type is a one-line error."""
+    """A value of the :class:`SweepConfig` field ``name`` in the field's declared type: text of a
+    list (``a,b``, seeds ``1-5``) is parsed, a value of the wrong type is a one-line error."""
     kind, optional = setting_type(name)
     if name == "overrides":
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):

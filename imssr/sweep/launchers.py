@@ -1,10 +1,6 @@
-"""Launchers: how a sweep's run attempts are started and waited on (``imssr sweep --launcher``).
-
-The sweep (:mod:`imssr.sweep.sweep`) plans, retries and writes the status file; a launcher only
-starts attempts, says which finished, hands back their results and stops what is in flight.
-Every attempt is the same ``imssr train`` subprocess (:class:`imssr.sweep.runner.RunAttempt`),
-started by a Ray task, a SLURM job (through submitit) or the sweep itself.
-"""
+"""Launchers (``imssr sweep --launcher``): each starts attempts (the same ``imssr train``
+subprocess, :class:`imssr.sweep.runner.RunAttempt`) by a Ray task, a SLURM job through submitit or
+the sweep itself, says which finished, hands back their results and stops what is in flight."""
 from __future__ import annotations
 
 import ipaddress
@@ -56,11 +52,6 @@ class Attempt:
     """The budget in agent steps that makes the run done."""
     attempt: int
     """The attempt's number (1 for the first of this sweep)."""
-
-    @property
-    def run_dir(self) -> str:
-        """The first run directory (the one whose ``sweep.log`` holds the process's output)."""
-        return self.run_dirs[0]
 
     def failed(self, error: str) -> list[dict]:
         """The result of each run when the attempt itself failed with ``error``."""
@@ -159,7 +150,7 @@ class RayLauncher(Launcher):
 
     def start(self) -> None:
         self.ray = _init_ray(self.cfg)
-        self.task = self.ray.remote(_remote_run).options(num_cpus=self.cfg.cpus_per_run,
+        self.task = self.ray.remote(execute_runs).options(num_cpus=self.cfg.cpus_per_run,
                                                          num_gpus=self.cfg.gpus_per_run, max_retries=0)
 
     def capacity(self) -> int:
@@ -185,17 +176,13 @@ class RayLauncher(Launcher):
 
     def stop(self, handles: list[Any]) -> None:
         # Each training gets one SIGTERM and checkpoints where it is; wait for that before
-        # ray.shutdown kills the workers and their children.  On a private local Ray the
-        # trainings run here, and a training that holds its run's lock is signalled directly:
-        # its task then returns as the training exits.  A cancel (which raises
-        # KeyboardInterrupt inside the task, whose execute_run then stops the training as
-        # RunAttempt.stop does) is best effort: on a loaded machine it can miss the wait below,
-        # so it serves only where the training is not ours to signal (a cluster) or has not
-        # taken its lock yet.  Never both for one training: a second SIGTERM stops it at once,
-        # without its checkpoint.
+        # ray.shutdown kills the workers.  On a private local Ray a training that holds its run's
+        # lock is signalled directly; a cancel (KeyboardInterrupt inside the task) can miss the
+        # wait on a loaded machine, so it serves only where the training is not ours to signal
+        # or has no lock yet.  Never both: a second SIGTERM stops it without its checkpoint.
         for handle in handles:
             attempt = self.attempts.get(handle)
-            run_dir = None if self.cfg.address or attempt is None else attempt.run_dir
+            run_dir = None if self.cfg.address or attempt is None else attempt.run_dirs[0]
             pid = local_holder(run_dir) if run_dir else None
             if pid is None:
                 self.ray.cancel(handle, force=False)
@@ -273,11 +260,6 @@ class SlurmLauncher(Launcher):
                 pass
 
 
-def _remote_run(run_dirs: list[str], steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
-    """The Ray task body (module level, so workers import it rather than unpickle code)."""
-    return execute_runs(run_dirs, steps, attempt, niceness)
-
-
 def sweep_niceness(cfg: SweepConfig) -> Optional[int]:
     """The priority a private local Ray's trainings get: this sweep's nice value (``nice -n 19
     imssr sweep``), not its workers' (Ray starts them at +15).  None on a cluster
@@ -286,12 +268,8 @@ def sweep_niceness(cfg: SweepConfig) -> Optional[int]:
 
 
 def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """Fail in one line, at once, if nothing listens at ``HOST:PORT``.
-
-    ``ray.init`` keeps retrying an address where no Ray head runs for minutes before it
-    gives up; a plain TCP connect answers in at most ``timeout_s``.  Addresses that are not
-    ``[ray://]HOST:PORT`` (``auto``) are left to Ray.
-    """
+    """Fail in one line, at once, if nothing listens at ``[ray://]HOST:PORT`` (``ray.init`` retries
+    such an address for minutes); other addresses (``auto``) are left to Ray."""
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not host or not port.isdigit():
         return

@@ -60,15 +60,10 @@ AUTOGROUP_WAIT_S = 30.0
 
 
 def lower_session_priority(pid: int, niceness: int, wait_s: float = AUTOGROUP_WAIT_S) -> str:
-    """Give the session of ``pid`` (a training started by :func:`start_training`) the nice value
-    ``niceness``; returns what went wrong, "" when it worked or there is nothing to do.
-
-    With autogroup scheduling (Linux's default on desktops and many servers, for tasks outside
-    CPU cgroups) CPU time is shared between sessions first and nice values count only inside a
-    session, so a training in a session of its own would ignore ``nice -n 19 imssr sweep``; its
-    session's group gets the value instead.  Without CAP_SYS_ADMIN the kernel takes one such
-    change per 0.1 s on the whole machine (EAGAIN otherwise): parallel starts, of this sweep or
-    another, take turns (jittered, so that they do not retry in step)."""
+    """Give the session of ``pid`` the nice value ``niceness`` (under autogroup scheduling a nice
+    value counts only inside a session, so a training's own session would ignore ``nice -n 19
+    imssr sweep``); returns what went wrong, "" when it worked or there is nothing to do.  The
+    kernel takes one such change per 0.1 s machine-wide: parallel starts take turns, jittered."""
     path = f"/proc/{pid}/autogroup"
     group = scheduling_group(pid)
     if group is None or group[1] is None:
@@ -88,18 +83,10 @@ def lower_session_priority(pid: int, niceness: int, wait_s: float = AUTOGROUP_WA
 
 
 class RunAttempt:
-    """One attempt of a run: ``imssr train --config RUN/config.json --out RUN`` (with ``--resume``
-    when the run has a checkpoint) started in a subprocess that writes to the run's
-    ``sweep.log``; :meth:`finish` says what happened.  Several runs (a packed process,
-    ``runs_per_process``) train as ``imssr train --runs RUN ...`` writing to the first run's
-    ``sweep.log``, and :meth:`finish_all` says what happened to each.  The sweep wrote ``config.json`` before
-    (:meth:`imssr.sweep.grid.Run.resolved_config`): the file is the whole description of the run.
-
-    Killing the attempt (:meth:`stop`, or the death of the process that started it) leaves only
-    the run's last atomic checkpoint, from which the next attempt resumes.  ``niceness``: the nice
-    value of the sweep that asked for the run (the process that starts it may have another: Ray
-    workers run at +15), given to the training's session (:func:`lower_session_priority`).
-    """
+    """One attempt of a run: ``imssr train --config RUN/config.json --out RUN`` (``--resume`` when
+    it has a checkpoint), or of a packed process's runs ``imssr train --runs RUN ...``, in a
+    subprocess writing to the (first) run's ``sweep.log``.  ``niceness``: the nice value of the
+    sweep that asked for the run (Ray workers run at +15), given to the training's session."""
 
     def __init__(self, run_dir: RunDir | str | list, steps: int, attempt: int, niceness: Optional[int] = None):
         self.runs = [as_run_dir(r) for r in (run_dir if isinstance(run_dir, (list, tuple)) else [run_dir])]
@@ -192,8 +179,8 @@ class RunAttempt:
 
     def finish(self, run: Optional[RunDir] = None) -> dict:
         """What the finished attempt did (see :func:`execute_run`) to ``run`` (default: its
-        first); writes ``done.json`` when the run reached its budget.  In a packed process a run
-        that finished is done even when another one diverged (the process then exits 2)."""
+        first); writes ``done.json`` when the run reached its budget, even when another run of
+        its process diverged."""
         run = run or self.run
         if self.proc is None:
             return {"ok": False, "returncode": None, "resumed": self.resumed, "error": self.error,

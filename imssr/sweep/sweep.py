@@ -1,20 +1,11 @@
 """Dispatch a sweep's runs, idempotently, with bounded retries and a status file.
 
-Each attempt of a run is ``imssr train`` in a subprocess (:class:`imssr.sweep.runner.RunAttempt`),
-started by the launcher ``--launcher`` names (:mod:`imssr.sweep.launchers`: a Ray task, a SLURM
-job through submitit, or the sweep itself); planning, retries and the status file are here,
-the same for every launcher.  Before anything starts, every run is
-classified from its directory (:class:`imssr.rundir.RunDir`): ``done.json`` with a budget (in
-agent steps) at least the sweep's means done (skipped), a checkpoint means resume (unless the
-sweep's config differs from the run's in a setting a resume may not change: then the run is
-failed, not started), nothing means a fresh start.  Each run to train gets its resolved
-``config.json``, which its worker trains (``imssr train --config RUN/config.json``).  A failed
-attempt is retried (resuming from its checkpoint if it wrote one) up to ``retries`` times; a run that
-still fails is reported in ``ROOT/sweep_status.json`` and in the exit status.  A run that
-diverged is not retried (it diverges again from the same checkpoint); one stopped by a signal
-(preemption: ``imssr train`` checkpoints and exits 130) is interrupted, not failed, and resumes.
-The sweep root's own files (``sweep.json``, ``sweep_status.json``, its lock) are written and read
-by :class:`~imssr.sweep.directory.SweepDir`.
+Planning, retries and the status file are here, the same for every launcher
+(:mod:`imssr.sweep.launchers`).  Each run is classified from its directory first: done (skipped),
+a checkpoint (resumed, unless the sweep's config differs in a setting a resume may not change:
+then failed, not started) or a fresh start; each run to train gets its resolved ``config.json``.
+A failed attempt is retried up to ``retries`` times; a diverged run is not retried (it diverges
+again from the same checkpoint); one stopped by a signal is interrupted, not failed, and resumes.
 """
 from __future__ import annotations
 
@@ -67,8 +58,7 @@ def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
 
 def config_conflict(run: RunDir, cfg: RunConfig) -> str:
     """Why ``cfg`` cannot resume the run in ``run`` (its ``config.json`` differs in a setting that
-    a resume may not change: :meth:`RunConfig.resume_conflicts`); empty when it can.
-    The sweep then leaves the run's config.json as it is, so that it still describes the run."""
+    a resume may not change: :meth:`RunConfig.resume_conflicts`); empty when it can."""
     if not run.has_config():
         return ""
     try:
@@ -140,14 +130,9 @@ class _Progress:
 
 def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0,
               submitit_cluster: str = "slurm") -> list[RunStatus]:
-    """Run every run of the sweep that is not done, through ``cfg.launcher``; return the final
-    status of each.  ``submitit_cluster``: submitit's executor for ``--launcher slurm``
-    (``local`` runs the jobs on this machine).
-
-    The sweep holds a lock on its root (:meth:`SweepDir.lock`), so a second sweep over the
-    same root fails at once ("ROOT is in use by PID n"); each run's training locks its own
-    directory as ``imssr train`` does.
-    """
+    """Run every run of the sweep that is not done, through ``cfg.launcher``, holding the root's
+    lock; return the final status of each.  ``submitit_cluster``: submitit's executor for
+    ``--launcher slurm`` (``local`` runs the jobs on this machine)."""
     launcher = make_launcher(cfg, submitit_cluster)
     launcher.check()  # before anything is written
     with SweepDir(cfg.root).lock():
@@ -252,8 +237,7 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
     groups: list[list[RunStatus]] = []
     open_groups: dict[tuple, list[tuple[list[RunStatus], list]]] = {}
     for st in queued:
-        limit = runs_per_process or (0 if st.config.train.device.startswith("cuda") else 1)
-        if limit == 1 or agent_refusal(st.config.agent):
+        if runs_per_process == 1 or agent_refusal(st.config.agent):
             groups.append([st])
             continue
         shared, weighted, own = batch_key(st.config)
@@ -263,7 +247,7 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
             continue
         key = (shared, weighted, steps[-1], st.steps)
         for group, owns in open_groups.get(key, []):
-            if (limit == 0 or len(group) < limit) and (own is None or owns[0] in (None, own)):
+            if (runs_per_process == 0 or len(group) < runs_per_process) and (own is None or owns[0] in (None, own)):
                 group.append(st)
                 owns[0] = owns[0] or own
                 break
