@@ -14,6 +14,13 @@ import pytest
 import torch
 
 import imssr  # noqa: F401 - configures MUJOCO_GL before dm_control loads
+from imssr._gl import load_triton_first
+
+# Test modules import dm_control directly (tests/test_env.py at collection), which opens the GL
+# driver and its LLVM in the process's global scope; Triton, imported after it (torch.compile,
+# Adam through torch._dynamo), would then bind to that LLVM and crash the worker.  imssr's own
+# imports of dm_control load Triton first; the tests' direct imports need the same order.
+load_triton_first()
 from imssr.agents import SACAgent, make_agent
 from imssr.batch import NextObsContext
 from imssr.presets import make_config
