@@ -156,7 +156,7 @@ def test_writes_in_a_run_directory_refuse_to_follow_a_link(tmp_path):
     """A CSV log, `imssr evaluate`'s log, the sweep's log and the run's lock file: a symbolic link
     in their place (to someone's file outside the run) is refused in one line, and the file it
     points to is untouched."""
-    from imssr.sweep.runner import execute_run
+    from imssr.sweep.runner import execute_runs
     from imssr.training.logger import CSVLog, append_locked
 
     outside = tmp_path / "outside.csv"
@@ -170,7 +170,7 @@ def test_writes_in_a_run_directory_refuse_to_follow_a_link(tmp_path):
         CSVLog(run.train_log, ["frame"]).write({"frame": 1})
     with pytest.raises(ImssrError, match=message.format(run.evaluate_log)):
         append_locked(run.evaluate_log, ["frame"], [{"frame": 1}])
-    result = execute_run(run.path, 10, 1)
+    result = execute_runs([run.path], 10, 1)[0]
     assert not result["ok"] and result["returncode"] is None
     assert re.match(message.format(run.sweep_log), result["error"])
     with pytest.raises(ImssrError, match=message.format(run.lock_path)):

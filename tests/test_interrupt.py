@@ -20,7 +20,7 @@ from imssr.rundir.checkpoint import load_checkpoint
 from imssr.training.logger import read_csv
 from imssr.errors import INTERRUPTED_EXIT
 from imssr.sweep.grid import SweepConfig
-from imssr.sweep.runner import execute_run
+from imssr.sweep.runner import execute_runs
 from imssr.sweep.launchers import LocalLauncher
 from imssr.sweep.sweep import _run_sweep, plan_runs, settle
 from imssr.rundir.lock import LOCK_FILE
@@ -343,7 +343,7 @@ def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_p
     run_dir = st.run.dir
     RunDir(run_dir).write_config(st.config)  # as the sweep does before the first attempt
     results = []
-    worker = threading.Thread(target=lambda: results.append(execute_run(run_dir, st.steps, 1)))
+    worker = threading.Thread(target=lambda: results.append(execute_runs([run_dir], st.steps, 1)[0]))
     worker.start()
     while len(read_csv(os.path.join(run_dir, "train.csv"))) < 1:  # the training subprocess learns
         assert worker.is_alive()
@@ -359,7 +359,7 @@ def test_the_sweep_resumes_a_run_stopped_by_a_signal_instead_of_failing_it(tmp_p
     assert st.state == "queued" and st.action == "resume" and st.errors == [] and st.interruptions == 1, line
     assert line.startswith(f"resume  {st.run.name}: interrupted (imssr: stopped at agent step")
     assert plan_runs(cfg)[0].action == "resume"
-    again = execute_run(run_dir, st.steps, 2)
+    again = execute_runs([run_dir], st.steps, 2)[0]
     assert again["ok"] and again["resumed"] and RunDir(run_dir).is_done(st.steps)
     assert RunDir(run_dir).status() == "finished"
     assert without_timing(read_csv(os.path.join(run_dir, "eval.csv"))) == \
@@ -382,7 +382,7 @@ def test_an_attempt_waits_for_a_stopping_training_and_resumes_its_checkpoint(tmp
             os.sched_yield()
         assert not run.has_checkpoint()
         orphan.send_signal(signal.SIGTERM)  # PR_SET_PDEATHSIG's signal when its driver dies
-        result = execute_run(run.path, st.steps, 1)
+        result = execute_runs([run.path], st.steps, 1)[0]
     finally:
         if orphan.poll() is None:
             orphan.kill()

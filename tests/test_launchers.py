@@ -157,11 +157,11 @@ def test_every_launcher_fails_an_attempt_whose_sweep_log_cannot_be_written(tmp_p
     """A folder where the log goes: no process starts, the attempt fails in one line (the body of
     a Ray task and a SLURM job alike), and the local launcher's wait sees it ended."""
     from imssr.sweep.launchers import LocalLauncher
-    from imssr.sweep.runner import RunAttempt, execute_run
+    from imssr.sweep.runner import RunAttempt, execute_runs
 
     run_dir = str(tmp_path / "run")
     os.makedirs(os.path.join(run_dir, SWEEP_LOG))
-    result = execute_run(run_dir, 10, 1)
+    result = execute_runs([run_dir], 10, 1)[0]
     assert not result["ok"] and result["returncode"] is None
     assert result["error"] == f"cannot write {run_dir}/{SWEEP_LOG}: Is a directory"
     attempt = RunAttempt(run_dir, 10, 1)

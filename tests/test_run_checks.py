@@ -124,13 +124,13 @@ def test_a_real_diverging_run_is_one_line_that_the_sweep_records(precision, tmp_
     stops with the same line (measured: fp32 "actor loss nan", bf16 "aux loss nan" at agent
     step 11), which the sweep does not retry."""
     from imssr.rundir import SWEEP_LOG
-    from imssr.sweep.runner import execute_run
+    from imssr.sweep.runner import execute_runs
 
     run = tmp_path / "run"
     args = ["--algo", "curl", "--task", TASK, "--seed", "1", *FAST, "--set", "agent.critic_lr=1e6",
             "--set", f"agent.precision={precision}"]
     RunDir(run).write_config(cli_config(*args, "--out", str(run)))
-    result = execute_run(str(run), 60, attempt=1)
+    result = execute_runs([str(run)], 60, attempt=1)[0]
     assert not result["ok"] and result["returncode"] == 2 and result["diverged"]
     assert re.fullmatch(r"imssr: error: diverged at agent step \d+: [a-z ]+ (nan|inf|-inf)", result["error"]), result
     assert RunDir(run).status() == "diverged"

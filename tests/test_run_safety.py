@@ -519,7 +519,7 @@ def test_a_runs_files_are_not_private(stopped):
 def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
     """TensorBoard's writer thread and the sweep's log append each give the one disk-full line:
     a warning that turns TensorBoard off (the CSV logs go on), and the attempt's error."""
-    from imssr.sweep.runner import execute_run
+    from imssr.sweep.runner import execute_runs
 
     mnt = tiny_fs("1m")
     run = os.path.join(mnt, "run")
@@ -536,7 +536,7 @@ def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
                    "(train.csv and eval.csv keep every row)\n")
     log.close()
     assert "Traceback" not in err  # nor the writer thread's
-    result = execute_run(os.path.join(mnt, "sweep-run"), 10, 1)
+    result = execute_runs([os.path.join(mnt, "sweep-run")], 10, 1)[0]
     assert not result["ok"] and result["returncode"] is None
     assert re.fullmatch(rf"no space left on {mnt} while writing {mnt}/sweep-run/sweep.log", result["error"])
 

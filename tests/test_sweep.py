@@ -20,7 +20,7 @@ from imssr.contention import autogroup, autogroup_scheduling
 from imssr.rundir import DONE_FILE, SWEEP_LOG, RunDir
 from imssr.sweep.directory import SweepDir
 from imssr.sweep.grid import SweepConfig, expand, load_sweep_file, parse_seeds, setting_key
-from imssr.sweep.runner import execute_run
+from imssr.sweep.runner import execute_runs
 from imssr.sweep.sweep import plan_runs, settle
 from imssr.training.logger import read_csv
 
@@ -417,7 +417,7 @@ def _one_run(tmp_path, *overrides, retries=3):
 def test_a_diverged_run_is_not_retried_and_the_status_says_so(tmp_path):
     cfg, st = _one_run(tmp_path, "agent.critic_lr=1e30")
     RunDir(st.run.dir).write_config(st.config)  # as the sweep does before the first attempt
-    result = execute_run(st.run.dir, st.steps, 1)
+    result = execute_runs([st.run.dir], st.steps, 1)[0]
     assert result["diverged"] and not result["interrupted"], result
     assert RunDir(st.run.dir).status() == "diverged"
     line = settle(st, result, cfg.retries)

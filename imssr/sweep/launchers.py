@@ -82,7 +82,7 @@ class Launcher:
         raise NotImplementedError
 
     def result(self, handle: Any) -> list[dict]:
-        """A finished attempt's result for each of its runs (:func:`imssr.sweep.runner.execute_run`'s
+        """A finished attempt's result for each of its runs (:func:`imssr.sweep.runner.execute_runs`'s
         keys); a lost worker or job is a failed attempt."""
         raise NotImplementedError
 

@@ -1,8 +1,8 @@
 """One sweep run on a worker: ``imssr train`` as a subprocess, and the run's done marker.
 
-The training runs in its own process so that a run cannot leak memory, threads or GL
-contexts into the next one, and so that killing it (Ctrl-C on the sweep, a cancelled Ray
-task) leaves only its last atomic checkpoint behind, from which the next attempt resumes.
+The training runs in its own process so that a run cannot leak memory, threads or GL contexts into the next one, and
+so that killing it (Ctrl-C on the sweep, a cancelled Ray task) leaves only its last atomic checkpoint behind, from
+which the next attempt resumes.
 """
 from __future__ import annotations
 
@@ -178,9 +178,8 @@ class RunAttempt:
         return [self.finish(run) for run in self.runs]
 
     def finish(self, run: Optional[RunDir] = None) -> dict:
-        """What the finished attempt did (see :func:`execute_run`) to ``run`` (default: its
-        first); writes ``done.json`` when the run reached its budget, even when another run of
-        its process diverged."""
+        """What the finished attempt did (see :func:`execute_runs`) to ``run`` (default: its first); writes
+        ``done.json`` when the run reached its budget, even when another run of its process diverged."""
         run = run or self.run
         if self.proc is None:
             return {"ok": False, "returncode": None, "resumed": self.resumed, "error": self.error,
@@ -226,8 +225,7 @@ sweep, stopping with its checkpoint) before it starts and lets the training refu
 
 
 def wait_for_writers(runs: list[RunDir]) -> None:
-    """Wait, up to :data:`WRITER_WAIT_S` seconds in all, until no process holds the lock of any
-    of ``runs``."""
+    """Wait, up to :data:`WRITER_WAIT_S` seconds in all, until no process holds the lock of any of ``runs``."""
     deadline = time.monotonic() + WRITER_WAIT_S
     for run in runs:
         while run.in_use() and time.monotonic() < deadline:
@@ -235,8 +233,15 @@ def wait_for_writers(runs: list[RunDir]) -> None:
 
 
 def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
-    """:func:`execute_run` of several runs trained in one process (``imssr train --runs``): one
-    result per run."""
+    """Train (or resume) the runs in ``run_dirs`` (each its ``config.json``; several: in one process, ``imssr train
+    --runs``) to ``steps`` agent steps and wait; one result per run (the body of a Ray task or a SLURM job).
+
+    Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output line when
+    it failed, or ``killed by signal N (NAME)``), ``interrupted`` (stopped by a signal: resume it, it
+    did not fail), ``diverged`` (a resume would diverge again from the same checkpoint: do not
+    retry), ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``:
+    as in :class:`RunAttempt`.
+    """
     attempt_ = None
     try:
         attempt_ = RunAttempt(list(run_dirs), steps, attempt, niceness)
@@ -248,19 +253,6 @@ def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[in
         if attempt_ is not None:
             attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
     return attempt_.finish_all()
-
-
-def execute_run(run_dir: RunDir | str, steps: int, attempt: int, niceness: Optional[int] = None) -> dict:
-    """Train (or resume) the run in ``run_dir`` (its ``config.json``) to ``steps`` agent steps and
-    wait for it; return what happened (the body of a Ray task or a SLURM job).
-
-    Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output
-    line when it failed, or ``killed by signal N (NAME)``), ``interrupted`` (stopped by a signal: resume it, it did not fail),
-    ``diverged`` (a resume would diverge again from the same checkpoint: do not retry),
-    ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``: as
-    in :class:`RunAttempt`.
-    """
-    return execute_runs([run_dir], steps, attempt, niceness)[0]
 
 
 def _open_log(path: str, header: str):

@@ -3,9 +3,9 @@
 Planning, retries and the status file are here, the same for every launcher
 (:mod:`imssr.sweep.launchers`).  Each run is classified from its directory first: done (skipped),
 a checkpoint (resumed, unless the sweep's config differs in a setting a resume may not change:
-then failed, not started) or a fresh start; each run to train gets its resolved ``config.json``.
-A failed attempt is retried up to ``retries`` times; a diverged run is not retried (it diverges
-again from the same checkpoint); one stopped by a signal is interrupted, not failed, and resumes.
+then failed, not started) or a fresh start; each run to train gets its resolved ``config.json``. A failed attempt is
+retried up to ``retries`` times; a diverged run is not retried (it diverges again from the same checkpoint); one
+stopped by a signal is interrupted, not failed, and resumes.
 """
 from __future__ import annotations
 
@@ -73,8 +73,7 @@ def config_conflict(run: RunDir, cfg: RunConfig) -> str:
 
 
 def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
-    """The expanded grid, one run per line, and the processes the runs to train are packed into
-    (``--dry-run``)."""
+    """The expanded grid, one run per line, and the processes the runs to train are packed into (``--dry-run``)."""
     root = os.path.abspath(cfg.root)
     lines = [f"{len(statuses)} runs under {root}:"]
     for s in statuses:
@@ -264,7 +263,7 @@ def _packing_text(groups) -> str:
 
 
 def settle(st: RunStatus, result: dict, retries: int) -> str:
-    """Update ``st`` from one attempt's ``result`` (:func:`imssr.sweep.runner.execute_run`); returns
+    """Update ``st`` from one attempt's ``result`` (:func:`imssr.sweep.runner.execute_runs`); returns
     the line to show.  ``st.state`` becomes done, queued (to resume or retry), failed or interrupted."""
     st.seconds += result.get("seconds", 0.0)
     st.final_step = result.get("final_step", st.final_step)
