@@ -41,10 +41,9 @@ def configure_gl() -> str:
 def load_triton_first() -> None:
     """Import triton, where it is installed and not yet loaded, before the first GL driver.
 
-    Mesa's GL drivers link Debian's ``libLLVM-15`` with ``RTLD_GLOBAL``; triton carries its own,
-    newer LLVM with the same symbols, and loaded after Mesa's (torch imports it as soon as an
-    optimiser is made) it binds to LLVM 15's and dies with SIGSEGV.  Loaded first, each binds to
-    its own.  A triton that fails to import is left to torch."""
+    Mesa's GL drivers link Debian's ``libLLVM-15`` with ``RTLD_GLOBAL``; triton carries its own, newer LLVM with the
+    same symbols, and loaded after Mesa's (torch imports it as soon as an optimiser is made) it binds to LLVM 15's
+    and dies with SIGSEGV.  Loaded first, each binds to its own.  A triton that fails to import is left to torch."""
     if "triton" in sys.modules:
         return
     try:
@@ -107,10 +106,9 @@ def egl_device_id(cuda_index: int, visible_devices: Optional[str]) -> Optional[s
 
 def pin_egl_device(cuda_index: Optional[int], environ: MutableMapping[str, str] = os.environ,
                    modules: Mapping[str, object] = sys.modules) -> Optional[str]:
-    """Set ``MUJOCO_EGL_DEVICE_ID`` so that MuJoCo renders on the run's GPU (CUDA device
-    ``cuda_index``; None: a CPU run, nothing to do), and return it.  Only under ``MUJOCO_GL=egl``,
-    never over a value the user set, and only before dm_control's EGL renderer is imported (it
-    opens its display then); None when nothing was set."""
+    """Set ``MUJOCO_EGL_DEVICE_ID`` so that MuJoCo renders on the run's GPU (CUDA device ``cuda_index``; None: a CPU
+    run, nothing to do), and return it.  Only under ``MUJOCO_GL=egl``, never over a value the user set, and only
+    before dm_control's EGL renderer is imported (it opens its display then); None when nothing was set."""
     if (cuda_index is None or environ.get("MUJOCO_GL", "egl") != "egl" or "MUJOCO_EGL_DEVICE_ID" in environ
             or "dm_control._render.pyopengl.egl_renderer" in modules):
         return None
@@ -140,9 +138,8 @@ def unpin_refused_egl_device(message: str, environ: MutableMapping[str, str] = o
 
 
 def egl_device_error(message: str, environ: Mapping[str, str] = os.environ) -> Optional[str]:
-    """The one-line explanation of dm_control's error ``message`` when it refused
-    ``MUJOCO_EGL_DEVICE_ID``, naming who set the value and what to set instead; None for other
-    errors."""
+    """The one-line explanation of dm_control's error ``message`` when it refused ``MUJOCO_EGL_DEVICE_ID``, naming
+    who set the value and what to set instead; None for other errors."""
     if "MUJOCO_EGL_DEVICE_ID" not in message:  # not a refused device
         return None
     value = environ.get("MUJOCO_EGL_DEVICE_ID", "")

@@ -1,8 +1,8 @@
 """The algorithms: every base ``X`` (an auxiliary task) and its variants ``im-X`` (IM-SSR),
 ``X+rnd`` and ``X+re3`` (exploration peers that swap only the intrinsic signal).
 
-A registry of names made of the plug-ins' declarations, apart from :mod:`imssr.presets`, so that
-the config's validation can check ``algo`` without importing the presets, which import the config.
+A registry of names made of the plug-ins' declarations, apart from :mod:`imssr.presets`, so that the config's
+validation can check ``algo`` without importing the presets, which import the config.
 """
 from __future__ import annotations
 

@@ -97,9 +97,8 @@ class Run:
         return {**eval_row(self.frame, self.step, mode, returns), "returns": returns}
 
     def curves(self, name: str = "eval"):
-        """The run's log ``RUN/<name>.csv`` (:data:`CURVES`) as a pandas DataFrame when pandas is
-        installed, else a list of dicts with numbers as numbers; empty when the run has not
-        written it."""
+        """The run's log ``RUN/<name>.csv`` (:data:`CURVES`) as a pandas DataFrame when pandas is installed, else a
+        list of dicts with numbers as numbers; empty when the run has not written it."""
         if name not in CURVES:
             raise ImssrError(f"unknown log {name!r}; choose from {', '.join(CURVES)}")
         path = self.run_dir.log(name)
@@ -139,8 +138,8 @@ def train(algo: str = "im-curl", task: str = "cartpole_swingup", out: Optional[s
         progress: show progress (``train.progress``): a bar on a terminal, else (a notebook, a
             log) a line every minute; False: neither.
 
-    An interrupt (SIGINT: the notebook's stop button, Ctrl-C) stops after the current agent step
-    with a checkpoint and raises ``KeyboardInterrupt``; ``resume=True`` continues from there.
+    An interrupt (SIGINT: the notebook's stop button, Ctrl-C) stops after the current agent step with a checkpoint
+    and raises ``KeyboardInterrupt``; ``resume=True`` continues from there.
     """
     values: dict[str, Any] = {"train.progress": progress}
     for field, value in (("train.steps", steps), ("train.seed", seed), ("train.device", device)):

@@ -45,9 +45,8 @@ def random_overlay(x: torch.Tensor, images: torch.Tensor, alpha: float = 0.5,
     """SODA's random overlay ``(1 - alpha) * o + alpha * image`` (paper, Appendix, Eq. overlay).
 
     ``x``: ``(B, 3k, S, S)`` pixels in [0, 255] (k stacked RGB frames); ``images``:
-    a pool ``(N, 3, S, S)`` uint8 on ``x``'s device.  One image per sample, shared
-    by its k frames (as DMC-GB does).  ``generator`` lives on ``x``'s device.  Returns float
-    pixels in [0, 255].
+    a pool ``(N, 3, S, S)`` uint8 on ``x``'s device.  One image per sample, shared by its k frames (as DMC-GB does).
+    ``generator`` lives on ``x``'s device.  Returns float pixels in [0, 255].
     """
     b, c = x.shape[:2]
     idx = torch.randint(0, images.shape[0], (b,), generator=generator, device=x.device)

@@ -1,7 +1,7 @@
 """The ``imssr`` command's entry point (``python -m imssr`` too).
 
-It loads the command-line interface, which takes seconds to import (torch, dm_control), inside
-a guard: a Ctrl-C in those seconds is one line and exit status 130, not a traceback.
+It loads the command-line interface, which takes seconds to import (torch, dm_control), inside a guard: a Ctrl-C in
+those seconds is one line and exit status 130, not a traceback.
 """
 from __future__ import annotations
 

@@ -1,10 +1,9 @@
 """CPU contention: how many cores other processes keep busy, and which of them yield to this one.
 
-A training warns when its torch threads would contend with busy cores (:func:`contention_warning`).
-Processes that yield the CPU to this one do not count: those :data:`YIELDING_NICE` or more nice
-levels below it, within what they compete inside of, an autogroup or a CPU cgroup
-(:func:`scheduling_group`), which ``imssr sweep`` reads as well.  The readings are Linux's
-``/proc``: elsewhere the 1-minute load average alone decides.
+A training warns when its torch threads would contend with busy cores (:func:`contention_warning`). Processes that
+yield the CPU to this one do not count: those :data:`YIELDING_NICE` or more nice levels below it, within what they
+compete inside of, an autogroup or a CPU cgroup (:func:`scheduling_group`), which ``imssr sweep`` reads as well.
+The readings are Linux's ``/proc``: elsewhere the 1-minute load average alone decides.
 """
 from __future__ import annotations
 
@@ -94,10 +93,9 @@ def cpu_cgroup(pid: int | str = "self") -> Optional[str]:
 
 def scheduling_group(pid: int | str = "self", autogroups: Optional[bool] = None
                      ) -> Optional[tuple[str, Optional[int]]]:
-    """What process ``pid`` competes for the CPU inside of: its autogroup ``(name, nice)`` under
-    autogroup scheduling (``autogroups``; None: read it) in the root CPU cgroup;
-    ``("cgroup:PATH", None)`` in a CPU cgroup (which competes by its weight); None when it
-    competes as a task on its own."""
+    """What process ``pid`` competes for the CPU inside of: its autogroup ``(name, nice)`` under autogroup
+    scheduling (``autogroups``; None: read it) in the root CPU cgroup; ``("cgroup:PATH", None)`` in a CPU cgroup
+    (which competes by its weight); None when it competes as a task on its own."""
     group = cpu_cgroup(pid)
     if group not in (None, "/"):
         return f"cgroup:{group}", None
@@ -185,8 +183,7 @@ def busy_cores_now(interval_s: float = 0.2) -> Optional[float]:
 
 
 def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity: a cgroup's or ``taskset``'s), else
-    the machine's."""
+    """The cores this process may run on (its CPU affinity: a cgroup's or ``taskset``'s), else the machine's."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 

@@ -1,10 +1,9 @@
 """Native crashes leave a trace: a Python traceback on stderr and in the directory being written.
 
 A segmentation fault in a native library ends the process before any Python code can run.
-:mod:`faulthandler` writes the traceback to one file descriptor: while a process holds run
-directories for writing, a pipe to a small shell process in a session of its own (a terminal's
-Ctrl-C leaves it alone), which after a crash copies the report to stderr and appends it to
-``crash.log`` in each directory; otherwise stderr alone.
+:mod:`faulthandler` writes the traceback to one file descriptor: while a process holds run directories for writing,
+a pipe to a small shell process in a session of its own (a terminal's Ctrl-C leaves it alone), which after a crash
+copies the report to stderr and appends it to ``crash.log`` in each directory; otherwise stderr alone.
 """
 from __future__ import annotations
 
@@ -80,8 +79,7 @@ def _retarget() -> None:
 def describe_exit(status: Optional[int]) -> str:
     """How a child process ended, from its exit status as :mod:`subprocess` and
     :mod:`multiprocessing` give it (minus a signal's number when a signal killed it):
-    ``exit status 2``, ``killed by signal 9 (SIGKILL)``, ``killed by signal 11 (SIGSEGV, a native
-    crash)``."""
+    ``exit status 2``, ``killed by signal 9 (SIGKILL)``, ``killed by signal 11 (SIGSEGV, a native crash)``."""
     if status is None:
         return "no exit status yet"
     if status >= 0:

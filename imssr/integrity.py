@@ -1,11 +1,10 @@
 """Checksums of the files a run depends on: checkpoints and replay buffers.
 
-A zip file (a torch checkpoint, a numpy ``.npz``) is *sealed* by writing the sha256 of its bytes
-into the zip archive comment, the field that ends every zip file: still a plain zip for
-``torch.load`` and ``np.load``, and the atomic rename that publishes the file publishes its
-checksum with it.  The digest covers every byte up to the comment-length field, then that field
-as zero.  Every checkpoint and replay index imssr writes is sealed, so a file without a seal
-where the file ends (cut short, extended, or never sealed) is not trusted.
+A zip file (a torch checkpoint, a numpy ``.npz``) is *sealed* by writing the sha256 of its bytes into the zip
+archive comment, the field that ends every zip file: still a plain zip for ``torch.load`` and ``np.load``, and the
+atomic rename that publishes the file publishes its checksum with it.  The digest covers every byte up to the
+comment-length field, then that field as zero.  Every checkpoint and replay index imssr writes is sealed, so a file
+without a seal where the file ends (cut short, extended, or never sealed) is not trusted.
 """
 from __future__ import annotations
 
@@ -92,9 +91,8 @@ _SEARCH = (1 << 16) + _EOCD_LEN + _COMMENT_LEN  # as far back as a zip reader lo
 
 
 def zip_seal_problem(path: str) -> Optional[str]:
-    """None when the file at ``path`` ends with a seal that matches its bytes; else why it cannot
-    be trusted: :data:`MISMATCH`, :data:`DISPLACED` or :data:`UNSEALED`.  ``OSError`` when the file
-    cannot be read."""
+    """None when the file at ``path`` ends with a seal that matches its bytes; else why it cannot be trusted:
+    :data:`MISMATCH`, :data:`DISPLACED` or :data:`UNSEALED`.  ``OSError`` when the file cannot be read."""
     with open(path, "rb") as fh:
         size = fh.seek(0, 2)
         tail_len = _EOCD_LEN + _COMMENT_LEN

@@ -1,6 +1,5 @@
-"""JSON that every reader accepts: non-finite floats written as ``null`` (Python's ``NaN`` and
-``Infinity`` are not JSON: ``jq`` and strict parsers refuse them), and JSON files read back with
-one-line errors.
+"""JSON that every reader accepts: non-finite floats written as ``null`` (Python's ``NaN`` and ``Infinity`` are not
+JSON: ``jq`` and strict parsers refuse them), and JSON files read back with one-line errors.
 """
 from __future__ import annotations
 

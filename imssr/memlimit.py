@@ -80,9 +80,8 @@ _MUJOCO_ALLOC = re.compile(r"Could not allocate memory for (\w+)")
 
 
 def out_of_memory_text(exc: BaseException) -> Optional[str]:
-    """One line for an allocation that failed (``MemoryError``, torch's CPU allocator as a
-    ``RuntimeError``, MuJoCo's model compiler as a ``ValueError``), or None when ``exc`` is
-    something else."""
+    """One line for an allocation that failed (``MemoryError``, torch's CPU allocator as a ``RuntimeError``,
+    MuJoCo's model compiler as a ``ValueError``), or None when ``exc`` is something else."""
     torch_alloc, mujoco_alloc = _TORCH_ALLOC.search(str(exc)), _MUJOCO_ALLOC.search(str(exc))
     if isinstance(exc, MemoryError):
         what = "out of memory"

@@ -1,9 +1,9 @@
 """Mixed precision (``agent.precision``) and the device switches of an agent.
 
-``bf16`` runs the forward passes under :func:`torch.autocast` with bfloat16 on the agent's
-device type (CPU or CUDA alike); weights, gradients and Adam's state stay float32.  Pieces whose
-rounding matters run in float32 inside :func:`full_precision` regions; with ``fp32`` no autocast
-context is ever entered, so :func:`full_precision` is a no-op and the float32 path is unchanged.
+``bf16`` runs the forward passes under :func:`torch.autocast` with bfloat16 on the agent's device type (CPU or CUDA
+alike); weights, gradients and Adam's state stay float32.  Pieces whose rounding matters run in float32 inside
+:func:`full_precision` regions; with ``fp32`` no autocast context is ever entered, so :func:`full_precision` is a
+no-op and the float32 path is unchanged.
 """
 from __future__ import annotations
 
@@ -59,12 +59,11 @@ class FP32BatchNorm1d(nn.BatchNorm1d):
 
 
 class FrozenBF16:
-    """The forward of a frozen ``nn.Linear`` or ``nn.Conv2d`` (weights without grad: target
-    networks, RND's random target) that keeps bfloat16 copies of its weight and bias for bf16
-    autocast.  Autocast caches the casts of weights that require grad only, so it would cast
-    these again at every call; the copies are made again only when the weights change (the
-    version counters: an EMA step, a loaded state dict).  The same values as autocast's cast, so
-    the same numbers; outside bf16 autocast, the layer's own forward."""
+    """The forward of a frozen ``nn.Linear`` or ``nn.Conv2d`` (weights without grad: target networks, RND's random
+    target) that keeps bfloat16 copies of its weight and bias for bf16 autocast.  Autocast caches the casts of
+    weights that require grad only, so it would cast these again at every call; the copies are made again only when
+    the weights change (the version counters: an EMA step, a loaded state dict).  The same values as autocast's
+    cast, so the same numbers; outside bf16 autocast, the layer's own forward."""
 
     def __init__(self, layer: nn.Linear | nn.Conv2d):
         self.layer = layer
@@ -98,20 +97,18 @@ def cache_frozen_weights(*modules: nn.Module) -> int:
 
 
 def adam(params, lr: float, betas: tuple[float, float] = (0.9, 0.999), fused: bool = False) -> torch.optim.Adam:
-    """torch's Adam, fused (``agent.fused_adam``: one kernel per group on CUDA, the last bits of
-    rounding differ) or torch's default implementation (the foreach kernels on CUDA, the
-    per-tensor loop on CPU; foreach is bit-identical there and gains nothing).  Under
-    ``agent.cuda_graphs`` the agent switches its optimisers to ``capturable`` before recording
-    (:func:`imssr.agents.graphs.set_capturable`)."""
+    """torch's Adam, fused (``agent.fused_adam``: one kernel per group on CUDA, the last bits of rounding differ) or
+    torch's default implementation (the foreach kernels on CUDA, the per-tensor loop on CPU; foreach is
+    bit-identical there and gains nothing).  Under ``agent.cuda_graphs`` the agent switches its optimisers to
+    ``capturable`` before recording (:func:`imssr.agents.graphs.set_capturable`)."""
     return torch.optim.Adam(params, lr=lr, betas=betas, fused=True if fused else None)
 
 
 def optimizer_step(loss: torch.Tensor, *optimizers: torch.optim.Optimizer) -> None:
     """Backpropagate ``loss`` and step each optimiser on its parameters' fresh gradients.
 
-    Outside autocast: the backward pass runs each op in the dtype its forward used, and the
-    optimiser updates the float32 weights and state in float32 (torch's advice: autocast wraps
-    forward passes and losses only)."""
+    Outside autocast: the backward pass runs each op in the dtype its forward used, and the optimiser updates the
+    float32 weights and state in float32 (torch's advice: autocast wraps forward passes and losses only)."""
     for opt in optimizers:
         opt.zero_grad(set_to_none=True)
     # Only the stepped parameters' gradients: autograd then skips the weight gradients that no
@@ -150,15 +147,13 @@ def native_bf16(cpuinfo: str) -> bool:
 
 
 def bf16_slowdown(vendor: str, flags: frozenset[str]) -> Optional[str]:
-    """Why ``agent.precision=bf16`` is expected to run slower than float32 on a CPU of ``vendor``
-    with ``flags`` (:func:`cpu_features`): ``"no-amx"`` (``avx512_bf16`` on a CPU that is not
-    AMD's, without AMX) or ``"emulated"`` (no native bfloat16); None where it is expected to gain
-    or nothing is known.
+    """Why ``agent.precision=bf16`` is expected to run slower than float32 on a CPU of ``vendor`` with ``flags``
+    (:func:`cpu_features`): ``"no-amx"`` (``avx512_bf16`` on a CPU that is not AMD's, without AMX) or ``"emulated"``
+    (no native bfloat16); None where it is expected to gain or nothing is known.
 
-    Measured per update (docs/performance.md, "Mixed precision"): AMD Zen 4 (``avx512_bf16``)
-    0.42-0.46x of float32's time, an Intel Xeon with ``avx512_bf16`` but without AMX 1.14-1.23x,
-    emulated bfloat16 about 5x.  Intel CPUs with AMX (``amx_bf16``) gain; Arm's ``bf16`` is native
-    and not measured."""
+    Measured per update (docs/performance.md, "Mixed precision"): AMD Zen 4 (``avx512_bf16``) 0.42-0.46x of
+    float32's time, an Intel Xeon with ``avx512_bf16`` but without AMX 1.14-1.23x, emulated bfloat16 about 5x.
+    Intel CPUs with AMX (``amx_bf16``) gain; Arm's ``bf16`` is native and not measured."""
     if flags & {"amx_bf16", "bf16"}:
         return None
     if "avx512_bf16" in flags:
@@ -213,10 +208,9 @@ def configure_process(cfg, device: torch.device) -> None:
 
 
 def configure_cuda(device: torch.device, tf32: str) -> None:
-    """On CUDA: cuDNN picks its fastest convolution algorithms for the (fixed) input shapes, and
-    TensorFloat-32 as ``tf32`` (``agent.tf32``) says: ``default`` sets PyTorch's own defaults
-    (TF32 in cuDNN convolutions, not in matmuls), ``true`` allows it in both, ``false`` in
-    neither.  The switches are process-wide.  No-op on CPU."""
+    """On CUDA: cuDNN picks its fastest convolution algorithms for the (fixed) input shapes, and TensorFloat-32 as
+    ``tf32`` (``agent.tf32``) says: ``default`` sets PyTorch's own defaults (TF32 in cuDNN convolutions, not in
+    matmuls), ``true`` allows it in both, ``false`` in neither.  The switches are process-wide.  No-op on CPU."""
     if device.type != "cuda":
         return
     torch.backends.cudnn.benchmark = True

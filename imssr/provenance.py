@@ -1,11 +1,10 @@
 """Which code and which machine made a run: one record per start and per resume.
 
-A run directory's ``provenance.json`` lists them in order, so a run resumed on another machine
-or after an upgrade says so: the versions that can change a run's numbers (imssr with its git
-commit, Python, torch, CUDA, cuDNN, the NVIDIA driver, numpy, dm_control, mujoco), the device and
-the command line.  No host name is recorded, and every absolute or home-relative path in the
-command line is cut to its last part (``…/runs``): a committed record does not carry its
-author's machine.
+A run directory's ``provenance.json`` lists them in order, so a run resumed on another machine or after an upgrade
+says so: the versions that can change a run's numbers (imssr with its git commit, Python, torch, CUDA, cuDNN, the
+NVIDIA driver, numpy, dm_control, mujoco), the device and the command line.  No host name is recorded, and every
+absolute or home-relative path in the command line is cut to its last part (``…/runs``): a committed record does not
+carry its author's machine.
 
 A copy of a checkout without its ``.git`` knows its commit from a source stamp,
 ``.imssr-source.json`` beside the package, which ``python -m imssr.provenance --stamp`` writes
@@ -175,8 +174,7 @@ after ``=``, ``[``, ``,``, ``(``, a space or a quote (``--out=/x``, ``--set aux.
 
 
 def command_line(argv: list[str]) -> list[str]:
-    """``argv`` with the program cut to its name and the paths in each argument cut
-    (:func:`shorten_paths`)."""
+    """``argv`` with the program cut to its name and the paths in each argument cut (:func:`shorten_paths`)."""
     return ([os.path.basename(argv[0])] if argv else []) + [shorten_paths(arg) for arg in argv[1:]]
 
 

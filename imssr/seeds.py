@@ -12,10 +12,9 @@ NOISE_SEED_OFFSET = 1
 apart from its augmentation generator (seed + 0)."""
 
 INTRINSIC_SEED_OFFSET = 2
-"""The agent's intrinsic-reward generator (``intrinsic_gen``, the extra views of the
-signal): seed + 2, so that computing the intrinsic reward never shifts the base algorithm's
-streams (beta = 0 is the baseline exactly).  :func:`imssr.analysis.adapter.fix_draws` reseeds
-it with the same offset."""
+"""The agent's intrinsic-reward generator (``intrinsic_gen``, the extra views of the signal): seed + 2, so that
+computing the intrinsic reward never shifts the base algorithm's streams (beta = 0 is the baseline exactly).
+:func:`imssr.analysis.adapter.fix_draws` reseeds it with the same offset."""
 
 TRAINING_EVAL_SEED_OFFSET = 10_000
 """The evaluation envs during training: seed + 10,000, a seed no training env uses."""

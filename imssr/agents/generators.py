@@ -1,10 +1,10 @@
 """An agent's random generators, their seeds and their saved state.
 
-Every random number an update or an action uses comes from one of three ``torch.Generator``s
-on the agent's device (crop offsets, overlay indices and kernels are drawn where they are used,
-with no copy from the host): the augmentations, the policy noise, and the intrinsic signal's
-extra views.  Apart, computing ``r_int`` never shifts the base algorithm's streams (beta = 0 is
-the baseline exactly), and nothing an agent does draws from torch's global generator.
+Every random number an update or an action uses comes from one of three ``torch.Generator``s on the agent's device
+(crop offsets, overlay indices and kernels are drawn where they are used, with no copy from the host): the
+augmentations, the policy noise, and the intrinsic signal's extra views.  Apart, computing ``r_int`` never shifts
+the base algorithm's streams (beta = 0 is the baseline exactly), and nothing an agent does draws from torch's global
+generator.
 """
 from __future__ import annotations
 

@@ -1,23 +1,20 @@
 """Many seeds of one experiment as agents of their own whose GPU work overlaps.
 
-:class:`Members` is a batch of seeds (``imssr train --seeds``, packed sweeps): each member is a
-whole :class:`~imssr.agents.sac.SACAgent`, untouched, and an agent step runs every member's own
-update (and action) in turn.  What may share a batch is decided before the agents are built
-(:mod:`imssr.config.batching`).  On CUDA each member issues its work on a CUDA stream of its own,
-all forked from the current stream and joined back into it before the step's host work, so the
-GPU may run one member's kernels beside another's: a seed's update at batch 128 launches
-hundreds of kernels that each fill a small part of the GPU, and kernels queued on one stream
-run one after another.  With ``agent.cuda_graphs`` each member's update is one recorded graph,
-replayed on its stream: the host queues the members' steps in microseconds and the device runs
-them side by side.
+:class:`Members` is a batch of seeds (``imssr train --seeds``, packed sweeps): each member is a whole
+:class:`~imssr.agents.sac.SACAgent`, untouched, and an agent step runs every member's own update (and action) in
+turn.  What may share a batch is decided before the agents are built (:mod:`imssr.config.batching`).  On CUDA each
+member issues its work on a CUDA stream of its own, all forked from the current stream and joined back into it
+before the step's host work, so the GPU may run one member's kernels beside another's: a seed's update at batch 128
+launches hundreds of kernels that each fill a small part of the GPU, and kernels queued on one stream run one after
+another.  With ``agent.cuda_graphs`` each member's update is one recorded graph, replayed on its stream: the host
+queues the members' steps in microseconds and the device runs them side by side.
 
-A member's arithmetic is its run's alone: the same agent, the same code, the same draws from
-its own generators; the streams change only when kernels run, not what they compute.  On the
-CPU there are no streams and the members run one after another: bit for bit the runs alone
-(``tests/test_agent_batch.py``).  On CUDA, kernels whose algorithm choice depends on timing
-(``cudnn.benchmark``, ``agent.tf32``'s defaults) may pick other algorithms beside other
-members than alone; with deterministic cuDNN algorithms the member is its run alone
-(``scripts/gpu_seeds.sh`` checks it on a GPU).
+A member's arithmetic is its run's alone: the same agent, the same code, the same draws from its own generators; the
+streams change only when kernels run, not what they compute.  On the CPU there are no streams and the members run
+one after another: bit for bit the runs alone (``tests/test_agent_batch.py``).  On CUDA, kernels whose algorithm
+choice depends on timing (``cudnn.benchmark``, ``agent.tf32``'s defaults) may pick other algorithms beside other
+members than alone; with deterministic cuDNN algorithms the member is its run alone (``scripts/gpu_seeds.sh`` checks
+it on a GPU).
 
 Joining before host work keeps the caching allocator safe: every tensor a member's stream
 allocates is read on the current stream only after that stream waited for the member's, and
@@ -93,9 +90,8 @@ class Members:
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, deterministic: bool) -> torch.Tensor:
-        """Each member's action ``(N, |A|)`` for its own observation stack ``obs[i]``: the
-        observations go to the device in one copy and the actions come back as one tensor, so a
-        caller reads them all with one copy."""
+        """Each member's action ``(N, |A|)`` for its own observation stack ``obs[i]``: the observations go to the
+        device in one copy and the actions come back as one tensor, so a caller reads them all with one copy."""
         x = torch.as_tensor(obs, device=self.device)
 
         def act(i: int, m: SACAgent) -> torch.Tensor:

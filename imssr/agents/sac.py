@@ -1,7 +1,6 @@
 """Pixel SAC with a pluggable auxiliary task and an optional intrinsic reward.
 
-One agent step's update, :meth:`SACAgent.update`, read top to bottom (order as in the CURL /
-DMC-GB code bases):
+One agent step's update, :meth:`SACAgent.update`, read top to bottom (order as in the CURL / DMC-GB code bases):
   1. sample the replay buffer, the RL batch first; ``beta_t`` of the step;
   2. augment: the RL crops of o and o' (:meth:`SACAgent.to_batch`);
   3. critic, every ``critic_update_every`` steps: ``encode`` the batch once, ``bellman_target``
@@ -168,9 +167,8 @@ class SACAgent:
         return metrics
 
     def update_key(self, step: int) -> tuple[bool, ...]:
-        """Which parts of the update run at agent step ``step``: the critic, the actor and
-        temperature, the target EMA, the auxiliary task.  Everything else an update does is the
-        same at every step."""
+        """Which parts of the update run at agent step ``step``: the critic, the actor and temperature, the target
+        EMA, the auxiliary task.  Everything else an update does is the same at every step."""
         c = self.cfg
         return (step % c.critic_update_every == 0, step % c.actor_update_every == 0,
                 step % c.target_update_every == 0, self.aux_due(step))
@@ -193,11 +191,10 @@ class SACAgent:
                      raw_obs=sample["obs"], raw_next_obs=sample["next_obs"], generator=self.gen)
 
     def update_critic(self, batch: Batch, beta: Beta, fuse: bool, step: int) -> tuple[Metrics, Optional[torch.Tensor]]:
-        """The critic's step, with the task's loss read from its pass if ``fuse`` (each optimiser
-        steps its own parameters, the shared encoder's once, the critic's, on the summed
-        gradient; then the task's :meth:`AuxiliaryTask.after_step`).  Returns its metrics and,
-        under the fused schedule, the pass's trunk of o, detached (the actor's input, as
-        DrQ-v2); else None (the actor encodes o afresh after this step)."""
+        """The critic's step, with the task's loss read from its pass if ``fuse`` (each optimiser steps its own
+        parameters, the shared encoder's once, the critic's, on the summed gradient; then the task's
+        :meth:`AuxiliaryTask.after_step`).  Returns its metrics and, under the fused schedule, the pass's trunk of
+        o, detached (the actor's input, as DrQ-v2); else None (the actor encodes o afresh after this step)."""
         loss, metrics, trunk = self.fused_objective(batch, beta, with_task_loss=fuse)
         optimizer_step(loss, self.critic_opt, *([self.aux.optimizer] if fuse else []))
         if fuse:
@@ -225,12 +222,11 @@ class SACAgent:
         return (loss + aux_loss if with_task_loss else loss), metrics, enc.obs_trunk.detach()
 
     def encode(self, batch: Batch, with_task_loss: bool = False) -> Encoding:
-        """The update's encoder passes (:class:`~imssr.batch.Encoding`): the online trunk over
-        the critic's views of o in one pass, with grad; o' through the online trunk and the
-        target encoder, without.  ``with_task_loss``: the auxiliary task's per-sample loss read
-        from this pass too (``Encoding.aux_loss``; PAD's also needs o' with grad, in the same
-        pass).  Computed before the Bellman target, whose intrinsic signal may reuse it (IM-PAD);
-        the two draw from different generators, so the order changes no random draw."""
+        """The update's encoder passes (:class:`~imssr.batch.Encoding`): the online trunk over the critic's views of
+        o in one pass, with grad; o' through the online trunk and the target encoder, without.  ``with_task_loss``:
+        the auxiliary task's per-sample loss read from this pass too (``Encoding.aux_loss``; PAD's also needs o'
+        with grad, in the same pass).  Computed before the Bellman target, whose intrinsic signal may reuse it
+        (IM-PAD); the two draw from different generators, so the order changes no random draw."""
         trunk_net = self.nets.critic.encoder.trunk
         views = self.aux.critic_views(batch) if self.aux is not None else [(batch.obs, 1.0)]
         obs = views[0][0] if len(views) == 1 else torch.cat([v for v, _ in views])
@@ -294,10 +290,9 @@ class SACAgent:
             return loss, q1_all[:len(batch)].detach().mean()
 
     def actor_losses(self, trunk: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """SAC's policy and temperature losses on ``trunk``, the online trunk's output on
-        ``batch.obs`` without a graph, and the policy's mean entropy.  The temperature's loss
-        reads log pi detached and the actor's reads alpha detached: either step leaves the
-        other's loss as it was."""
+        """SAC's policy and temperature losses on ``trunk``, the online trunk's output on ``batch.obs`` without a
+        graph, and the policy's mean entropy.  The temperature's loss reads log pi detached and the actor's reads
+        alpha detached: either step leaves the other's loss as it was."""
         n = self.nets
         policy = n.actor(trunk, generator=self.noise_gen)
         q1, q2 = n.critic.q(n.critic.encoder.projection(trunk), policy.action)
@@ -311,9 +306,8 @@ class SACAgent:
         return actor_loss, alpha_loss, entropy.detach().mean()
 
     def update_actor_and_alpha(self, batch: Batch, trunk: Optional[torch.Tensor]) -> Metrics:
-        """The actor's step, then the temperature's, on ``trunk`` (the fused schedule's encoding
-        of o from the critic's pass) or on a fresh encoding of o after the critic's step; their
-        metrics (alpha after its step)."""
+        """The actor's step, then the temperature's, on ``trunk`` (the fused schedule's encoding of o from the
+        critic's pass) or on a fresh encoding of o after the critic's step; their metrics (alpha after its step)."""
         if trunk is None:
             with torch.no_grad():  # the actor never trains the convolutions: no graph
                 trunk = self.nets.critic.encoder.trunk(batch.obs)
@@ -374,9 +368,8 @@ class SACAgent:
     def load_state_dict(self, state: dict, restore_rng: bool = True) -> None:
         """Load weights, optimisers and (unless ``restore_rng`` is False) random states.
 
-        Evaluation passes ``restore_rng=False``; a checkpoint written on another
-        device type (CPU vs CUDA generator states differ) reseeds the generators
-        instead, since bit-exact resume across devices is impossible anyway.
+        Evaluation passes ``restore_rng=False``; a checkpoint written on another device type (CPU vs CUDA generator
+        states differ) reseeds the generators instead, since bit-exact resume across devices is impossible anyway.
         """
         # Optimisers adopt loaded state tensors without copying them; copy so that
         # an in-memory state (e.g. another live agent's) is never shared.

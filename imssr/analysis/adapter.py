@@ -1,5 +1,4 @@
-"""The analysis's only contact with the agent's internals: a change of the agent's update
-changes this file only."""
+"""The analysis's only contact with the agent's internals: a change of the agent's update changes this file only."""
 from __future__ import annotations
 
 import numpy as np

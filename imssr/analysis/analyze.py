@@ -1,8 +1,7 @@
 """``imssr analyze``: measure the two terms that the paper's Section III bounds the intrinsic
 reward by, on the states of a trained run (docs/analysis.md).
 
-The run directory is only read (no lock, as ``imssr evaluate``); the outputs go to
-``RUN/analysis/``.
+The run directory is only read (no lock, as ``imssr evaluate``); the outputs go to ``RUN/analysis/``.
 """
 from __future__ import annotations
 

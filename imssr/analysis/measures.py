@@ -68,10 +68,9 @@ def standardise(coords: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 
 def knn_distance(query: np.ndarray, pool: np.ndarray, k: int, exclude: Optional[np.ndarray] = None) -> np.ndarray:
-    """Distance from each ``query`` row to its ``k``-th nearest row of ``pool`` (NaN rows of
-    ``pool`` are left out, and row ``exclude[i]`` for query ``i``: the state itself).  A state
-    recorded ``k`` more times has novelty 0.  NaN where the pool holds fewer than ``k`` others
-    or the query row is not finite."""
+    """Distance from each ``query`` row to its ``k``-th nearest row of ``pool`` (NaN rows of ``pool`` are left out,
+    and row ``exclude[i]`` for query ``i``: the state itself).  A state recorded ``k`` more times has novelty 0.
+    NaN where the pool holds fewer than ``k`` others or the query row is not finite."""
     from scipy.spatial import cKDTree
 
     if k < 1:

@@ -1,8 +1,8 @@
 """The states an analysis looks at, with the physics they were rendered from.
 
-Two sources: ``replay``, the run's saved replay buffer, which records each frame's physics state
-and agent step; ``rollouts``, when no buffer was saved or it predates physics recording, fresh
-episodes of the run's policy in its training scene (their agent steps unknown: -1).
+Two sources: ``replay``, the run's saved replay buffer, which records each frame's physics state and agent step;
+``rollouts``, when no buffer was saved or it predates physics recording, fresh episodes of the run's policy in its
+training scene (their agent steps unknown: -1).
 """
 from __future__ import annotations
 

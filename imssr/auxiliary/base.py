@@ -44,12 +44,11 @@ class AuxiliaryTask(ModuleWithOptimizer, abc.ABC):
     trains: ClassVar[bool] = True
     """False for tasks without an auxiliary loss of their own (SVEA acts through the critic)."""
     reads_critic_pass: ClassVar[Optional[Literal["obs", "obs+next_obs"]]] = None
-    """What of the critic's encoder pass over the RL batch (:class:`~imssr.batch.Encoding`) the
-    training loss can read instead of running a pass of its own: ``"obs"`` (CURL: the trunk
-    output of o), ``"obs+next_obs"`` (PAD: the shared-layer features of o and o', with grad; the
-    agent then encodes both in one pass), or None (SODA: views of its own).  The agent reads the
-    loss from its pass under ``agent.update_schedule = fused`` when the task trains on the RL
-    batch; the task itself never needs to know which schedule runs."""
+    """What of the critic's encoder pass over the RL batch (:class:`~imssr.batch.Encoding`) the training loss can
+    read instead of running a pass of its own: ``"obs"`` (CURL: the trunk output of o), ``"obs+next_obs"`` (PAD: the
+    shared-layer features of o and o', with grad; the agent then encodes both in one pass), or None (SODA: views of
+    its own).  The agent reads the loss from its pass under ``agent.update_schedule = fused`` when the task trains
+    on the RL batch; the task itself never needs to know which schedule runs."""
 
     def __init__(self, shared: SharedNetworks, cfg: AuxCore, agent_cfg: AgentConfig):
         """``cfg`` is the ``aux`` section: :class:`AuxCore` and every task's settings, this

@@ -1,9 +1,9 @@
 """Pools of natural images for random overlay (SODA) and, later, distracting scenes.
 
-Two sources: a user-supplied folder (any tree of ``.jpg`` / ``.jpeg`` / ``.png``, e.g. a
-Places365 download, as ``aux.image_dir`` or ``$IMSSR_IMAGE_DIR``), else the photographs that
-installed packages ship, cut into square patches at random positions and scales (nothing is
-downloaded).  A pool is a uint8 array ``(N, 3, size, size)``, cached per process.
+Two sources: a user-supplied folder (any tree of ``.jpg`` / ``.jpeg`` / ``.png``, e.g. a Places365 download, as
+``aux.image_dir`` or ``$IMSSR_IMAGE_DIR``), else the photographs that installed packages ship, cut into square
+patches at random positions and scales (nothing is downloaded).  A pool is a uint8 array ``(N, 3, size, size)``,
+cached per process.
 """
 from __future__ import annotations
 

@@ -198,9 +198,8 @@ class DMCEnv(gym.Env):
 
     def render_stack(self, states: np.ndarray) -> np.ndarray:
         """Render recorded physics states ``(k, D)``, oldest first, as one ``(3k, H, W)`` stack:
-        in a test scene a fresh episode of it, stepped between frames as :meth:`step` does (a
-        state equal to the one before is copied, as after a reset); in ``training`` exactly the
-        recorded frames."""
+        in a test scene a fresh episode of it, stepped between frames as :meth:`step` does (a state equal to the one
+        before is copied, as after a reset); in ``training`` exactly the recorded frames."""
         states = np.asarray(states, dtype=np.float64)
         if self.scene is not None:
             self.scene.reset()

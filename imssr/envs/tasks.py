@@ -1,8 +1,7 @@
 """Task names, their defaults from the paper, and per-sub-step reward transforms.
 
-Names follow the paper (``domain_task``).  Besides the suite's own tasks there is
-``walker_walk_sparse``: the dense ``walker_walk`` reward of each physics sub-step
-thresholded at 0.5 (the paper's appendix, "Sparse Reward Settings").
+Names follow the paper (``domain_task``).  Besides the suite's own tasks there is ``walker_walk_sparse``: the dense
+``walker_walk`` reward of each physics sub-step thresholded at 0.5 (the paper's appendix, "Sparse Reward Settings").
 """
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """An environment in a process of its own (``train.env_workers``).
 
-:class:`EnvWorker` stands in for an env and forwards each call, in order, to a worker process
-that built the env itself, with its own MuJoCo and EGL context.  :meth:`EnvWorker.step_async`
-returns at once, so a training can step the envs of all its seeds at once, and while it updates.
+:class:`EnvWorker` stands in for an env and forwards each call, in order, to a worker process that built the env
+itself, with its own MuJoCo and EGL context.  :meth:`EnvWorker.step_async` returns at once, so a training can step
+the envs of all its seeds at once, and while it updates.
 """
 from __future__ import annotations
 

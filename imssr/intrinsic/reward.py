@@ -31,11 +31,10 @@ def normalize(losses: torch.Tensor, method: str = "zscore", eps: float = 0.0, un
     * ``mean``: ``l / (mean + eps)``; keeps ratios, mean 1.
     * ``none``: the raw loss.
 
-    A batch whose spread (zscore: std; minmax: max - min) is at most ``rtol * max(|mean|, 1e-12)``
-    gives zeros: the losses are equal up to float rounding, and dividing their rounding error by a
-    tiny spread would hand out a large constant bonus (all 0.3: +0.75 per sample with eps 1e-8).
-    Non-finite losses give non-finite values; the training loop stops the run on them
-    (:class:`IntrinsicReward`).
+    A batch whose spread (zscore: std; minmax: max - min) is at most ``rtol * max(|mean|, 1e-12)`` gives zeros: the
+    losses are equal up to float rounding, and dividing their rounding error by a tiny spread would hand out a large
+    constant bonus (all 0.3: +0.75 per sample with eps 1e-8). Non-finite losses give non-finite values; the training
+    loop stops the run on them (:class:`IntrinsicReward`).
     """
     if method == "none":
         return losses
@@ -95,10 +94,9 @@ class IntrinsicReward:
         the losses' device: nothing here waits for the device).  ``beta``: ``beta_t``
         (:class:`BetaSchedule`), a float or, under CUDA graphs, a float64 0-dim tensor.
 
-        A non-finite loss turns every reward of the batch into NaN through the batch statistics,
-        and the critic with it.  It also makes ``r_int_raw`` (the losses' mean) non-finite,
-        which the training loop checks with the other metrics and stops the run on, naming
-        the agent step and the signal.
+        A non-finite loss turns every reward of the batch into NaN through the batch statistics, and the critic with
+        it.  It also makes ``r_int_raw`` (the losses' mean) non-finite, which the training loop checks with the
+        other metrics and stops the run on, naming the agent step and the signal.
         """
         with full_precision(losses):
             # Float32 under any autocast: the normalisation divides small differences of

@@ -17,12 +17,11 @@ class SSLSettings:
 
     form: str = "authors"
     """How IM-CURL's and IM-SODA's signal of o' is computed (docs/algorithms.md).  ``authors``:
-    as the authors' code did (IM-CURL: online z of the RL crop of o' keyed by the target
-    encoder on the same crop; IM-SODA: online predictor on the clean crop vs the target on its
-    overlay, squared distance summed over dimensions, then log1p).  ``training``: the task's
-    training loss applied to o' (IM-CURL: the key on an independent crop, one more encoder
-    pass; IM-SODA: the training loss's orientation, mean over dimensions).  PAD, SVEA, RND and
-    RE3 have one form."""
+    as the authors' code did (IM-CURL: online z of the RL crop of o' keyed by the target encoder on the same crop;
+    IM-SODA: online predictor on the clean crop vs the target on its overlay, squared distance summed over
+    dimensions, then log1p).  ``training``: the task's training loss applied to o' (IM-CURL: the key on an
+    independent crop, one more encoder pass; IM-SODA: the training loss's orientation, mean over dimensions).  PAD,
+    SVEA, RND and RE3 have one form."""
 
 
 def rules(cfg: Sections) -> list[tuple[bool, str]]:

@@ -57,9 +57,8 @@ def plot_learning_curve(run_dir: RunDir | str, out_path: str | None = None) -> s
 
 
 def _curves(rows: list[dict], path: str) -> dict[str, list[tuple[int, float, float]]]:
-    """``(agent step, return mean, return std)`` of each scene's evaluations in ``eval.csv``'s
-    ``rows``; a row that does not hold them is a one-line error that names it (rows count from 1
-    after the header of ``path``)."""
+    """``(agent step, return mean, return std)`` of each scene's evaluations in ``eval.csv``'s ``rows``; a row that
+    does not hold them is a one-line error that names it (rows count from 1 after the header of ``path``)."""
     curves: dict[str, list[tuple[int, float, float]]] = {}
     for number, r in enumerate(rows, start=1):
         try:

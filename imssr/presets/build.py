@@ -88,11 +88,10 @@ def run_config(algo: str | None = None, task: str | None = None, *, network: str
 
 def base_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
                 config_file: str | None = None, base: RunConfig | None = None, demo: bool = False) -> RunConfig:
-    """What a run's settings start from, in this order: the file ``config_file`` (a partial one
-    merged onto the preset of its algo and task, :func:`load_partial_config`), ``base`` (a
-    resumed run's saved config, :func:`imssr.training.entry.resume_config`), or the preset of
-    ``algo`` on ``task`` (the demo's with ``demo``).  A given ``algo`` or ``task`` must agree
-    with a loaded file or ``base``."""
+    """What a run's settings start from, in this order: the file ``config_file`` (a partial one merged onto the
+    preset of its algo and task, :func:`load_partial_config`), ``base`` (a resumed run's saved config,
+    :func:`imssr.training.entry.resume_config`), or the preset of ``algo`` on ``task`` (the demo's with ``demo``).
+    A given ``algo`` or ``task`` must agree with a loaded file or ``base``."""
     if config_file:
         cfg = load_partial_config(config_file, algo, task)
     elif base is not None:
@@ -116,10 +115,9 @@ def base_config(algo: str | None = None, task: str | None = None, *, network: st
 
 
 def demo_config(algo: str = "im-curl", task: str = "cartpole_swingup", network: str = "dmcgb") -> RunConfig:
-    """README command 1: a short IM-SSR run whose learning curve rises on 2 CPU cores, its
-    settings (:data:`~imssr.presets.tables.DEMO`) chosen by measurement (docs/performance.md, "The
-    demo").  Past about 1,000 updates a young policy's evaluations swing, so the demo stops
-    there.  A demonstration, not a result."""
+    """README command 1: a short IM-SSR run whose learning curve rises on 2 CPU cores, its settings
+    (:data:`~imssr.presets.tables.DEMO`) chosen by measurement (docs/performance.md, "The demo").  Past about 1,000
+    updates a young policy's evaluations swing, so the demo stops there.  A demonstration, not a result."""
     cfg = make_config(algo, task, network)
     for row in DEMO:
         set_field(cfg, row.field, row.value)

@@ -1,9 +1,9 @@
 """The paper's settings, each with its source: the rows every preset is made of.
 
-The authors' code (``duchenzhuang/dmc-disentangle``, a fork of DMC-GB that produced the paper's
-numbers) where the paper's tables are silent, Table III and Table V where they speak.  The rows
-of each base and signal are its plug-in's (its ``*_spec.py``); those every algorithm shares are
-here.  :func:`preset_settings` gathers one preset's (``imssr config --explain``).
+The authors' code (``duchenzhuang/dmc-disentangle``, a fork of DMC-GB that produced the paper's numbers) where the
+paper's tables are silent, Table III and Table V where they speak.  The rows of each base and signal are its
+plug-in's (its ``*_spec.py``); those every algorithm shares are here.  :func:`preset_settings` gathers one preset's
+(``imssr config --explain``).
 """
 from __future__ import annotations
 

@@ -1,9 +1,8 @@
 """Aggregate metrics across tasks with rliable (Agarwal et al. 2021).
 
-Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks weigh
-alike.  Per mode and fraction of T: each algo's interquartile mean (IQM) with a 95%
-stratified-bootstrap interval.  Comparisons of two algorithms are made within a task
-(:mod:`imssr.report.comparisons`), not pooled here.
+Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks weigh alike.  Per mode
+and fraction of T: each algo's interquartile mean (IQM) with a 95% stratified-bootstrap interval.  Comparisons of
+two algorithms are made within a task (:mod:`imssr.report.comparisons`), not pooled here.
 """
 from __future__ import annotations
 
@@ -113,8 +112,7 @@ def _missing_extra() -> str:
 
 
 def _iqm_estimates(scores: dict, reps: int, seed: int):
-    """rliable's IQM with its stratified-bootstrap interval, with a fixed seed (a report is
-    reproducible)."""
+    """rliable's IQM with its stratified-bootstrap interval, with a fixed seed (a report is reproducible)."""
     rly = require("rliable.library", "report")
     metrics = require("rliable.metrics", "report")
 

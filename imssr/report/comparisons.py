@@ -1,8 +1,7 @@
-"""Comparisons within one task, mode and fraction of T (never pooled, where seeds of different
-things would stand in for each other): an algorithm with an intrinsic reward against its base at
-the same precision, and an algorithm at another precision against itself at fp32.  Each gives n
-on both sides, the difference of means, P(X > Y) and the two-sided Mann-Whitney p-value
-(two-sided: no direction was fixed before the runs).
+"""Comparisons within one task, mode and fraction of T (never pooled, where seeds of different things would stand in
+for each other): an algorithm with an intrinsic reward against its base at the same precision, and an algorithm at
+another precision against itself at fp32.  Each gives n on both sides, the difference of means, P(X > Y) and the
+two-sided Mann-Whitney p-value (two-sided: no direction was fixed before the runs).
 """
 from __future__ import annotations
 

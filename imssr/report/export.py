@@ -5,10 +5,10 @@
 
     DEST/<precision>/<task>/<algo>/seed_<n>            (a beta_0 sweep: .../<algo>/beta0_<b>/seed_<n>)
 
-a tree that ``imssr report DEST`` reads as it reads the sweep.  Running or interrupted runs are
-left out: their logs would change under the copy.  Copying again writes only what changed.  The
-copy of ``config.json`` carries no path of its author's machine: every absolute or home-relative
-path in a value is cut to its last part, ``…/imgs`` (the run's own copy keeps them whole).
+a tree that ``imssr report DEST`` reads as it reads the sweep.  Running or interrupted runs are left out: their logs
+would change under the copy.  Copying again writes only what changed.  The copy of ``config.json`` carries no path
+of its author's machine: every absolute or home-relative path in a value is cut to its last part, ``…/imgs`` (the
+run's own copy keeps them whole).
 """
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """Reading a sweep directory back: every run's identity, budget (in agent steps) and evaluations.
 
-Runs are found by their ``config.json`` at any depth below the root, so a report also works on
-hand-assembled directories and on running sweeps; the sweep's own files add the runs planned but
-not started (``sweep.json``) and those that failed every attempt (``sweep_status.json``).
+Runs are found by their ``config.json`` at any depth below the root, so a report also works on hand-assembled
+directories and on running sweeps; the sweep's own files add the runs planned but not started (``sweep.json``) and
+those that failed every attempt (``sweep_status.json``).
 """
 from __future__ import annotations
 
@@ -28,8 +28,7 @@ class RunResult:
     """One run directory as the report sees it: which run, and what it holds."""
 
     run: Run
-    """Which run; its beta_0 only when the run is a point of a beta sweep (a ``beta0_<value>``
-    directory level)."""
+    """Which run; its beta_0 only when the run is a point of a beta sweep (a ``beta0_<value>`` directory level)."""
     steps: int
     """The run's budget T in agent steps."""
     action_repeat: int
@@ -90,8 +89,7 @@ class SweepResults:
         return any(r.run.beta0 is not None for r in self.runs) or any(p.run.beta0 is not None for p in self.planned)
 
     def budget(self, task: str) -> int:
-        """The sweep's T for ``task`` in agent steps: the planned budget, else the largest
-        budget of its runs."""
+        """The sweep's T for ``task`` in agent steps: the planned budget, else the largest budget of its runs."""
         return self._per_task[task][0]
 
     def action_repeat(self, task: str) -> Optional[int]:

@@ -21,9 +21,8 @@ EXACT_SPLITS = 200_000
 PERMUTATIONS = 20_000
 """Random splits when there are more (seeded: a report is reproducible)."""
 MIN_SEEDS_FOR_BOOTSTRAP = 5
-"""Fewest seeds per task for an IQM and a bootstrap interval: below it the IQM of n values is
-their mean (n = 3: the middle value's neighbours average in) and a bootstrap interval is little
-more than [min, max]."""
+"""Fewest seeds per task for an IQM and a bootstrap interval: below it the IQM of n values is their mean (n = 3: the
+middle value's neighbours average in) and a bootstrap interval is little more than [min, max]."""
 
 
 def sample_std(values: Sequence[float]) -> float:

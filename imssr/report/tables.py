@@ -1,10 +1,9 @@
 """The paper's table layout: mean ± std over seeds at 0.2T, 0.5T and 1.0T per task and mode.
 
-T counts agent steps, as the paper's does, whatever the task's action repeat.  The point of a
-fraction ``f`` is the first agent step at or after ``f * T``, and a seed's value there is its last
-evaluation at or before it (the paper's 10,000-step interval divides its points).  A seed whose
-evaluations stop before the point has no value there, and the cell says how many of the expected
-seeds it averages, and how many of those failed ("(2/3, 1 failed)").
+T counts agent steps, as the paper's does, whatever the task's action repeat.  The point of a fraction ``f`` is the
+first agent step at or after ``f * T``, and a seed's value there is its last evaluation at or before it (the paper's
+10,000-step interval divides its points).  A seed whose evaluations stop before the point has no value there, and
+the cell says how many of the expected seeds it averages, and how many of those failed ("(2/3, 1 failed)").
 """
 from __future__ import annotations
 
@@ -252,9 +251,8 @@ def paper_results_text(spec: Optional[str] = None) -> tuple[str, str]:
 
 
 def load_paper_results(spec: Optional[str] = None) -> dict[tuple[str, str, float, str], PaperNumber]:
-    """``(task, mode, fraction, paper algo name) -> PaperNumber`` from a shipped dataset or a CSV
-    (columns ``table, task, mode, frames_fraction, algorithm, mean, std`` and, optionally,
-    ``seeds``)."""
+    """``(task, mode, fraction, paper algo name) -> PaperNumber`` from a shipped dataset or a CSV (columns ``table,
+    task, mode, frames_fraction, algorithm, mean, std`` and, optionally, ``seeds``)."""
     text, _ = paper_results_text(spec)
     out = {}
     for row in csv.DictReader(text.splitlines()):

@@ -131,9 +131,8 @@ class _Fields:
         self.row, self.what = row, what
 
     def get(self, key: str, kind: type | tuple[type, ...], default: Any = _REQUIRED) -> Any:
-        """``row[key]`` when it is of type ``kind`` (never a bool for a number); ``default`` when the
-        key is absent or null (a non-finite number is written as null), if there is one; ValueError
-        otherwise."""
+        """``row[key]`` when it is of type ``kind`` (never a bool for a number); ``default`` when the key is absent
+        or null (a non-finite number is written as null), if there is one; ValueError otherwise."""
         value = self.row.get(key)
         if value is None:
             if default is self._REQUIRED:

@@ -1,7 +1,7 @@
 """Sweep grids: what to run (algos x tasks x seeds [x beta_0]) and where each run lives.
 
-:class:`SweepConfig` is a sweep's settings, one typed field each, whose docstrings are the CLI's
-help.  :class:`Run` names one run of a grid, whose directory is a pure function of its grid point
+:class:`SweepConfig` is a sweep's settings, one typed field each, whose docstrings are the CLI's help.  :class:`Run`
+names one run of a grid, whose directory is a pure function of its grid point
 (``ROOT/<task>/<algo>/[beta0_<value>/]seed_<n>``), so re-running a sweep finds its runs again.
 """
 from __future__ import annotations
@@ -38,11 +38,9 @@ class SweepConfig:
     tasks: list[str] = field(default_factory=list)
     """Tasks, see ``imssr tasks``: ``t1,t2``, or a list in a sweep file."""
     seeds: list[int] = field(default_factory=lambda: [1])
-    """Seeds, one run each per algo and task: a list, a range or both (``1,2,3``, ``1-5``,
-    ``1-3,7``)."""
+    """Seeds, one run each per algo and task: a list, a range or both (``1,2,3``, ``1-5``, ``1-3,7``)."""
     steps: Optional[int] = None
-    """Budget T of every run in agent steps (the report's T); none (and no ``frames``): the
-    preset's, 500,000."""
+    """Budget T of every run in agent steps (the report's T); none (and no ``frames``): the preset's, 500,000."""
     frames: Optional[int] = None
     """Alternative to ``steps``: the budget in environment frames, passed on as ``imssr train
     --frames`` so that each run trains ``frames / action_repeat`` agent steps of its own task,
@@ -68,9 +66,8 @@ class SweepConfig:
     """Address of an existing Ray cluster, e.g. ``10.0.0.1:6379`` (``ray start --head`` prints it);
     empty: a local Ray started for this sweep and shut down after it."""
     launcher: str = "ray"
-    """How runs are dispatched: ``ray`` (a local Ray or the cluster at ``address``), ``slurm``
-    (one SLURM job per run through submitit, the ``slurm`` extra) or ``local`` (subprocesses of
-    the sweep itself, no Ray)."""
+    """How runs are dispatched: ``ray`` (a local Ray or the cluster at ``address``), ``slurm`` (one SLURM job per
+    run through submitit, the ``slurm`` extra) or ``local`` (subprocesses of the sweep itself, no Ray)."""
     slurm_partition: str = ""
     """SLURM partition of the jobs (``--launcher slurm``); empty: the cluster's default."""
     slurm_time: int = 0
@@ -81,16 +78,14 @@ class SweepConfig:
     slurm_array_parallelism: int = 0
     """SLURM jobs of the sweep's job array running at once; 0: as many as SLURM allows (256)."""
     runs_per_process: int = 1
-    """Runs trained in one process as one batch of agents, at most this many (``imssr train
-    --runs``: each the run it would be alone); runs that differ only in the seed and in the
-    intrinsic reward's beta_0 or on/off can share a process (a grid point's seeds, a base algo and
-    its IM- variant, a beta_0 sweep).  1: one run per process, the fastest layout measured on the CPU
-    and on CUDA (docs/performance.md); 0: all that can share.  A process takes the CPUs and GPUs of
-    one run."""
+    """Runs trained in one process as one batch of agents, at most this many (``imssr train --runs``: each the run
+    it would be alone); runs that differ only in the seed and in the intrinsic reward's beta_0 or on/off can share a
+    process (a grid point's seeds, a base algo and its IM- variant, a beta_0 sweep).  1: one run per process, the
+    fastest layout measured on the CPU and on CUDA (docs/performance.md); 0: all that can share.  A process takes
+    the CPUs and GPUs of one run."""
     logger: str = ""
-    """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's
-    default.  With ``wandb``, runs are grouped under the root's name in W&B and tagged with their
-    algo, task, seed and beta_0."""
+    """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's default.  With
+    ``wandb``, runs are grouped under the root's name in W&B and tagged with their algo, task, seed and beta_0."""
 
     @property
     def gpus(self) -> float:
@@ -196,8 +191,7 @@ class Run:
     seed: int
     """Run seed."""
     beta0: Optional[float]
-    """beta_0 of a beta sweep; None: the preset's (and for base algos, and runs outside a beta
-    sweep)."""
+    """beta_0 of a beta sweep; None: the preset's (and for base algos, and runs outside a beta sweep)."""
     dir: str
     """Run directory (absolute)."""
 
