@@ -1,6 +1,7 @@
 """imssr: Intrinsically Motivated Self-Supervised learning in RL (IM-SSR).
 
 The GL backend is configured here, before anything can import OpenGL.
+
 """
 from imssr._gl import configure_gl as _configure_gl
 

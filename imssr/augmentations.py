@@ -10,9 +10,8 @@ import torch.nn.functional as F
 def random_crop(x: torch.Tensor, size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
     """Independent random ``size x size`` crop per sample of ``(B, C, H, W)``.
 
-    Offsets are drawn from ``0 .. H - size - 1`` as in the CURL / DMC-GB code
-    (0..15 for 100 -> 84).  ``generator`` lives on ``x``'s device: the offsets are drawn
-    there, with no copy from the host.
+    Offsets are drawn from ``0 .. H - size - 1`` as in the CURL / DMC-GB code (0..15 for 100 -> 84).  ``generator``
+    lives on ``x``'s device: the offsets are drawn there, with no copy from the host.
     """
     b, c, h, w = x.shape
     high_y, high_x = max(h - size, 1), max(w - size, 1)
@@ -24,9 +23,8 @@ def random_crop(x: torch.Tensor, size: int, generator: Optional[torch.Generator]
 def crop_at(x: torch.Tensor, oy: torch.Tensor, ox: torch.Tensor, size: int) -> torch.Tensor:
     """Crop sample ``i`` at offsets ``(oy[i], ox[i])``.
 
-    ``unfold`` views every ``size x size`` window without copying, so one
-    advanced index over (sample, window row, window column) copies each crop as
-    contiguous rows: several times faster than gathering every pixel with
+    ``unfold`` views every ``size x size`` window without copying, so one advanced index over (sample, window row,
+    window column) copies each crop as contiguous rows: several times faster than gathering every pixel with
     broadcast index tensors (``bench/crop_speed.py``), and the same values.
     """
     windows = x.unfold(2, size, 1).unfold(3, size, 1)  # (B, C, H', W', size, size)
@@ -57,10 +55,9 @@ def random_overlay(x: torch.Tensor, images: torch.Tensor, alpha: float = 0.5,
 def random_conv(x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
     """SVEA's random convolution: one random 3x3 RGB->RGB kernel per sample.
 
-    Each sample's k frames share its kernel; edges are replicate-padded and the
-    output squashed with a sigmoid, as in DMC-GB, but all samples run as one
-    grouped convolution instead of a Python loop.  ``generator`` lives on ``x``'s device.
-    Returns float pixels in [0, 255].
+    Each sample's k frames share its kernel; edges are replicate-padded and the output squashed with a sigmoid, as
+    in DMC-GB, but all samples run as one grouped convolution instead of a Python loop.  ``generator`` lives on
+    ``x``'s device. Returns float pixels in [0, 255].
     """
     b, c, h, w = x.shape
     k = c // 3

@@ -2,8 +2,8 @@
 
 A training warns when its torch threads would contend with busy cores (:func:`contention_warning`). Processes that
 yield the CPU to this one do not count: those :data:`YIELDING_NICE` or more nice levels below it, within what they
-compete inside of, an autogroup or a CPU cgroup (:func:`scheduling_group`), which ``imssr sweep`` reads as well.
-The readings are Linux's ``/proc``: elsewhere the 1-minute load average alone decides.
+compete inside of, an autogroup or a CPU cgroup (:func:`scheduling_group`), which ``imssr sweep`` reads as well. The
+readings are Linux's ``/proc``: elsewhere the 1-minute load average alone decides.
 """
 from __future__ import annotations
 

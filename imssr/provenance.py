@@ -6,10 +6,9 @@ NVIDIA driver, numpy, dm_control, mujoco), the device and the command line.  No 
 absolute or home-relative path in the command line is cut to its last part (``…/runs``): a committed record does not
 carry its author's machine.
 
-A copy of a checkout without its ``.git`` knows its commit from a source stamp,
-``.imssr-source.json`` beside the package, which ``python -m imssr.provenance --stamp`` writes
-before the copy (the commit, whether it was clean, the sha256 of every tracked file of the
-package).  ``python -m imssr.provenance`` prints this machine's record.
+A copy of a checkout without its ``.git`` knows its commit from a source stamp, ``.imssr-source.json`` beside the
+package, which ``python -m imssr.provenance --stamp`` writes before the copy (the commit, whether it was clean, the
+sha256 of every tracked file of the package).  ``python -m imssr.provenance`` prints this machine's record.
 """
 from __future__ import annotations
 

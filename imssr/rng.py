@@ -1,8 +1,8 @@
 """The global random number generators' state: seeding them, and their state in a checkpoint.
 
-A checkpoint holds the Python, numpy and torch global RNG states (:func:`rng_states`) in types
-that ``torch.load(weights_only=True)`` reads, so that a resumed run draws what the uninterrupted
-one would have.  The seed offsets of a run's streams are in :mod:`imssr.seeds`.
+A checkpoint holds the Python, numpy and torch global RNG states (:func:`rng_states`) in types that
+``torch.load(weights_only=True)`` reads, so that a resumed run draws what the uninterrupted one would have.  The
+seed offsets of a run's streams are in :mod:`imssr.seeds`.
 """
 from __future__ import annotations
 

@@ -1,9 +1,9 @@
 """Seed offsets: every random stream of a run derived from its seed, each defined once.
 
-A run with seed ``s`` seeds its training env, the agent's augmentation generator, the replay
-sampler and the seed-phase actions with ``s`` itself; every other stream adds one of the offsets
-below, chosen so that no two streams of one run (or of its evaluation and analysis) share a seed.
-The values are part of every fixed-seed result: changing one changes the runs.
+A run with seed ``s`` seeds its training env, the agent's augmentation generator, the replay sampler and the
+seed-phase actions with ``s`` itself; every other stream adds one of the offsets below, chosen so that no two
+streams of one run (or of its evaluation and analysis) share a seed. The values are part of every fixed-seed result:
+changing one changes the runs.
 """
 from __future__ import annotations
 

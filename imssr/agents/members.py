@@ -16,9 +16,9 @@ choice depends on timing (``cudnn.benchmark``, ``agent.tf32``'s defaults) may pi
 members than alone; with deterministic cuDNN algorithms the member is its run alone (``scripts/gpu_seeds.sh`` checks
 it on a GPU).
 
-Joining before host work keeps the caching allocator safe: every tensor a member's stream
-allocates is read on the current stream only after that stream waited for the member's, and
-each member's stream waits for the current stream before it is given new work.
+Joining before host work keeps the caching allocator safe: every tensor a member's stream allocates is read on the
+current stream only after that stream waited for the member's, and each member's stream waits for the current stream
+before it is given new work.
 """
 from __future__ import annotations
 

@@ -11,10 +11,9 @@ One agent step's update, :meth:`SACAgent.update`, read top to bottom (order as i
      (``encoder_tau``), every ``target_update_every`` steps;
   6. the auxiliary task, every ``aux.update_every`` steps;
   7. the intrinsic signal's own networks, if it has any (RND's predictor).
-``agent.update_schedule``: ``sequential`` (the reference) encodes o afresh for the actor after
-the critic's step; ``fused`` lets the actor reuse the critic's encoding of o, and a task that
-can read the critic's pass adds its loss to the critic's backward in step 3.
-The time limit is not terminal: ``discount`` is 0 only for true terminal states.
+``agent.update_schedule``: ``sequential`` (the reference) encodes o afresh for the actor after the critic's step;
+``fused`` lets the actor reuse the critic's encoding of o, and a task that can read the critic's pass adds its loss
+to the critic's backward in step 3. The time limit is not terminal: ``discount`` is 0 only for true terminal states.
 """
 from __future__ import annotations
 

@@ -2,6 +2,7 @@
 reward by, on the states of a trained run (docs/analysis.md).
 
 The run directory is only read (no lock, as ``imssr evaluate``); the outputs go to ``RUN/analysis/``.
+
 """
 from __future__ import annotations
 

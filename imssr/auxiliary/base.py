@@ -3,11 +3,10 @@
 An auxiliary task reads the agent's shared encoders, declares the parameters its loss trains
 (its own, and those it shares with the critic's encoder), and exposes *unreduced per-sample*
 losses: the mean of :meth:`~AuxiliaryTask.per_sample_loss` is what it trains on, and
-:meth:`~AuxiliaryTask.intrinsic_loss` is the same loss for the next observation, which IM-SSR
-turns into a reward.  A task may also change what the critic regresses
-(:meth:`~AuxiliaryTask.critic_views`, SVEA).  The agent knows only this interface and builds the
-task's optimiser from its declarations, so a new task plugs in by its two modules (this class,
-and its ``*_spec.py``: settings, rules, presets) and its name in
+:meth:`~AuxiliaryTask.intrinsic_loss` is the same loss for the next observation, which IM-SSR turns into a reward.
+A task may also change what the critic regresses (:meth:`~AuxiliaryTask.critic_views`, SVEA).  The agent knows only
+this interface and builds the task's optimiser from its declarations, so a new task plugs in by its two modules
+(this class, and its ``*_spec.py``: settings, rules, presets) and its name in
 :data:`imssr.auxiliary.AUX_PLUGINS`.
 """
 from __future__ import annotations

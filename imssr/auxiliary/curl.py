@@ -1,18 +1,16 @@
 """CURL: contrastive unsupervised representations (Srinivas et al. 2020).
 
 InfoNCE with a bilinear similarity (the paper's Eq. infonce):
-``logits_ij = z_i^T W k_j`` between queries ``z`` from the online encoder on
-one crop and keys ``k`` from the momentum (critic-target) encoder on an
-independent crop; the positive of row ``i`` is column ``i``.  The per-sample
-loss is the row-wise cross-entropy.  As the authors ran it (DMC-GB's CURL), it
-trains on the RL batch every step, the anchor being the RL crop of o.
+``logits_ij = z_i^T W k_j`` between queries ``z`` from the online encoder on one crop and keys ``k`` from the
+momentum (critic-target) encoder on an independent crop; the positive of row ``i`` is column ``i``.  The per-sample
+loss is the row-wise cross-entropy.  As the authors ran it (DMC-GB's CURL), it trains on the RL batch every step,
+the anchor being the RL crop of o.
 
 IM-CURL's signal of o' (``intrinsic.form``):
 
 * ``authors`` (the authors' ``CURL.compute_intri_reward``): query = the online
-  encoder on the RL crop of o' (the Bellman target already computed its trunk),
-  key = the critic target's encoder on the *same* crop (the target's latent of
-  the Bellman target, reused): no encoder pass of its own.
+  encoder on the RL crop of o' (the Bellman target already computed its trunk), key = the critic target's encoder on
+  the *same* crop (the target's latent of the Bellman target, reused): no encoder pass of its own.
 * ``training``: the key on an independent crop of o', as the training loss pairs
   views (one more target-encoder pass).
 """

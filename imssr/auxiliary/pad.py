@@ -1,20 +1,16 @@
 """PAD's inverse-dynamics task (Hansen et al. 2021): predict a_t from s_t and s_{t+1}.
 
-``L_PAD = MSE(a_t, f(s_t, s_{t+1}))`` (paper, Appendix).  As in DMC-GB, the task
-shares the first ``encoder_layers - encoder_head_layers`` convolutions with the
-critic and has its own head convolutions and projection, then an MLP
-``2 * feature_dim -> hidden -> hidden -> |A|``.  It trains on the RL batch every
-step.  IM-PAD's intrinsic reward is the per-sample inverse-dynamics error of the
-RL batch's own transitions ``(o, a, o')``: how poorly the model explains the
-step that reached ``o'``.
+``L_PAD = MSE(a_t, f(s_t, s_{t+1}))`` (paper, Appendix).  As in DMC-GB, the task shares the first
+``encoder_layers - encoder_head_layers`` convolutions with the critic and has its own head convolutions and
+projection, then an MLP ``2 * feature_dim -> hidden -> hidden -> |A|``.  It trains on the RL batch every step.
+IM-PAD's intrinsic reward is the per-sample inverse-dynamics error of the RL batch's own transitions ``(o, a, o')``:
+how poorly the model explains the step that reached ``o'``.
 
-When the loss is read from the critic's pass (``agent.update_schedule = fused``),
-the agent runs the shared layers once over ``o`` and ``o'`` together; the critic
-reads the features of ``o``, PAD both, and the Bellman target the detached
-features of ``o'``; one backward serves both losses.  The per-sample training
-loss is then IM-PAD's intrinsic loss (same crops, action and weights; equal up
-to float rounding, the shared layers running on B + B inputs instead of 2B),
-which is reused instead of being recomputed.
+When the loss is read from the critic's pass (``agent.update_schedule = fused``), the agent runs the shared layers
+once over ``o`` and ``o'`` together; the critic reads the features of ``o``, PAD both, and the Bellman target the
+detached features of ``o'``; one backward serves both losses.  The per-sample training loss is then IM-PAD's
+intrinsic loss (same crops, action and weights; equal up to float rounding, the shared layers running on B + B
+inputs instead of 2B), which is reused instead of being recomputed.
 """
 from __future__ import annotations
 

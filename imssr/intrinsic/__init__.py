@@ -2,9 +2,9 @@
 normalisation (:class:`IntrinsicReward`) and the beta schedule (:class:`BetaSchedule`); the
 signals by name in :mod:`~imssr.intrinsic.registry`.
 
-Each signal is two modules: ``<name>_spec.py`` (its settings, rules and preset rows; no torch),
-which the config reads, and its torch module, which the agent builds.  Importing this package
-imports no torch: the torch classes and functions load on first use.
+Each signal is two modules: ``<name>_spec.py`` (its settings, rules and preset rows; no torch), which the config
+reads, and its torch module, which the agent builds.  Importing this package imports no torch: the torch classes and
+functions load on first use.
 """
 import importlib
 

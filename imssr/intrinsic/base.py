@@ -1,9 +1,8 @@
 """Where the raw intrinsic signal of o' comes from, before normalisation and beta.
 
-IM-SSR's signal is the auxiliary task's per-sample loss of o' (:class:`~imssr.intrinsic.ssl.SSLSignal`);
-RND and RE3 are exploration peers that plug into the same slot, so one setting
-(``intrinsic.source``) swaps the signal while normalisation, the beta schedule
-and everything else stay the same.
+IM-SSR's signal is the auxiliary task's per-sample loss of o' (:class:`~imssr.intrinsic.ssl.SSLSignal`); RND and RE3
+are exploration peers that plug into the same slot, so one setting (``intrinsic.source``) swaps the signal while
+normalisation, the beta schedule and everything else stay the same.
 """
 from __future__ import annotations
 

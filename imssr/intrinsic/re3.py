@@ -1,9 +1,8 @@
 """RE3: random encoders for efficient exploration (Seo et al. 2021).
 
-A randomly initialised encoder with the agent's architecture, never trained,
-embeds o'; the signal is ``log(1 + ||y_i - y_i^{kNN}||)``, the distance to the
-k-th nearest neighbour within the batch: a particle estimate of state entropy.
-It has no parameters to learn, so it costs one no-grad encoder pass.
+A randomly initialised encoder with the agent's architecture, never trained, embeds o'; the signal is
+``log(1 + ||y_i - y_i^{kNN}||)``, the distance to the k-th nearest neighbour within the batch: a particle estimate of
+state entropy. It has no parameters to learn, so it costs one no-grad encoder pass.
 """
 from __future__ import annotations
 

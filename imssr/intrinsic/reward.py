@@ -1,9 +1,8 @@
 """IM-SSR's intrinsic reward: in-batch normalisation and the beta schedule.
 
-The paper's Eq. (1): ``R_t = R^ext_t + beta_t * R^int_t`` where ``R^int`` is the
-auxiliary task's per-sample loss of the next observation (Algorithm 1; RND-style
-"predicted observation error of the next state", Appendix), normalised within
-the RL batch because "it is the relative value inside one batch that matters".
+The paper's Eq. (1): ``R_t = R^ext_t + beta_t * R^int_t`` where ``R^int`` is the auxiliary task's per-sample loss of
+the next observation (Algorithm 1; RND-style "predicted observation error of the next state", Appendix), normalised
+within the RL batch because "it is the relative value inside one batch that matters".
 """
 from __future__ import annotations
 

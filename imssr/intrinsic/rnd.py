@@ -1,11 +1,9 @@
 """Random network distillation (Burda et al. 2019) on the next observation.
 
-A fixed, randomly initialised target network embeds o'; a predictor learns to
-match it online (MSE on the RL batch's next observations each update).  The
-per-sample prediction error is the novelty signal: it stays high for rarely
-seen observations.  Unlike IM-SSR it needs networks and an optimiser of its
-own, which is the contrast the paper draws.  The original normalises pixels and
-rewards with running statistics; here the signal goes through the same
+A fixed, randomly initialised target network embeds o'; a predictor learns to match it online (MSE on the RL batch's
+next observations each update).  The per-sample prediction error is the novelty signal: it stays high for rarely
+seen observations.  Unlike IM-SSR it needs networks and an optimiser of its own, which is the contrast the paper
+draws.  The original normalises pixels and rewards with running statistics; here the signal goes through the same
 in-batch normalisation as every other source.
 """
 from __future__ import annotations

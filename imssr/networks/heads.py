@@ -33,8 +33,8 @@ class PolicyOutput(NamedTuple):
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy on the (detached) trunk features.
 
-    ``log_std`` is squashed into ``[log_std_min, log_std_max]``; the squashing
-    correction of the log-probability is SAC's (Haarnoja et al. 2018, App. C).
+    ``log_std`` is squashed into ``[log_std_min, log_std_max]``; the squashing correction of the log-probability is
+    SAC's (Haarnoja et al. 2018, App. C).
     """
 
     def __init__(self, trunk_dim: int, feature_dim: int, action_dim: int, hidden_dim: int,

@@ -251,8 +251,8 @@ def paper_results_text(spec: Optional[str] = None) -> tuple[str, str]:
 
 
 def load_paper_results(spec: Optional[str] = None) -> dict[tuple[str, str, float, str], PaperNumber]:
-    """``(task, mode, fraction, paper algo name) -> PaperNumber`` from a shipped dataset or a CSV (columns ``table,
-    task, mode, frames_fraction, algorithm, mean, std`` and, optionally, ``seeds``)."""
+    """``(task, mode, fraction, paper algo name) -> PaperNumber`` from a shipped dataset or a CSV (columns
+    ``table, task, mode, frames_fraction, algorithm, mean, std`` and, optionally, ``seeds``)."""
     text, _ = paper_results_text(spec)
     out = {}
     for row in csv.DictReader(text.splitlines()):

@@ -233,8 +233,9 @@ def wait_for_writers(runs: list[RunDir]) -> None:
 
 
 def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
-    """Train (or resume) the runs in ``run_dirs`` (each its ``config.json``; several: in one process, ``imssr train
-    --runs``) to ``steps`` agent steps and wait; one result per run (the body of a Ray task or a SLURM job).
+    """Train (or resume) the runs in ``run_dirs`` (each its ``config.json``; several in one process:
+    ``imssr train --runs``) to ``steps`` agent steps and wait; one result per run (the body of a Ray task or a
+    SLURM job).
 
     Result keys: ``ok``, ``returncode``, ``resumed``, ``error`` (the attempt's last output line when
     it failed, or ``killed by signal N (NAME)``), ``interrupted`` (stopped by a signal: resume it, it
