@@ -1,8 +1,8 @@
 """Headless OpenGL set-up for MuJoCo rendering.
 
 MuJoCo (``MUJOCO_GL``) and PyOpenGL (``PYOPENGL_PLATFORM``) must agree on the backend, and both read their variable
-when OpenGL is first imported, so this module runs before anything imports dm_control.  EGL is the default; OSMesa
-is the documented fallback (``MUJOCO_GL=osmesa``, Debian package ``libosmesa6``).
+when OpenGL is first imported, so this module runs before anything imports dm_control.  EGL is the default; OSMesa is
+the documented fallback (``MUJOCO_GL=osmesa``, Debian package ``libosmesa6``).
 """
 from __future__ import annotations
 

@@ -24,8 +24,8 @@ def crop_at(x: torch.Tensor, oy: torch.Tensor, ox: torch.Tensor, size: int) -> t
     """Crop sample ``i`` at offsets ``(oy[i], ox[i])``.
 
     ``unfold`` views every ``size x size`` window without copying, so one advanced index over (sample, window row,
-    window column) copies each crop as contiguous rows: several times faster than gathering every pixel with
-    broadcast index tensors (``bench/crop_speed.py``), and the same values.
+    window column) copies each crop as contiguous rows: several times faster than gathering every pixel with broadcast
+    index tensors (``bench/crop_speed.py``), and the same values.
     """
     windows = x.unfold(2, size, 1).unfold(3, size, 1)  # (B, C, H', W', size, size)
     return windows[torch.arange(x.shape[0], device=x.device), :, oy, ox]

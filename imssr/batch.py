@@ -1,7 +1,7 @@
 """The records an update passes around: the sampled batch, its encoding, and the context of o'.
 
-They live apart from the agent and its plug-ins so that auxiliary tasks (:mod:`imssr.auxiliary`) and intrinsic
-signals (:mod:`imssr.intrinsic`) share them without importing each other.  Build them with keywords.
+They live apart from the agent and its plug-ins so that auxiliary tasks (:mod:`imssr.auxiliary`) and intrinsic signals
+(:mod:`imssr.intrinsic`) share them without importing each other.  Build them with keywords.
 """
 from __future__ import annotations
 
@@ -45,8 +45,8 @@ class Encoding:
     """One update's encoder passes over a :class:`Batch` (``SACAgent.encode``).
 
     The critic regresses one or more views of o (SVEA: the clean crop and an augmented one); they run as one pass,
-    stacked in the order of ``view_weights``, the first being ``batch.obs``.  Everything about o' is computed once
-    here and reused: the actor's next action and the target Q read it, and so may the intrinsic signal.
+    stacked in the order of ``view_weights``, the first being ``batch.obs``.  Everything about o' is computed once here
+    and reused: the actor's next action and the target Q read it, and so may the intrinsic signal.
     """
 
     view_weights: tuple[float, ...]

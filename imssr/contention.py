@@ -66,10 +66,9 @@ def _v2_has_cpu(path: str) -> Optional[bool]:
 
 
 def parse_cpu_cgroup(text: str, has_cpu: Callable[[str], Optional[bool]] = _v2_has_cpu) -> str:
-    """The cgroup whose CPU share a process runs under, from its ``/proc/PID/cgroup`` text: the
-    path in the v1 ``cpu`` hierarchy; else, under cgroup v2, the deepest group of its path that
-    has the ``cpu`` controller (``has_cpu(path)``; a group without it shares its parent's);
-    "/" when none does or it cannot be told (the kernel's root group)."""
+    """The cgroup whose CPU share a process runs under, from its ``/proc/PID/cgroup`` text: the path in the v1 ``cpu``
+    hierarchy; else, under cgroup v2, the deepest group of its path that has the ``cpu`` controller (``has_cpu(path)``;
+    a group without it shares its parent's); "/" when none does or it cannot be told (the kernel's root group)."""
     lines = [line.split(":", 2) for line in text.splitlines() if line.count(":") >= 2]
     for _, controllers, path in lines:
         if "cpu" in controllers.split(","):
@@ -189,10 +188,9 @@ def usable_cores() -> int:
 
 def contention_warning(threads: int, load: float | None = None, cores: int | None = None) -> str | None:
     """A one-line warning if ``threads`` torch threads would contend with other busy processes:
-    torch's intra-op pool spins on every thread, and a 2-thread update on a busy 2-core machine
-    was measured many times slower than with 1.  ``load``: the cores other processes keep busy,
-    the smaller of the 1-minute load average and a 0.2 s look (a job that just ended does not
-    count); ``cores``: the usable cores (both read when None)."""
+    torch's intra-op pool spins on every thread, and a 2-thread update on a busy 2-core machine was measured many times
+    slower than with 1.  ``load``: the cores other processes keep busy, the smaller of the 1-minute load average and a
+    0.2 s look (a job that just ended does not count); ``cores``: the usable cores (both read when None)."""
     if threads <= 1:
         return None
     if cores is None:

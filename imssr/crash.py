@@ -1,9 +1,9 @@
 """Native crashes leave a trace: a Python traceback on stderr and in the directory being written.
 
 A segmentation fault in a native library ends the process before any Python code can run.
-:mod:`faulthandler` writes the traceback to one file descriptor: while a process holds run directories for writing,
-a pipe to a small shell process in a session of its own (a terminal's Ctrl-C leaves it alone), which after a crash
-copies the report to stderr and appends it to ``crash.log`` in each directory; otherwise stderr alone.
+:mod:`faulthandler` writes the traceback to one file descriptor: while a process holds run directories for writing, a
+pipe to a small shell process in a session of its own (a terminal's Ctrl-C leaves it alone), which after a crash copies
+the report to stderr and appends it to ``crash.log`` in each directory; otherwise stderr alone.
 """
 from __future__ import annotations
 

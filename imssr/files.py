@@ -2,9 +2,8 @@
 
 :func:`atomic_path` and its writers (:func:`atomic_write_text`, :func:`atomic_write_csv`) let a
 reader see the old file or the new one, never half of one; a full disk or a spent quota is one
-:class:`~imssr.errors.ImssrError` line naming the file (:func:`disk_full_as_error`).  Files
-appended to in place (logs) are opened by :func:`open_append`, which refuses a symbolic link
-(:func:`open_own`); :func:`read_csv` reads a log back.
+:class:`~imssr.errors.ImssrError` line naming the file (:func:`disk_full_as_error`).  Files appended to in place (logs)
+are opened by :func:`open_append`, which refuses a symbolic link (:func:`open_own`); :func:`read_csv` reads a log back.
 """
 from __future__ import annotations
 

@@ -14,11 +14,11 @@ In order, each item passing or failing on its own (a failure is reported, the ot
    ``agent.cuda_graphs=true``, for ``--compile-steps`` agent steps;
 4. ``bench/gpu.py`` with ``--bench-args`` (skipped without the repository's ``bench/``).
 
-The report gives torch, CUDA, cuDNN and driver versions and the GPU, then per item: pass/fail, agent steps per
-second of the whole training call (its seed phase and final evaluation included), peak device memory
+The report gives torch, CUDA, cuDNN and driver versions and the GPU, then per item: pass/fail, agent steps per second
+of the whole training call (its seed phase and final evaluation included), peak device memory
 (``torch.cuda.max_memory_allocated``) and wall time.  Exit status 1 when an item failed.  ``--tiny`` shrinks the
-networks, batches and frames (and defaults to a few steps): the CPU smoke run of the suite, whose figures mean
-nothing.  Budgeted at 20 minutes on one H100 with the defaults; not yet run on a GPU.
+networks, batches and frames (and defaults to a few steps): the CPU smoke run of the suite, whose figures mean nothing.
+Budgeted at 20 minutes on one H100 with the defaults; not yet run on a GPU.
 """
 from __future__ import annotations
 

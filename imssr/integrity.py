@@ -1,10 +1,10 @@
 """Checksums of the files a run depends on: checkpoints and replay buffers.
 
-A zip file (a torch checkpoint, a numpy ``.npz``) is *sealed* by writing the sha256 of its bytes into the zip
-archive comment, the field that ends every zip file: still a plain zip for ``torch.load`` and ``np.load``, and the
-atomic rename that publishes the file publishes its checksum with it.  The digest covers every byte up to the
-comment-length field, then that field as zero.  Every checkpoint and replay index imssr writes is sealed, so a file
-without a seal where the file ends (cut short, extended, or never sealed) is not trusted.
+A zip file (a torch checkpoint, a numpy ``.npz``) is *sealed* by writing the sha256 of its bytes into the zip archive
+comment, the field that ends every zip file: still a plain zip for ``torch.load`` and ``np.load``, and the atomic
+rename that publishes the file publishes its checksum with it.  The digest covers every byte up to the comment-length
+field, then that field as zero.  Every checkpoint and replay index imssr writes is sealed, so a file without a seal
+where the file ends (cut short, extended, or never sealed) is not trusted.
 """
 from __future__ import annotations
 

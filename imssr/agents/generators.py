@@ -13,8 +13,7 @@ import torch
 from imssr.seeds import INTRINSIC_SEED_OFFSET, NOISE_SEED_OFFSET
 
 KEYS = (("gen", 0), ("noise_gen", NOISE_SEED_OFFSET), ("intrinsic_gen", INTRINSIC_SEED_OFFSET))
-"""Each generator's attribute and state-dict key, with the offset of its seed from the run's
-(:mod:`imssr.seeds`)."""
+"""Each generator's attribute and state-dict key, with the offset of its seed from the run's (:mod:`imssr.seeds`)."""
 
 
 class AgentGenerators:

@@ -10,11 +10,10 @@ another.  With ``agent.cuda_graphs`` each member's update is one recorded graph,
 queues the members' steps in microseconds and the device runs them side by side.
 
 A member's arithmetic is its run's alone: the same agent, the same code, the same draws from its own generators; the
-streams change only when kernels run, not what they compute.  On the CPU there are no streams and the members run
-one after another: bit for bit the runs alone (``tests/test_agent_batch.py``).  On CUDA, kernels whose algorithm
-choice depends on timing (``cudnn.benchmark``, ``agent.tf32``'s defaults) may pick other algorithms beside other
-members than alone; with deterministic cuDNN algorithms the member is its run alone (``scripts/gpu_seeds.sh`` checks
-it on a GPU).
+streams change only when kernels run, not what they compute.  On the CPU there are no streams and the members run one
+after another: bit for bit the runs alone (``tests/test_agent_batch.py``).  On CUDA, kernels whose algorithm choice
+depends on timing (``cudnn.benchmark``, ``agent.tf32``'s defaults) may pick other algorithms beside other members than
+alone; with deterministic cuDNN algorithms the member is its run alone (``scripts/gpu_seeds.sh`` checks it on a GPU).
 
 Joining before host work keeps the caching allocator safe: every tensor a member's stream allocates is read on the
 current stream only after that stream waited for the member's, and each member's stream waits for the current stream

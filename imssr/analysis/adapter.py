@@ -11,10 +11,9 @@ from imssr.seeds import INTRINSIC_SEED_OFFSET
 
 def intrinsic_signal(agent, sample: dict[str, np.ndarray]) -> torch.Tensor:
     """The agent's raw intrinsic signal of each ``o'`` of ``sample`` (a replay batch), shape ``(B,)``:
-    the per-sample SSL loss of ``o'`` (or RND's error, RE3's distance) before the in-batch
-    normalisation and ``beta_t`` of Algorithm 1, the left-hand side of the paper's bound.  Built
-    as the agent builds it for its Bellman target, without a gradient; a contrastive loss depends
-    on the batch it is in (the other samples are its negatives)."""
+    the per-sample SSL loss of ``o'`` (or RND's error, RE3's distance) before the in-batch normalisation and ``beta_t``
+    of Algorithm 1, the left-hand side of the paper's bound.  Built as the agent builds it for its Bellman target,
+    without a gradient; a contrastive loss depends on the batch it is in (the other samples are its negatives)."""
     if agent.signal is None:
         raise ImssrError("the run's algorithm has no intrinsic reward to analyse (choose an im-, +rnd or "
                          "+re3 algorithm's run)")

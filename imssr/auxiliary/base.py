@@ -25,8 +25,7 @@ from imssr.settings import AgentConfig, AuxCore
 
 @dataclass(kw_only=True)
 class SharedNetworks:
-    """The agent's networks an auxiliary task may read or train (plain references: the agent
-    owns and saves them)."""
+    """The agent's networks an auxiliary task may read or train (plain references: the agent owns and saves them)."""
 
     encoder: nn.Module
     """The critic's encoder (trunk + projection), trained by the critic."""

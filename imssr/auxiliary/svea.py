@@ -6,8 +6,8 @@ its random-convolution view to the *clean* Bellman target,
 Appendix, Eq. L_SVEA); the target never sees augmented data.
 
 IM-SVEA (paper, Appendix "Further Extensions"): ``l_i = ||z_hat_i - z*_i||^2`` between the online critic encoder and
-its target encoder on the same (unaugmented) observation, normalised in the batch.  For ``o'`` both latents are
-already computed by the Bellman target, so the signal costs no encoder pass.
+its target encoder on the same (unaugmented) observation, normalised in the batch.  For ``o'`` both latents are already
+computed by the Bellman target, so the signal costs no encoder pass.
 """
 from __future__ import annotations
 

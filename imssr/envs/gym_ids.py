@@ -1,8 +1,8 @@
 """gymnasium ids: ``gymnasium.make("imssr/<task>-v0", mode=..., seed=...)`` for every task.
 
 Registration runs on ``import imssr`` and must stay cheap: the ids come from a fixed list
-(:data:`imssr.envs.tasks.SUITE_TASKS`) and the entry point is a string, so dm_control loads only when an env is
-made.  The scene is the ``mode`` keyword, so one id per task covers every scene.
+(:data:`imssr.envs.tasks.SUITE_TASKS`) and the entry point is a string, so dm_control loads only when an env is made.
+The scene is the ``mode`` keyword, so one id per task covers every scene.
 """
 from __future__ import annotations
 

@@ -179,9 +179,8 @@ class EnvWorker:
 
 
 def _watch(worker: EnvWorker) -> None:
-    """Keep ``worker`` for :func:`end_workers`, registered at exit with the first worker: after
-    multiprocessing's own handler, so it runs before that one, which would join the daemon
-    workers (deaf to SIGTERM) without a timeout."""
+    """Keep ``worker`` for :func:`end_workers`, registered at exit with the first worker: after multiprocessing's own
+    handler, so it runs before that one, which would join the daemon workers (deaf to SIGTERM) without a timeout."""
     global _AT_EXIT
     if not _AT_EXIT:
         atexit.register(end_workers)

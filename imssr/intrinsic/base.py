@@ -25,9 +25,8 @@ class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
     @abc.abstractmethod
     def build(cls, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
               aux: Any = None) -> "IntrinsicSignal":
-        """The signal for an agent of ``agent_cfg`` on observations of ``obs_shape``, with the
-        ``intrinsic`` section ``cfg`` (which holds the signal's own settings) and the agent's
-        auxiliary task ``aux`` (None without one)."""
+        """The signal for an agent of ``agent_cfg`` on observations of ``obs_shape``, with the ``intrinsic`` section
+        ``cfg`` (which holds the signal's own settings) and the agent's auxiliary task ``aux`` (None without one)."""
 
     @property
     def label(self) -> str:

@@ -94,8 +94,8 @@ class IntrinsicReward:
         (:class:`BetaSchedule`), a float or, under CUDA graphs, a float64 0-dim tensor.
 
         A non-finite loss turns every reward of the batch into NaN through the batch statistics, and the critic with
-        it.  It also makes ``r_int_raw`` (the losses' mean) non-finite, which the training loop checks with the
-        other metrics and stops the run on, naming the agent step and the signal.
+        it.  It also makes ``r_int_raw`` (the losses' mean) non-finite, which the training loop checks with the other
+        metrics and stops the run on, naming the agent step and the signal.
         """
         with full_precision(losses):
             # Float32 under any autocast: the normalisation divides small differences of

@@ -1,8 +1,8 @@
 """Aggregate metrics across tasks with rliable (Agarwal et al. 2021).
 
-Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks weigh alike.  Per mode
-and fraction of T: each algo's interquartile mean (IQM) with a 95% stratified-bootstrap interval.  Comparisons of
-two algorithms are made within a task (:mod:`imssr.report.comparisons`), not pooled here.
+Scores are returns divided by 1000, the maximum episode return of every DMC task, so tasks weigh alike.  Per mode and
+fraction of T: each algo's interquartile mean (IQM) with a 95% stratified-bootstrap interval.  Comparisons of two
+algorithms are made within a task (:mod:`imssr.report.comparisons`), not pooled here.
 """
 from __future__ import annotations
 

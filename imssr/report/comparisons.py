@@ -30,8 +30,7 @@ class Pair:
 
 
 def partner(row: Row) -> list[str]:
-    """The labels ``row`` is compared against: its base (an intrinsic reward) and its fp32 self
-    (another precision)."""
+    """The labels ``row`` is compared against: its base (an intrinsic reward) and its fp32 self (another precision)."""
     out = []
     spec = ALGOS.get(row.algo)
     if spec is not None and spec.intrinsic_enabled:

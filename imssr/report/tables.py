@@ -2,8 +2,8 @@
 
 T counts agent steps, as the paper's does, whatever the task's action repeat.  The point of a fraction ``f`` is the
 first agent step at or after ``f * T``, and a seed's value there is its last evaluation at or before it (the paper's
-10,000-step interval divides its points).  A seed whose evaluations stop before the point has no value there, and
-the cell says how many of the expected seeds it averages, and how many of those failed ("(2/3, 1 failed)").
+10,000-step interval divides its points).  A seed whose evaluations stop before the point has no value there, and the
+cell says how many of the expected seeds it averages, and how many of those failed ("(2/3, 1 failed)").
 """
 from __future__ import annotations
 

@@ -58,8 +58,7 @@ class SweepConfig:
     """CPUs per run: what Ray reserves for it and what the local launcher counts; also the run's
     torch/OpenMP threads (``train.torch_threads``, at least 1, unless the overrides set it)."""
     gpus_per_run: float = 0.0
-    """GPUs (fractions allowed) Ray reserves per run; > 0 trains on ``cuda`` unless
-    ``train.device`` is overridden."""
+    """GPUs (fractions allowed) Ray reserves per run; > 0 trains on ``cuda`` unless ``train.device`` is overridden."""
     max_parallel: int = 0
     """Runs in flight at once; 0: as many as the cluster's CPUs and GPUs hold."""
     address: str = ""
