@@ -61,8 +61,7 @@ def random_conv(x: torch.Tensor, generator: Optional[torch.Generator] = None) ->
     """
     b, c, h, w = x.shape
     k = c // 3
-    weights = torch.randn((b * 3, 3, 3, 3), generator=generator, device=x.device,
-                          dtype=torch.get_default_dtype())
+    weights = torch.randn((b * 3, 3, 3, 3), generator=generator, device=x.device, dtype=torch.get_default_dtype())
     # (B, k, 3, H, W) -> (k, B*3, H, W): frames as the batch, samples as groups.
     frames = (x.float() / 255.0).reshape(b, k, 3, h, w).transpose(0, 1).reshape(k, b * 3, h, w)
     out = F.conv2d(F.pad(frames, (1, 1, 1, 1), mode="replicate"), weights, groups=b)

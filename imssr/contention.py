@@ -171,8 +171,7 @@ def busy_cores_now(interval_s: float = 0.2) -> Optional[float]:
     own_after = _proc_stat("self")
     if after is None:
         return None
-    ran = {pid: stat[1] for pid, stat in stats_after.items()
-           if pid in stats_before and stat[0] > stats_before[pid][0]}
+    ran = {pid: stat[1] for pid, stat in stats_after.items() if pid in stats_before and stat[0] > stats_before[pid][0]}
     left_out = yielding_pids(ran)
     left_before = {pid: stats_before[pid][0] for pid in left_out}
     left_after = {pid: stats_after[pid][0] for pid in left_out}

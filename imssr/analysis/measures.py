@@ -51,8 +51,7 @@ def state_coordinates(physics, states: np.ndarray) -> np.ndarray:
     m = physics.model
     nq = m.nq
     hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
-    wrap = [int(m.jnt_qposadr[j]) for j in range(m.njnt)
-            if int(m.jnt_type[j]) == hinge and not bool(m.jnt_limited[j])]
+    wrap = [int(m.jnt_qposadr[j]) for j in range(m.njnt) if int(m.jnt_type[j]) == hinge and not bool(m.jnt_limited[j])]
     keep = [i for i in range(nq) if i not in wrap]
     angles = states[:, wrap]
     return np.concatenate([states[:, keep], np.cos(angles), np.sin(angles), states[:, nq:]], axis=1)

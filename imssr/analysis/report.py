@@ -70,8 +70,7 @@ def plot_correlations(rows: list[dict], corr: list[dict], modes: Sequence[str], 
     xs = ["novelty"] + [f"nuisance_{m}" for m in modes]
     labels = {"novelty": "novelty (k-NN distance, std. physics units)"}
     labels.update({f"nuisance_{m}": f"nuisance distance, {m}" for m in modes})
-    fig, axes = plt.subplots(len(steps), len(xs), figsize=(3.4 * len(xs), 2.9 * len(steps) + 0.5),
-                             squeeze=False)
+    fig, axes = plt.subplots(len(steps), len(xs), figsize=(3.4 * len(xs), 2.9 * len(steps) + 0.5), squeeze=False)
     for i, step in enumerate(steps):
         sub = [r for r in rows if r["checkpoint_step"] == step]
         y = np.array([r["signal"] for r in sub], float)
@@ -80,8 +79,7 @@ def plot_correlations(rows: list[dict], corr: list[dict], modes: Sequence[str], 
             x = np.array([r[key] for r in sub], float)
             ax.scatter(x, y, s=9, alpha=0.7)
             c = next(c for c in corr if c["checkpoint_step"] == step and c["against"] == key)
-            ax.set_title(f"step {step:,}: rho {c['rho']:.2f} [{c['ci_low']:.2f}, {c['ci_high']:.2f}]",
-                         fontsize=9)
+            ax.set_title(f"step {step:,}: rho {c['rho']:.2f} [{c['ci_low']:.2f}, {c['ci_high']:.2f}]", fontsize=9)
             if i == len(steps) - 1:
                 ax.set_xlabel(labels[key], fontsize=8)
             if j == 0:

@@ -1,7 +1,6 @@
 """CURL's plug-in declaration: what it is, its preset rows and those of IM-CURL (no torch here;
 the task is :mod:`imssr.auxiliary.curl`)."""
-from imssr.settings import (AUTHORS, AUTHORS_CURL, AUTHORS_SIGNAL, DECAY, TABLE3, AuxPlugin, Beta0,
-                            Setting)
+from imssr.settings import (AUTHORS, AUTHORS_CURL, AUTHORS_SIGNAL, DECAY, TABLE3, AuxPlugin, Beta0, Setting)
 
 PLUGIN = AuxPlugin(
     name="curl", label="CURL", implementation="CURL",

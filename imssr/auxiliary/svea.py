@@ -29,8 +29,7 @@ class SVEA(AuxiliaryTask):
     cfg: SVEASettings
 
     def critic_views(self, batch: Batch) -> list[tuple[torch.Tensor, float]]:
-        return [(batch.obs, self.cfg.svea_alpha),
-                (random_conv(batch.obs, batch.generator), self.cfg.svea_beta)]
+        return [(batch.obs, self.cfg.svea_alpha), (random_conv(batch.obs, batch.generator), self.cfg.svea_beta)]
 
     def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:
         """Online-vs-target latent distance of ``o`` (what IM-SVEA measures; not trained on)."""

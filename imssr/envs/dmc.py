@@ -87,8 +87,7 @@ class DMCEnv(gym.Env):
         # Evaluation envs draw footage from the unseen ``test`` pool.
         self.scene: Optional[Scene] = None
         if mode != "training":
-            self.scene = Scene(self._env.physics, mode, seed, image_size, self.camera_id,
-                               footage_split, footage_path)
+            self.scene = Scene(self._env.physics, mode, seed, image_size, self.camera_id, footage_split, footage_path)
         aspec = self._env.action_spec()
         self._act_low = aspec.minimum.astype(np.float64)
         self._act_high = aspec.maximum.astype(np.float64)

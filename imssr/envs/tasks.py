@@ -17,8 +17,7 @@ PAPER_TASKS = ("cartpole_swingup_sparse", "finger_spin", "pendulum_swingup", "re
 # Table III: action repeat 2 for finger_spin, 8 for cartpole_swingup_sparse and
 # pendulum_swingup, 4 otherwise; dense cartpole_swingup (not a paper task) takes 8 as
 # in PlaNet, CURL and DrQ, so it matches its sparse twin.
-_ACTION_REPEAT = {"finger_spin": 2, "cartpole_swingup_sparse": 8, "cartpole_swingup": 8,
-                  "pendulum_swingup": 8}
+_ACTION_REPEAT = {"finger_spin": 2, "cartpole_swingup_sparse": 8, "cartpole_swingup": 8, "pendulum_swingup": 8}
 DEFAULT_ACTION_REPEAT = 4
 
 

@@ -18,8 +18,7 @@ def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> s
         raise ImssrError("no frames for the montage")
     cols = min(4, len(frames))
     rows = -(-len(frames) // cols)
-    fig, axes = pyplot().subplots(rows, cols, figsize=(2.6 * cols, 2.8 * rows + (0.3 if title else 0)),
-                             squeeze=False)
+    fig, axes = pyplot().subplots(rows, cols, figsize=(2.6 * cols, 2.8 * rows + (0.3 if title else 0)), squeeze=False)
     for ax in axes.flat:
         ax.axis("off")
     for ax, (mode, frame) in zip(axes.flat, frames.items()):

@@ -77,8 +77,7 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0,
                 notes.append(f"{mode} at {fraction:.1f}T: IQM over {', '.join(common)} only "
                              f"(not every algo has {', '.join(dropped)})")
             matrices = {label: score_matrix(by_label[label], i, common) for label in scored}
-            few = {label: m.shape[0] for label, m in matrices.items()
-                   if m.shape[0] < MIN_SEEDS_FOR_BOOTSTRAP}
+            few = {label: m.shape[0] for label, m in matrices.items() if m.shape[0] < MIN_SEEDS_FOR_BOOTSTRAP}
             if few:
                 notes.append(f"{mode} at {fraction:.1f}T: no IQM or bootstrap interval: "
                              + ", ".join(f"{label} has {n} seed{'s' if n > 1 else ''}" for label, n in few.items())

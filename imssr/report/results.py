@@ -15,8 +15,7 @@ from typing import Any, Optional
 from imssr.config import MAX_INT, steps_for_frames
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_csv, read_csv
-from imssr.rundir import (CHECKPOINT_DIR, CONFIG_FILE, DIVERGED, FAILED, TB_DIR, VIDEOS_DIR, RunDir,
-                          parse_run_path)
+from imssr.rundir import (CHECKPOINT_DIR, CONFIG_FILE, DIVERGED, FAILED, TB_DIR, VIDEOS_DIR, RunDir, parse_run_path)
 from imssr.sweep.directory import PLAN_FILE, PlannedRun, SweepDir
 from imssr.sweep.grid import Run, beta_label, group_label
 

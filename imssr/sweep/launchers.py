@@ -157,8 +157,7 @@ class RayLauncher(Launcher):
         return _capacity(self.ray, self.cfg)
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
-        handles = [self.task.remote(list(a.run_dirs), a.steps, a.attempt, sweep_niceness(self.cfg))
-                   for a in attempts]
+        handles = [self.task.remote(list(a.run_dirs), a.steps, a.attempt, sweep_niceness(self.cfg)) for a in attempts]
         self.attempts.update(zip(handles, attempts))
         return handles
 
@@ -235,8 +234,7 @@ class SlurmLauncher(Launcher):
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
         with self.executor.batch():
-            jobs = [self.executor.submit(execute_runs, list(a.run_dirs), a.steps, a.attempt)
-                    for a in attempts]
+            jobs = [self.executor.submit(execute_runs, list(a.run_dirs), a.steps, a.attempt) for a in attempts]
         self.attempts.update(zip(jobs, attempts))
         return jobs
 
@@ -308,8 +306,7 @@ def _confine_local_ray() -> None:
 def _init_ray(cfg: SweepConfig):
     ray = _import_ray(cfg)
     # Workers' output goes to each run's sweep.log, not to the driver's terminal.
-    common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
-                  configure_logging=True)
+    common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING, configure_logging=True)
     try:
         if cfg.address:
             _check_reachable(cfg.address)

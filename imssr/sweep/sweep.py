@@ -142,8 +142,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
     statuses = plan_runs(cfg)
     sweep_dir = SweepDir(cfg.root)
     os.makedirs(sweep_dir.path, exist_ok=True)
-    sweep_dir.write_plan(cfg, [PlannedRun(s.run, s.steps, s.frames, s.config.agent.precision_label)
-                               for s in statuses])
+    sweep_dir.write_plan(cfg, [PlannedRun(s.run, s.steps, s.frames, s.config.agent.precision_label) for s in statuses])
     started = time.time()
 
     def write_status(finished: bool = False) -> str:
