@@ -183,11 +183,10 @@ class SACAgent:
         of o and o' (drawn from :attr:`gen`, o first), the transition's fields as columns."""
         d, size = self.device, self.cfg.crop_size
         sample = {k: torch.as_tensor(sample[k], device=d) for k in ("obs", "next_obs", "action", "reward", "discount")}
-        return Batch(obs=random_crop(sample["obs"], size, self.gen),
-                     action=sample["action"], reward=sample["reward"].unsqueeze(-1),
-                     discount=sample["discount"].unsqueeze(-1),
-                     next_obs=random_crop(sample["next_obs"], size, self.gen),
-                     raw_obs=sample["obs"], raw_next_obs=sample["next_obs"], generator=self.gen)
+        return Batch(obs=random_crop(sample["obs"], size, self.gen), action=sample["action"],
+                     reward=sample["reward"].unsqueeze(-1), discount=sample["discount"].unsqueeze(-1),
+                     next_obs=random_crop(sample["next_obs"], size, self.gen), raw_obs=sample["obs"],
+                     raw_next_obs=sample["next_obs"], generator=self.gen)
 
     def update_critic(self, batch: Batch, beta: Beta, fuse: bool, step: int) -> tuple[Metrics, Optional[torch.Tensor]]:
         """The critic's step, with the task's loss read from its pass if ``fuse`` (each optimiser steps its own
@@ -274,8 +273,7 @@ class SACAgent:
         ctx = NextObsContext(batch=batch, enc=enc, generator=self.intrinsic_gen, form=self.intrinsic.cfg.form)
         return self.signal(ctx)
 
-    def critic_loss(self, batch: Batch, enc: Encoding, target_q: torch.Tensor
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def critic_loss(self, batch: Batch, enc: Encoding, target_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``sum_v w_v (||Q1(z_v, a) - y||^2 + ||Q2(z_v, a) - y||^2)`` over the views of o, each
         regressed to the same clean target (one view of weight 1 unless a task adds some: SVEA's
         Eq. L_SVEA), and the mean Q1 of ``batch.obs`` (detached)."""

@@ -163,9 +163,8 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
                 c = spearman_ci(signal, x, opts.reps, opts.seed)
                 # The medians show how the terms themselves move between checkpoints (the paper
                 # argues the nuisance term vanishes as the encoder converges).
-                corr.append({"checkpoint_step": step, "against": key, **c,
-                             "signal_median": float(np.median(signal)), "median": float(np.nanmedian(x))
-                             if np.isfinite(x).any() else float("nan")})
+                corr.append({"checkpoint_step": step, "against": key, **c, "signal_median": float(np.median(signal)),
+                             "median": float(np.nanmedian(x)) if np.isfinite(x).any() else float("nan")})
                 log(f"  step {step:,}: signal vs {key}: Spearman rho {c['rho']:.3f} "
                     f"(95% CI {c['ci_low']:.3f} to {c['ci_high']:.3f}, n {c['n']}); median {corr[-1]['median']:.3g}")
             last_signal = signal

@@ -90,8 +90,7 @@ def plot_correlations(rows: list[dict], corr: list[dict], modes: Sequence[str], 
     return save_png(fig, path)
 
 
-def save_extremes(high: list[tuple[np.ndarray, str]], low: list[tuple[np.ndarray, str]], path: str,
-                  title: str) -> str:
+def save_extremes(high: list[tuple[np.ndarray, str]], low: list[tuple[np.ndarray, str]], path: str, title: str) -> str:
     """The top-k highest-bonus states (top row) above the k lowest (bottom row): ``(H, W, 3)``
     frames with their captions, as a PNG."""
     cols = max(len(high), len(low), 1)

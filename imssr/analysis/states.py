@@ -51,9 +51,8 @@ class StateSample:
 
 def load_replay(path: str, cfg: RunConfig, env) -> FrameReplayBuffer:
     """The saved buffer, verified (checksums) as a resume would; ``env`` is one of the run's task."""
-    buf = FrameReplayBuffer(cfg.train.replay_capacity, (3, env.image_size, env.image_size),
-                            env.action_space.shape[0], env.frame_stack, warn_memory=False,
-                            physics_dim=env.physics_state_dim)
+    buf = FrameReplayBuffer(cfg.train.replay_capacity, (3, env.image_size, env.image_size), env.action_space.shape[0],
+                            env.frame_stack, warn_memory=False, physics_dim=env.physics_state_dim)
     buf.load(path)
     return buf
 

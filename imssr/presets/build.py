@@ -60,9 +60,8 @@ def load_partial_config(path: str, algo: str | None = None, task: str | None = N
 
 def run_config(algo: str | None = None, task: str | None = None, *, network: str | None = None,
                config_file: str | None = None, base: RunConfig | None = None, demo: bool = False,
-               values: Mapping[str, Any] | None = None, frames: int | None = None,
-               batch_size: int | None = None, beta0: float | None = None,
-               overrides: Sequence[str] = ()) -> RunConfig:
+               values: Mapping[str, Any] | None = None, frames: int | None = None, batch_size: int | None = None,
+               beta0: float | None = None, overrides: Sequence[str] = ()) -> RunConfig:
     """The validated config of one run, as ``imssr train`` and every sweep run build it:
     :func:`base_config`'s, then ``values`` (``section.field`` -> value), ``frames`` (the budget in
     frames, rounded up to agent steps), ``batch_size`` (the RL batch, and the auxiliary batch of a

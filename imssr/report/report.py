@@ -30,8 +30,7 @@ PAPER_T = 500_000
 """The paper's T in agent steps (Table III, "Number of training steps"), on every task."""
 
 
-def write_report(root: str, out: str, paper_results: Optional[str] = None,
-                 reps: int = 2000) -> list[tuple[str, str]]:
+def write_report(root: str, out: str, paper_results: Optional[str] = None, reps: int = 2000) -> list[tuple[str, str]]:
     """Write the report; return ``(path, description)`` of each file written."""
     results = collect(root)
     os.makedirs(out, exist_ok=True)

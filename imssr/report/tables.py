@@ -365,12 +365,11 @@ def write_table_csv(rows: list[Row], path: str) -> str:
                 p = cell.paper
                 paper = ["", "", ""] if p is None else [f"{p.mean:g}", f"{p.std:g}", "" if p.seeds is None else p.seeds]
                 diff = cell.against_paper() if cell.n else None
-                yield [row.mode, row.task, row.label, row.algo,
-                       "" if row.beta0 is None else row.beta0, f"{cell.fraction:.1f}", cell.step,
-                       "" if cell.frame is None else cell.frame,
+                yield [row.mode, row.task, row.label, row.algo, "" if row.beta0 is None else row.beta0,
+                       f"{cell.fraction:.1f}", cell.step, "" if cell.frame is None else cell.frame,
                        "" if not cell.n else f"{cell.mean:.6g}",
-                       "" if not cell.n or math.isnan(cell.std) else f"{cell.std:.6g}",
-                       cell.n, cell.expected, len(cell.failed), int(cell.best), *paper,
+                       "" if not cell.n or math.isnan(cell.std) else f"{cell.std:.6g}", cell.n, cell.expected,
+                       len(cell.failed), int(cell.best), *paper,
                        *(["", "", ""] if diff is None else [f"{v:.6g}" for v in diff]), row.precision,
                        per_seed_text(cell, sep=";").replace(": ", ":")]
 

@@ -94,12 +94,11 @@ class RunStatus:
     def to_dict(self, root: str) -> dict:
         """The row, with the run's directory and ``sweep.log`` relative to ``root``."""
         return {"name": self.run.name, "dir": os.path.relpath(self.run.dir, root), "algo": self.run.algo,
-                "task": self.run.task, "seed": self.run.seed, "beta0": self.run.beta0,
-                "steps": self.steps, "frames": self.frames, "state": self.state, "action": self.action,
-                "attempts": self.attempts, "errors": self.errors, "interruptions": self.interruptions,
-                "note": self.note, "final_step": self.final_step,
-                "final_frame": self.final_frame,
-                "seconds": round(self.seconds, 1), "log": os.path.relpath(self.run.run_dir.sweep_log, root)}
+                "task": self.run.task, "seed": self.run.seed, "beta0": self.run.beta0, "steps": self.steps,
+                "frames": self.frames, "state": self.state, "action": self.action, "attempts": self.attempts,
+                "errors": self.errors, "interruptions": self.interruptions, "note": self.note,
+                "final_step": self.final_step, "final_frame": self.final_frame, "seconds": round(self.seconds, 1),
+                "log": os.path.relpath(self.run.run_dir.sweep_log, root)}
 
     @classmethod
     def from_dict(cls, row: Any, root: str, what: str = "the run") -> "RunStatus":
@@ -115,9 +114,8 @@ class RunStatus:
             raise ValueError(f"{what} has 'errors' that are not all text")
         return cls(run, fields.get("steps", int, 0), fields.get("frames", int, 0), state,
                    fields.get("action", str, "fresh"), fields.get("attempts", int, 0), errors,
-                   fields.get("interruptions", int, 0), fields.get("note", str, ""),
-                   fields.get("final_step", int, 0), fields.get("final_frame", int, 0),
-                   float(fields.get("seconds", (int, float), 0.0)))
+                   fields.get("interruptions", int, 0), fields.get("note", str, ""), fields.get("final_step", int, 0),
+                   fields.get("final_frame", int, 0), float(fields.get("seconds", (int, float), 0.0)))
 
 
 class _Fields:

@@ -183,8 +183,7 @@ class RunAttempt:
         run = run or self.run
         if self.proc is None:
             return {"ok": False, "returncode": None, "resumed": self.resumed, "error": self.error,
-                    "interrupted": False, "diverged": False, "final_step": 0, "final_frame": 0,
-                    "seconds": 0.0}
+                    "interrupted": False, "diverged": False, "final_step": 0, "final_frame": 0, "seconds": 0.0}
         returncode = self.proc.wait()
         # In a packed process each run says how it ended (a status written by this attempt).
         own = self._own_status(run) if len(self.runs) > 1 else None
