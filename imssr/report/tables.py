@@ -291,11 +291,6 @@ def per_seed_text(cell: Cell, sep: str = ", ") -> str:
     return sep.join(f"{seed}: {cell.values[seed]:.1f}" for seed in sorted(cell.values))
 
 
-def point_text(step: int, frame: Optional[int]) -> str:
-    """``"100,000 steps (800,000 frames)"``."""
-    return f"{step:,} steps ({'frames vary' if frame is None else f'{frame:,} frames'})"
-
-
 def markdown_points(results: SweepResults) -> str:
     """Where 0.2T, 0.5T and 1.0T fall on each task, in agent steps with the frames beside."""
     lines = ["| task | action repeat | " + " | ".join(f"{f:.1f}T" for f in FRACTIONS) + " |",
@@ -304,8 +299,9 @@ def markdown_points(results: SweepResults) -> str:
         budget, repeat = results.budget(task), results.action_repeat(task)
         repeats = str(repeat) if repeat is not None else \
             ", ".join(map(str, sorted({r.action_repeat for r in results.runs if r.run.task == task})))
-        points = [point_text(p, results.frames_at(task, p)) for p in (point_step(f, budget) for f in FRACTIONS)]
-        lines.append(f"| `{task}` | {repeats} | " + " | ".join(points) + " |")
+        points = [(p, results.frames_at(task, p)) for p in (point_step(f, budget) for f in FRACTIONS)]
+        lines.append(f"| `{task}` | {repeats} | " + " | ".join(
+            f"{p:,} steps ({'frames vary' if frame is None else f'{frame:,} frames'})" for p, frame in points) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -163,9 +163,10 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
             print(f"imssr: all {len(statuses)} runs are done; nothing to start ({status_path})", flush=True)
         write_status(finished=True)
         return statuses
+    packed = "" if len(queued) == len(todo) else f", {len(queued)} runs in {len(todo)} processes"
     print(f"imssr: {len(statuses)} runs, {sum(s.state == 'done' for s in statuses)} done, "
           f"{sum(s.action == 'resume' for s in queued)} to resume, {sum(s.action == 'fresh' for s in queued)} new "
-          f"({cfg.launcher}{_packing_text(todo)}); status in {status_path}", flush=True)
+          f"({cfg.launcher}{packed}); status in {status_path}", flush=True)
     ui = None
     inflight: dict = {}
     previous = _sigterm_as_interrupt()
@@ -254,11 +255,6 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
             groups.append(group)
             open_groups.setdefault(key, []).append((group, [own]))
     return groups
-
-
-def _packing_text(groups) -> str:
-    runs = sum(len(g) for g in groups)
-    return "" if runs == len(groups) else f", {runs} runs in {len(groups)} processes"
 
 
 def settle(st: RunStatus, result: dict, retries: int) -> str:
