@@ -40,6 +40,7 @@ from imssr.algos import BASES
 from imssr.config import COMPILE_MODES, RunConfig, apply_overrides
 from imssr.errors import ImssrError
 from imssr.presets import make_config
+from imssr.provenance import git_state
 
 ROOT = Path(__file__).resolve().parent.parent
 SUBPROCESS_TIMEOUT_S = 600
@@ -155,17 +156,21 @@ def cuda_tests(device: torch.device, item: Item) -> Item:
         return item
 
     def run() -> str:
-        try:
-            proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
-                                   *CUDA_TEST_FILES, "-k", "cuda"], cwd=ROOT, capture_output=True, text=True,
-                                  timeout=SUBPROCESS_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            raise RuntimeError(f"pytest timed out after {SUBPROCESS_TIMEOUT_S} s") from None
+        proc = _subprocess("pytest", [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
+                                      *CUDA_TEST_FILES, "-k", "cuda"])
         tail = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else proc.stderr.strip()[-200:]
         if proc.returncode != 0:
             raise RuntimeError(f"pytest exited {proc.returncode}: {tail}")
         return tail
     return run_item(item, run, device)
+
+
+def _subprocess(what: str, cmd: list[str], env: Optional[dict] = None) -> subprocess.CompletedProcess:
+    """``cmd`` run in the repository with its output captured; past :data:`SUBPROCESS_TIMEOUT_S` a failure."""
+    try:
+        return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env, timeout=SUBPROCESS_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"{what} timed out after {SUBPROCESS_TIMEOUT_S} s") from None
 
 
 def bench(device: torch.device, args: str, item: Item) -> Item:
@@ -176,11 +181,8 @@ def bench(device: torch.device, args: str, item: Item) -> Item:
 
     def run() -> str:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-        try:
-            proc = subprocess.run([sys.executable, str(script), "--device", str(device), *shlex.split(args)],
-                                  cwd=ROOT, capture_output=True, text=True, env=env, timeout=SUBPROCESS_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            raise RuntimeError(f"bench/gpu.py timed out after {SUBPROCESS_TIMEOUT_S} s") from None
+        proc = _subprocess("bench/gpu.py", [sys.executable, str(script), "--device", str(device), *shlex.split(args)],
+                           env=env)
         item.output = proc.stdout
         if proc.returncode != 0:
             lines = (proc.stdout + proc.stderr).strip().splitlines()
@@ -270,8 +272,10 @@ def _main(argv: Optional[list[str]]) -> int:
             items.append(bench(device, bench_args, bench_item))
             print(items[-1].row(), flush=True)
     failed = [i for i in items if i.ok is False]
+    commit = git_state()[0]
     lines = ["# imssr GPU check", "", *versions(device),
-             f"- imssr at {git_revision()}; {time.perf_counter() - started:.0f} s in all"
+             f"- imssr at {commit[:7] if commit else 'an unknown revision'}; "
+             f"{time.perf_counter() - started:.0f} s in all"
              + ("; --tiny: a smoke run" if a.tiny else ""), "",
              f"**{'FAILED: ' + str(len(failed)) + ' item(s)' if failed else 'all items passed or were skipped'}**",
              "", "| item | result | agent steps/s | peak GiB | s | note |", "| --- | --- | --- | --- | --- | --- |",
@@ -283,16 +287,6 @@ def _main(argv: Optional[list[str]]) -> int:
     Path(a.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {a.out}" + (f"; {len(failed)} item(s) failed" if failed else ""), flush=True)
     return 1 if failed else 0
-
-
-def git_revision() -> str:
-    try:
-        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
-                             text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return "an unknown revision"
-    return out.stdout.strip() if out.returncode == 0 else "an unknown revision"
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -33,12 +33,6 @@ SCRIPT_BETA0 = {(b, task): note for b, p in AUX_PLUGINS.items() for task, note i
 """Where the authors' scripts pass another in_gamma than Table V (Table V wins)."""
 
 
-def paper_beta0(algo: str, task: str) -> float:
-    """beta_0 for ``algo`` on ``task``: Table V for IM-CURL / IM-SODA, 0.05 for IM-PAD / IM-SVEA;
-    RND and RE3 the IM- variant's, so a comparison changes only the signal."""
-    return _beta0(get_algo(algo), task).value
-
-
 RUN = "run setting"
 RUN_FIELDS = ("env.footage_dir", *(f for p in (*AUX_PLUGINS.values(), *SIGNAL_PLUGINS.values()) for f in p.run_fields),
               "train.save_buffer", "train.keep_checkpoints", "train.device", "train.replay_device", "train.gpu_share",
@@ -142,8 +136,9 @@ SIGNAL_SETTINGS = {name: p.preset for name, p in SIGNAL_PLUGINS.items()}
 
 
 def _beta0(spec: AlgoSpec, task: str) -> Setting:
-    """beta_0 of ``spec`` on ``task`` (:func:`paper_beta0`) with its source: its base's Table V
-    value, else the paper's one value for the base, else :data:`DEFAULT_BETA0`."""
+    """beta_0 of ``spec`` on ``task`` with its source: its base's Table V value (IM-CURL, IM-SODA), else the paper's
+    one value for the base (IM-PAD, IM-SVEA: 0.05), else :data:`DEFAULT_BETA0`; RND and RE3 take the IM- variant's, so
+    that a comparison changes only the signal."""
     beta0 = AUX_PLUGINS[spec.base].beta0
     if task in beta0.by_task:
         value, source = beta0.by_task[task], TABLE5
