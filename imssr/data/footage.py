@@ -35,10 +35,6 @@ def footage_sources(split: str) -> list[Path]:
     return source_files(f"footage_{split}")
 
 
-def _smooth(t: np.ndarray) -> np.ndarray:
-    return 0.5 - 0.5 * np.cos(np.pi * t)  # ease in and out
-
-
 def moving_clip(image, size: int, length: int, rng: np.random.Generator) -> np.ndarray:
     """A pan + zoom + drift across ``image`` (PIL), ``length`` frames, looped back and forth."""
     w, h = image.size
@@ -46,7 +42,7 @@ def moving_clip(image, size: int, length: int, rng: np.random.Generator) -> np.n
     s0, s1 = short * rng.uniform(0.35, 0.9, size=2)  # zoom between two window sizes
     starts = [(rng.uniform(0, w - s), rng.uniform(0, h - s)) for s in (s0, s1)]
     half = max(length // 2, 1)
-    t = _smooth(np.linspace(0.0, 1.0, half))
+    t = 0.5 - 0.5 * np.cos(np.pi * np.linspace(0.0, 1.0, half))  # eased in and out
     phase = rng.uniform(0, 2 * np.pi)
     frames = []
     for i, a in enumerate(t):
