@@ -2,13 +2,12 @@
 
 :class:`RunDir` is made of one part per concern, each a class of its own module:
 
-- :class:`~imssr.rundir.layout.RunLayout`: where each file lies (the layout, :mod:`imssr.rundir.layout`);
-- :class:`~imssr.rundir.records.Records`: the config and provenance records;
-- :class:`~imssr.rundir.checkpoints.Checkpoints`: which checkpoints there are, saving one, and
-  which one a command continues from;
-- :class:`~imssr.rundir.replayfiles.ReplayFiles`: the replay files a checkpoint names;
+- :class:`~imssr.rundir.layout.RunLayout`: where each file lies (the layout: :mod:`imssr.rundir.layout`);
+- :class:`~imssr.rundir.records.Records`: the config, provenance, status and done records, and
+  how the run stands;
+- :class:`~imssr.rundir.checkpoints.Checkpoints`: which checkpoints there are, the save of one
+  with the replay files it names, and which one a command continues from;
 - :class:`~imssr.rundir.batch.BatchCheckpoints`: a run's part in its batch's set of checkpoints;
-- :class:`~imssr.rundir.status.Status`: how the run stands (``status.json``, ``done.json``);
 
 and this module's own: what the directory holds of a run, which a fresh start must not replace
 or may clear, and the lock a writer takes.
@@ -31,11 +30,9 @@ from imssr.rundir.layout import (ANALYSIS_DIR, CHECKPOINT_DIR, CHECKPOINT_GLOB, 
                                  TB_DIR, VIDEOS_DIR, some)
 from imssr.rundir.lock import DirectoryLock
 from imssr.rundir.records import Records
-from imssr.rundir.replayfiles import ReplayFiles
-from imssr.rundir.status import Status
 
 
-class RunDir(BatchCheckpoints, Checkpoints, ReplayFiles, Status, Records):
+class RunDir(BatchCheckpoints, Checkpoints, Records):
     """The run directory ``path``: where its files are, its checkpoints, its config and its status."""
 
     def open(self) -> DirectoryLock:

@@ -3,7 +3,7 @@ of one run directory.
 
 Layout of ``RUN/`` (every name below is a constant of this module)::
 
-    config.json             the run's resolved config (what ``imssr train --config`` runs)
+    config.json             the run's resolved config (what ``imssr train --config`` runs), read by every command
     provenance.json         which code and machine made it: a record per start and resume
     train.csv               one row per training episode
     eval.csv                one row per evaluation and scene during training
@@ -12,15 +12,15 @@ Layout of ``RUN/`` (every name below is a constant of this module)::
     evaluate_episodes.csv   ``imssr evaluate``: one row per episode, appended
     learning_curve.png      ``imssr plot`` / the end of ``imssr train``
     tb/                     TensorBoard events
-    videos/                 evaluation videos
-    montage.png             ``imssr evaluate --montage``
+    videos/                 evaluation videos (training's and ``imssr evaluate --video``'s)
+    montage.png             ``imssr evaluate --montage``: one frame per scene
     episode.gif             ``imssr demo``: the trained policy
     analysis/               ``imssr analyze``
     wandb_run.json          the W&B run id a resume continues
     replay-frames.mmap      ``train.replay_device=disk``: the replay frames while a training runs
     status.json             how the last training of the run ended (see :meth:`RunDir.status`)
     done.json               ``imssr sweep``: the run reached its budget
-    sweep.log               ``imssr sweep``: the output of every attempt
+    sweep.log               ``imssr sweep``: the output of every attempt, a header line each
     .imssr.lock             held while a process writes the run (:mod:`imssr.rundir.lock`)
     checkpoints/
         latest.pt                      the checkpoint a resume continues from
@@ -37,53 +37,34 @@ from imssr.errors import ImssrError
 from imssr.rundir.lock import LOCK_FILE
 
 CONFIG_FILE = "config.json"
-"""The run's resolved config: written before training starts, read by every command on the run."""
 PROVENANCE_FILE = "provenance.json"
-"""``{"records": [...]}``: :func:`imssr.provenance.record` of every start and resume, in order."""
 TRAIN_LOG = "train.csv"
-"""One row per training episode."""
 EVAL_LOG = "eval.csv"
-"""One row per evaluation and scene during training."""
 EVAL_EPISODES_LOG = "eval_episodes.csv"
-"""One row per episode of those evaluations."""
 EVALUATE_LOG = "evaluate.csv"
-"""``imssr evaluate``'s summary rows, appended."""
 EVALUATE_EPISODES_LOG = "evaluate_episodes.csv"
-"""``imssr evaluate``'s episode rows, appended."""
 TRAINING_LOGS = (TRAIN_LOG, EVAL_LOG, EVAL_EPISODES_LOG)
 """The CSV logs a training writes."""
 CSV_LOGS = TRAINING_LOGS + (EVALUATE_LOG, EVALUATE_EPISODES_LOG)
 """Every CSV log of a run: training's, then ``imssr evaluate``'s."""
 TB_DIR = "tb"
-"""TensorBoard's event files."""
 VIDEOS_DIR = "videos"
-"""Evaluation videos (training's and ``imssr evaluate --video``'s)."""
 ANALYSIS_DIR = "analysis"
-"""``imssr analyze``'s default output folder."""
 MONTAGE_FILE = "montage.png"
-"""``imssr evaluate --montage``: one frame per scene."""
 LEARNING_CURVE_FILE = "learning_curve.png"
-"""The learning curve that ``imssr train`` and ``imssr plot`` draw."""
 EPISODE_GIF = "episode.gif"
-"""``imssr demo``: one episode of the trained policy."""
 WANDB_RUN_FILE = "wandb_run.json"
-"""``{"id": ...}``: the W&B run that ``--resume`` continues."""
 STATUS_FILE = "status.json"
-"""How the last training of the run ended (:meth:`RunDir.write_status`)."""
 DONE_FILE = "done.json"
 """Written by ``imssr sweep`` once a training exited 0 having reached its budget; holds the
 budget in agent steps (``steps``) and frames (``frames``)."""
 SWEEP_LOG = "sweep.log"
-"""``imssr sweep``: the output of every attempt of the run, appended, one header line each."""
 FRAMES_FILE = "replay-frames.mmap"
 """``train.replay_device=disk``: the replay frames of the training running here, memory-mapped
 (:class:`~imssr.replay.buffer.DiskFrameReplayBuffer`); scratch, removed when the training ends."""
 CHECKPOINT_DIR = "checkpoints"
-"""Checkpoints and the replay buffer."""
 LATEST_CHECKPOINT = "latest.pt"
-"""The checkpoint a resume continues from."""
 NUMBERED_CHECKPOINT = "step-{step:09d}.pt"
-"""A retained checkpoint of agent step ``step``."""
 REPLAY_FILE = "replay-{step:09d}.npz"
 """The index of the replay buffer saved with the checkpoint of agent step ``step`` (its frame
 files beside it, :func:`imssr.replay.buffer.replay_files`)."""
