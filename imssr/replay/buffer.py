@@ -206,10 +206,7 @@ class FrameReplayBuffer:
         self._write_frame(self.head, frame)
         self.step_in_episode[self.head] = step
         if self.physics_dim:
-            if physics is None:
-                self.physics[self.head] = np.nan
-            else:
-                self.physics[self.head] = physics
+            self.physics[self.head] = np.nan if physics is None else physics
             self.agent_step[self.head] = agent_step
         self.head = (self.head + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
