@@ -121,7 +121,6 @@ def parse_run_path(path: str) -> Optional[RunPath]:
     return RunPath(root, task, level, int(seed[len(SEED_LEVEL):]), beta)
 
 
-
 def some(names: Iterable[str], shown: int = 3, sep: str = ", ") -> str:
     """The first ``shown`` of ``names`` joined by ``sep``, "..." after them when there are more."""
     names = list(names)
