@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 class BatchCheckpoints(RunLayout):
     """One run's part in its batch's checkpoints (a part of :class:`~imssr.rundir.RunDir`, built on
-    its checkpoints, replay files and contents)."""
+    its checkpoints and what the directory holds: ``run_parts``)."""
 
     _staged: Optional[tuple[int, Optional[str], bool, set[str]]] = None
     """A batch's checkpoint staged here (:meth:`stage_checkpoint`) and not yet pruned: its agent
