@@ -387,3 +387,56 @@ def test_a_failed_save_of_a_run_that_has_read_no_replay_keeps_latests_replay_fil
     monkeypatch.undo()
     assert sorted(os.listdir(RunDir(path).checkpoint_dir)) == kept
     FrameReplayBuffer(100, (3, 8, 8), 1).load(RunDir(path).replay_path(RunDir.replay_name(1)))
+
+
+def test_a_run_directory_as_imssr_writes_it_reads_back(tmp_path):
+    """The files of a run, written here without RunDir under the names and in the forms imssr
+    has always written them, are what RunDir reads: the on-disk layout is a contract with every
+    run directory already written, whatever shape the code that reads it takes."""
+    import json
+
+    from imssr.rundir import batch_checkpoints
+    from imssr.rundir.checkpoint import write_checkpoint
+
+    root = tmp_path / "run"
+    (root / "checkpoints").mkdir(parents=True)
+    cfg = tiny_config("curl")
+    (root / "config.json").write_text(cfg.to_json() + "\n")
+    (root / "provenance.json").write_text(json.dumps({"records": [{"version": "0.1"}]}))
+    (root / "train.csv").write_text("frame,step,episode\n800,100,1\n2000,250,2\n")
+    (root / "eval.csv").write_text("frame,step,mode\n2000,250,training\n")
+    (root / "status.json").write_text(json.dumps({"state": "interrupted", "step": 250, "error": "stopped",
+                                                  "time": "2026-01-01T00:00:00"}))
+    buf = filled_buffer(40, capacity=100, size=8)
+    buf.save(str(root / "checkpoints" / "replay-000000250.npz"))
+    for name, step in (("step-000000125.pt", 125), ("step-000000250.pt", 250), ("latest.pt", 250)):
+        replay = "replay-000000250.npz" if step == 250 else None
+        write_checkpoint(str(root / "checkpoints" / name),
+                         _state(step, replay_file=replay, replay_state=buf.state_dict() if replay else None))
+    run = RunDir(str(root))
+    assert (run.status(), run.outcome()) == ("interrupted", ("interrupted", ""))
+    assert run.read_config().to_dict() == cfg.to_dict() and run.read_provenance() == [{"version": "0.1"}]
+    assert (run.trained_steps(), run.last_evaluation(), run.checkpoint_steps()) == (250, (250, 2000), [125, 250])
+    found = run.checkpoint()
+    assert (found.checkpoint.step, found.path, found.note) == (250, str(root / "checkpoints" / "latest.pt"), None)
+    loaded = FrameReplayBuffer(100, (3, 8, 8), 1)
+    assert run.load_replay(found, loaded) is None and loaded.state_dict() == buf.state_dict()
+    assert np.array_equal(loaded.frames, buf.frames)
+    assert run.checkpoint("125").checkpoint.step == 125
+    assert run.load_replay(run.checkpoint("125"), loaded) == "checkpoint holds no replay buffer"
+    (batch,) = batch_checkpoints([run], budget=500)
+    assert (batch.checkpoint.step, batch.path) == (250, run.latest)
+    assert run.run_parts() == [os.path.join("checkpoints", name) for name in
+                               ("latest.pt", "step-000000125.pt", "step-000000250.pt", "replay-000000250.npz",
+                                "replay-frames-000000000000-000000000041.npy")] + ["train.csv", "eval.csv"]
+    (root / "done.json").write_text(json.dumps({"steps": 250, "frames": 2000}))
+    os.unlink(root / "status.json")
+    assert (run.status(), run.done_steps(), run.is_done(250), run.is_done(251)) == ("finished", 250, True, False)
+    # What RunDir writes is read back by the same names and fields.
+    run.write_status("failed", step=250, error="boom")
+    run.write_done(250, 250, attempt=2, resumed=True)
+    run.record_provenance({"version": "0.2"})
+    assert set(json.loads((root / "status.json").read_text())) == {"state", "step", "error", "time"}
+    assert set(json.loads((root / "done.json").read_text())) == {
+        "steps", "frames", "final_step", "final_frame", "evaluations", "attempt", "resumed", "seconds", "finished"}
+    assert json.loads((root / "provenance.json").read_text()) == {"records": [{"version": "0.1"}, {"version": "0.2"}]}

@@ -206,10 +206,7 @@ class FrameReplayBuffer:
         self._write_frame(self.head, frame)
         self.step_in_episode[self.head] = step
         if self.physics_dim:
-            if physics is None:
-                self.physics[self.head] = np.nan
-            else:
-                self.physics[self.head] = physics
+            self.physics[self.head] = np.nan if physics is None else physics
             self.agent_step[self.head] = agent_step
         self.head = (self.head + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
@@ -235,8 +232,7 @@ class FrameReplayBuffer:
     def num_transitions(self) -> int:
         if self.size < 2:
             return 0
-        idx = (self.head - self.size + np.arange(self.size)) % self.capacity
-        return int(self._valid(idx).sum())
+        return int(self._valid(self.live_slots()).sum())
 
     def sample_indices(self, batch_size: int) -> np.ndarray:
         """Uniform over valid transitions (rejection sampling over live slots)."""
@@ -316,17 +312,8 @@ class FrameReplayBuffer:
         }
 
     def gather(self, idx: np.ndarray) -> dict[str, np.ndarray]:
-        window = self.frames[self.stack_indices(idx)]  # (B, k+1, C, H, W), one copy
-        b, _, c, h, w = window.shape
-        obs = window[:, :-1].reshape(b, self.frame_stack * c, h, w)
-        next_obs = window[:, 1:].reshape(b, self.frame_stack * c, h, w)
-        return {
-            "obs": obs,
-            "action": self.actions[idx],
-            "reward": self.rewards[idx],
-            "discount": self.discounts[idx],
-            "next_obs": next_obs,
-        }
+        """The transitions ``idx`` as numpy arrays (``obs`` is uint8): :meth:`gather_batch` on the CPU."""
+        return {k: v.numpy() for k, v in self.gather_batch(idx, torch.device("cpu")).items()}
 
     # -- persistence -------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -349,7 +336,7 @@ class FrameReplayBuffer:
         first = chunks[-1][1] if chunks else live_from
         if first < self.written:
             chunks.append((first, self.written, self._save_chunk(directory, first, self.written)))
-        n = self._extent()
+        n = self.capacity if self.size == self.capacity else self.head  # slots ever written
         small = {"actions": self.actions[:n], "rewards": self.rewards[:n], "discounts": self.discounts[:n],
                  "step_in_episode": self.step_in_episode[:n]}
         if self.physics_dim:
@@ -394,10 +381,6 @@ class FrameReplayBuffer:
         fb = self.frame_nbytes()
         writer.write(memoryview(self.frames).cast("B")[slot * fb:(slot + count) * fb])  # a view: no copy
 
-    def _extent(self) -> int:
-        # Slots ever written: a prefix until the ring wraps, then all of it.
-        return self.capacity if self.size == self.capacity else self.head
-
     def load(self, path: str, rng_state: Optional[dict] = None) -> None:
         """Load what :meth:`save` wrote, verifying its checksums; :class:`ReplayFileError` when
         a file is missing, damaged or carries no checksum."""
@@ -428,11 +411,8 @@ class FrameReplayBuffer:
                         raise ReplayFileError(f"replay buffer {path} holds no checksum of its frames")
                     expected = str(data["frames_sha256"])
             directory = os.path.dirname(os.path.abspath(path))
-            if chunks is None:
-                fpath = frames_path(path)
-                if not os.path.exists(fpath):
-                    raise ReplayFileError(f"replay buffer file not found: {fpath}")
-                self._read_frames(fpath, n, expected)
+            if chunks is None:  # an index written before frame files: one file, the ring's first slots
+                self._read_frame_file(frames_path(path), n, expected, 0, [(0, n)])
             else:
                 self._read_chunks(path, directory, chunks, written - size, written)
         except ImssrError:
@@ -456,20 +436,26 @@ class FrameReplayBuffer:
         if (chunks and chunks[0][0] > live_from) or covered < written:
             raise ReplayFileError(f"replay buffer {path} does not name frame files for all its frames")
         for first, end, expected in chunks:
-            fpath = chunk_path(directory, first, end)
-            if not os.path.exists(fpath):
-                raise ReplayFileError(f"replay buffer file not found: {fpath}")
-            h = hashlib.sha256()
-            with open(fpath, "rb") as fh:
-                self._read_npy_header(fh, h, fpath, end - first)
-                dead = max(0, min(live_from, end) - first)  # frames the ring has overwritten since
-                _skip_hashed(fh, h, dead * self.frame_nbytes(), fpath)
-                for slot, count in self._slot_runs(first + dead, end):
-                    self._read_slots(fh, h, slot, count, fpath)
-                if fh.read(1):
-                    raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
-            if h.hexdigest() != expected:
-                raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
+            dead = max(0, min(live_from, end) - first)  # frames the ring has overwritten since
+            self._read_frame_file(chunk_path(directory, first, end), end - first, expected, dead,
+                                  self._slot_runs(first + dead, end))
+
+    def _read_frame_file(self, fpath: str, n: int, expected: str, dead: int, runs: list[tuple[int, int]]) -> None:
+        """Read the frame file ``fpath`` of ``n`` frames, hashing all of it to check its sha256
+        ``expected``: its first ``dead`` frames are hashed only, the others go to the slot ``runs``
+        (``(slot, count)``)."""
+        if not os.path.exists(fpath):
+            raise ReplayFileError(f"replay buffer file not found: {fpath}")
+        h = hashlib.sha256()
+        with open(fpath, "rb") as fh:
+            self._read_npy_header(fh, h, fpath, n)
+            _skip_hashed(fh, h, dead * self.frame_nbytes(), fpath)
+            for slot, count in runs:
+                self._read_slots(fh, h, slot, count, fpath)
+            if fh.read(1):
+                raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
+        if h.hexdigest() != expected:
+            raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
 
     def _read_npy_header(self, fh, h, fpath: str, n: int) -> None:
         """Read a frame file's ``.npy`` header (hashed into ``h``); it must describe ``n`` frames."""
@@ -504,19 +490,6 @@ class FrameReplayBuffer:
                              f"expected {(n, self.physics_dim)}")
         self.physics[:n] = data["physics"]
         self.agent_step[:n] = data["agent_step"]
-
-    def _read_frames(self, fpath: str, n: int, expected: str) -> None:
-        """Read the single frames file of an index written before frame files: ``n`` frames
-        straight into the ring's first slots, hashing the file on the way; ``expected`` is its
-        sha256."""
-        h = hashlib.sha256()
-        with open(fpath, "rb") as fh:
-            self._read_npy_header(fh, h, fpath, n)
-            self._read_slots(fh, h, 0, n, fpath)
-            if fh.read(1):
-                raise ReplayFileError(f"replay frames {fpath} have trailing bytes")
-        if h.hexdigest() != expected:
-            raise ReplayFileError(f"replay buffer {fpath} is damaged (checksum mismatch)")
 
     def _read_slots(self, fh, h, slot: int, count: int, fpath: str) -> None:
         """``count`` frames from ``fh`` into slots ``slot`` onwards, hashed into ``h`` (peak memory

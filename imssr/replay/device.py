@@ -88,9 +88,6 @@ class TensorFrameReplayBuffer(FrameReplayBuffer):
         # A no-op when the agent is on the store's device (as the trainer places it).
         return self._batch(*(x.to(device) for x in (frames, *fields)))
 
-    def gather(self, idx: np.ndarray) -> dict[str, np.ndarray]:
-        return {k: v.numpy() for k, v in self.gather_batch(idx, torch.device("cpu")).items()}
-
     # -- persistence -------------------------------------------------------------
     def _write_slots(self, writer: HashingWriter, slot: int, count: int) -> None:
         """The slots' frames, copied from the device in pieces (peak host memory: one piece)."""
