@@ -125,9 +125,9 @@ def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad, capsys):
     trainer = SeedsTrainer(configs(), runs(tmp_path))
     try:
         with torch.no_grad():
-            for name, value in trainer.batch.stacked.items():
-                if ".critic.q." in name:
-                    value[bad].fill_(float("nan"))
+            for name, value in trainer.trainers[bad].agent.nets.named_parameters():
+                if name.startswith("critic.q."):
+                    value.fill_(float("nan"))
         failed = trainer.train()
     finally:
         trainer.close()
