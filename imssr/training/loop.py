@@ -46,8 +46,9 @@ __all__ = ["Start", "Trainer", "StopRequest", "TrainingInterrupted", "check_star
 
 class Trainer:
     """Trains one run into its run directory, holding the directory's lock (:mod:`imssr.rundir.lock`)
-    from before it builds anything until :meth:`close`.  Nothing is written to the run directory
-    before :meth:`begin` (:meth:`train` begins, when the caller has not).
+    from before it builds anything until :meth:`close`; nothing is written there before
+    :meth:`begin`.  The loop's steps are public: :meth:`train` takes them for this run, and
+    :class:`~imssr.training.seeds.SeedsTrainer` for every run of a batch in lockstep.
 
     Args:
         cfg: the run's configuration.
@@ -55,17 +56,12 @@ class Trainer:
         resume: continue from its checkpoint (:meth:`RunDir.checkpoint`).
         refill_buffer: on resume, when the saved replay buffer is missing or damaged, start with an
             empty buffer refilled by random actions (not an exact resume) instead of failing.
-        stop: the SIGTERM / SIGINT request the CLI installed (:class:`StopRequest`); when it is
-            set, :meth:`train` checkpoints after the current agent step and raises
-            :class:`TrainingInterrupted`.
+        stop: the SIGTERM / SIGINT request the CLI installed (:class:`StopRequest`, see :meth:`train`).
         start: the run's checked start (:class:`Start`; a batch checks its runs together); None:
             :func:`check_start` of ``cfg``, ``run`` and ``resume``.
         plan: the memory plan that placed the replay frames (:func:`~imssr.training.memory.memory_plan`);
             None: the plan of this run alone.
         batch: its place in a batch of runs (:class:`~imssr.training.checkpointing.BatchPlace`).
-
-    The loop's steps are public: :meth:`train` takes them for this run, and
-    :class:`~imssr.training.seeds.SeedsTrainer` takes them for every run of a batch in lockstep.
     """
 
     progress_every_s: float = PROGRESS_EVERY_S
@@ -82,10 +78,8 @@ class Trainer:
             plan = plan or memory_plan([self.cfg], [self.run_dir])
             self.device, self.replay_placement = plan.device, plan.placement
             found = start.found
-            if found is not None and found.note:
-                print(f"imssr: {found.note}", flush=True)
-            _set_threads(self.cfg.train.torch_threads, self.device,
-                         None if found is None else found.checkpoint.torch_threads)
+            _warn(found and found.note and f"imssr: {found.note}")
+            _set_threads(self.cfg.train.torch_threads, self.device, found and found.checkpoint.torch_threads)
             self.parts = parts = build_training(self.cfg, self.device, plan.placement, self.run_dir.frames_file,
                                                 plan.needs.slots)
             self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
@@ -206,16 +200,14 @@ class Trainer:
             return False
         burst = self.checkpoints.take_burst()
         self._burst_done = 0 if burst is None else int(burst["updates_done"])
-        if burst is not None:
-            self.action = burst["action"].numpy()
+        self.action = self.action if burst is None else burst["action"].numpy()
         return burst is None
 
     def take_action(self, action) -> None:
         """The policy's sample as this step's action, checked before the simulator sees it."""
-        action = np.asarray(action, dtype=np.float32)
-        if not np.isfinite(action).all():  # a few host values: no device sync
-            raise DivergedError(f"action {non_finite_text(action)}")
-        self.action = action
+        self.action = np.asarray(action, dtype=np.float32)
+        if not np.isfinite(self.action).all():  # a few host values: no device sync
+            raise DivergedError(f"action {non_finite_text(self.action)}")
 
     def send_ahead(self) -> None:
         """An env in a worker (``train.env_workers``) starts its step now, while the agent learns;
@@ -290,7 +282,7 @@ class Trainer:
         return self.run_eval()
 
     def stop_due(self) -> bool:
-        """Whether a stop request ends the training here: one came, and the budget is not spent."""
+        """Whether a stop request came and the budget is not spent."""
         return self.stop.signal_name is not None and self.step < self.cfg.total_steps
 
     def save_for_stop(self) -> None:
@@ -323,8 +315,6 @@ class Trainer:
 
     def diverged(self, exc: NonFiniteError) -> str:
         """The line that says where and how the run diverged ("diverged at agent step N: ...")."""
-        if isinstance(exc, DivergedError) and str(exc).startswith(DIVERGED_PREFIX):
-            return str(exc)
         return f"{DIVERGED_PREFIX} {self.step}: {self.divergence.describe(exc, self.episode)}"
 
     def close(self) -> None:
