@@ -22,7 +22,7 @@ def agent_refusal(agent) -> Optional[str]:
     """Why an agent with these settings (an ``AgentConfig``) cannot be a member of a batch (one
     line), or None."""
     if agent.compile != "off":
-        return "seeds in one process run eagerly on CPU and as one batch on CUDA: set agent.compile=off"
+        return "seeds in one process run eagerly (agent.compile is for a run alone): set agent.compile=off"
     return None
 
 

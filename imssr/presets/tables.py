@@ -92,8 +92,8 @@ COMMON = (
     Setting("agent.compile", "off", AUTHORS_LOOP, "eager PyTorch"),
     Setting("agent.fused_adam", False, AUTHORS_LOOP, "torch's default Adam (foreach kernels on CUDA)"),
     Setting("agent.cuda_graphs", False, AUTHORS_LOOP, "kernels launched one by one from Python"),
-    Setting("agent.batch_layout", "auto", IMSSR, "seeds side by side only: each member an agent of its "
-            "own, its update its run's alone"),
+    Setting("agent.batch_layout", "auto", IMSSR, "seeds side by side only: each member's update is "
+            "its run's alone"),
     Setting("train.steps", 500_000, TABLE3, "T = 500,000 agent steps ('Number of training "
             "steps'; the authors' train_steps); the paper's text says 'frames'"),
     Setting("train.seed_steps", 1000, AUTHORS, "init_steps: uniform random actions"),

@@ -268,14 +268,12 @@ class SeedsTrainer:
 
     def _interrupted(self) -> TrainingInterrupted:
         return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
-                                   f"{self.resume_command()}", self.step, self._seeds_root())
+                                   f"{self.resume_command()}", self.step,
+                                   seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers]))
 
     def resume_command(self) -> str:
         """The command that continues these runs (:func:`resume_command`)."""
         return resume_command([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
-
-    def _seeds_root(self) -> Optional[str]:
-        return seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
 
     def close(self) -> None:
         """Close every seed's envs and release its run directory."""
