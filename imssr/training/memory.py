@@ -89,6 +89,10 @@ class RunNeeds:
     def frames_bytes(self) -> int:
         return self.slots * self.frame_bytes
 
+    @property
+    def others_bytes(self) -> int:
+        return self.slots * self.other_bytes
+
 
 def replay_slots(cfg: RunConfig) -> int:
     """The replay slots a run of ``cfg`` fills by the end of its budget: one per agent step and
