@@ -215,7 +215,7 @@ class Trainer:
         if isinstance(self.env, EnvWorker) and self.updates_due() == 1:
             self.env.step_async(self.action)
 
-    def learn(self, update: Callable[[], None], stop: Optional[Callable[[int], None]] = None) -> None:
+    def learn(self, update: Callable[[], None], stop: Optional[Callable] = None, what: str = "burst of updates"):
         """This agent step's updates, each ``update()``: none until ``learning_starts``, the burst
         of ``train.burst_updates`` once when the first seed phase ends (not after a refill; after a
         resume from where a stop cut it), else one.  A stop request inside the burst does not wait
@@ -223,7 +223,7 @@ class Trainer:
         if self.step < self.state.learning_starts:
             return
         step, done, due = self.step, self._burst_done, self.updates_due()
-        with self.phase(f"agent step {step:,}: burst of updates", due, "updates", done, show=due > 1) as burst:
+        with self.phase(f"agent step {step:,}: {what}", due, "updates", done, show=due > 1) as burst:
             for k in range(done, due):
                 if k > done and self.stop.signal_name is not None:
                     if stop is not None:

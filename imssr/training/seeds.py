@@ -203,7 +203,7 @@ class SeedsTrainer:
             return
         for t in active:
             t.send_ahead()
-        active[0].learn(self._update, stop=self._stop_in_burst)
+        active[0].learn(self._update, self._stop_in_burst, f"burst of updates of {len(active)} seeds")
         self._each(Trainer.end_step)
 
     def _update(self) -> None:
