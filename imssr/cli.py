@@ -255,8 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_options(t)
     t.add_argument("--seeds", metavar="1-10|1,3,5",
                    help="train these seeds of the config in one process, in lockstep, each into "
-                        "OUT/seed_<n>/ (needs --out; with --resume continues them): one batched update "
-                        "for all seeds, each the run it would be alone (default: none, one run of --seed)")
+                        "OUT/seed_<n>/ (needs --out; with --resume continues them), each the run it would "
+                        "be alone; on CUDA each seed's agent runs on a stream of its own (not measured on a "
+                        "GPU) (default: none, one run of --seed)")
     t.add_argument("--runs", nargs="+", metavar="RUN_DIR",
                    help="train these run directories, each described by its own config.json (as a sweep "
                         "writes them), in one process as --seeds does; they may differ in the seed and in "

@@ -195,6 +195,7 @@ def test_a_seed_phase_as_long_as_the_budget_warns_that_the_agent_never_learns(tm
 
     for seed_steps, warned in ((10, True), (9, False)):
         t = Trainer(tiny_config("curl", steps=10, seed_steps=seed_steps), str(tmp_path / f"run{seed_steps}"))
+        t.begin()
         t.close()
         lines = [line for line in capsys.readouterr().out.splitlines() if "never updated" in line]
         assert lines == (["imssr: warning: the seed phase (--seed-steps) acts at random until agent step 10 "

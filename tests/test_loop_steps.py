@@ -201,6 +201,8 @@ def test_first_non_finite_names_the_signal_before_the_losses():
 def trainer(tmp_path):
     # 125 agent steps an episode, evaluations and checkpoints every 125, a budget of 250.
     t = Trainer(tiny_config("curl", steps=250), str(tmp_path / "run"))
+    t.begin()
+    t.progress = _Progress()
     yield t
     t.close()
 
@@ -216,106 +218,134 @@ class _Calls:
         return self.result
 
 
-class _Said:
+class _Progress:
+    """The loop's progress display: what it says, and the episode ends it is told of."""
+
     def __init__(self):
-        self.lines = []
+        self.lines, self.ended = [], []
 
     def say(self, text):
         self.lines.append(text)
+
+    def step(self, step, frame, last_return):
+        pass
+
+    def episode_end(self, episode_return, fps, frame):
+        self.ended.append((episode_return, frame))
+
+
+class _Env:
+    """The training env as :meth:`Trainer.end_step` sees it: each step 8 frames and a reward of
+    1, the episode over when ``over``."""
+
+    def __init__(self, over: bool = False):
+        self.over = over
+
+    def step(self, action):
+        return np.zeros(1), 1.0, False, self.over, {"frame": None, "sim_steps": 8}
+
+    def physics_state(self):
+        return None
 
 
 ROWS = [{"mode": "train", "return_mean": 3.0, "return_std": 1.0}]
 
 
-def test_evaluate_if_due_evaluates_at_the_schedule_and_moves_it_on(trainer):
-    trainer.run_eval, said, s = _Calls(ROWS), _Said(), trainer.state
-    s.step, s.frame = 124, 992
-    trainer._evaluate_if_due(said)
-    assert trainer.run_eval.calls == [] and said.lines == []
-    s.step, s.frame = 126, 1008  # checked late: still due, and the next one is at 250
-    trainer._evaluate_if_due(said)
+def end_step_at(trainer, step: int, over: bool = False) -> None:
+    """:meth:`Trainer.end_step` of agent step ``step`` (it ends at ``step + 1``) in an open
+    episode, with :class:`_Env` and a replay buffer that takes anything."""
+    trainer.env, trainer.replay = _Env(over), type("Replay", (), {"add": _Calls()})()
+    trainer.state.step, trainer.state.frame = step, 8 * step
+    trainer.episode, trainer.action = trainer.episode or Episode(env_rng={}), np.zeros(1, np.float32)
+    trainer.end_step()
+
+
+def test_an_evaluation_comes_at_the_schedule_and_moves_it_on(trainer):
+    trainer.run_eval, s = _Calls(ROWS), trainer.state
+    end_step_at(trainer, 123)
+    assert trainer.run_eval.calls == [] and trainer.progress.lines == []
+    end_step_at(trainer, 125)  # checked late: still due, and the next one is at 250
     assert len(trainer.run_eval.calls) == 1 and s.eval_schedule.next_step == 250
-    assert said.lines == ["eval step 126 frame 1008: return 3.0 ± 1.0"]
+    assert trainer.progress.lines == ["eval step 126 frame 1008: return 3.0 ± 1.0"]
 
 
 def test_the_final_evaluation_comes_once_at_the_end_of_the_budget(trainer):
-    trainer.run_eval, said, s = _Calls(ROWS), _Said(), trainer.state
-    s.step, s.frame = 249, 1992
-    trainer._final_evaluation_if_last(said)
+    trainer.run_eval, trainer.save, trainer.logger.log_train, s = _Calls(ROWS), _Calls(), _Calls(), trainer.state
+    s.eval_schedule.next_step = None
+    end_step_at(trainer, 248, over=True)
     assert trainer.run_eval.calls == []
-    s.step, s.frame, s.last_eval_step = 250, 2000, 250  # the periodic evaluation took this step
-    trainer._final_evaluation_if_last(said)
+    s.last_eval_step = 250  # the periodic evaluation took this step
+    end_step_at(trainer, 249, over=True)
     assert trainer.run_eval.calls == []
     s.last_eval_step = 125
-    trainer._final_evaluation_if_last(said)
-    assert len(trainer.run_eval.calls) == 1 and said.lines == ["final eval step 250 frame 2000: return 3.0 ± 1.0"]
+    end_step_at(trainer, 249, over=True)
+    assert len(trainer.run_eval.calls) == 1
+    assert trainer.progress.lines == ["final eval step 250 frame 2000: return 3.0 ± 1.0"]
 
 
-def test_checkpoint_if_due_saves_at_the_schedule_and_at_the_end(trainer):
-    trainer.save, s = _Calls(), trainer.state
-    s.step = 124
-    trainer._checkpoint_if_due()
+def test_a_checkpoint_comes_at_an_episode_end_at_the_schedule_and_at_the_end(trainer):
+    trainer.save, trainer.run_eval, trainer.logger.log_train, s = _Calls(), _Calls(ROWS), _Calls(), trainer.state
+    end_step_at(trainer, 123, over=True)
     assert trainer.save.calls == []
-    s.step = 130
-    trainer._checkpoint_if_due()
+    end_step_at(trainer, 126)  # due, but not inside an episode
+    assert trainer.save.calls == []
+    end_step_at(trainer, 129, over=True)
     assert trainer.save.calls == [()] and s.ckpt_schedule.next_step == 250
-    trainer.state.ckpt_schedule.next_step = None  # no periodic checkpoint: the last one still comes
-    s.step = 250
-    trainer._checkpoint_if_due()
+    s.ckpt_schedule.next_step = None  # no periodic checkpoint: the last one still comes
+    end_step_at(trainer, 249, over=True)
     assert len(trainer.save.calls) == 2
 
 
-def test_stop_if_requested_checkpoints_the_open_episode_and_stops(trainer):
+def test_a_stop_request_checkpoints_the_open_episode(trainer):
     s = trainer.state
     s.step = 40
-    trainer._stop_if_requested(None)  # no request: nothing
+    assert not trainer.stop_due()  # no request
     trainer.stop = StopAtStep(trainer, 40)
-    episode, _ = trainer._start_episode()
-    episode.add_step(np.array([0.25], np.float32), 1.0, 8)
-    with pytest.raises(TrainingInterrupted, match=r"^stopped at agent step 40 by SIGTERM; continue with: "
-                                                  r"imssr train --out \S+ --resume$"):
-        trainer._stop_if_requested(episode)
+    assert trainer.stop_due()
+    trainer.begin_step()
+    trainer.episode.add_step(np.array([0.25], np.float32), 1.0, 8)
+    trainer.save_for_stop()
     saved = load_checkpoint(trainer.run_dir.latest)
     assert saved.step == 40 and saved.episode_state["return"] == 1.0
     assert saved.episode_state["actions"].tolist() == [[0.25]]
 
 
-def test_stop_if_requested_does_not_save_twice_nor_past_the_budget(trainer):
+def test_a_stop_request_does_not_save_twice_nor_past_the_budget(trainer):
     trainer.save, s = _Calls(), trainer.state
     trainer.stop = StopAtStep(trainer, 0)
     s.step, trainer.checkpoints.saved_step = 125, 125  # an episode end just checkpointed this step
-    with pytest.raises(TrainingInterrupted):
-        trainer._stop_if_requested(None)
+    trainer.save_for_stop()
     assert trainer.save.calls == []
     s.step = 250  # the budget is spent: the run finishes instead
-    trainer._stop_if_requested(None)
-    assert trainer.save.calls == []
+    assert not trainer.stop_due()
 
 
-def test_end_episode_logs_its_row_or_raises_on_a_non_finite_metric(trainer):
-    s, said = trainer.state, _Progress()
-    ep = Episode(env_rng={})
+def test_a_stopped_training_says_how_to_continue(tmp_path):
+    t = Trainer(tiny_config("curl", steps=250, seed_steps=100), str(tmp_path / "run"))
+    t.stop = StopAtStep(t, 40)
+    try:
+        with pytest.raises(TrainingInterrupted, match=r"^stopped at agent step 40 by SIGTERM; continue with: "
+                                                      r"imssr train --out \S+ --resume$"):
+            t.train()
+    finally:
+        t.close()
+
+
+def test_an_episode_end_logs_its_row_or_raises_on_a_non_finite_metric(trainer):
+    s, said = trainer.state, trainer.progress
+    trainer.episode = ep = Episode(env_rng={})
     ep.add_step(np.zeros(1, np.float32), 2.5, 1000)
     ep.add_metrics({"critic_loss": torch.tensor(1.0)})
-    s.step, s.frame = 125, 1000
     trainer.logger.log_train = _Calls()
-    trainer._end_episode(ep, said)
+    end_step_at(trainer, 124, over=True)
     (row,), = trainer.logger.log_train.calls
-    assert row["episode"] == 0 and row["episode_return"] == 2.5 and row["critic_loss"] == 1.0
-    assert s.episode == 1 and s.last_return == 2.5 and said.ended == [(2.5, 1000)]
+    assert row["episode"] == 0 and row["episode_return"] == 3.5 and row["critic_loss"] == 1.0
+    assert s.episode == 1 and s.last_return == 3.5 and said.ended == [(3.5, 1000)] and trainer.episode is None
+    trainer.episode = ep = Episode(env_rng={})
     ep.add_metrics({"critic_loss": torch.tensor(math.nan)})
     with pytest.raises(DivergedError, match="^critic loss nan$"):
-        trainer._end_episode(ep, said)
+        end_step_at(trainer, 124, over=True)
     assert s.episode == 1 and len(trainer.logger.log_train.calls) == 1
-
-
-class _Progress(_Said):
-    def __init__(self):
-        super().__init__()
-        self.ended = []
-
-    def episode_end(self, episode_return, fps, frame):
-        self.ended.append((episode_return, frame))
 
 
 def test_a_divergence_names_the_open_episodes_first_non_finite_metric(trainer):
@@ -330,37 +360,43 @@ def test_a_divergence_names_the_open_episodes_first_non_finite_metric(trainer):
 
 def test_seed_phase_actions_come_from_the_loop_generator_then_the_agent_learns(trainer):
     s = trainer.state
-    ep, obs = trainer._start_episode()
     expected = np.random.default_rng(np.random.SeedSequence(trainer.cfg.train.seed).spawn(2)[1])
-    assert np.array_equal(trainer._act(obs, ep), expected.uniform(-1.0, 1.0, 1).astype(np.float32))
-    assert ep.counts == {}
-    obs, over = trainer._env_step(np.zeros(1, np.float32), ep)
-    assert (s.step, s.frame, ep.frames, over) == (1, 8, 8, False)
+    assert not trainer.begin_step()  # the seed phase: no policy action
+    assert np.array_equal(trainer.action, expected.uniform(-1.0, 1.0, 1).astype(np.float32))
+    assert trainer.replay.size == 1  # the reset's frame
+    trainer.agent.update = _Calls({"critic_loss": torch.tensor(0.5)})
+    trainer.learn(lambda: trainer.episode.add_metrics(trainer.agent.update()))
+    assert trainer.agent.update.calls == [] and trainer.episode.counts == {}
+    trainer.end_step()
+    assert (s.step, s.frame, trainer.episode.frames) == (1, 8, 8)
     assert trainer.replay.size == 2  # the reset's frame and this step's
     s.learning_starts = 0  # an agent with a batch to learn from: one update
-    trainer.agent.update = _Calls({"critic_loss": torch.tensor(0.5)})
-    trainer._act(obs, ep)
-    assert len(trainer.agent.update.calls) == 1 and ep.counts == {"critic_loss": 1}
+    assert trainer.begin_step()  # the policy acts
+    trainer.learn(lambda: trainer.episode.add_metrics(trainer.agent.update()))
+    assert len(trainer.agent.update.calls) == 1 and trainer.episode.counts == {"critic_loss": 1}
 
 
 def test_the_burst_runs_once_when_the_first_seed_phase_ends(trainer):
     trainer.cfg.train.burst_updates = 3
-    trainer.agent.update = _Calls({"critic_loss": torch.tensor(0.5)})
-    ep = Episode(env_rng={})
-    action = np.zeros(1, np.float32)
-    trainer.state.step = trainer.cfg.train.seed_steps
-    trainer._learn(ep, action)
+    update = _Calls()
+    trainer.state.step = trainer.state.learning_starts = trainer.cfg.train.seed_steps
+    trainer.learn(update)
     trainer.state.step += 1
-    trainer._learn(ep, action)
-    assert len(trainer.agent.update.calls) == 4 and ep.counts == {"critic_loss": 4}
+    trainer.learn(update)
+    assert len(update.calls) == 4
+
+
+def test_a_non_finite_action_stops_the_run_before_the_simulator_sees_it(trainer):
+    with pytest.raises(DivergedError, match="^action nan$"):
+        trainer.take_action(np.array([np.nan], np.float32))
 
 
 def test_the_trainer_stays_small():
-    """Trainer holds the loop and its steps (which the lockstep loop of many seeds,
-    :class:`imssr.training.seeds.SeedsTrainer`, takes one by one) and the progress of its long
+    """Trainer holds the loop and its public steps (which the lockstep loop of many seeds,
+    :class:`imssr.training.seeds.SeedsTrainer`, takes for every seed) and the progress of its long
     phases (:meth:`Trainer.phase`); checkpointing, building, the stop request and how progress
-    shows live in modules of their own: at most 295 lines."""
-    assert len(inspect.getsource(Trainer).splitlines()) <= 295
+    shows live in modules of their own: at most 280 lines."""
+    assert len(inspect.getsource(Trainer).splitlines()) <= 280
 
 
 def test_the_training_loop_stays_short():

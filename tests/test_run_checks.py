@@ -168,6 +168,7 @@ def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_sma
             Trainer(fast(steps=15, torch_threads=1), out, resume=True)
         assert (tmp_path / "run" / "config.json").read_text() == config  # not rewritten
         resumed = Trainer(fast(steps=40, torch_threads=2), out, resume=True)
+        resumed.begin()
         resumed.close()
         said = capsys.readouterr().out
         assert "imssr: resuming from agent step 20 (frame 1,000) of 40" in said

@@ -2,8 +2,10 @@
 resume, a diverged seed stopped alone, and one-line errors."""
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
+import io
 import json
 import os
 import re
@@ -19,24 +21,39 @@ from imssr.rundir import RunDir
 from imssr.training.seeds import SeedsTrainer
 from imssr.training.stop import TrainingInterrupted
 
-SEEDS = (1, 2)
+SEEDS = (1, 2, 3)
+
+CASES = {
+    # case: (each seed's algorithm, agent.cuda_graphs, the file of seed 3 whose n-th write a kill -9 cuts)
+    "curl": (("curl",) * 3, False, ("step-000000150.pt", 1)),
+    "im-curl": (("im-curl",) * 3, True, ("latest.pt", 2)),
+    "soda": (("soda",) * 3, True, ("latest.pt", 2)),
+    "curl+im-curl": (("curl", "im-curl", "curl"), False, ("step-000000150.pt", 1)),
+}
+"""The batches of ``--seeds 1-3`` each of whose seeds must be its run alone, killed at their second
+checkpoint (step 150) and resumed: as seed 3 writes it (every run resumes from 125 and trains
+on), or as it becomes seed 3's latest.pt (every run trained through, each resumes from 150)."""
 
 
-def configs(steps: int = 150):
+def configs(case: str = "curl", steps: int = 150, algos=None, n: int = 2):
+    """The configs of the first ``n`` seeds of ``case`` (the figures' batches: 3; other tests: 2)."""
     cfgs = []
-    for seed in SEEDS:
-        cfg = tiny_config("im-curl", seed=seed, steps=steps, seed_steps=60, burst_updates=5,
-                          eval_every_steps=75, checkpoint_every_steps=125)
+    case_algos, graphs, _ = CASES[case]
+    for algo, seed in zip((algos or case_algos)[:n], SEEDS):
+        cfg = tiny_config(algo, seed=seed, steps=steps, seed_steps=60, burst_updates=5, eval_every_steps=75,
+                          checkpoint_every_steps=125, torch_threads=TORCH_THREADS)
+        cfg.agent.cuda_graphs = graphs
         cfgs.append(cfg)
     return cfgs
 
 
-def runs(root) -> list[str]:
-    return [os.path.join(str(root), f"seed_{s}") for s in SEEDS]
+def runs(root, n: int = 2) -> list[str]:
+    return [os.path.join(str(root), f"seed_{s}") for s in SEEDS[:n]]
 
 
 def train_seeds(root, stop_at=None, resume=False, cfgs=None):
-    trainer = SeedsTrainer(cfgs or configs(), runs(root), resume=resume)
+    cfgs = cfgs or configs()
+    trainer = SeedsTrainer(cfgs, runs(root, len(cfgs)), resume=resume)
     try:
         if stop_at is not None:
             trainer.stop = StopAtStep(trainer, stop_at)
@@ -56,15 +73,66 @@ def final_nets(run: str) -> dict[str, torch.Tensor]:
     return RunDir(run).checkpoint().checkpoint.agent["nets"]
 
 
+def assert_same_run(run: str, other: str) -> None:
+    """Every CSV value (but the timings) and every final weight of ``run`` are ``other``'s."""
+    for log in ("train.csv", "eval.csv"):
+        assert rows(os.path.join(run, log)) == rows(os.path.join(other, log)), (run, log)
+    theirs = final_nets(other)
+    for key, value in final_nets(run).items():
+        assert torch.equal(value, theirs[key]), (run, key)
+
+
 @pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory):
-    root = tmp_path_factory.mktemp("seeds")
-    assert train_seeds(root) == [None, None]
-    return root
+def alone(tmp_path_factory):
+    """The run alone of a config, trained once in this module (runs of the same config share it)."""
+    from conftest import train_run
+
+    done: dict[str, str] = {}
+
+    def run_of(cfg) -> str:
+        key = json.dumps(cfg.to_dict(), sort_keys=True)
+        if key not in done:
+            done[key] = str(tmp_path_factory.mktemp("alone"))
+            train_run(cfg, done[key])
+        return done[key]
+
+    return run_of
+
+
+@pytest.fixture(scope="module")
+def batches(tmp_path_factory):
+    """The uninterrupted batch of a case (:data:`CASES`), trained once in this module: its root."""
+    done: dict[str, str] = {}
+
+    def batch_of(case: str) -> str:
+        if case not in done:
+            done[case] = str(tmp_path_factory.mktemp(case.replace("+", "_")))
+            assert train_seeds(done[case], cfgs=configs(case, n=3)) == [None, None, None]
+        return done[case]
+
+    return batch_of
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(batches):
+    return batches("curl")
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def killed(request, tmp_path_factory):
+    """A case's batch killed (SIGKILL) at its second checkpoint and resumed: the case, its root and
+    what the resume said."""
+    case, root = request.param, tmp_path_factory.mktemp(f"killed_{request.param.replace('+', '_')}")
+    kill_at, time = CASES[case][2]
+    killed_batch(root, os.path.join(runs(root, 3)[2], "checkpoints", kill_at), time, configs(case, n=3))
+    said = io.StringIO()
+    with contextlib.redirect_stdout(said):
+        assert train_seeds(root, resume=True, cfgs=configs(case, n=3)) == [None, None, None]
+    return case, str(root), said.getvalue()
 
 
 def test_each_seed_is_a_standard_run(uninterrupted):
-    for seed, run in zip(SEEDS, runs(uninterrupted)):
+    for seed, run in zip(SEEDS, runs(uninterrupted, 3)):
         config = json.load(open(os.path.join(run, "config.json")))
         assert config["train"]["seed"] == seed
         assert json.load(open(os.path.join(run, "status.json")))["state"] == "finished"
@@ -72,74 +140,85 @@ def test_each_seed_is_a_standard_run(uninterrupted):
         assert [r["step"] for r in rows(os.path.join(run, "eval.csv"))] == ["75", "150"]
         assert RunDir(run).checkpoint().checkpoint.step == 150
     # The seeds learned apart: their own weights.
-    a, b = (final_nets(r) for r in runs(uninterrupted))
+    a, b, _ = (final_nets(r) for r in runs(uninterrupted, 3))
     assert not torch.equal(a["critic.q.q1.0.weight"], b["critic.q.q1.0.weight"])
 
 
-def test_on_the_cpu_each_seed_is_its_run_alone_bit_for_bit(uninterrupted, tmp_path):
-    """The CPU's batch runs its members one after another (``loop``): seed 2 of the batch leaves
-    the logs and weights of ``imssr train --seed 2``."""
-    from conftest import train_run
-
-    alone = tmp_path / "alone"
-    train_run(configs()[1], alone)
-    batched = runs(uninterrupted)[1]
-    for log in ("train.csv", "eval.csv"):
-        assert rows(os.path.join(batched, log)) == rows(os.path.join(str(alone), log))
-    for key, value in final_nets(str(alone)).items():
-        assert torch.equal(value, final_nets(batched)[key]), key
+@pytest.mark.parametrize("case", ["curl", "curl+im-curl"])
+def test_every_seed_of_a_batch_is_its_run_alone(case, batches, alone):
+    """On the CPU the members run one after another: each seed of a CURL and a mixed CURL + IM-CURL
+    batch leaves the logs and weights of ``imssr train --seed N`` of its config (the IM-CURL and
+    SODA batches, with agent.cuda_graphs, train through uninterrupted before their kill below)."""
+    for cfg, run in zip(configs(case, n=3), runs(batches(case), 3)):
+        assert_same_run(run, alone(cfg))
 
 
-def test_a_stopped_batch_resumes_exactly(uninterrupted, tmp_path):
+def test_every_seed_of_a_batch_killed_at_a_later_checkpoint_resumes_as_its_run_alone(killed, alone):
+    """Killed as seed 3 writes its checkpoint of step 150 (seeds 1 and 2 wrote theirs): every run
+    resumes from 125; killed as seed 3 makes its copy of 150 its latest.pt (the others did): every
+    run resumes from 150, seed 3 from its numbered copy.  Either way each seed ends as its run alone."""
+    case, root, out = killed
+    step = 125 if CASES[case][2][0].startswith("step-") else 150
+    # Every run resumes from the same step: the batch says it once.
+    assert out.count(f"imssr: resuming from agent step {step} ") == 1 and "resuming from agent step" not in \
+        out.replace(f"imssr: resuming from agent step {step} ", "", 1), out
+    if step == 150:  # seed 3 from its numbered copy, its latest.pt being of step 125
+        assert f"imssr: seed 3: {runs(root, 3)[2]}: resuming from step-000000150.pt at agent step 150, the last " \
+               "checkpoint every run of the batch completed (its latest.pt is of agent step 125)" in out, out
+    for cfg, run in zip(configs(case, n=3), runs(root, 3)):
+        assert_same_run(run, alone(cfg))
+
+
+def test_a_stopped_batch_resumes_exactly_also_from_a_stacked_layout(uninterrupted, tmp_path, capsys):
     """Stopped in the middle of an episode and resumed, every seed's logs and weights are those
-    of the uninterrupted batch (CPU)."""
+    of the uninterrupted batch; a saved config's retired stacked layout (``vmap``) resumes as the
+    one batch, in one line."""
     with pytest.raises(TrainingInterrupted, match=r"^stopped at agent step 100 by SIGTERM; continue with: "
                                                   r"imssr train --seeds 1,2 --out .* --resume"):
         train_seeds(tmp_path, stop_at=100)
-    assert train_seeds(tmp_path, resume=True) == [None, None]
-    assert_same_as_uninterrupted(uninterrupted, tmp_path)
-
-
-def streams_configs(steps: int = 150):
-    cfgs = configs(steps)
+    cfgs = configs()
     for cfg in cfgs:
-        cfg.agent.batch_layout = "streams"
-    return cfgs
-
-
-def test_seeds_as_agents_of_their_own_train_and_resume_across_layouts(uninterrupted, tmp_path):
-    """``agent.batch_layout=streams`` (each seed's own agent; on the CPU, in turn) trains what the
-    stacked batch trains, and a run stopped in one layout resumes in the other: 100 agent steps
-    on streams, the last 50 stacked, leave the logs and weights of the stacked batch throughout."""
-    with pytest.raises(TrainingInterrupted):
-        train_seeds(tmp_path, stop_at=100, cfgs=streams_configs())
-    assert train_seeds(tmp_path, resume=True) == [None, None]
+        cfg.agent.batch_layout = "vmap"
+    capsys.readouterr()
+    assert train_seeds(tmp_path, resume=True, cfgs=cfgs) == [None, None]
+    assert capsys.readouterr().out.count("agent.batch_layout=vmap (stacked weights) resumes as the one batch") == 1
     assert_same_as_uninterrupted(uninterrupted, tmp_path)
 
 
-@pytest.mark.parametrize("bad", [0, 1])
-def test_a_diverged_seed_stops_alone(uninterrupted, tmp_path, bad, capsys):
-    """The seed whose critic turns to NaN stops at its first episode's end, before its first
-    checkpoint, and says so; the other trains on, leaving the logs and weights of the batch
-    where nothing diverged."""
-    trainer = SeedsTrainer(configs(), runs(tmp_path))
+def test_a_new_run_in_a_stacked_layout_is_refused_in_one_line(tmp_path):
+    cfgs = configs()
+    for cfg in cfgs:
+        cfg.agent.batch_layout = "loop"
+    with pytest.raises(ImssrError, match=r"^agent.batch_layout=loop \(stacked weights\) is not offered: measured, "
+                                         r".*0.46-0.49x.*docs/performance.md\); use auto or streams$"):
+        SeedsTrainer(cfgs, runs(tmp_path))
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_diverged_seed_stops_alone_and_a_base_member_never_computes_an_intrinsic_reward(tmp_path, alone, capsys):
+    """In a CURL + IM-CURL + CURL batch, seed 1's critic turns to NaN and seed 2's (IM-CURL)
+    intrinsic signal does: each stops alone, before its first checkpoint,
+    and says so in one line; seed 3, a base member, never computes an intrinsic reward and trains
+    on as its run alone."""
+    cfgs = configs("curl", algos=("curl", "im-curl", "curl"), n=3)
+    trainer = SeedsTrainer(cfgs, runs(tmp_path, 3))
     try:
         with torch.no_grad():
-            for value in trainer.batch.members[bad].nets.critic.q.parameters():
-                value.fill_(float("nan"))
+            for name, value in trainer.trainers[0].agent.nets.named_parameters():
+                if name.startswith("critic.q."):
+                    value.fill_(float("nan"))
+        signal = trainer.trainers[1].agent.signal
+        signal.forward = lambda ctx, forward=signal.forward: forward(ctx) * float("nan")
         failed = trainer.train()
     finally:
         trainer.close()
-    good = 1 - bad
-    assert failed[good] is None and failed[bad].startswith("diverged at agent step")
+    assert failed[2] is None and all(f.startswith("diverged at agent step") for f in failed[:2])
     said = [line for line in capsys.readouterr().out.splitlines() if "diverged" in line]
-    assert said == [f"imssr: seed {SEEDS[bad]}: {failed[bad]}; it has no checkpoint, the other seeds go on"]
-    statuses = [json.load(open(os.path.join(run, "status.json")))["state"] for run in runs(tmp_path)]
-    assert statuses[good] == "finished" and statuses[bad] == "diverged"
-    done, other = runs(uninterrupted)[good], runs(tmp_path)[good]
-    for log in ("train.csv", "eval.csv"):
-        assert rows(os.path.join(other, log)) == rows(os.path.join(done, log))
-    assert RunDir(other).checkpoint().checkpoint.step == 150
+    assert said == [f"imssr: seed {seed}: {why}; it has no checkpoint, the other seeds go on"
+                    for seed, why in zip(SEEDS, failed[:2])]
+    statuses = [json.load(open(os.path.join(run, "status.json")))["state"] for run in runs(tmp_path, 3)]
+    assert statuses == ["diverged", "diverged", "finished"]
+    assert_same_run(runs(tmp_path, 3)[2], alone(cfgs[2]))
 
 
 def test_a_batch_says_each_seeds_lines_with_its_seed_and_a_warning_of_every_seed_once(tmp_path, capsys):
@@ -159,7 +238,7 @@ def test_a_batch_says_each_seeds_lines_with_its_seed_and_a_warning_of_every_seed
     assert len([line for line in out if line.startswith("imssr: warning: the seed phase")]) == 1, out
     evaluations = [line for line in out if "eval step" in line]
     progress = [line for line in out if "frames/s" in line]
-    for seed in SEEDS:
+    for seed in SEEDS[:2]:
         assert f"seed {seed}: eval step 75 frame 600: return 0.0 ± 0.0" in evaluations, evaluations
         assert any(line.startswith(f"imssr: seed {seed}: agent step 80/80 (100.0%)") for line in progress), progress
     assert len(evaluations) == 2 and len(progress) == 2 * 80
@@ -174,19 +253,16 @@ def test_runs_of_one_seed_are_told_apart_by_their_algorithm():
         ["x/beta0_0.01", "x/beta0_0.1"]
 
 
-def test_two_evaluation_scenes_in_lockstep_are_each_seeds_own(tmp_path):
+def test_two_evaluation_scenes_in_lockstep_are_each_seeds_own(tmp_path, alone):
     """With two evaluation scenes, each seed's eval.csv is its run alone's."""
-    from conftest import train_run
-
     cfgs = configs(steps=80)
     for cfg in cfgs:
         cfg.train.eval_modes = "training,color_easy"
         cfg.train.eval_every_steps = 80
     assert train_seeds(tmp_path / "batch", cfgs=cfgs) == [None, None]
-    train_run(cfgs[1], tmp_path / "alone")
     batched = rows(os.path.join(runs(tmp_path / "batch")[1], "eval.csv"))
     assert [r["mode"] for r in batched] == ["training", "color_easy"]
-    assert batched == rows(str(tmp_path / "alone" / "eval.csv"))
+    assert batched == rows(os.path.join(alone(cfgs[1]), "eval.csv"))
 
 
 def test_the_resume_command_names_seeds_or_run_directories(tmp_path):
@@ -195,11 +271,10 @@ def test_the_resume_command_names_seeds_or_run_directories(tmp_path):
         assert trainer.resume_command() == f"imssr train --seeds 1,2 --out {tmp_path} --resume"
     finally:
         trainer.close()
-    cfgs = configs()
-    dirs = [str(tmp_path / "x" / "curl"), str(tmp_path / "x" / "im-curl")]
-    trainer = SeedsTrainer(cfgs, dirs)
+    dirs = [str(tmp_path / "x" / name) for name in ("curl", "im-curl")]
+    trainer = SeedsTrainer(configs(), dirs)
     try:
-        assert trainer.resume_command() == f"imssr train --runs {dirs[0]} {dirs[1]} --resume"
+        assert trainer.resume_command() == f"imssr train --runs {' '.join(dirs)} --resume"
     finally:
         trainer.close()
 
@@ -290,23 +365,31 @@ def test_runs_that_differ_elsewhere_are_refused_in_one_line(tmp_path):
         SeedsTrainer(cfgs, [str(tmp_path / "a"), str(tmp_path / "b")])
 
 
+def test_what_may_share_a_process_is_decided_from_the_configs():
+    """Runs share a process when they differ in the seed and the intrinsic reward's beta_0 and
+    switch only: members with and without a signal of weights of its own (RND) too."""
+    from imssr.config.batching import batch_key, batch_refusal
+
+    curl, rnd, im = tiny_config("curl", seed=1), tiny_config("curl+rnd", seed=2), tiny_config("im-curl", seed=3)
+    assert batch_refusal([curl, rnd]) is None and batch_refusal([curl, im]) is None
+    assert batch_key(curl)[0] == batch_key(rnd)[0] == batch_key(im)[0]
+    assert batch_key(curl)[1] is None and batch_key(rnd)[1] != batch_key(im)[1]
+    assert batch_refusal([rnd, im]) == "the runs of one process may differ in intrinsic.beta0 and intrinsic.enabled only"
+    other = tiny_config("im-curl", seed=4)
+    other.intrinsic.beta0 = 0.5
+    assert batch_refusal([im, other]) is None and batch_key(im) == batch_key(other)
+    im.agent.compile = "default"
+    assert batch_refusal([im, other]).endswith("set agent.compile=off")
+
+
 def test_envs_in_worker_processes_change_nothing(uninterrupted, tmp_path):
     """train.env_workers: every env in a process of its own, stepped ahead while the agent
-    learns; the seeds' logs and weights are those of the envs in the training's process, and so
-    are a run alone's."""
-    from conftest import train_run
-
+    learns; the seeds' logs and weights are those of the envs in the training's process."""
     cfgs = configs()
     for cfg in cfgs:
         cfg.train.env_workers = True
-    assert train_seeds(tmp_path / "batch", cfgs=cfgs) == [None, None]
-    alone = tmp_path / "alone"
-    train_run(cfgs[0], alone)
-    for done, other in [*zip(runs(uninterrupted), runs(tmp_path / "batch")), (runs(uninterrupted)[0], str(alone))]:
-        for log in ("train.csv", "eval.csv"):
-            assert rows(os.path.join(other, log)) == rows(os.path.join(done, log))
-        for key, value in final_nets(done).items():
-            assert torch.equal(value, final_nets(other)[key]), key
+    assert train_seeds(tmp_path, cfgs=cfgs) == [None, None]
+    assert_same_as_uninterrupted(uninterrupted, tmp_path)
 
 
 # -- a batch's checkpoint is every run's or none; a refused batch writes nothing ---------------------
@@ -329,10 +412,7 @@ def files_of(root) -> dict[str, bytes]:
 
 def assert_same_as_uninterrupted(done_root, root) -> None:
     for done, other in zip(runs(done_root), runs(root)):
-        for log in ("train.csv", "eval.csv"):
-            assert rows(os.path.join(other, log)) == rows(os.path.join(done, log)), (other, log)
-        for key, value in final_nets(done).items():
-            assert torch.equal(value, final_nets(other)[key]), key
+        assert_same_run(other, done)
 
 
 KILLED_AT = """
@@ -359,13 +439,13 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
-def killed_batch(root, kill_at: str, time: int = 1) -> None:
-    """``imssr train --runs`` of the seeds' runs in ``root``, SIGKILLed as ``kill_at`` is written
-    for the ``time``-th time."""
-    for cfg, run in zip(configs(), runs(root)):
-        cfg.train.torch_threads = TORCH_THREADS  # the subprocesses compute as this process does
+def killed_batch(root, kill_at: str, time: int = 1, cfgs=None) -> None:
+    """``imssr train --runs`` of the seeds' runs in ``root`` (of ``cfgs``, with the torch threads of
+    this process), SIGKILLed as ``kill_at`` is written for the ``time``-th time."""
+    cfgs = cfgs or configs()
+    for cfg, run in zip(cfgs, runs(root, len(cfgs))):
         RunDir(run).write_config(cfg)
-    proc = subprocess.run([sys.executable, "-c", KILLED_AT, "train", "--runs", *runs(root)],
+    proc = subprocess.run([sys.executable, "-c", KILLED_AT, "train", "--runs", *runs(root, len(cfgs))],
                           capture_output=True, text=True, timeout=900,
                           env={**os.environ, "KILL_AT": kill_at, "KILL_TIME": str(time),
                                "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
@@ -423,25 +503,6 @@ def test_a_batch_whose_second_run_fails_to_save_resumes_from_the_last_complete_c
         assert RunDir(run).checkpoint().checkpoint.step == 125 and RunDir(run).checkpoint_steps() == [125]
         assert json.load(open(os.path.join(run, "status.json")))["state"] == "failed"
     assert train_seeds(tmp_path, resume=True) == [None, None]
-    assert_same_as_uninterrupted(uninterrupted, tmp_path)
-
-
-@pytest.mark.parametrize("kill_at, time, step", [("step-000000150.pt", 1, 125), ("latest.pt", 2, 150)])
-def test_a_batch_killed_in_its_second_checkpoint_resumes_from_the_last_step_every_run_completed(
-        uninterrupted, tmp_path, capsys, kill_at, time, step):
-    """Killed as seed 2 writes its checkpoint of step 150 (seed 1 wrote its own): both resume from
-    125; killed as seed 2 makes its copy of 150 its latest.pt (seed 1 did): both resume from 150.
-    Either way the batch ends as the uninterrupted one."""
-    killed_batch(tmp_path, os.path.join(runs(tmp_path)[1], "checkpoints", kill_at), time)
-    capsys.readouterr()
-    assert train_seeds(tmp_path, resume=True) == [None, None]
-    out = capsys.readouterr().out
-    # Both runs resume from the same step: the batch says it once.
-    assert out.count(f"imssr: resuming from agent step {step} ") == 1 and "resuming from agent step" not in \
-        out.replace(f"imssr: resuming from agent step {step} ", "", 1)
-    if step == 150:  # seed 2 from its numbered copy, its latest.pt being of step 125
-        assert f"imssr: seed 2: {runs(tmp_path)[1]}: resuming from step-000000150.pt at agent step 150, the last " \
-               "checkpoint every run of the batch completed (its latest.pt is of agent step 125)" in out
     assert_same_as_uninterrupted(uninterrupted, tmp_path)
 
 
@@ -534,7 +595,6 @@ def test_a_batch_killed_in_its_first_runs_first_write_is_told_to_start_afresh(tm
     ``--resume`` says in one line to start every run afresh, and the same command without it
     does."""
     for cfg, run in zip(configs(), runs(tmp_path)):
-        cfg.train.torch_threads = TORCH_THREADS
         RunDir(run).write_config(cfg)
     proc = subprocess.run([sys.executable, "-c", KILLED_IN_WRITE, "train", "--runs", *runs(tmp_path)],
                           capture_output=True, text=True, timeout=900,

@@ -1,7 +1,7 @@
-"""Which runs can train as one batch of agents (``imssr train --seeds`` / ``--runs``, a sweep's
-``runs_per_process``): those whose configs agree in everything but the seed and the intrinsic
-reward.  Settings only: the batch itself is :mod:`imssr.agents.batched`, the lockstep loop
-:mod:`imssr.training.seeds`.
+"""Which runs may train as one batch in one process (``imssr train --seeds`` / ``--runs``, a sweep's
+``runs_per_process``), decided here alone and from their configs: those that agree in everything
+but the seed and the intrinsic reward's scalars.  The batch itself is
+:class:`imssr.agents.members.Members`, its lockstep loop :mod:`imssr.training.seeds`.
 """
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ import json
 from typing import Optional, Sequence
 
 from imssr.config.runconfig import RunConfig
-from imssr.intrinsic.registry import SIGNAL_PLUGINS
+from imssr.errors import ImssrError
+from imssr.settings import STACKED_LAYOUTS
 
 SHARED_EXCEPT = {("algo",), ("train", "seed"), ("intrinsic",)}
-"""What the runs of one lockstep batch may differ in: the seed, and the intrinsic reward (whose
-weights-free scalars :func:`imssr.agents.batched.batch_refusal` checks), hence the algo's name
+"""What the runs of one batch may differ in: the seed, and the intrinsic reward (whose settings
+but ``beta0`` and ``enabled`` its members share: :func:`batch_refusal`), hence the algo's name
 (CURL and IM-CURL)."""
 
 
@@ -21,7 +22,7 @@ def agent_refusal(agent) -> Optional[str]:
     """Why an agent with these settings (an ``AgentConfig``) cannot be a member of a batch (one
     line), or None."""
     if agent.compile != "off":
-        return "seeds in one process run eagerly on CPU and as one batch on CUDA: set agent.compile=off"
+        return "seeds in one process run eagerly (agent.compile is for a run alone): set agent.compile=off"
     return None
 
 
@@ -36,7 +37,7 @@ def seedless(data: dict) -> str:
 
 
 def shared_settings(cfg: RunConfig) -> dict[tuple[str, ...], object]:
-    """Every setting of ``cfg`` that the runs of one lockstep batch share, by its path."""
+    """Every setting of ``cfg`` that the runs of one batch share, by its path."""
     def flat(d: dict, prefix: tuple = ()) -> dict:
         out = {}
         for k, v in d.items():
@@ -49,19 +50,25 @@ def shared_settings(cfg: RunConfig) -> dict[tuple[str, ...], object]:
     return flat(cfg.to_dict())
 
 
-def batch_key(cfg: RunConfig) -> tuple:
-    """Runs whose keys are equal can train as one batch: the shared settings, and the intrinsic
-    signal when it has weights of its own (RND, RE3: every member then needs them); ``None`` or
-    the intrinsic settings but beta_0 come third (runs without the reward join any group)."""
-    i = cfg.intrinsic
-    weighted = i.source if i.enabled and i.source in SIGNAL_PLUGINS and SIGNAL_PLUGINS[i.source].own_networks else ""
-    own = None if not i.enabled else repr(sorted((k, v) for k, v in cfg.to_dict()["intrinsic"].items()
-                                                  if k not in ("beta0", "enabled")))
-    return repr(sorted(shared_settings(cfg).items())), weighted, own
+def _intrinsic(cfg: RunConfig) -> Optional[str]:
+    """The intrinsic reward's settings but ``beta0`` (None: the run has none)."""
+    if not cfg.intrinsic.enabled:
+        return None
+    return repr(sorted((k, v) for k, v in cfg.to_dict()["intrinsic"].items() if k not in ("beta0", "enabled")))
 
 
-def lockstep_conflict(cfgs: Sequence[RunConfig]) -> Optional[str]:
-    """Why ``cfgs`` cannot train in lockstep (one line naming the first setting that differs), or None."""
+def batch_key(cfg: RunConfig) -> tuple[str, Optional[str]]:
+    """Runs may train as one batch when their shared settings (the first) are equal and those of
+    them with an intrinsic reward have the same one but for beta_0 (the second; None: the run has
+    none, and joins any group)."""
+    return repr(sorted(shared_settings(cfg).items())), _intrinsic(cfg)
+
+
+def batch_refusal(cfgs: Sequence[RunConfig]) -> Optional[str]:
+    """Why ``cfgs`` cannot train as one batch (one line naming the first setting that differs), or None."""
+    refusal = agent_refusal(cfgs[0].agent)
+    if refusal is not None:
+        return refusal
     first = shared_settings(cfgs[0])
     for cfg in cfgs[1:]:
         other = shared_settings(cfg)
@@ -69,4 +76,20 @@ def lockstep_conflict(cfgs: Sequence[RunConfig]) -> Optional[str]:
             if first.get(key) != other.get(key):
                 return (f"runs in one process must share every setting but the seed and the intrinsic reward: "
                         f"{'.'.join(key)} is {first.get(key)!r} in one and {other.get(key)!r} in another")
+    if len({_intrinsic(cfg) for cfg in cfgs} - {None}) > 1:
+        return "the runs of one process may differ in intrinsic.beta0 and intrinsic.enabled only"
     return None
+
+
+def stacked_layout(cfg: RunConfig, new_run: bool) -> Optional[str]:
+    """For ``agent.batch_layout`` ``vmap`` or ``loop`` (stacked weights, which only a saved config
+    may name): a new run's one-line error naming the measurement, raised; a resumed run's line
+    that it resumes as the one batch of plain agents, returned.  None for the other layouts."""
+    layout = cfg.agent.batch_layout
+    if layout not in STACKED_LAYOUTS:
+        return None
+    if new_run:
+        raise ImssrError(f"agent.batch_layout={layout} (stacked weights) is not offered: measured, it was never "
+                         "faster than separate processes (vmap 0.46-0.49x of them on the CPU, 0.95-1.02x of 16 on "
+                         "one H100; the stacked loop slower still: docs/performance.md); use auto or streams")
+    return f"imssr: agent.batch_layout={layout} (stacked weights) resumes as the one batch of plain agents"

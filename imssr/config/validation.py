@@ -19,7 +19,7 @@ from imssr.errors import ImssrError
 from imssr.intrinsic.registry import SIGNAL_PLUGINS
 from imssr.settings import (ADAM_BETA_RULE, BATCH_LAYOUTS, COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
                             MAX_SEED, MAX_SHADOW_SIZE, MAX_TORCH_THREADS, MIN_CROP_SIZE, NORMALIZATIONS, PRECISIONS,
-                            REPLAY_DEVICES, SCHEDULES, SEED_RULE, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS,
+                            REPLAY_DEVICES, SCHEDULES, SEED_RULE, STACKED_LAYOUTS, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS,
                             Sections, conv_output_size, type_phrase)
 
 
@@ -69,7 +69,9 @@ def validate_config(cfg: Sections) -> None:
          "agent.compile=reduce-overhead is retired: CUDA graphs of whole agent steps are agent.cuda_graphs=true "
          "(with agent.compile=off or default)"),
         (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
-        (a.batch_layout in BATCH_LAYOUTS, f"agent.batch_layout must be one of {', '.join(BATCH_LAYOUTS)}"),
+        # A saved config's stacked layout resumes as the one batch (imssr.config.batching.stacked_layout).
+        (a.batch_layout in (*BATCH_LAYOUTS, *STACKED_LAYOUTS),
+         f"agent.batch_layout must be one of {', '.join(BATCH_LAYOUTS)}"),
         (x.update_every >= 1, "aux.update_every must be >= 1"),
         (i.source in SIGNAL_PLUGINS, f"intrinsic.source must be one of {', '.join(SIGNAL_PLUGINS)}"),
         # Each auxiliary task and signal checks its own settings.

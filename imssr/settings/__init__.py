@@ -18,7 +18,7 @@ from imssr.settings.plugin import (AUTHORS, AUTHORS_CURL, AUTHORS_LOOP, AUTHORS_
                                    Sections,
                                    Setting, SignalPlugin, compose_section, plugin_table)
 from imssr.settings.sections import (BATCH_LAYOUTS, COMPILE_MODES, NORMALIZATIONS, PRECISIONS, REPLAY_DEVICES, SCHEDULES,
-                                     TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig, AuxCore, EnvConfig,
+                                     STACKED_LAYOUTS, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS, AgentConfig, AuxCore, EnvConfig,
                                      IntrinsicCore, TrainConfig, conv_output_size, steps_for_frames)
 
 __all__ = [
@@ -26,7 +26,7 @@ __all__ = [
     "AuxPlugin", "BATCH_LAYOUTS", "Beta0", "COMPILE_MODES", "DECAY", "DMCGB", "EnvConfig", "IMSSR", "Implementations", "IntrinsicCore",
     "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "MAX_SHADOW_SIZE", "MAX_TORCH_THREADS",
     "MIN_CROP_SIZE", "NORMALIZATIONS", "OFFICIAL_CURL", "PAPER", "PRECISIONS", "Plugin",
-    "REPLAY_DEVICES", "SCHEDULES", "SEED_RULE", "Sections", "Setting", "SignalPlugin", "TABLE3", "TABLE5",
+    "REPLAY_DEVICES", "SCHEDULES", "SEED_RULE", "STACKED_LAYOUTS", "Sections", "Setting", "SignalPlugin", "TABLE3", "TABLE5",
     "TF32_MODES", "TrainConfig", "UPDATE_SCHEDULES", "VIDEO_FORMATS", "compose_section", "conv_output_size",
     "dataclass_field_docs", "dataclass_field_types", "plugin_table", "steps_for_frames", "type_phrase",
 ]

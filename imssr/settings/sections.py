@@ -134,14 +134,11 @@ class AgentConfig:
     kernels are recorded.  On CPU the steps run eagerly, with the same numbers as without it."""
     batch_layout: str = "auto"
     """How the seeds of one process (``imssr train --seeds`` / ``--runs``, a sweep's packed runs)
-    share the device.  ``vmap``: the members' weights stacked and each piece of the update mapped
-    over them with ``torch.vmap`` (grouped convolutions, batched matmuls: few kernels; each
-    member within float32 rounding of its run alone).  ``loop``: stacked weights, member after
-    member, the very ops of each run alone.  ``streams``: each member an agent of its own whose
-    work goes to a CUDA stream of its own, so that the members' kernels run side by side (with
-    :attr:`cuda_graphs`, one replay per member and agent step); bit for bit each run alone on
-    the CPU (``imssr.agents.members``).  ``auto``: ``vmap`` on CUDA, ``loop`` on the CPU.  No
-    effect on a run alone."""
+    share the device: ``auto`` and ``streams`` alike, each member an agent of its own
+    (``imssr.agents.members``) whose work on CUDA goes to a stream of its own, so that the
+    members' kernels may run side by side (not measured on a GPU); on the CPU one after another,
+    bit for bit each run alone.  A saved config's ``vmap`` or ``loop`` (stacked weights, refused
+    for a new run) resumes as the same batch.  No effect on a run alone."""
 
     @property
     def precision_label(self) -> str:
@@ -278,8 +275,11 @@ UPDATE_SCHEDULES = ("sequential", "fused")
 PRECISIONS = ("fp32", "bf16")
 TF32_MODES = ("default", "true", "false")
 COMPILE_MODES = ("off", "default", "max-autotune")
-BATCH_LAYOUTS = ("auto", "vmap", "loop", "streams")
-"""How a batch of seeds runs (``agent.batch_layout``)."""
+BATCH_LAYOUTS = ("auto", "streams")
+"""How a batch of seeds runs (``agent.batch_layout``): both mean the one batch of plain agents."""
+STACKED_LAYOUTS = ("vmap", "loop")
+"""Layouts of stacked weights that a saved config may name: such a run resumes as the one batch
+(:func:`imssr.config.batching.stacked_layout`); a new run asking for one is refused."""
 VIDEO_FORMATS = ("gif", "mp4")
 REPLAY_DEVICES = ("cpu", "cuda", "auto", "disk")
 

@@ -231,7 +231,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
 def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]]:
     """The queued runs in the groups that train in one process each (``runs_per_process``, see
     :class:`~imssr.sweep.grid.SweepConfig`), in the plan's order.  Runs share a group when
-    :func:`~imssr.training.seeds.batch_key` allows it and they continue from the same agent step
+    :func:`~imssr.config.batching.batch_key` allows it and they continue from the same agent step
     (fresh: 0; resumed: their newest checkpoint's)."""
     groups: list[list[RunStatus]] = []
     open_groups: dict[tuple, list[tuple[list[RunStatus], list]]] = {}
@@ -239,12 +239,12 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
         if runs_per_process == 1 or agent_refusal(st.config.agent):
             groups.append([st])
             continue
-        shared, weighted, own = batch_key(st.config)
+        shared, own = batch_key(st.config)
         steps = st.run.run_dir.checkpoint_steps() if st.run.run_dir.has_checkpoint() else [0]
         if not steps:  # a checkpoint without a numbered copy: its step is not known here
             groups.append([st])
             continue
-        key = (shared, weighted, steps[-1], st.steps)
+        key = (shared, steps[-1], st.steps)
         for group, owns in open_groups.get(key, []):
             if (runs_per_process == 0 or len(group) < runs_per_process) and (own is None or owns[0] in (None, own)):
                 group.append(st)

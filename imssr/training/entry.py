@@ -218,28 +218,28 @@ def train(request: TrainRequest, *, exit_on_second_signal: bool = False) -> list
         allow_concurrent_streams()
     planned = plan(request)
     # Before any run directory is written or any agent built: does the machine hold them all?
-    placement = memory_plan([p.config for p in planned], [p.run for p in planned]).placement
+    memory = memory_plan([p.config for p in planned], [p.run for p in planned])
     if request.seeds is None and not request.runs:
         cfg, run = planned[0]
         stop = (StopRequest(run) if exit_on_second_signal else StopRequest()).install()
         try:
-            _train_one(cfg, run, request, stop, placement)
+            _train_one(cfg, run, request, stop, memory)
         finally:
             stop.uninstall()
         return planned
-    return _train_many(planned, request, placement, exit_on_second_signal)
+    return _train_many(planned, request, memory, exit_on_second_signal)
 
 
-def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest, placement) -> None:
+def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopRequest, memory) -> None:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.demo import record_episode, summary
     from imssr.training.loop import Trainer
 
-    trainer = Trainer(cfg, run, resume=request.resume, refill_buffer=request.refill_buffer, stop=stop,
-                      placement=placement)
-    _say(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}")
+    trainer = Trainer(cfg, run, resume=request.resume, refill_buffer=request.refill_buffer, stop=stop, plan=memory)
     started = time.time()
     try:
+        trainer.begin()
+        _say(f"imssr: {cfg.algo} on {cfg.env.task}, seed {cfg.train.seed}: {cfg.budget_text()} -> {run.path}")
         with run.recording(lambda: trainer.step, interrupted=(TrainingInterrupted,)):
             trainer.train()
         png = plot_learning_curve(run)
@@ -252,7 +252,7 @@ def _train_one(cfg: RunConfig, run: RunDir, request: TrainRequest, stop: StopReq
         trainer.close()
 
 
-def _train_many(planned: list[RunPlan], request: TrainRequest, placement,
+def _train_many(planned: list[RunPlan], request: TrainRequest, memory,
                 exit_on_second_signal: bool) -> list[RunPlan]:
     from imssr.plots.curves import plot_learning_curve
     from imssr.training.seeds import SeedsTrainer, resume_command
@@ -261,7 +261,7 @@ def _train_many(planned: list[RunPlan], request: TrainRequest, placement,
     stop = (StopRequest(*runs, resume_command=resume_command(cfgs, runs)) if exit_on_second_signal
             else StopRequest()).install()
     try:
-        trainer = SeedsTrainer(cfgs, runs, resume=request.resume, stop=stop, placement=placement)
+        trainer = SeedsTrainer(cfgs, runs, resume=request.resume, stop=stop, plan=memory)
         try:
             where = (f"{len(runs)} run directories" if request.runs
                      else os.path.join(request.out, SEED_DIR.format(seed="<n>")))

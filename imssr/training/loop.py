@@ -14,29 +14,28 @@ from __future__ import annotations
 import contextlib
 import os
 from dataclasses import dataclass
-from typing import Optional, Sequence, Union
+from typing import Callable, Iterator, Optional, Sequence, Union
 
 import numpy as np
 import torch
 
 from imssr import provenance
 from imssr.config import RunConfig, check_seed
-from imssr.config.batching import seedless
+from imssr.config.batching import seedless, stacked_layout
 from imssr.contention import contention_warning, usable_cores
 from imssr.data import FOOTAGE_DIR_ENV, IMAGE_DIR_ENV
 from imssr.envs.worker import EnvWorker
 from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
 from imssr.plots.curves import plot_learning_curve
 from imssr.presets import get_algo
-from imssr.replay import ReplayPlacement
 from imssr.rundir import CheckpointFile, RunDir, as_run_dir
 from imssr.rundir.lock import DirectoryLock
-from imssr.training.build import build_training, resolve_device
+from imssr.training.build import build_training
 from imssr.training.checkpointing import BatchPlace, Checkpointer, resume_point, thread_warning
 from imssr.training.divergence import DivergenceCheck
 from imssr.training.evaluate import evaluate, evaluate_in_training, non_finite_text
 from imssr.training.logger import open_logger
-from imssr.training.memory import replay_slots, run_placement
+from imssr.training.memory import MemoryPlan, memory_plan
 from imssr.training.progress import PROGRESS_EVERY_S, Phase, Progress, eval_summary, phase
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
@@ -47,7 +46,9 @@ __all__ = ["Start", "Trainer", "StopRequest", "TrainingInterrupted", "check_star
 
 class Trainer:
     """Trains one run into its run directory, holding the directory's lock (:mod:`imssr.rundir.lock`)
-    from before it writes or deletes anything there until :meth:`close`.
+    from before it builds anything until :meth:`close`; nothing is written there before
+    :meth:`begin`.  The loop's steps are public: :meth:`train` takes them for this run, and
+    :class:`~imssr.training.seeds.SeedsTrainer` for every run of a batch in lockstep.
 
     Args:
         cfg: the run's configuration.
@@ -55,14 +56,11 @@ class Trainer:
         resume: continue from its checkpoint (:meth:`RunDir.checkpoint`).
         refill_buffer: on resume, when the saved replay buffer is missing or damaged, start with an
             empty buffer refilled by random actions (not an exact resume) instead of failing.
-        stop: the SIGTERM / SIGINT request the CLI installed (:class:`StopRequest`); when it is
-            set, :meth:`train` checkpoints after the current agent step and raises
-            :class:`TrainingInterrupted`.
-        start: the run's checked start (:class:`Start`), a batch's: then ``cfg``, ``run`` and
-            ``resume`` are the start's, and the caller calls :meth:`begin`.  None: checked here
-            (:func:`check_start`), and the trainer begins as it is made.
-        placement: where the replay frames live (the memory plan's choice,
-            :mod:`imssr.training.memory`); None: :func:`run_placement`.
+        stop: the SIGTERM / SIGINT request the CLI installed (:class:`StopRequest`, see :meth:`train`).
+        start: the run's checked start (:class:`Start`; a batch checks its runs together); None:
+            :func:`check_start` of ``cfg``, ``run`` and ``resume``.
+        plan: the memory plan that placed the replay frames (:func:`~imssr.training.memory.memory_plan`);
+            None: the plan of this run alone.
         batch: its place in a batch of runs (:class:`~imssr.training.checkpointing.BatchPlace`).
     """
 
@@ -71,53 +69,46 @@ class Trainer:
 
     def __init__(self, cfg: RunConfig, run: Union[RunDir, str], resume: bool = False, refill_buffer: bool = False,
                  stop: Optional[StopRequest] = None, *, start: Optional[Start] = None,
-                 placement: Optional[ReplayPlacement] = None, batch: Optional[BatchPlace] = None):
-        own = start is None
+                 plan: Optional[MemoryPlan] = None, batch: Optional[BatchPlace] = None):
         # A second process on the same directory fails here, before anything is checked or written.
-        start = check_start(cfg, run, resume) if own else start
-        self.run_dir, self._lock, self._found = start.run, start.lock, start.found
-        self.stop = stop or StopRequest()  # uninstalled: never set
+        self._start = start = start or check_start(cfg, run, resume)
+        self.run_dir, self.cfg, self.stop = start.run, start.cfg, stop or StopRequest()  # uninstalled: never set
+        self.logger, self.episode, self.obs, self.action, self._burst_done = None, None, None, None, 0
         try:
-            self._build(start.cfg, refill_buffer, placement, batch)
-            if own:
-                self.begin()
+            plan = plan or memory_plan([self.cfg], [self.run_dir])
+            self.device, self.replay_placement = plan.device, plan.placement
+            found = start.found
+            _warn(found and found.note and f"imssr: {found.note}")
+            _set_threads(self.cfg.train.torch_threads, self.device, found and found.checkpoint.torch_threads)
+            self.parts = parts = build_training(self.cfg, self.device, plan.placement, self.run_dir.frames_file,
+                                                plan.needs.slots)
+            self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
+                                                                             parts.replay, parts.state)
+            self.action_dim = self.env.action_space.shape[0]
+            self.divergence = DivergenceCheck(self.agent.signal)
+            self.checkpoints = Checkpointer(self.run_dir, self.cfg, parts, refill_buffer=refill_buffer, batch=batch)
+            if found is not None:
+                with self.phase(f"resuming from agent step {found.checkpoint.step:,}: loading the checkpoint"):
+                    self.checkpoints.restore(found)
         except BaseException:
             self.close()
             raise
 
-    def _build(self, cfg: RunConfig, refill_buffer: bool, placement: Optional[ReplayPlacement],
-               batch: Optional[BatchPlace]) -> None:
-        """Build envs, agent and replay (where ``placement`` says, else :func:`run_placement`) and
-        restore the checkpoint the start resumes from; nothing is written to the run directory."""
-        self.cfg = cfg
-        self.device = resolve_device(cfg.train.device)
-        self.replay_placement = placement or run_placement(cfg, self.device)
-        found = self._found
-        if found is not None and found.note:
-            print(f"imssr: {found.note}", flush=True)
-        _set_threads(cfg.train.torch_threads, self.device, None if found is None else found.checkpoint.torch_threads)
-        self.parts = parts = build_training(cfg, self.device, self.replay_placement, self.run_dir.frames_file,
-                                            replay_slots(cfg))
-        self.env, self.eval_envs, self.agent, self.replay, self.state = (parts.env, parts.eval_envs, parts.agent,
-                                                                         parts.replay, parts.state)
-        self.action_dim = self.env.action_space.shape[0]
-        self.divergence = DivergenceCheck(self.agent.signal)
-        self.checkpoints = Checkpointer(self.run_dir, cfg, parts, refill_buffer=refill_buffer, batch=batch)
-        os.makedirs(self.run_dir.path, exist_ok=True)
-        if found is not None:
-            with self.phase(f"resuming from agent step {found.checkpoint.step:,}: loading the checkpoint"):
-                self.checkpoints.restore(found)
-
     def begin(self) -> None:
         """Write what a training starts with (config.json, a provenance record, the logs: on
-        resume truncated to the checkpoint) and say where it resumes from.  A trainer begins as it
-        is made; a run of a batch when every run of the batch is checked and built
-        (:class:`~imssr.training.seeds.SeedsTrainer`), so that a refused batch writes nothing."""
-        cfg, found = self.cfg, self._found
+        resume truncated to the checkpoint) and say where it resumes from; a batch begins its runs
+        when every run is checked and built, so that a refused batch writes nothing."""
+        cfg, start = self.cfg, self._start
+        os.makedirs(self.run_dir.path, exist_ok=True)
+        if start.leftovers:
+            self.run_dir.clear_first_set_leftovers(start.leftovers)
+        if start.found is not None and start.rewind:
+            self.run_dir.return_to(start.found)
+            self.checkpoints.saved_step = self.step  # latest.pt holds this step now
         self.run_dir.write_config(cfg)
-        self.run_dir.record_provenance(provenance.record(self.device, "resume" if found else "start", self.step))
-        self.logger = open_logger(self.run_dir, cfg, resume_frame=None if found is None else self.frame)
-        if found is not None:
+        self.run_dir.record_provenance(provenance.record(self.device, "resume" if start.found else "start", self.step))
+        self.logger = open_logger(self.run_dir, cfg, resume_frame=None if start.found is None else self.frame)
+        if start.found is not None:
             # The checkpoint's evaluation history is authoritative for eval logs.
             self.logger.rewrite_eval(self.state.eval_history)
             self.logger.relog_to_wandb()
@@ -163,79 +154,83 @@ class Trainer:
         the run with :class:`DivergedError` ("diverged at agent step N: critic loss nan"); the
         last checkpoint is from before it, since nothing is saved after a divergence.
         """
-        s, total = self.state, self.cfg.total_steps
-        progress = Progress.of_run(self.cfg, self.state, self.progress_every_s)
-        episode, obs = self.checkpoints.reopen_episode()
-        try:
-            while s.step < total:
-                if episode is None:
-                    episode, obs = self._start_episode()
-                action = self._act(obs, episode)
-                obs, episode = self._after_action(action, episode, progress)
-                self._stop_if_requested(episode)
-            self._finish(episode)
-        except NonFiniteError as exc:
-            raise DivergedError(f"{DIVERGED_PREFIX} {s.step}: {self.divergence.describe(exc, episode)}") from None
-        finally:
-            progress.close()
-            self.logger.close()
+        with self.looping():
+            try:
+                while self.step < self.cfg.total_steps:
+                    if self.begin_step():
+                        self.take_action(self.agent.act(self.obs, deterministic=False))
+                    self.send_ahead()
+                    self.learn(lambda: self.episode.add_metrics(self.agent.update(self.replay, self.step)))
+                    self.end_step()
+                    if self.stop_due():
+                        self.save_for_stop()
+                        raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
+                self.finish()
+            except NonFiniteError as exc:
+                raise DivergedError(self.diverged(exc)) from None
 
     # The loop's steps, in the order it takes them.
-    def _start_episode(self) -> tuple[Episode, np.ndarray]:
-        """Reset the training env (remembering its RNG state for a rebuild) and store the first
-        frame; returns the new episode and its first observation."""
-        episode = Episode(env_rng=self.env.get_rng_state())
-        obs, info = self.env.reset()
-        self.replay.add_first(info["frame"], self.env.physics_state(), self.state.step)
-        return episode, obs
+    @contextlib.contextmanager
+    def looping(self) -> Iterator[None]:
+        """The time of a training: begun (:meth:`begin`), the episode a stop left open stepped
+        through again, progress shown; the logs closed after."""
+        if self.logger is None:
+            self.begin()
+        self.episode, self.obs = self.checkpoints.reopen_episode()
+        self.progress = Progress.of_run(self.cfg, self.state, self.progress_every_s)
+        try:
+            yield
+        finally:
+            self.progress.close()
+            self.logger.close()
 
-    def _after_action(self, action: np.ndarray, episode: Episode, progress: Progress
-                      ) -> tuple[np.ndarray, Optional[Episode]]:
-        """Everything of an agent step after its action: the env step, then what is due
-        (evaluation, the episode's end, its checkpoint); returns the next observation and the
-        episode (None once it ended)."""
+    def begin_step(self) -> bool:
+        """Open an episode when none is open (a reset, its first frame stored) and take this agent
+        step's action when the policy does not sample it: uniform random until
+        ``learning_starts``, or, first after a resume, the action drawn before a stop interrupted
+        the burst (whose remaining updates :meth:`learn` makes).  Returns whether the policy acts
+        (:meth:`take_action`)."""
         s = self.state
-        obs, episode_over = self._env_step(action, episode)
-        progress.step(s.step, s.frame, s.last_return)
-        self._evaluate_if_due(progress)
-        if episode_over:
-            self._end_episode(episode, progress)
-            episode = None
-            self._final_evaluation_if_last(progress)
-            self._checkpoint_if_due()
-        return obs, episode
-
-    def _act(self, obs: np.ndarray, episode: Episode) -> np.ndarray:
-        """This agent step's action: uniform random until ``learning_starts``, else the policy's
-        sample, after which the agent learns (:meth:`_learn`)."""
-        s = self.state
+        if self.episode is None:
+            self.episode = Episode(env_rng=self.env.get_rng_state())
+            self.obs, info = self.env.reset()
+            self.replay.add_first(info["frame"], self.env.physics_state(), s.step)
         if s.step < s.learning_starts:
-            return s.random_action(self.action_dim)
+            self.action = s.random_action(self.action_dim)
+            return False
         burst = self.checkpoints.take_burst()
-        if burst is not None:
-            # Stopped inside the burst: its action was drawn before the stop; the updates go on.
-            action = burst["action"].numpy()
-            self._learn(episode, action, done=int(burst["updates_done"]))
-            return action
-        action = self.agent.act(obs, deterministic=False)
-        if not np.isfinite(action).all():  # a few host values: no device sync
-            raise DivergedError(f"action {non_finite_text(action)}")
-        if isinstance(self.env, EnvWorker) and self.updates_due() == 1:  # not a burst: it may stop halfway
-            self.env.step_async(action)  # the env steps while the agent learns
-        self._learn(episode, action)
-        return action
+        self._burst_done = 0 if burst is None else int(burst["updates_done"])
+        self.action = self.action if burst is None else burst["action"].numpy()
+        return burst is None
 
-    def _learn(self, episode: Episode, action: np.ndarray, done: int = 0) -> None:
-        """One update, or the burst of ``train.burst_updates`` once, when the first seed phase
-        ends (not after a refill), from its update ``done`` on; the episode sums their metrics.
-        A stop request inside the burst does not wait for its end (:meth:`_save_in_burst`)."""
-        step, due = self.state.step, self.updates_due()
-        with self.phase(f"agent step {step:,}: burst of updates", due, "updates", done, show=due > 1) as burst:
-            for update in range(done, due):
-                if update > done and self.stop.signal_name is not None:
-                    self._save_in_burst(episode, action, update)
+    def take_action(self, action) -> None:
+        """The policy's sample as this step's action, checked before the simulator sees it."""
+        self.action = np.asarray(action, dtype=np.float32)
+        if not np.isfinite(self.action).all():  # a few host values: no device sync
+            raise DivergedError(f"action {non_finite_text(self.action)}")
+
+    def send_ahead(self) -> None:
+        """An env in a worker (``train.env_workers``) starts its step now, while the agent learns;
+        not before a burst, which a stop may cut halfway."""
+        if isinstance(self.env, EnvWorker) and self.updates_due() == 1:
+            self.env.step_async(self.action)
+
+    def learn(self, update: Callable[[], None], stop: Optional[Callable] = None, what: str = "burst of updates"):
+        """This agent step's updates, each ``update()``: none until ``learning_starts``, the burst
+        of ``train.burst_updates`` once when the first seed phase ends (not after a refill; after a
+        resume from where a stop cut it), else one.  A stop request inside the burst does not wait
+        for its end: ``stop(done)`` checkpoints and raises (None: :meth:`save_in_burst`)."""
+        if self.step < self.state.learning_starts:
+            return
+        step, done, due = self.step, self._burst_done, self.updates_due()
+        with self.phase(f"agent step {step:,}: {what}", due, "updates", done, show=due > 1) as burst:
+            for k in range(done, due):
+                if k > done and self.stop.signal_name is not None:
+                    if stop is not None:
+                        stop(k)
+                    self.save_in_burst(k)
                     raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
-                episode.add_metrics(self.agent.update(self.replay, step))
+                update()
                 burst.advance()
 
     def updates_due(self) -> int:
@@ -243,43 +238,42 @@ class Trainer:
         t = self.cfg.train
         return max(1, t.burst_updates) if self.state.step == t.seed_steps else 1
 
-    def _env_step(self, action: np.ndarray, episode: Episode) -> tuple[np.ndarray, bool]:
-        """Step the training env, store the transition and count the agent step; returns the
-        next observation and whether the episode is over."""
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"],
-                        self.env.physics_state(), self.state.step + 1)
-        self.state.step += 1
-        self.state.frame += info["sim_steps"]
-        episode.add_step(action, reward, info["sim_steps"])
-        return obs, terminated or truncated
-
-    def _evaluate_if_due(self, progress: Progress) -> None:
-        """The periodic evaluation, at the first agent step at or past the schedule's next."""
-        s = self.state
+    def end_step(self) -> None:
+        """Everything of an agent step after its updates: the env step (the transition stored,
+        the step counted), then what is due: evaluation, the episode's end (its ``train.csv`` row)
+        and its checkpoint."""
+        s, action = self.state, self.action
+        self.obs, reward, terminated, truncated, info = self.env.step(action)
+        self.replay.add(action, reward, 0.0 if terminated else 1.0, info["frame"], self.env.physics_state(), s.step + 1)
+        s.step += 1
+        s.frame += info["sim_steps"]
+        self.episode.add_step(action, reward, info["sim_steps"])
+        self.progress.step(s.step, s.frame, s.last_return)
         if s.eval_schedule.due(s.step):
             rows = self.run_eval()
             s.eval_schedule.advance(s.step)
-            progress.say(f"eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+            self.progress.say(f"eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+        if terminated or truncated:
+            self._end_episode()
+            if s.step >= self.cfg.total_steps and s.last_eval_step != s.step:
+                rows = self._final_evaluation()
+                self.progress.say(f"final eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+            if s.step >= self.cfg.total_steps or s.ckpt_schedule.due(s.step):
+                s.ckpt_schedule.advance(s.step)
+                self.save()
 
-    def _end_episode(self, episode: Episode, progress: Progress) -> None:
+    def _end_episode(self) -> None:
         """Log the finished episode's ``train.csv`` row, unless a metric diverged (then raise)."""
-        s = self.state
+        s, episode = self.state, self.episode
         row = episode.train_row(s.frame, s.step, s.episode)
         bad = self.divergence.in_row(row, episode)
         if bad:
             raise DivergedError(bad)
         self.logger.log_train(row)
         s.last_return = episode.total_reward
-        progress.episode_end(episode.total_reward, row["fps"], s.frame)
+        self.progress.episode_end(episode.total_reward, row["fps"], s.frame)
         s.episode += 1
-
-    def _final_evaluation_if_last(self, progress: Progress) -> None:
-        """At the episode end that spends the budget: the final evaluation, unless just evaluated."""
-        s = self.state
-        if s.step >= self.cfg.total_steps and s.last_eval_step != s.step:
-            rows = self._final_evaluation()
-            progress.say(f"final eval step {s.step} frame {s.frame}: return " + eval_summary(rows))
+        self.episode = None
 
     def _final_evaluation(self) -> list[dict]:
         """The evaluation where the budget runs out, off the schedule (:meth:`run_eval`); what it
@@ -287,48 +281,41 @@ class Trainer:
         self.checkpoints.keep_before_final()
         return self.run_eval()
 
-    def _checkpoint_if_due(self) -> None:
-        """At an episode end: a checkpoint when the schedule says so, and at the last one."""
-        s = self.state
-        if s.step >= self.cfg.total_steps or s.ckpt_schedule.due(s.step):
-            s.ckpt_schedule.advance(s.step)
-            self.save()
+    def stop_due(self) -> bool:
+        """Whether a stop request came and the budget is not spent."""
+        return self.stop.signal_name is not None and self.step < self.cfg.total_steps
 
-    def _stop_if_requested(self, episode: Optional[Episode]) -> None:
-        """On a stop request before the budget is spent: a checkpoint of this agent step (with
-        the open ``episode``, if any) unless an episode end just wrote one, then
-        :class:`TrainingInterrupted`."""
-        if self.stop.signal_name is None or self.step >= self.cfg.total_steps:
-            return
-        self._save_for_stop(episode)
-        raise TrainingInterrupted.at(self.step, self.stop.signal_name, self.run_dir)
-
-    def _save_for_stop(self, episode: Optional[Episode]) -> None:
-        """A stop request's checkpoint of this step (and open ``episode``) unless one was just written."""
+    def save_for_stop(self) -> None:
+        """A stop request's checkpoint of this step (and the open episode) unless one was just written."""
         if self.checkpoints.saved_step != self.step:
-            self.divergence.raise_if_diverged(episode)
-            self.save(episode)
+            self.divergence.raise_if_diverged(self.episode)
+            self.save(self.episode)
 
-    def _save_in_burst(self, episode: Episode, action: np.ndarray, done: int) -> None:
-        """On a stop request after ``done`` updates of the burst: a checkpoint of the open ``episode``,
-        the step's ``action`` (drawn before the burst) and the count, from which a resume does
-        the rest of the burst and then takes the action."""
-        self.divergence.raise_if_diverged(episode)
-        self.save(episode, burst={"updates_done": done, "action": torch.from_numpy(action.astype(np.float32))})
+    def save_in_burst(self, done: int) -> None:
+        """On a stop request after ``done`` updates of the burst: a checkpoint of the open episode,
+        the step's action (drawn before the burst) and the count, from which a resume does the
+        rest of the burst and then takes the action."""
+        self.divergence.raise_if_diverged(self.episode)
+        self.save(self.episode, burst={"updates_done": done,
+                                       "action": torch.from_numpy(self.action.astype(np.float32))})
 
-    def _finish(self, episode: Optional[Episode]) -> None:
+    def finish(self) -> None:
         """The budget is spent: when it ended mid-episode, evaluate (unless this step was) and
         checkpoint with the open episode, which a larger budget continues exactly (unless this step
         is checkpointed and was not just evaluated); the learning curve goes to W&B."""
-        if episode is not None:
-            self.divergence.raise_if_diverged(episode)
+        if self.episode is not None:
+            self.divergence.raise_if_diverged(self.episode)
             evaluated = self.state.last_eval_step != self.step
             if evaluated:
                 self._final_evaluation()
             if evaluated or self.checkpoints.saved_step != self.step:
-                self.save(episode)
+                self.save(self.episode)
         if self.logger.wants_media:
             self.logger.log_image("learning_curve", plot_learning_curve(self.run_dir), self.frame, self.step)
+
+    def diverged(self, exc: NonFiniteError) -> str:
+        """The line that says where and how the run diverged ("diverged at agent step N: ...")."""
+        return f"{DIVERGED_PREFIX} {self.step}: {self.divergence.describe(exc, self.episode)}"
 
     def close(self) -> None:
         """Close the envs and release the run directory (also after a failed ``__init__``)."""
@@ -336,7 +323,7 @@ class Trainer:
             if getattr(self, "parts", None) is not None:
                 self.parts.close()
         finally:
-            self._lock.release()
+            self._start.lock.release()
 
 
 @dataclass
@@ -350,6 +337,12 @@ class Start:
     run: RunDir
     lock: DirectoryLock
     found: Optional[CheckpointFile] = None
+    leftovers: Optional[list[str]] = None
+    """What a batch stopped before its first checkpoint was complete left in the run, cleared as it
+    begins (:func:`~imssr.rundir.first_set_leftovers`)."""
+    rewind: bool = False
+    """Make ``found`` (the last checkpoint every run of a batch completed) the run's ``latest.pt``
+    as it begins (:meth:`RunDir.return_to`)."""
 
     @classmethod
     def take(cls, cfg: RunConfig, run: Union[RunDir, str], new_run: bool, checked: bool = False) -> "Start":
@@ -406,6 +399,7 @@ def _checked(cfg: RunConfig, new_run: bool, validate: bool = True) -> RunConfig:
     if validate:
         cfg.validate()
         get_algo(cfg.algo)
+        _warn(stacked_layout(cfg, new_run))
     return cfg
 
 

@@ -14,9 +14,9 @@ Per run (a seed of ``imssr train --seeds``, a run directory of ``--runs``, or a 
 - the agent: its weights, gradients and Adam moments (four float32 copies of its trainable
   parameters, one of the rest), and one update's activations (the encoder's feature maps, kept
   for the backward pass, of the RL and the auxiliary batch), on the agent's device, for every
-  member of a batch: on a GPU its members update at once (``vmap``); on the CPU they update one
-  after another, yet the process grows by about one update's activations per member (measured:
-  docs/performance.md), so they are counted per member there too;
+  member of a batch: on a GPU its members update side by side (each on a stream of its own); on
+  the CPU they update one after another, yet the process grows by about one update's activations
+  per member (measured: docs/performance.md), so they are counted per member there too;
 - the rest of the run in host memory (:data:`RUN_HOST_BYTES`): its training and evaluation
   environments with their renderers, frame stacks and the buffers of its loop, measured.
 
@@ -25,8 +25,9 @@ address-space limit (``ulimit -v``), the whole replay (its arrays are mapped at 
 capacity) with what the limit leaves; GPU memory with what is free (or the run's share,
 ``train.gpu_share``); a frames file with the free space of its file system.
 
-The plan also decides where ``train.replay_device=auto`` puts the frames, once for all the runs:
-on the GPU when every run's frames fit there beside the agents and
+The plan also decides, once for all the runs, where their replay frames go, which each run's
+trainer is handed (:class:`~imssr.training.loop.Trainer`): for ``train.replay_device=auto`` on the
+GPU when every run's frames fit there beside the agents and
 :data:`~imssr.replay.device.REPLAY_DEVICE_MARGIN_BYTES` (for a run alone: the rule of
 :func:`~imssr.replay.device.choose_replay_device`), else in host memory.
 """
@@ -150,6 +151,8 @@ class MemoryPlan:
     """One run's (the runs of a batch share their sizes)."""
     runs: int
     """How many runs train in the process."""
+    device: torch.device
+    """The runs' torch device (``train.device``)."""
     placement: ReplayPlacement
     """Where every run's frames go."""
 
@@ -172,7 +175,7 @@ def memory_plan(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> MemoryPlan
         _check_gpu(needs, n, placement.device.type == "cuda", agents, device, cfg.train.gpu_share)
     if placement.disk:
         _check_disk(needs, runs)
-    return MemoryPlan(needs, n, placement)
+    return MemoryPlan(needs, n, device, placement)
 
 
 def _placement(cfg: RunConfig, needs: RunNeeds, n: int, device: torch.device) -> ReplayPlacement:
@@ -181,13 +184,6 @@ def _placement(cfg: RunConfig, needs: RunNeeds, n: int, device: torch.device) ->
     capacity there) fit beside :func:`auto_margin`."""
     return replay_placement(cfg.train.replay_device, device, n * needs.capacity * needs.frame_bytes,
                             cfg.train.gpu_share, margin_nbytes=auto_margin(needs, n))
-
-
-def run_placement(cfg: RunConfig, device: torch.device) -> ReplayPlacement:
-    """Where ``train.replay_device`` puts the frames of a run trained alone on ``device``: its
-    frames mapped at their capacity, beside the margin of one agent."""
-    return replay_placement(cfg.train.replay_device, device, cfg.train.replay_capacity * frame_bytes(cfg),
-                            cfg.train.gpu_share)
 
 
 def auto_margin(needs: RunNeeds, n: int) -> int:

@@ -1,67 +1,58 @@
 """Many seeds of one experiment in one process, in lockstep (``imssr train --seeds 1-10``).
 
 Each seed is a run of its own: a :class:`~imssr.training.loop.Trainer` with its run directory
-(``DIR/seed_<n>/``: config, CSV logs, checkpoints), envs, replay buffer, seed-phase generator and
-loop state, so ``evaluate``, ``plot``, ``report``, ``export`` and ``--resume`` see standard runs.
-Only the agent is shared: the seeds' agents become the members of one batch
+(``DIR/seed_<n>/``: config, CSV logs, checkpoints), agent, envs, replay buffer, seed-phase
+generator and loop state, so ``evaluate``, ``plot``, ``report``, ``export`` and ``--resume`` see
+standard runs.  The seeds' agents, untouched, are the members of one batch
 (:class:`~imssr.agents.members.Members`), which acts for all seeds at once and makes every seed's
-update in one go.  Each seed still draws, samples and steps what its run alone would.
+update in one go (on CUDA each member on a stream of its own); each seed draws, samples and steps
+what its run alone would.
 
-The seeds share the agent step: they start, take the seed phase, burst, evaluate and checkpoint
-at the same steps.  A stop request checkpoints every seed at the current step; a seed whose
-losses or actions turn non-finite is stopped (its last checkpoint, if it has one, is from before)
-and the others go on.  Each seed's console lines name it (:func:`~imssr.training.progress.member_lines`).
+The batch takes its trainers' own steps (:class:`~imssr.training.loop.Trainer`'s public ones) in
+lockstep: the seeds start, take the seed phase, burst, evaluate and checkpoint at the same agent
+steps, and a step's checkpoints are promoted together once every seed staged its own.  A stop
+request checkpoints every seed at the current step; a seed whose losses or actions turn
+non-finite is stopped (its last checkpoint, if it has one, is from before) and the others go on.
+Each seed's console lines name it (:func:`~imssr.training.progress.member_lines`).
 """
 from __future__ import annotations
 
+import contextlib
 import os
-from dataclasses import dataclass
-from typing import Optional, Sequence, Union
+from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
 from imssr.agents.members import Members
 from imssr.config import RunConfig
-from imssr.config.batching import lockstep_conflict
-from imssr.envs.worker import EnvWorker
-from imssr.errors import DIVERGED_PREFIX, DivergedError, ImssrError, NonFiniteError
-from imssr.replay import ReplayPlacement
+from imssr.config.batching import batch_refusal
+from imssr.errors import ImssrError, NonFiniteError
 from imssr.rundir import (DIVERGED, FAILED, FINISHED, INTERRUPTED, SEED_DIR, RunDir, as_run_dir, batch_checkpoints,
                           first_set_leftovers)
 from imssr.training.checkpointing import BatchPlace, resume_point
-from imssr.training.evaluate import evaluate_members, non_finite_text
+from imssr.training.evaluate import evaluate_members
 from imssr.training.loop import Start, Trainer, checked_configs
-from imssr.training.progress import Progress, member_labels, member_lines, say_held
-from imssr.training.state import Episode
+from imssr.training.memory import MemoryPlan
+from imssr.training.progress import member_labels, member_lines, say_held
 from imssr.training.stop import StopRequest, TrainingInterrupted
-
-@dataclass
-class _Lane:
-    """One seed's place in the lockstep loop."""
-
-    trainer: Trainer
-    progress: Progress
-    episode: Optional[Episode]
-    obs: np.ndarray
-    failed: Optional[str] = None
-    """Why the seed stopped (a one-line divergence), or None while it trains."""
 
 
 class SeedsTrainer:
     """Trains the seeds ``cfgs[i].train.seed`` of one configuration into ``runs[i]`` in lockstep
     (see the module's doc).  The configs may differ in the seed and the intrinsic reward's
-    scalars (``intrinsic.beta0``, ``intrinsic.enabled``) only."""
+    scalars (``intrinsic.beta0``, ``intrinsic.enabled``) only (:func:`batch_refusal`)."""
 
     def __init__(self, cfgs: Sequence[RunConfig], runs: Sequence[Union[RunDir, str]], resume: bool = False,
-                 stop: Optional[StopRequest] = None, placement: Optional[ReplayPlacement] = None):
+                 stop: Optional[StopRequest] = None, plan: Optional[MemoryPlan] = None):
         if len(cfgs) != len(runs) or not cfgs:
             raise ImssrError("one run directory per seed")
-        conflict = lockstep_conflict(cfgs)
-        if conflict:
-            raise ImssrError(conflict)
+        refusal = batch_refusal(cfgs)
+        if refusal:
+            raise ImssrError(refusal)
         self.stop = stop or StopRequest()
         self.trainers: list[Trainer] = []
-        self._lanes: list[_Lane] = []
+        self.failed: list[Optional[str]] = [None] * len(cfgs)
+        """Why each seed stopped early (a one-line divergence), or None while it trains."""
         self._evaluated: dict = {}
         """The lockstep evaluations of the current agent step: each seed's results by scene."""
         self._rngs_before: dict[int, dict] = {}
@@ -80,25 +71,19 @@ class SeedsTrainer:
                 for i, (start, label) in enumerate(zip(starts, self.labels)):
                     self._stop_if_asked(len(cfgs))
                     with member_lines(label, held[label]):
-                        self.trainers.append(Trainer(start.cfg, start.run, resume, stop=self.stop, start=start,
-                                                     placement=placement, batch=self._place(i)))
+                        self.trainers.append(Trainer(start.cfg, start.run, stop=self.stop, start=start, plan=plan,
+                                                     batch=self._place(i)))
                 self._stop_if_asked(len(cfgs))
             finally:  # a run that failed to start: each line with its run, the error after them
                 say_held(held, once=len(self.trainers) == len(cfgs))
             if len({t.state.learning_starts for t in self.trainers}) > 1:
                 raise ImssrError("the seeds' seed phases end at different agent steps (a refilled replay buffer): "
                                  "resume them one by one")
-            self.batch = Members([t.agent for t in self.trainers])
-            self._stop_if_asked(len(cfgs))
+            self.members = Members([t.agent for t in self.trainers])
             held = {label: [] for label in self.labels}
             try:
-                for start, t, label in zip(starts, self.trainers, self.labels):
+                for t, label in zip(self.trainers, self.labels):
                     with member_lines(label, held[label]):
-                        if start.leftovers:
-                            start.run.clear_first_set_leftovers(start.leftovers)
-                        if start.found is not None:
-                            t._found = start.run.return_to(start.found)
-                            t.checkpoints.saved_step = t.step
                         t.begin()
             finally:
                 say_held(held)
@@ -121,10 +106,9 @@ class SeedsTrainer:
         """The agent step every training seed is at (a stopped seed stays behind)."""
         return max(t.step for t in self.trainers)
 
-    @staticmethod
-    def _lead(lanes: list[_Lane]) -> Trainer:
-        """A training seed's trainer: its step, schedules and seed phase are every training seed's."""
-        return next(lane.trainer for lane in lanes if lane.failed is None)
+    def _active(self) -> list[Trainer]:
+        """The trainers of the seeds that train on (none diverged)."""
+        return [t for t, failed in zip(self.trainers, self.failed) if failed is None]
 
     def _episodes_of(self, i: int):
         """Seed ``i``'s stand-in for :func:`~imssr.training.evaluate.evaluate`: the first seed to
@@ -134,7 +118,7 @@ class SeedsTrainer:
             mode = next(m for m, e in self.trainers[i].eval_envs.items() if e is env)
             step = self.step
             key = (step, mode)
-            members = [k for k, lane in enumerate(self._lanes) if lane.failed is None]
+            members = [k for k, failed in enumerate(self.failed) if failed is None]
             if not any(k[0] == step for k in self._evaluated):
                 # This step's first evaluation: each seed's eval envs as its own evaluation finds them.
                 self._rngs_before = {k: {m: e.get_rng_state() for m, e in self.trainers[k].eval_envs.items()}
@@ -170,137 +154,89 @@ class SeedsTrainer:
         full = np.zeros((len(self.trainers), *some.shape), dtype=some.dtype)
         for k, o in obs.items():
             full[members[k]] = o
-        actions = self.batch.act(full, deterministic=True).cpu().numpy()
+        actions = self.members.act(full, deterministic=True).cpu().numpy()
         return {k: actions[members[k]].astype(np.float32) for k in obs}
 
     def train(self) -> list[Optional[str]]:
         """Train every seed to ``train.steps`` agent steps; returns, per seed, None or the line
         that says why it stopped early (a divergence).  A stop request checkpoints every
         training seed at this agent step and raises :class:`TrainingInterrupted`."""
-        self._lanes = lanes = []
         for t in self.trainers:
-            episode, obs = t.checkpoints.reopen_episode()
-            lanes.append(_Lane(t, Progress.of_run(t.cfg, t.state, t.progress_every_s), episode, obs))
             if os.path.exists(t.run_dir.status_path):  # this training now runs (RunDir.recording)
                 os.unlink(t.run_dir.status_path)
-        total = self.trainers[0].cfg.total_steps
         try:
-            self._train(lanes, total)
+            with contextlib.ExitStack() as loops:
+                for t in self.trainers:
+                    loops.enter_context(t.looping())
+                while self.step < self.trainers[0].cfg.total_steps and self._active():
+                    self._step()
+                    self._commit()
+                    if self.stop.signal_name is not None and any(t.stop_due() for t in self._active()):
+                        self._each(Trainer.save_for_stop)
+                        self._commit()
+                        raise self._interrupted()
+                self._each(Trainer.finish)
+                self._commit()
         except BaseException as exc:
             self._unstage()
             state = INTERRUPTED if isinstance(exc, (KeyboardInterrupt, TrainingInterrupted)) else FAILED
-            for lane in self._active(lanes):
-                _record(lane.trainer, state, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+            for t in self._active():
+                _record(t, state, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
             raise
-        for lane in self._active(lanes):
-            _record(lane.trainer, FINISHED)
-        return [lane.failed for lane in lanes]
+        for t in self._active():
+            _record(t, FINISHED)
+        return list(self.failed)
 
-    def _train(self, lanes: list[_Lane], total: int) -> None:
-        try:
-            while self.step < total and self._active(lanes):
-                for lane in self._active(lanes):
-                    if lane.episode is None:
-                        lane.episode, lane.obs = lane.trainer._start_episode()
-                actions = self._act(lanes)
-                for lane, action in zip(lanes, actions):
-                    if lane.failed is None:
-                        self._guarded(lane, lambda: self._after_action(lane, action))
-                self._commit()
-                self._stop_if_requested(lanes)
-            for lane in self._active(lanes):
-                self._guarded(lane, lambda: lane.trainer._finish(lane.episode))
-            self._commit()
-        finally:
-            for lane in lanes:
-                lane.progress.close()
-                lane.trainer.logger.close()
+    def _step(self) -> None:
+        """One agent step of every training seed, each through its trainer's own steps: the
+        policy's actions of all seeds in one batched call, then the updates of all at once."""
+        active = self._active()
+        if [t.begin_step() for t in active][0]:  # in lockstep, one seed's phase is every seed's
+            blank = np.zeros_like(active[0].obs)
+            obs = np.stack([blank if t.obs is None else t.obs for t in self.trainers])
+            actions = self.members.act(obs, deterministic=False).cpu().numpy()
+            for i, t in enumerate(self.trainers):
+                if self.failed[i] is None:
+                    self._guarded(i, lambda: t.take_action(actions[i]))
+        active = self._active()
+        if not active:
+            return
+        for t in active:
+            t.send_ahead()
+        active[0].learn(self._update, self._stop_in_burst, f"burst of updates of {len(active)} seeds")
+        self._each(Trainer.end_step)
 
-    @staticmethod
-    def _active(lanes: list[_Lane]) -> list[_Lane]:
-        return [lane for lane in lanes if lane.failed is None]
+    def _update(self) -> None:
+        """One update of every member; each training seed's episode sums its own metrics."""
+        metrics = self.members.update([t.replay for t in self.trainers], self.step)
+        for t, m in zip(self._active(), [m for m, failed in zip(metrics, self.failed) if failed is None]):
+            t.episode.add_metrics(m)
 
-    def _after_action(self, lane: _Lane, action: np.ndarray) -> None:
-        lane.obs, lane.episode = lane.trainer._after_action(action, lane.episode, lane.progress)
+    def _stop_in_burst(self, done: int) -> None:
+        """A stop request after ``done`` updates of the burst: every training seed's checkpoint with
+        the count (:meth:`Trainer.save_in_burst`), then :class:`TrainingInterrupted`."""
+        self._each(lambda t: t.save_in_burst(done))
+        self._commit()
+        raise self._interrupted()
 
-    def _guarded(self, lane: _Lane, fn) -> None:
-        """``fn()``, its console lines with the seed; a divergence stops this seed only (one
-        line), as it would stop its run."""
-        label = self.labels[self.trainers.index(lane.trainer)]
+    def _each(self, fn: Callable[[Trainer], None]) -> None:
+        """``fn(trainer)`` for the trainer of every training seed (:meth:`_guarded`)."""
+        for i, t in enumerate(self.trainers):
+            if self.failed[i] is None:
+                self._guarded(i, lambda: fn(t))
+
+    def _guarded(self, i: int, fn: Callable[[], None]) -> None:
+        """``fn()``, its console lines with seed ``i``'s label; a divergence stops this seed only
+        (one line), as it would stop its run."""
+        t, label = self.trainers[i], self.labels[i]
         try:
             with member_lines(label):
                 fn()
         except NonFiniteError as exc:
-            t = lane.trainer
-            text = str(exc) if isinstance(exc, DivergedError) and str(exc).startswith(DIVERGED_PREFIX) else \
-                f"{DIVERGED_PREFIX} {t.step}: {t.divergence.describe(exc, lane.episode)}"
-            lane.failed = text
+            self.failed[i] = text = t.diverged(exc)
             _record(t, DIVERGED, text)
-            kept = ("the last checkpoint is from before it" if t.run_dir.has_checkpoint()
-                    else "it has no checkpoint")
+            kept = "the last checkpoint is from before it" if t.run_dir.has_checkpoint() else "it has no checkpoint"
             print(f"imssr: {label}: {text}; {kept}, the other seeds go on", flush=True)
-
-    def _act(self, lanes: list[_Lane]) -> list[np.ndarray]:
-        """This agent step's action of every seed: uniform random in the seed phase (each seed's
-        own generator), else the members' policy samples, after which all learn."""
-        first = self._lead(lanes)
-        if first.step < first.state.learning_starts:
-            actions = [lane.trainer.state.random_action(lane.trainer.action_dim) for lane in lanes]
-            self._send_ahead(lanes, actions)
-            return actions
-        bursts = [lane.trainer.checkpoints.take_burst() for lane in lanes]
-        if any(b is not None for b in bursts):
-            # Stopped inside the burst: every seed's action was drawn before the stop.
-            actions = [b["action"].numpy() for b in bursts]
-            self._learn(lanes, actions, done=int(bursts[0]["updates_done"]))
-            return actions
-        obs = [lane.obs for lane in lanes]
-        blank = np.zeros_like(next(o for o in obs if o is not None))
-        actions = self.batch.act(np.stack([blank if o is None else o for o in obs]), deterministic=False).cpu().numpy()
-        actions = [a.astype(np.float32) for a in actions]
-        for lane, action in zip(self._active(lanes), [a for a, ln in zip(actions, lanes) if ln.failed is None]):
-            if not np.isfinite(action).all():  # as a run alone checks, before the simulator sees it
-                self._guarded(lane, lambda: _raise(DivergedError(f"action {non_finite_text(action)}")))
-        if first.updates_due() == 1:  # not a burst: it may stop halfway, before the env's step
-            self._send_ahead(lanes, actions)
-        self._learn(lanes, actions)
-        return actions
-
-    def _send_ahead(self, lanes: list[_Lane], actions: list[np.ndarray]) -> None:
-        """Every training seed's env in a worker (``train.env_workers``) starts its step now: they
-        step at once, and while the agent learns (the update does not read the envs)."""
-        for lane, action in zip(lanes, actions):
-            if lane.failed is None and isinstance(lane.trainer.env, EnvWorker):
-                lane.trainer.env.step_async(action)
-
-    def _learn(self, lanes: list[_Lane], actions: list[np.ndarray], done: int = 0) -> None:
-        """One update of every member, or the burst from its update ``done`` on; each seed's
-        episode sums its own metrics.  A stop request inside the burst checkpoints every seed
-        with the count done."""
-        first = self._lead(lanes)
-        due = first.updates_due()
-        with first.phase(f"agent step {first.step:,}: burst of updates of {len(self._active(lanes))} seeds", due,
-                         "updates", done, show=due > 1) as burst:
-            for update in range(done, due):
-                if update > done and self.stop.signal_name is not None:
-                    for lane, action in zip(lanes, actions):
-                        if lane.failed is None:
-                            self._guarded(lane, lambda: lane.trainer._save_in_burst(lane.episode, action, update))
-                    self._commit()
-                    raise self._interrupted()
-                metrics = self.batch.update([lane.trainer.replay for lane in lanes], first.step)
-                for i, lane in enumerate(lanes):
-                    if lane.failed is None:
-                        lane.episode.add_metrics(metrics[i])
-                burst.advance()
-
-    def _stop_if_requested(self, lanes: list[_Lane]) -> None:
-        if self.stop.signal_name is None or not self._active(lanes) or self.step >= self.trainers[0].cfg.total_steps:
-            return
-        for lane in self._active(lanes):
-            self._guarded(lane, lambda: lane.trainer._save_for_stop(lane.episode))
-        self._commit()
-        raise self._interrupted()
 
     def _commit(self) -> None:
         """Complete the batch's checkpoint once every training run staged its own (at an agent
@@ -332,14 +268,12 @@ class SeedsTrainer:
 
     def _interrupted(self) -> TrainingInterrupted:
         return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
-                                   f"{self.resume_command()}", self.step, self._seeds_root())
+                                   f"{self.resume_command()}", self.step,
+                                   seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers]))
 
     def resume_command(self) -> str:
         """The command that continues these runs (:func:`resume_command`)."""
         return resume_command([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
-
-    def _seeds_root(self) -> Optional[str]:
-        return seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers])
 
     def close(self) -> None:
         """Close every seed's envs and release its run directory."""
@@ -366,30 +300,21 @@ def seeds_root(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> Optional[st
     return None
 
 
-@dataclass
-class _Start(Start):
-    """A run's checked start in a batch, and what a batch stopped before its first checkpoint was
-    complete left there, to clear before it starts afresh (:func:`~imssr.rundir.first_set_leftovers`)."""
-
-    leftovers: Optional[list[str]] = None
-
-
-def _check_starts(cfgs: Sequence[RunConfig], runs: Sequence[Union[RunDir, str]], resume: bool) -> list[_Start]:
+def _check_starts(cfgs: Sequence[RunConfig], runs: Sequence[Union[RunDir, str]], resume: bool) -> list[Start]:
     """Every run of a batch locked and checked, nothing written: on resume, the checkpoints of the
     last agent step every run completed (:func:`batch_checkpoints`), each checked against its
     config (:func:`resume_point`); for a fresh start, directories that hold no run, or only what
     a batch stopped before its first checkpoint was complete left in them (cleared as the batch
     starts, said in one line).  A refusal releases every lock."""
     cfgs = checked_configs(cfgs, new_run=not resume)
-    starts: list[_Start] = []
+    starts: list[Start] = []
     try:
         for cfg, run in zip(cfgs, runs):
-            taken = Start.take(cfg, run, new_run=not resume, checked=True)
-            starts.append(_Start(taken.cfg, taken.run, taken.lock))
+            starts.append(Start.take(cfg, run, new_run=not resume, checked=True))
         dirs = [start.run for start in starts]
         if resume:
             for start, found in zip(starts, batch_checkpoints(dirs, cfgs[0].train.steps)):
-                start.found = resume_point(start.run, start.cfg, found)
+                start.found, start.rewind = resume_point(start.run, start.cfg, found), True
             return starts
         leftovers = first_set_leftovers(dirs)
         if leftovers is not None:
@@ -416,7 +341,3 @@ def _record(trainer: Trainer, state: str, error: str = "") -> None:
         trainer.run_dir.write_status(state, trainer.step, error)
     except (ImssrError, OSError):
         pass
-
-
-def _raise(exc: Exception):
-    raise exc
