@@ -15,6 +15,8 @@ uninterrupted run would have had: the open episode is stepped through again from
 """
 from __future__ import annotations
 
+import contextlib
+
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -192,6 +194,20 @@ class Checkpointer:
         else:
             self.run.save_checkpoint(ckpt, keep=self.cfg.train.keep_checkpoints, replay=self.replay)
         self.saved_step = step
+
+    def claim_staged(self) -> bool:
+        """Whether this run staged a checkpoint; if so, from here on it is part of the batch's
+        newest checkpoint, which the batch promotes: never unstaged, whatever stops the batch."""
+        staged, self.staged = self.staged, False
+        return staged
+
+    def unstage(self) -> None:
+        """Remove a staged checkpoint that the batch will not promote (another run failed to stage
+        its own), as a failed save of a run alone removes what it wrote."""
+        if self.staged:
+            self.staged = False
+            with contextlib.suppress(OSError):
+                self.run.unstage_checkpoint()
 
     def snapshot(self, replay_file: Optional[str], episode: Optional[Episode] = None,
                    burst: Optional[dict] = None) -> Checkpoint:

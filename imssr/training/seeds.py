@@ -243,28 +243,17 @@ class SeedsTrainer:
         step's end): every run's staged copy becomes its ``latest.pt``, then every run prunes
         (:meth:`RunDir.stage_checkpoint`).  A kill in between leaves every run a checkpoint of
         this step or of the one before in every run, which a resume finds."""
-        staged = [t for t in self.trainers if t.checkpoints.staged]
-        try:
-            for t in staged:
-                t.run_dir.promote_checkpoint()
-            for t in staged:
-                t.run_dir.prune_checkpoints(t.cfg.train.keep_checkpoints)
-        finally:
-            # Once one run promoted, every staged copy is part of the batch's newest checkpoint:
-            # none is removed (_unstage), whatever stops the batch now.
-            for t in staged:
-                t.checkpoints.staged = False
+        staged = [t for t in self.trainers if t.checkpoints.claim_staged()]
+        for t in staged:
+            t.run_dir.promote_checkpoint()
+        for t in staged:
+            t.run_dir.prune_checkpoints(t.cfg.train.keep_checkpoints)
 
     def _unstage(self) -> None:
         """After a failure (a run that could not stage its checkpoint, a full disk): the others'
-        staged checkpoints are removed, as a failed save of a run alone removes what it wrote."""
+        staged checkpoints are removed (:meth:`Checkpointer.unstage`)."""
         for t in self.trainers:
-            if t.checkpoints.staged:
-                t.checkpoints.staged = False
-                try:
-                    t.run_dir.unstage_checkpoint()
-                except OSError:
-                    pass
+            t.checkpoints.unstage()
 
     def _interrupted(self) -> TrainingInterrupted:
         return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
