@@ -395,6 +395,7 @@ def test_config_values_are_data_never_interpolated(tmp_path, monkeypatch, capsys
     cfg = run_config(config_file=str(partial))
     assert cfg.train.wandb_group == texts[0]
     t = Trainer(cfg, str(tmp_path / "run"))
+    t.begin()
     t.close()
     written = (tmp_path / "run" / "config.json").read_text()
     assert texts[0] in written and SECRET not in written

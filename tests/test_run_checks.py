@@ -176,6 +176,7 @@ def test_resume_reports_its_step_warns_on_another_thread_count_and_refuses_a_sma
                 "but is no longer bit-identical to an uninterrupted run (--set train.torch_threads=1 keeps it "
                 "exact)") in said
         resumed = Trainer(fast(steps=40, torch_threads=1), out, resume=True)
+        resumed.begin()
         resumed.close()
         assert "torch thread" not in capsys.readouterr().out
         # The numerics are the run's own: reports and exports group runs by them.

@@ -562,6 +562,7 @@ def test_a_full_tensorboard_disk_during_the_run_keeps_a_finished_run_finished(ru
     mnt = tiny_fs("1m", at=RunDir(run).tb_dir)
     t = Trainer(cfg, run, resume=True)
     try:
+        t.begin()
         # The new event file's first page (tmpfs allocates 4 KiB pages) nearly full, then no free
         # page: the run's first events need one.
         (events,) = [os.path.join(mnt, name) for name in os.listdir(mnt)]
