@@ -28,6 +28,7 @@ from torch._dynamo.utils import counters
 from imssr.agents import SACAgent, make_agent
 from imssr.agents.build import compile_networks
 from imssr.config import apply_overrides
+from imssr.precision import configure_process
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
 
@@ -49,6 +50,7 @@ def build(algo: str, layers: int, a, compile_mode: str) -> SACAgent:
                            f"aux.batch_size={a.batch}", f"agent.crop_size={a.crop}",
                            f"env.image_size={a.size}", "agent.compile=off"]).validate()
     cfg.agent.encoder_head_layers = min(cfg.agent.encoder_head_layers, layers - 1)
+    configure_process(cfg.agent, torch.device(a.device))  # cuDNN's and TF32's switches, as training sets them
     agent = make_agent((3 * cfg.env.frame_stack, a.size, a.size), 1, cfg.agent, cfg.aux, cfg.intrinsic,
                        device=a.device, seed=0)
     if compile_mode != "off":

@@ -42,6 +42,7 @@ from imssr.agents import SACAgent, make_agent
 from imssr.algos import get_algo
 from imssr.config import apply_overrides
 from imssr.networks import encoder
+from imssr.precision import configure_process
 from imssr.presets import make_config
 from imssr.replay import FrameReplayBuffer
 
@@ -117,6 +118,7 @@ def build(args, precision: str):
     cfg = apply_overrides(cfg, [*args.set, f"agent.precision={precision}", *batch]).validate()
     e = cfg.env
     obs_shape = (3 * e.frame_stack, e.image_size, e.image_size)
+    configure_process(cfg.agent, torch.device(args.device))  # cuDNN's and TF32's switches, as training sets them
     agent = make_agent(obs_shape, args.action_dim, cfg.agent, cfg.aux if get_algo(cfg.algo).aux else None,
                        cfg.intrinsic, device=args.device, seed=1)
     rng = np.random.default_rng(0)

@@ -3,8 +3,8 @@
     python bench/pixels_speed.py [--batch 128] [--reps 50] [--threads 2] [--device cpu|cuda]
 
 :func:`imssr.networks.encoder.pixels` converts each distinct input once: on CUDA in one pass (a
-divide that reads the bytes and writes the floats in the encoder's layout), elsewhere (and
-inside vmap) in three (relayout the uint8 crop, cast it, divide in place).  Both give identical
+divide that reads the bytes and writes the floats in the encoder's layout), elsewhere in
+three (relayout the uint8 crop, cast it, divide in place).  Both give identical
 values and strides (checked here).
 """
 from __future__ import annotations

@@ -201,8 +201,9 @@ def warn_if_bf16_is_slow(device: torch.device, precision: str) -> Optional[str]:
 
 def configure_process(cfg, device: torch.device) -> None:
     """Set the process-wide switches a run's agent settings ``cfg`` (``agent.*``) ask for on
-    ``device`` (:func:`configure_cuda`), and say once if bf16 will be slow on this CPU: once per
-    process, by whoever builds a run's agents, not by each agent."""
+    ``device`` (:func:`configure_cuda`), and say once if bf16 will be slow on this CPU.  Called by
+    whoever builds a run's agents (:func:`imssr.training.build.build_agent`), not by an agent's
+    constructor; calling it again with the same settings changes nothing."""
     warn_if_bf16_is_slow(device, cfg.precision)
     configure_cuda(device, cfg.tf32)
 

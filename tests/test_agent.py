@@ -155,8 +155,8 @@ def assert_one_pass_is_three(device: str) -> None:
 
 
 def test_pixels_in_one_pass_are_the_three_passes_values_and_layout(monkeypatch):
-    """CUDA's one-pass conversion gives what the relayout, cast and divide give (a CPU's, and
-    vmap's): the same values and strides, in float32 and float64, in both layouts, for contiguous
+    """CUDA's one-pass conversion gives what the relayout, cast and divide give (a CPU's): the
+    same values and strides, in float32 and float64, in both layouts, for contiguous
     frames and a centre crop's view; a device converts in one pass only if it is listed."""
     from imssr.networks import encoder
 

@@ -199,7 +199,7 @@ class SACAgent:
             self.aux.after_step(step)
         return metrics, (trunk if self.cfg.update_schedule == "fused" else None)
 
-    def critic_objective(self, batch: Batch, beta: Beta = None) -> tuple[torch.Tensor, Metrics]:
+    def critic_objective(self, batch: Batch, beta: Beta) -> tuple[torch.Tensor, Metrics]:
         """The sequential schedule's critic loss (:meth:`critic_loss` on a fresh :meth:`encode`
         of ``batch`` and its :meth:`bellman_target` with ``beta_t = beta``) and its metrics."""
         loss, metrics, _ = self.fused_objective(batch, beta, with_task_loss=False)

@@ -138,7 +138,7 @@ class AgentConfig:
     (``imssr.agents.members``) whose work on CUDA goes to a stream of its own, so that the
     members' kernels may run side by side (not measured on a GPU); on the CPU one after another,
     bit for bit each run alone.  A saved config's ``vmap`` or ``loop`` (stacked weights, refused
-    for a new run) resumes as the same batch.  No effect on a run alone."""
+    for a new run) resumes as the same batch.  A run alone trains the same whatever it says."""
 
     @property
     def precision_label(self) -> str:

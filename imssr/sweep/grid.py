@@ -79,9 +79,9 @@ class SweepConfig:
     runs_per_process: int = 1
     """Runs trained in one process as one batch of agents, at most this many (``imssr train --runs``: each the run
     it would be alone); runs that differ only in the seed and in the intrinsic reward's beta_0 or on/off can share a
-    process (a grid point's seeds, a base algo and its IM- variant, a beta_0 sweep).  1: one run per process, the
-    fastest layout measured on the CPU and on CUDA (docs/performance.md); 0: all that can share.  A process takes
-    the CPUs and GPUs of one run."""
+    process (a grid point's seeds, a base algo and its IM- variant, a beta_0 sweep).  1: one run per process, faster
+    than every stacked layout measured on the CPU and on CUDA (docs/performance.md); 0: all that can share.  A
+    process takes the CPUs and GPUs of one run."""
     logger: str = ""
     """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's default.  With
     ``wandb``, runs are grouped under the root's name in W&B and tagged with their algo, task, seed and beta_0."""

@@ -46,8 +46,8 @@ __all__ = ["Start", "Trainer", "StopRequest", "TrainingInterrupted", "check_star
 
 class Trainer:
     """Trains one run into its run directory, holding the directory's lock (:mod:`imssr.rundir.lock`)
-    from before it builds anything until :meth:`close`; nothing is written there before
-    :meth:`begin`.  The loop's steps are public: :meth:`train` takes them for this run, and
+    from before it builds anything until :meth:`close`; its config, provenance and logs are
+    written by :meth:`begin`.  The loop's steps are public: :meth:`train` takes them for this run, and
     :class:`~imssr.training.seeds.SeedsTrainer` for every run of a batch in lockstep.
 
     Args:
