@@ -3,9 +3,12 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
+
 from imssr.errors import ImssrError
-from imssr.files import atomic_path, read_csv
-from imssr.plots import pyplot
+from imssr.files import read_csv
+from imssr.plots import pyplot, steps_axis
+from imssr.plots.media import save_png
 from imssr.rundir import RunDir, as_run_dir
 
 
@@ -18,7 +21,6 @@ def plot_learning_curve(run_dir: RunDir | str, out_path: str | None = None) -> s
     rows = read_csv(run.eval_log, complete_only=True)
     if not rows:
         raise ImssrError(f"no evaluations in {run.eval_log}")
-    out_path = out_path or run.learning_curve_path
     title = os.path.basename(os.path.abspath(run.path))
     action_repeat = None
     if run.has_config():
@@ -28,32 +30,16 @@ def plot_learning_curve(run_dir: RunDir | str, out_path: str | None = None) -> s
     curves = _curves(rows, run.eval_log)
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     for mode in sorted(curves):
-        pts = sorted(curves[mode])
-        x = [p[0] for p in pts]
-        m = [p[1] for p in pts]
-        s = [p[2] for p in pts]
+        x, m, s = (np.array(column) for column in zip(*sorted(curves[mode])))
         ax.plot(x, m, marker="o", label=mode)
-        ax.fill_between(x, [a - b for a, b in zip(m, s)], [a + b for a, b in zip(m, s)], alpha=0.2)
-    from matplotlib.ticker import EngFormatter
-
-    ax.set_xlabel("agent steps")
-    # 250k, 4M: the default puts a 1e6 offset over the title.
-    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
-    if action_repeat:
-        # Both counters, as every log carries them: frames = agent steps * action repeat.
-        top = ax.secondary_xaxis("top", functions=(lambda s: s * action_repeat, lambda f: f / action_repeat))
-        top.set_xlabel(f"environment frames (action repeat {action_repeat})")
-        top.xaxis.set_major_formatter(EngFormatter(sep=""))
+        ax.fill_between(x, m - s, m + s, alpha=0.2)
+    steps_axis(ax, action_repeat, "environment frames")
     ax.set_ylabel("evaluation return")
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-
-    with atomic_path(out_path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return out_path
+    return save_png(fig, out_path or run.learning_curve_path)
 
 
 def _curves(rows: list[dict], path: str) -> dict[str, list[tuple[int, float, float]]]:

@@ -31,10 +31,10 @@ def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> s
 
 
 def save_png(fig, path: str) -> str:
-    """Write a matplotlib figure as a PNG at 100 dpi, atomically (parent folders made), and close it."""
+    """Write a matplotlib figure as a PNG at its own dpi, atomically (parent folders made), and close it."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
+        fig.savefig(tmp, dpi="figure", format="png")
     pyplot().close(fig)
     return path
 

@@ -6,7 +6,7 @@ from typing import Optional
 
 import numpy as np
 
-from imssr.plots import pyplot
+from imssr.plots import pyplot, steps_axis
 from imssr.plots.media import save_png
 from imssr.report.results import SweepResults
 from imssr.report.tables import Row, label_order, mode_order
@@ -49,19 +49,13 @@ def plot_curves(results: SweepResults, path: str) -> str:
             pts = curves.get((task, mode, label))
             if not pts:
                 continue
-            x = [p[0] for p in pts]
-            m = np.array([p[1] for p in pts])
-            s = np.array([p[2] for p in pts])
-            seeds = max(p[3] for p in pts)
+            x, m, s, n = (np.array(column) for column in zip(*pts))
+            seeds = int(n.max())
             ax.plot(x, m, marker="o", markersize=3, color=colors[label],
                     label=f"{label} ({seeds} {'seed' if seeds == 1 else 'seeds'})")
             ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.2, linewidth=0)
         ax.set_title(f"{task} ({mode})", fontsize=10)
-        ax.set_xlabel("agent steps")
-        ax.xaxis.set_major_formatter(_engineering())
-        repeat = results.action_repeat(task)
-        if repeat is not None:
-            _frames_axis(ax, repeat)
+        steps_axis(ax, results.action_repeat(task), small=True)
         ax.set_ylabel("evaluation return")
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
@@ -102,21 +96,6 @@ def plot_beta(rows: list[Row], path: str) -> Optional[str]:
         ax.legend(fontsize=7)
     fig.tight_layout()
     return save_png(fig, path)
-
-
-def _frames_axis(ax, action_repeat: int) -> None:
-    """Environment frames on the top axis: frames = agent steps * action repeat."""
-    top = ax.secondary_xaxis("top", functions=(lambda s: s * action_repeat, lambda f: f / action_repeat))
-    top.set_xlabel(f"frames (action repeat {action_repeat})", fontsize=8)
-    top.tick_params(labelsize=7)
-    top.xaxis.set_major_formatter(_engineering())
-
-
-def _engineering():
-    """Tick labels 250k, 4M: matplotlib's default puts a 1e6 offset over the title."""
-    from matplotlib.ticker import EngFormatter
-
-    return EngFormatter(sep="")
 
 
 def _reference(ax, row: Row, label: str, color) -> None:

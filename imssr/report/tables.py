@@ -140,58 +140,55 @@ def build_rows(results: SweepResults, paper: Optional[dict] = None) -> tuple[lis
     """Every (mode, task, label) row, and notes on missing seeds and evaluation points."""
     notes: list[str] = []
     labels = label_order(results)
-    by_group: dict[tuple[str, str], list[RunResult]] = {}
+    runs_of: dict[tuple[str, str], list[RunResult]] = {}
     for result in results.runs:
-        by_group.setdefault((result.run.task, result.label), []).append(result)
-    planned_groups: dict[tuple[str, str], list[PlannedRun]] = {}
+        runs_of.setdefault((result.run.task, result.label), []).append(result)
+    planned_of: dict[tuple[str, str], list[PlannedRun]] = {}
     for p in results.planned:
-        planned_groups.setdefault((p.run.task, p.label), []).append(p)
+        planned_of.setdefault((p.run.task, p.label), []).append(p)
     rows = []
     for task in sorted({r.run.task for r in results.runs}):
         budget = results.budget(task)
         expected = _expected_seeds(results, task)
-        modes = mode_order(m for r in results.runs if r.run.task == task for m, *_ in r.evals)
-        for mode in modes:
+        for mode in mode_order(m for r in results.runs if r.run.task == task for m, *_ in r.evals):
             for label in labels:
-                runs = by_group.get((task, label), [])
-                if not runs and (task, label) not in planned_groups:
+                runs, planned = runs_of.get((task, label), []), planned_of.get((task, label), [])
+                if not runs and not planned:
                     continue
-                first = runs[0] if runs else planned_groups[task, label][0]
-                algo, beta0, precision = first.run.algo, first.run.beta0, first.precision
-                want = expected.get(label, set())
+                first = (runs or planned)[0]
+                algo, beta0 = first.run.algo, first.run.beta0
+                want, ran = expected.get(label, set()), {r.run.seed for r in runs}
+                # Planned runs that failed before writing their config.json.
+                failed_early = {p.run.seed: results.failure(p.run) for p in planned
+                                if p.run.seed in want - ran and results.failure(p.run)}
+                absent = sorted(want - ran - set(failed_early))
                 cells = []
                 for fraction in FRACTIONS:
                     point = point_step(fraction, budget)
-                    cell = Cell(fraction, point, results.frames_at(task, point),
-                                expected=len(want | {r.run.seed for r in runs}))
+                    cell = Cell(fraction, point, results.frames_at(task, point), expected=len(want | ran),
+                                failed=set(failed_early))
                     late = []
                     for result in runs:
                         evals = [(s, v) for m, s, _, v in result.evals if m == mode]
                         value = value_at(evals, point)
                         failure = results.failure(result.run)
-                        if value is None:
-                            why = f"failed: {failure}" if failure else _why_missing(evals, point)
-                            late.append(f"{result.run.seed} ({why})")
-                            if failure:
-                                cell.failed.add(result.run.seed)
-                        else:
+                        if value is not None:
                             cell.values[result.run.seed] = value
-                    absent = sorted(want - {r.run.seed for r in runs})
-                    # Planned runs that failed before writing their config.json.
-                    failed_early = {p.run.seed: results.failure(p.run) for p in planned_groups.get((task, label), ())
-                                    if p.run.seed in absent and results.failure(p.run)}
-                    cell.failed |= set(failed_early)
-                    absent = [s for s in absent if s not in failed_early]
-                    if late or absent or failed_early:
-                        parts = ([f"no value for seed(s) {', '.join(late)}"] if late else []) + \
-                                ([f"no run for seed(s) {', '.join(map(str, absent))}"] if absent else []) + \
-                                [f"seed {s} failed before writing anything ({e})" for s, e in failed_early.items()]
+                            continue
+                        why = f"failed: {failure}" if failure else _why_missing(evals, point)
+                        late.append(f"{result.run.seed} ({why})")
+                        if failure:
+                            cell.failed.add(result.run.seed)
+                    parts = ([f"no value for seed(s) {', '.join(late)}"] if late else []) + \
+                            ([f"no run for seed(s) {', '.join(map(str, absent))}"] if absent else []) + \
+                            [f"seed {s} failed before writing anything ({e})" for s, e in failed_early.items()]
+                    if parts:
                         notes.append(f"{mode} / {task} / {label} at {fraction:.1f}T (step {point}): "
                                      + "; ".join(parts))
                     if paper is not None and beta0 is None and algo in ALGOS:
                         cell.paper = paper.get((task, mode, fraction, ALGOS[algo].paper_name))
                     cells.append(cell)
-                rows.append(Row(mode, task, label, algo, beta0, cells, precision))
+                rows.append(Row(mode, task, label, algo, beta0, cells, first.precision))
     _mark_best(rows)
     return rows, notes
 
@@ -231,29 +228,24 @@ PAPER_DATASETS = {
 DEFAULT_PAPER = "imssr-paper"
 
 
-def paper_results_text(spec: Optional[str] = None) -> tuple[str, str]:
-    """``(CSV text, where it came from)`` of ``spec``: a shipped dataset's name
-    (:data:`PAPER_DATASETS`; None: :data:`DEFAULT_PAPER`) or a CSV file's path."""
+def load_paper_results(spec: Optional[str] = None) -> dict[tuple[str, str, float, str], PaperNumber]:
+    """``(task, mode, fraction, paper algo name) -> PaperNumber`` from ``spec``: a shipped dataset's name
+    (:data:`PAPER_DATASETS`; None: :data:`DEFAULT_PAPER`) or the path of a CSV (columns ``table, task, mode,
+    frames_fraction, algorithm, mean, std`` and, optionally, ``seeds``)."""
     from importlib import resources
 
     spec = spec or DEFAULT_PAPER
-    if spec in PAPER_DATASETS:
-        name = PAPER_DATASETS[spec][0]
-        return resources.files("imssr.report").joinpath("data", name).read_text(encoding="utf-8"), spec
     try:
-        with open(spec, encoding="utf-8") as fh:
-            return fh.read(), spec
+        if spec in PAPER_DATASETS:
+            text = (resources.files("imssr.report") / "data" / PAPER_DATASETS[spec][0]).read_text(encoding="utf-8")
+        else:
+            with open(spec, encoding="utf-8") as fh:
+                text = fh.read()
     except FileNotFoundError:
         raise ImssrError(f"paper results not found: {spec} (a CSV file, or one of "
                          f"{', '.join(PAPER_DATASETS)})") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ImssrError(f"cannot read paper results {spec}: {exc}") from None
-
-
-def load_paper_results(spec: Optional[str] = None) -> dict[tuple[str, str, float, str], PaperNumber]:
-    """``(task, mode, fraction, paper algo name) -> PaperNumber`` from a shipped dataset or a CSV (columns
-    ``table, task, mode, frames_fraction, algorithm, mean, std`` and, optionally, ``seeds``)."""
-    text, _ = paper_results_text(spec)
     out = {}
     for row in csv.DictReader(text.splitlines()):
         try:
