@@ -197,12 +197,9 @@ def _novelty(sample: StateSample, env, steps: list[int], k: int):
     per_step = {}
     known = sample.pool_step >= 0
     for step in steps:
-        if not known.any():
-            per_step[step] = novelty_all
-            continue
         seen = pool.copy()
         seen[~known | (sample.pool_step > step)] = np.nan
-        per_step[step] = knn_distance(query, seen, k, exclude=sample.slot)
+        per_step[step] = knn_distance(query, seen, k, exclude=sample.slot) if known.any() else novelty_all
     return novelty_all, per_step, first
 
 

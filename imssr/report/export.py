@@ -104,7 +104,10 @@ def _copy_run(source: str, target: str) -> str:
         src = os.path.join(source, name)
         if not os.path.lexists(src):
             continue
-        data = _read_own(src)
+        # A symbolic link there (to a file outside the run) is refused, so that nothing from
+        # elsewhere lands in a tree meant for version control.
+        with os.fdopen(open_own(src, os.O_RDONLY, "the export copies only a run's own files"), "rb") as fh:
+            data = fh.read()
         if name == CONFIG_FILE:
             data = shared_config(data)
         dst = os.path.join(target, name)
@@ -144,14 +147,6 @@ def _shortened(value: Any) -> Any:
     if isinstance(value, list):
         return [_shortened(v) for v in value]
     return value
-
-
-def _read_own(path: str) -> bytes:
-    """The bytes of a run's own file; a symbolic link there (to a file outside the run) is
-    refused, so that nothing from elsewhere lands in a tree meant for version control."""
-    fd = open_own(path, os.O_RDONLY, "the export copies only a run's own files")
-    with os.fdopen(fd, "rb") as fh:
-        return fh.read()
 
 
 def _inside(path: str, root: str) -> bool:

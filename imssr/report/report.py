@@ -17,6 +17,7 @@ Files written under ``out``:
 from __future__ import annotations
 
 import os
+from collections import Counter
 from typing import Optional
 
 from imssr.errors import ImssrError
@@ -139,12 +140,10 @@ def _warn(text: str) -> None:
 def makers(results) -> dict[tuple[str, str], dict[str, int]]:
     """``(task, label) -> {one line of code and device: runs}`` over every record of every run
     (a run resumed elsewhere counts under both); runs without records under "not recorded"."""
-    out: dict[tuple[str, str], dict[str, int]] = {}
+    out: dict[tuple[str, str], Counter] = {}
     for result in results.runs:
         lines = {summary(r) for r in result.provenance} or {"not recorded (a run of imssr before provenance.json)"}
-        group = out.setdefault((result.run.task, result.label), {})
-        for line in lines:
-            group[line] = group.get(line, 0) + 1
+        out.setdefault((result.run.task, result.label), Counter()).update(lines)
     return out
 
 

@@ -52,11 +52,6 @@ class RunResult:
     """The error line of a run whose last training failed or diverged (``status.json``)."""
 
     @property
-    def frames(self) -> int:
-        """The budget in environment frames."""
-        return self.steps * self.action_repeat
-
-    @property
     def label(self) -> str:
         """What tables and plots call the run's group: the algo, plus beta_0 in a beta sweep, the
         precision when it is not the paper's fp32, and the settings that set it apart from runs
@@ -176,17 +171,10 @@ def set_apart(runs: list[RunResult], root: str) -> None:
         seeds = [r.run.seed for r in group]
         if len(seeds) == len(set(seeds)):
             continue
-        # Each setting's values over the group in one pass over its runs, so that thousands of
-        # runs of one seed cost linear work, not a comparison of every run with every other.
-        values: dict[str, set[str]] = {}
-        for result in group:
-            for k in result.settings:
-                if k not in IDENTITY + RUN_ONLY:
-                    values.setdefault(k, set())
-        for result in group:
-            for k, seen in values.items():
-                seen.add(repr(result.settings.get(k)))
-        keys = sorted(k for k, seen in values.items() if len(seen) > 1)
+        # Each setting's values over the group, so that thousands of runs of one seed cost linear
+        # work, not a comparison of every run with every other.
+        named = {k for result in group for k in result.settings} - {*IDENTITY, *RUN_ONLY}
+        keys = sorted(k for k in named if len({repr(result.settings.get(k)) for result in group}) > 1)
         for result in group:
             # Runs alike in every setting (a copy of a run, the same sweep twice): their directories.
             result.variant = ", ".join(f"{k}={result.settings.get(k)}" for k in keys) or \

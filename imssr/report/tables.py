@@ -211,12 +211,10 @@ def _mark_best(rows: list[Row]) -> None:
         groups.setdefault((row.mode, row.task), []).append(row)
     for group in groups.values():
         for i in range(len(FRACTIONS)):
-            means = [row.cells[i].mean for row in group if row.cells[i].n]
-            if not means:
-                continue
-            top = max(means)
-            for row in group:
-                row.cells[i].best = bool(row.cells[i].n) and row.cells[i].mean == top
+            scored = [row.cells[i] for row in group if row.cells[i].n]
+            top = max((cell.mean for cell in scored), default=None)
+            for cell in scored:
+                cell.best = cell.mean == top
 
 
 # -- the published numbers ---------------------------------------------------------------
