@@ -109,16 +109,14 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
     e = cfg.env
     out = opts.out or run.analysis_dir
     env = env_from_config(e, seed=opts.seed + ANALYSIS_ENV_SEED_OFFSET, mode="training", footage_split="train")
-    envs = {}
+    envs = {"training": env}  # every env the analysis builds, each closed at its end
     try:
         # The newest analysed checkpoint's agent; every other checkpoint loads into the same one.
         agent = agent_at(ckpts[steps[-1]], cfg, device=opts.device, env=env).agent
         rng = np.random.default_rng(opts.seed)
-        rollout_env = (env_from_config(e, seed=opts.seed + ANALYSIS_ROLLOUT_SEED_OFFSET, footage_split="train")
-                       if e.mode != "training" else env)
-        if rollout_env is not env:
-            envs["rollouts"] = rollout_env
-        sample = collect(run, cfg, latest, opts.states, rng, opts.source, rollout_env,
+        if e.mode != "training":
+            envs["rollouts"] = env_from_config(e, seed=opts.seed + ANALYSIS_ROLLOUT_SEED_OFFSET, footage_split="train")
+        sample = collect(run, cfg, latest, opts.states, rng, opts.source, envs.get("rollouts", env),
                          lambda: restore_agent(agent, ckpts[steps[-1]]))
         log(f"imssr: analysing {len(sample)} states of {run.path} ({sample.note}) at agent step(s) "
             f"{', '.join(f'{s:,}' for s in steps)}")
@@ -129,10 +127,10 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
             exact = int(sum(np.array_equal(a, b) for a, b in zip(clean, sample.batch["next_obs"])))
         shifted = {}
         for i, mode in enumerate(opts.modes):
-            if mode != "training":
+            if mode not in envs:
                 envs[mode] = env_from_config(e, seed=opts.seed + ANALYSIS_SCENE_SEED_OFFSET + i, mode=mode,
                                              footage_split="test")
-            shifted[mode] = np.stack([envs.get(mode, env).render_stack(s) for s in sample.stack_physics])
+            shifted[mode] = np.stack([envs[mode].render_stack(s) for s in sample.stack_physics])
         novelty_all, per_step_novelty, first = _novelty(sample, env, steps, opts.neighbors)
         for note in _novelty_notes(novelty_all, per_step_novelty, opts.neighbors, len(sample.pool_step)):
             log(f"imssr: note: {note}")
@@ -177,9 +175,8 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
                            os.path.join(out, "montage.png"), f"{title}; step {steps[-1]:,}: "
                            "top: highest intrinsic signal, bottom: lowest")
     finally:
-        env.close()
-        for other in envs.values():
-            other.close()
+        for each in envs.values():
+            each.close()
     if exact is not None:
         log(f"imssr: re-rendered in training, {exact} of {len(sample)} stacks equal the stored frames")
     return AnalysisResult(states_csv, corr_csv, figure, montage, corr, sample.source, sample.note, exact)

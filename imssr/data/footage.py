@@ -91,12 +91,10 @@ def read_video(path: Path, size: int, max_frames: int = 500) -> np.ndarray:
     return np.stack(frames)
 
 
-def _frames_in(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-
-
-def _read_frames(files: list[Path], size: int, max_frames: int) -> np.ndarray:
-    return np.stack([_square_resize(_read_rgb(p), size).transpose(1, 2, 0) for p in files[:max_frames]])
+def _frame_folder(folder: Path, size: int, max_frames: int) -> list[np.ndarray]:
+    """The clip of a folder of frames (its images in name order) as a list of one; [] when it holds no image."""
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)[:max_frames]
+    return [np.stack([_square_resize(_read_rgb(p), size).transpose(1, 2, 0) for p in files])] if files else []
 
 
 @functools.lru_cache(maxsize=8)
@@ -113,20 +111,14 @@ def load_footage(path: str, size: int, max_frames: int = 500, max_clips: int = 6
     if davis.is_dir():
         root = davis
     clips: list[np.ndarray] = []
-    entries = sorted(root.iterdir())
-    for entry in entries:
+    for entry in sorted(root.iterdir()):
         if len(clips) >= max_clips:
             break
         if entry.is_dir():
-            frames = _frames_in(entry)
-            if frames:
-                clips.append(_read_frames(frames, size, max_frames))
+            clips += _frame_folder(entry, size, max_frames)
         elif entry.suffix.lower() in VIDEO_SUFFIXES:
             clips.append(read_video(entry, size, max_frames))
-    if not clips:
-        frames = _frames_in(root)  # one folder of frames is one clip
-        if frames:
-            clips.append(_read_frames(frames, size, max_frames))
+    clips = clips or _frame_folder(root, size, max_frames)  # one folder of frames is one clip
     if not clips:
         raise ImssrError(f"no videos or frame folders under {root} (expected e.g. "
                          "DAVIS JPEGImages/480p/<video>/*.jpg or *.mp4 files)")
@@ -142,6 +134,4 @@ def footage_pool(size: int, split: str = "test", path: str = "") -> tuple[np.nda
     if not source:
         return builtin_footage(size, split)
     clips = load_footage(source, size)
-    if len(clips) == 1:
-        return clips
-    return clips[SPLITS.index(split)::2]
+    return clips if len(clips) == 1 else clips[SPLITS.index(split)::2]
