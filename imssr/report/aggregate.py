@@ -86,10 +86,11 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0,
                 matrices = {label: m for label, m in matrices.items() if label not in few}
             if not matrices:
                 continue
-            missing = missing or _missing_extra()
-            if missing:
+            try:
+                point, ci = _iqm_estimates(matrices, reps, seed)
+            except ImssrError as exc:  # rliable is not installed
+                missing = f"no IQM: {exc}"
                 continue
-            point, ci = _iqm_estimates(matrices, reps, seed)
             for label, m in matrices.items():
                 out.append(Aggregate(mode, fraction, "IQM", label, float(point[label][0]),
                                      float(ci[label][0][0]), float(ci[label][1][0]), common, m.shape[0]))
@@ -98,16 +99,6 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0,
         if warn is not None:
             warn(missing)
     return out, notes
-
-
-def _missing_extra() -> str:
-    """Why no IQM can be computed here ("no IQM: rliable is not installed ..."), or ""."""
-    try:
-        require("rliable.library", "report")
-        require("rliable.metrics", "report")
-    except ImssrError as exc:
-        return f"no IQM: {exc}"
-    return ""
 
 
 def _iqm_estimates(scores: dict, reps: int, seed: int):
