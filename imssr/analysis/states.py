@@ -115,8 +115,6 @@ def collect(run: RunDir, cfg: RunConfig, latest: Checkpoint, n: int, rng: np.ran
             env, agent_for_rollouts) -> StateSample:
     """States from the run's replay, or from rollouts (``source``: see :data:`SOURCES`) of the
     agent ``agent_for_rollouts()`` returns (called only when needed) in ``env``."""
-    if source not in SOURCES:
-        raise ImssrError(f"unknown source {source!r}; valid: {', '.join(SOURCES)}")
     why = ""
     if source in ("auto", "replay"):
         path = run.replay_path(latest.replay_file) if latest.replay_file else None

@@ -21,17 +21,6 @@ def _grid(plt, n: int, width: float = 4.2, height: float = 3.2):
     return fig, list(axes.flat[:n])
 
 
-def curve_points(results: SweepResults) -> dict[tuple[str, str, str], list[tuple[int, float, float, int]]]:
-    """``(task, mode, label) -> [(agent step, mean, std, seeds)]`` over the seeds that evaluated
-    at each agent step, from one pass over the runs (a pass per curve would cost curves x runs)."""
-    by_step: dict[tuple[str, str, str], dict[int, list[float]]] = {}
-    for result in results.runs:
-        for mode, step, _, ret in result.evals:
-            by_step.setdefault((result.run.task, mode, result.label), {}).setdefault(step, []).append(ret)
-    return {key: [(s, float(np.mean(v)), float(np.std(v)), len(v)) for s, v in sorted(steps.items())]
-            for key, steps in by_step.items()}
-
-
 def plot_curves(results: SweepResults, path: str) -> str:
     """One panel per (task, mode), one line per algo: mean over seeds with a ±std band, against
     agent steps (frames on the top axis when the task's runs share an action repeat)."""
@@ -42,15 +31,21 @@ def plot_curves(results: SweepResults, path: str) -> str:
         panels = [(sorted({r.run.task for r in results.runs})[0], "training")]
     labels = label_order(results)
     colors = {label: plt.cm.tab10(i % 10) for i, label in enumerate(labels)}
-    curves = curve_points(results)
+    # Returns by (task, mode, label) and agent step, from one pass over the runs (a pass per curve
+    # would cost curves x runs).
+    returns: dict[tuple[str, str, str], dict[int, list[float]]] = {}
+    for result in results.runs:
+        for mode, step, _, ret in result.evals:
+            returns.setdefault((result.run.task, mode, result.label), {}).setdefault(step, []).append(ret)
     fig, axes = _grid(plt, len(panels))
     for ax, (task, mode) in zip(axes, panels):
         for label in labels:
-            pts = curves.get((task, mode, label))
-            if not pts:
+            by_step = returns.get((task, mode, label))
+            if not by_step:
                 continue
-            x, m, s, n = (np.array(column) for column in zip(*pts))
-            seeds = int(n.max())
+            x = sorted(by_step)
+            m, s = (np.array([statistic(by_step[step]) for step in x]) for statistic in (np.mean, np.std))
+            seeds = max(map(len, by_step.values()))
             ax.plot(x, m, marker="o", markersize=3, color=colors[label],
                     label=f"{label} ({seeds} {'seed' if seeds == 1 else 'seeds'})")
             ax.fill_between(x, m - s, m + s, color=colors[label], alpha=0.2, linewidth=0)
