@@ -54,8 +54,8 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None, reps:
         notes.append(f"the paper's numbers are at T = {PAPER_T:,} agent steps (0.2T/0.5T/1.0T = "
                      f"{paper_points} steps); this sweep's T is {', '.join(f'{b:,}' for b in budgets)} "
                      f"agent steps, so its 0.2T/0.5T/1.0T are other agent steps")
-    made_by = makers(results)
-    notes += mixed_makers(results, made_by)
+    made_by, mixed = makers(results)
+    notes += mixed
     aggregates, agg_notes = aggregate.compute(rows, reps=reps, warn=_warn)
     notes += agg_notes
     pairs = comparisons.compute(rows)
@@ -85,10 +85,10 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, 
     against = tables.markdown_against_paper(rows) if with_paper else ""
     parts = [
         f"# Sweep report: `{root_name}`\n",
-        f"{_count(len(results.runs), 'run')}, {_count(n_evals, 'evaluation')}.{failed} Cells: mean ± std over seeds (sample std, "
-        "ddof 1; – for one seed) of each seed's last evaluation return at or before the point's agent step; "
-        "**bold**: best mean of the task at that point; `(n/N)`: only n of the N expected seeds reached the "
-        "point; `k failed`: k of them failed in the sweep; the last column: n per row."
+        f"{_count(len(results.runs), 'run')}, {_count(n_evals, 'evaluation')}.{failed} Cells: mean ± std over "
+        "seeds (sample std, ddof 1; – for one seed) of each seed's last evaluation return at or before the point's "
+        "agent step; **bold**: best mean of the task at that point; `(n/N)`: only n of the N expected seeds reached "
+        "the point; `k failed`: k of them failed in the sweep; the last column: n per row."
         + (" `paper` columns: the published numbers, with their seeds where the source states them."
            if with_paper else "") + "\n",
         "## Table\n",
@@ -137,26 +137,21 @@ def _warn(text: str) -> None:
     print(f"imssr: warning: {text}", flush=True)
 
 
-def makers(results) -> dict[tuple[str, str], dict[str, int]]:
-    """``(task, label) -> {one line of code and device: runs}`` over every record of every run
-    (a run resumed elsewhere counts under both); runs without records under "not recorded"."""
-    out: dict[tuple[str, str], Counter] = {}
+def makers(results) -> tuple[dict[tuple[str, str], Counter], list[str]]:
+    """``(task, label) -> {one line of code and device: runs}`` over every record of every run (a run
+    resumed elsewhere counts under both; runs without records under "not recorded"), and one warning
+    per row whose runs were made by more than one code version or device."""
+    made_by: dict[tuple[str, str], Counter] = {}
+    versions: dict[tuple[str, str], set] = {}
     for result in results.runs:
+        key = (result.run.task, result.label)
         lines = {summary(r) for r in result.provenance} or {"not recorded (a run of imssr before provenance.json)"}
-        out.setdefault((result.run.task, result.label), Counter()).update(lines)
-    return out
-
-
-def mixed_makers(results, made_by: dict[tuple[str, str], dict[str, int]]) -> list[str]:
-    """One warning per row whose runs were made by more than one code version or device."""
-    keys: dict[tuple[str, str], set] = {}
-    for result in results.runs:
-        for r in result.provenance:
-            keys.setdefault((result.run.task, result.label), set()).add(
-                tuple(r.get(f) for f in (*CODE_FIELDS, *DEVICE_FIELDS)))
-    return [f"warning: {task} / {label} mixes code versions or devices: "
-            + "; ".join(f"{line} ({n} run{'s' if n > 1 else ''})" for line, n in sorted(made_by[task, label].items()))
-            for (task, label), found in sorted(keys.items()) if len(found) > 1]
+        made_by.setdefault(key, Counter()).update(lines)
+        versions.setdefault(key, set()).update(tuple(r.get(f) for f in (*CODE_FIELDS, *DEVICE_FIELDS))
+                                               for r in result.provenance)
+    return made_by, [f"warning: {task} / {label} mixes code versions or devices: " + "; ".join(
+        f"{line} ({n} run{'s' if n > 1 else ''})" for line, n in sorted(made_by[task, label].items()))
+        for (task, label), found in sorted(versions.items()) if len(found) > 1]
 
 
 def makers_markdown(made_by: dict[tuple[str, str], dict[str, int]]) -> str:
