@@ -14,6 +14,7 @@ footage.  A clip is a uint8 array ``(T, size, size, 3)``.
 from __future__ import annotations
 
 import functools
+import itertools
 import os
 from pathlib import Path
 
@@ -75,14 +76,10 @@ def read_video(path: Path, size: int, max_frames: int = 500) -> np.ndarray:
     """Frames of a video file, centre-square resized to ``size``."""
     import imageio.v2 as imageio  # heavy (ffmpeg plugins): only for user videos
 
-    frames = []
     try:
         reader = imageio.get_reader(str(path))
-        for i, frame in enumerate(reader):
-            if i >= max_frames:
-                break
-            image = Image.fromarray(np.asarray(frame)[..., :3])
-            frames.append(_square_resize(image, size).transpose(1, 2, 0))
+        frames = [_square_resize(Image.fromarray(np.asarray(frame)[..., :3]), size).transpose(1, 2, 0)
+                  for frame in itertools.islice(reader, max_frames)]
         reader.close()
     except Exception as exc:  # noqa: BLE001 - codec/container errors come in many types
         raise ImssrError(f"cannot read video {path}: {str(exc).splitlines()[0] if str(exc) else exc}") from None

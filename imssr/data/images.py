@@ -40,17 +40,16 @@ SOURCES = {
 }
 
 
-def _package_file(package: str, relative: str) -> Optional[Path]:
-    spec = importlib.util.find_spec(package)
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    path = Path(list(spec.submodule_search_locations)[0]) / relative
-    return path if path.is_file() else None
-
-
 def source_files(role: str) -> list[Path]:
     """Installed pictures for ``role`` (overlay, footage_train, footage_test); missing ones are skipped."""
-    return [p for p in (_package_file(pkg, rel) for pkg, rel in SOURCES[role]) if p is not None]
+    found = []
+    for package, relative in SOURCES[role]:
+        spec = importlib.util.find_spec(package)
+        if spec is not None and spec.submodule_search_locations:
+            path = Path(list(spec.submodule_search_locations)[0]) / relative
+            if path.is_file():
+                found.append(path)
+    return found
 
 
 def _read_rgb(path: Path):

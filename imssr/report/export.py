@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from imssr.errors import ImssrError
@@ -113,17 +114,13 @@ def _copy_run(source: str, target: str) -> str:
         dst = os.path.join(target, name)
         if os.path.islink(dst):
             raise ImssrError(f"{dst} is a symbolic link; the export writes only regular files")
-        if os.path.isfile(dst):
-            with open(dst, "rb") as fh:
-                if fh.read() == data:
-                    continue
+        if os.path.isfile(dst) and Path(dst).read_bytes() == data:
+            continue
         changed = True
         with atomic_path(dst, needed=len(data)) as tmp:
-            with open(tmp, "wb") as fh:
-                fh.write(data)
-        with open(dst, "rb") as fh:
-            if fh.read() != data:
-                raise ImssrError(f"{dst} does not read back as written")
+            Path(tmp).write_bytes(data)
+        if Path(dst).read_bytes() != data:
+            raise ImssrError(f"{dst} does not read back as written")
     return "new" if new else "updated" if changed else "unchanged"
 
 

@@ -201,9 +201,8 @@ def _read_run(run_dir: str, root: str, notes: list[str], skipped: dict[str, str]
     if records is None:
         notes.append(f"{rel}: unreadable provenance.json; its code and device are not known")
     result.provenance = records or []
-    path = run_files.eval_log
     try:
-        rows = read_csv(path, complete_only=True)
+        rows = read_csv(run_files.eval_log, complete_only=True)
     except ImssrError as exc:  # one damaged run must not stop a report of the others
         skipped[run_dir] = str(exc)
         notes.append(f"{rel}: {exc}; skipped")
