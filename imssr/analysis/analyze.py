@@ -167,7 +167,6 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
                     f"(95% CI {c['ci_low']:.3f} to {c['ci_high']:.3f}, n {c['n']}); median {corr[-1]['median']:.3g}")
             last_signal = signal
         title = f"{cfg.algo} on {e.task}, seed {cfg.train.seed}: {len(sample)} states ({sample.source})"
-        os.makedirs(out, exist_ok=True)
         states_csv = write_rows(os.path.join(out, "states.csv"), rows)
         corr_csv = write_rows(os.path.join(out, "correlations.csv"), corr)
         figure = plot_correlations(rows, corr, opts.modes, os.path.join(out, "analysis.png"), title)

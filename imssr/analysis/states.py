@@ -49,12 +49,10 @@ class StateSample:
         return len(self.slot)
 
 
-def load_replay(path: str, cfg: RunConfig, env) -> FrameReplayBuffer:
-    """The saved buffer, verified (checksums) as a resume would; ``env`` is one of the run's task."""
-    buf = FrameReplayBuffer(cfg.train.replay_capacity, (3, env.image_size, env.image_size), env.action_space.shape[0],
-                            env.frame_stack, warn_memory=False, physics_dim=env.physics_state_dim)
-    buf.load(path)
-    return buf
+def physics_buffer(capacity: int, env) -> FrameReplayBuffer:
+    """An empty buffer of ``env``'s frames that records each frame's physics state."""
+    return FrameReplayBuffer(capacity, (3, env.image_size, env.image_size), env.action_space.shape[0],
+                             env.frame_stack, warn_memory=False, physics_dim=env.physics_state_dim)
 
 
 def candidates(buf: FrameReplayBuffer) -> np.ndarray:
@@ -95,8 +93,7 @@ def rollout_buffer(agent, env, n_states: int) -> FrameReplayBuffer:
     (agent steps unknown), until they hold ``n_states`` transitions and at least one episode."""
     per_episode = env.max_episode_steps + 1
     episodes = max(1, -(-(n_states + 1) // env.max_episode_steps))
-    buf = FrameReplayBuffer(episodes * per_episode, (3, env.image_size, env.image_size), env.action_space.shape[0],
-                            env.frame_stack, warn_memory=False, physics_dim=env.physics_state_dim)
+    buf = physics_buffer(episodes * per_episode, env)
     for _ in range(episodes):
         obs, info = env.reset()
         buf.add_first(info["frame"], env.physics_state())
@@ -122,7 +119,8 @@ def collect(run: RunDir, cfg: RunConfig, latest: Checkpoint, n: int, rng: np.ran
             why = "the run saved no replay buffer (train.save_buffer off)"
         else:
             try:
-                buf = load_replay(path, cfg, env)
+                buf = physics_buffer(cfg.train.replay_capacity, env)  # of the run's task
+                buf.load(path)  # verified (checksums) as a resume would
             except ReplayFileError as exc:
                 why = str(exc)
             else:

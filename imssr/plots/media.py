@@ -32,7 +32,6 @@ def save_montage(frames: dict[str, np.ndarray], path: str, title: str = "") -> s
 
 def save_png(fig, path: str) -> str:
     """Write a matplotlib figure as a PNG at its own dpi, atomically (parent folders made), and close it."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi="figure", format="png")
     pyplot().close(fig)
@@ -48,7 +47,6 @@ def save_video(frames: list[np.ndarray], path: str, fps: float = 25) -> str:
         raise ImssrError(f"video format must be one of {', '.join(VIDEO_FORMATS)}, got {path}")
     if not frames:
         raise ImssrError("no frames to write")
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_path(path) as tmp:
         if fmt == "gif":
             imageio.mimsave(tmp, frames, format="GIF", duration=1000 / fps, loop=0)

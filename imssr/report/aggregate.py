@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -50,11 +50,10 @@ def score_matrix(rows: list[Row], fraction_index: int, tasks: list[str]) -> np.n
     return np.array(cols, dtype=float).T / DMC_MAX_RETURN
 
 
-def compute(rows: list[Row], reps: int = 2000, seed: int = 0,
-            warn: Optional[Callable[[str], None]] = None) -> tuple[list[Aggregate], list[str]]:
+def compute(rows: list[Row], reps: int = 2000, seed: int = 0) -> tuple[list[Aggregate], list[str]]:
     """IQM per label where every task it averages has at least
     :data:`~imssr.report.stats.MIN_SEEDS_FOR_BOOTSTRAP` seeds (with fewer, the IQM is about the
-    mean and the interval about [min, max]); without rliable none, and a note (also to ``warn``)."""
+    mean and the interval about [min, max]); without rliable none, and a note (also printed as a warning)."""
     out: list[Aggregate] = []
     notes: list[str] = []
     missing: Optional[str] = None
@@ -96,8 +95,7 @@ def compute(rows: list[Row], reps: int = 2000, seed: int = 0,
                                      float(ci[label][0][0]), float(ci[label][1][0]), common, m.shape[0]))
     if missing:
         notes.append(missing)
-        if warn is not None:
-            warn(missing)
+        print(f"imssr: warning: {missing}", flush=True)
     return out, notes
 
 

@@ -12,10 +12,10 @@ from imssr.report.results import SweepResults
 from imssr.report.tables import Row, label_order, mode_order
 
 
-def _grid(plt, n: int, width: float = 4.2, height: float = 3.2):
+def _grid(plt, n: int):
     cols = min(3, n)
     rows = -(-n // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, height * rows), dpi=100, squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), dpi=100, squeeze=False)
     for ax in axes.flat[n:]:
         ax.axis("off")
     return fig, list(axes.flat[:n])

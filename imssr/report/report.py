@@ -34,7 +34,6 @@ PAPER_T = 500_000
 def write_report(root: str, out: str, paper_results: Optional[str] = None, reps: int = 2000) -> list[tuple[str, str]]:
     """Write the report; return ``(path, description)`` of each file written."""
     results = collect(root)
-    os.makedirs(out, exist_ok=True)
     notes = list(results.notes)
     try:
         paper = tables.load_paper_results(paper_results)
@@ -56,7 +55,7 @@ def write_report(root: str, out: str, paper_results: Optional[str] = None, reps:
                      f"agent steps, so its 0.2T/0.5T/1.0T are other agent steps")
     made_by, mixed = makers(results)
     notes += mixed
-    aggregates, agg_notes = aggregate.compute(rows, reps=reps, warn=_warn)
+    aggregates, agg_notes = aggregate.compute(rows, reps=reps)
     notes += agg_notes
     pairs = comparisons.compute(rows)
     written = [
@@ -131,10 +130,6 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, 
     parts.append("## Notes\n")
     parts.append("\n".join(f"- {n}" for n in notes) + "\n" if notes else "Every expected seed reached every point.\n")
     return "\n".join(parts)
-
-
-def _warn(text: str) -> None:
-    print(f"imssr: warning: {text}", flush=True)
 
 
 def makers(results) -> tuple[dict[tuple[str, str], Counter], list[str]]:
