@@ -122,9 +122,8 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
             f"{', '.join(f'{s:,}' for s in steps)}")
         # The same physics states in n0 (training) and in each test scene n.
         clean = np.stack([env.render_stack(s) for s in sample.stack_physics])
-        exact = None
-        if sample.source == "replay" and e.mode == "training":
-            exact = int(sum(np.array_equal(a, b) for a, b in zip(clean, sample.batch["next_obs"])))
+        exact = (int(sum(np.array_equal(a, b) for a, b in zip(clean, sample.batch["next_obs"])))
+                 if sample.source == "replay" and e.mode == "training" else None)
         shifted = {}
         for i, mode in enumerate(opts.modes):
             if mode not in envs:

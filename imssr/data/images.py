@@ -114,8 +114,7 @@ def load_image_folder(path: str, size: int, max_images: int = 1024, seed: int = 
         # unreadable ones, so a folder without bad files gives the same pool either way.
         rng = np.random.default_rng(seed)
         pick = sorted(rng.choice(len(files), max_images, replace=False))
-        chosen = set(pick)
-        rest = [i for i in range(len(files)) if i not in chosen]
+        rest = sorted(set(range(len(files))) - set(pick))
         order = pick + [rest[j] for j in rng.permutation(len(rest))]
     pool, tried = [], 0
     for i in order:
@@ -137,6 +136,4 @@ def load_image_folder(path: str, size: int, max_images: int = 1024, seed: int = 
 def image_pool(size: int, image_dir: str = "", max_images: int = 1024) -> np.ndarray:
     """The overlay pool: ``image_dir``, else ``$IMSSR_IMAGE_DIR``, else the built-in photographs."""
     folder = image_dir or os.environ.get(IMAGE_DIR_ENV, "")
-    if folder:
-        return load_image_folder(folder, size, max_images)
-    return builtin_photographs(size, min(max_images, 512))
+    return load_image_folder(folder, size, max_images) if folder else builtin_photographs(size, min(max_images, 512))

@@ -229,12 +229,12 @@ def _read_run(run_dir: str, root: str, notes: list[str], skipped: dict[str, str]
             non_finite.append(f"{value} at agent step {step:,} ({row['mode']})")
             continue
         result.evals.append((row["mode"], step, frame, value))
-    if non_finite:
-        notes.append(f"{rel}: {len(non_finite)} evaluation(s) with a non-finite return left out: "
-                     f"{', '.join(non_finite[:3])}{', ...' if len(non_finite) > 3 else ''}")
-    if not_counts:
-        notes.append(f"{rel}: {len(not_counts)} evaluation(s) with a step or frame that is no whole number of agent "
-                     f"steps or frames left out: {'; '.join(not_counts[:3])}{'; ...' if len(not_counts) > 3 else ''}")
+    for left_out, why, sep in ((non_finite, "with a non-finite return", ", "),
+                               (not_counts, "with a step or frame that is no whole number of agent steps or frames",
+                                "; ")):
+        if left_out:
+            notes.append(f"{rel}: {len(left_out)} evaluation(s) {why} left out: "
+                         f"{sep.join(left_out[:3])}{sep + '...' if len(left_out) > 3 else ''}")
     if not result.evals:
         notes.append(f"{rel}: no evaluations yet")
     return result

@@ -129,8 +129,7 @@ def label_order(results: SweepResults) -> list[str]:
     """fp32 before other precisions; within each, algos in registry order (curl, im-curl, ...),
     beta sweeps by increasing beta_0."""
     rank = {name: i for i, name in enumerate(ALGOS)}
-    keys = {(r.label, r.run.algo, r.run.beta0, r.precision) for r in results.runs} | \
-           {(p.label, p.run.algo, p.run.beta0, p.precision) for p in results.planned}
+    keys = {(r.label, r.run.algo, r.run.beta0, r.precision) for r in (*results.runs, *results.planned)}
     ordered = sorted(keys, key=lambda k: (k[3] != "fp32", k[3], rank.get(k[1], len(rank)), k[1],
                                           -1.0 if k[2] is None else k[2]))
     return [k[0] for k in ordered]
