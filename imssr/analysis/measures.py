@@ -100,8 +100,6 @@ def first_visit(query: np.ndarray, pool: np.ndarray, pool_step: np.ndarray, radi
     (itself included, via ``own_step``) was stored; -1 where the steps are unknown."""
     known = (pool_step >= 0) & np.isfinite(pool).all(axis=1)
     out = np.asarray(own_step, dtype=np.int64).copy()
-    if not known.any():
-        return out
     pts, steps = pool[known], pool_step[known]
     for i, q in enumerate(query):
         near = np.sqrt(((pts - q) ** 2).sum(axis=1)) <= radius

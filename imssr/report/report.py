@@ -120,15 +120,13 @@ def _markdown(results, root_name: str, rows, aggregates, pairs, made_by, notes, 
         parts += ["## Beta_0 sensitivity\n", "Return at 1.0T against beta_0 (log axis); dashed lines: the "
                   "base algorithms (beta_0 = 0).\n", "![beta_0](beta0.png)\n"]
     if results.failures:
-        parts.append("## Failed runs\n")
-        parts.append("Runs that failed, with the last error: those `sweep_status.json` lists as failed after "
-                     "every attempt (the full output is in each run's `sweep.log`) and those whose own last "
-                     "training failed or diverged (`status.json`); their evaluations up to the failure count "
-                     "where they reach.\n")
-        parts.append("\n".join(f"- `{os.path.relpath(d, results.root)}`: {e}"
-                               for d, e in sorted(results.failures.items())) + "\n")
-    parts.append("## Notes\n")
-    parts.append("\n".join(f"- {n}" for n in notes) + "\n" if notes else "Every expected seed reached every point.\n")
+        parts += ["## Failed runs\n", "Runs that failed, with the last error: those `sweep_status.json` lists as "
+                  "failed after every attempt (the full output is in each run's `sweep.log`) and those whose own "
+                  "last training failed or diverged (`status.json`); their evaluations up to the failure count where "
+                  "they reach.\n", "\n".join(f"- `{os.path.relpath(d, results.root)}`: {e}"
+                                             for d, e in sorted(results.failures.items())) + "\n"]
+    parts += ["## Notes\n",
+              "\n".join(f"- {n}" for n in notes) + "\n" if notes else "Every expected seed reached every point.\n"]
     return "\n".join(parts)
 
 
