@@ -54,7 +54,7 @@ class AnalysisOptions:
     source: str = "auto"
     """``replay``, ``rollouts`` or ``auto`` (the replay when it recorded physics states)."""
 
-    def validate(self) -> "AnalysisOptions":
+    def validate(self) -> None:
         for value, name in ((self.states, "states"), (self.neighbors, "neighbors"), (self.top_k, "top-k"),
                             (self.reps, "reps")):
             if value < 1:
@@ -69,7 +69,6 @@ class AnalysisOptions:
             raise ImssrError(f"unknown --source {self.source!r}; valid: {', '.join(SOURCES)}")
         if self.out is not None and not self.out.strip():
             raise ImssrError("--out is empty; give a path, or omit --out for RUN/analysis")
-        return self
 
 
 @dataclass
@@ -144,16 +143,15 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
             mean_nuisance = np.mean([nuisance[m] for m in opts.modes], axis=0)
             novelty = per_step_novelty[step]
             for i in range(len(sample)):
-                row = {"checkpoint_step": step, "state": i, "slot": int(sample.slot[i]),
-                       "agent_step": int(sample.agent_step[i]),
-                       "step_in_episode": int(sample.buffer.step_in_episode[sample.slot[i]]),
-                       "reward": float(sample.batch["reward"][i]), "signal": float(signal[i]),
-                       "novelty": float(novelty[i]), "novelty_all": float(novelty_all[i]),
-                       "first_visit_step": int(first[i]),
-                       "seen_by_checkpoint": "" if first[i] < 0 else int(first[i] <= step)}
-                row.update({f"nuisance_{m}": float(nuisance[m][i]) for m in opts.modes})
-                row["nuisance_mean"] = float(mean_nuisance[i])
-                rows.append(row)
+                rows.append({"checkpoint_step": step, "state": i, "slot": int(sample.slot[i]),
+                             "agent_step": int(sample.agent_step[i]),
+                             "step_in_episode": int(sample.buffer.step_in_episode[sample.slot[i]]),
+                             "reward": float(sample.batch["reward"][i]), "signal": float(signal[i]),
+                             "novelty": float(novelty[i]), "novelty_all": float(novelty_all[i]),
+                             "first_visit_step": int(first[i]),
+                             "seen_by_checkpoint": "" if first[i] < 0 else int(first[i] <= step),
+                             **{f"nuisance_{m}": float(nuisance[m][i]) for m in opts.modes},
+                             "nuisance_mean": float(mean_nuisance[i])})
             against = {"novelty": novelty, "novelty_all": novelty_all, "nuisance_mean": mean_nuisance,
                        **{f"nuisance_{m}": nuisance[m] for m in opts.modes}}
             for key, x in against.items():
@@ -164,12 +162,11 @@ def analyze_run(run_dir: RunDir | str, opts: AnalysisOptions, log=print) -> Anal
                              "median": float(np.nanmedian(x)) if np.isfinite(x).any() else float("nan")})
                 log(f"  step {step:,}: signal vs {key}: Spearman rho {c['rho']:.3f} "
                     f"(95% CI {c['ci_low']:.3f} to {c['ci_high']:.3f}, n {c['n']}); median {corr[-1]['median']:.3g}")
-            last_signal = signal
         title = f"{cfg.algo} on {e.task}, seed {cfg.train.seed}: {len(sample)} states ({sample.source})"
         states_csv = write_rows(os.path.join(out, "states.csv"), rows)
         corr_csv = write_rows(os.path.join(out, "correlations.csv"), corr)
         figure = plot_correlations(rows, corr, opts.modes, os.path.join(out, "analysis.png"), title)
-        montage = _montage(sample, last_signal, per_step_novelty[steps[-1]], opts.top_k,
+        montage = _montage(sample, signal, per_step_novelty[steps[-1]], opts.top_k,
                            os.path.join(out, "montage.png"), f"{title}; step {steps[-1]:,}: "
                            "top: highest intrinsic signal, bottom: lowest")
     finally:

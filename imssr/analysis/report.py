@@ -55,9 +55,7 @@ def write_rows(path: str, rows: list[dict]) -> str:
     header = list(rows[0])
 
     def cell(v):
-        if isinstance(v, float):
-            return "" if not np.isfinite(v) else f"{v:.6g}"
-        return v
+        return ("" if not np.isfinite(v) else f"{v:.6g}") if isinstance(v, float) else v
 
     return atomic_write_csv(path, header, ([cell(r[k]) for k in header] for r in rows))
 

@@ -91,9 +91,8 @@ def sample_states(buf: FrameReplayBuffer, n: int, rng: np.random.Generator, sour
 def rollout_buffer(agent, env, n_states: int) -> FrameReplayBuffer:
     """Episodes of ``agent``'s stochastic policy in ``env``, recorded with their physics states
     (agent steps unknown), until they hold ``n_states`` transitions and at least one episode."""
-    per_episode = env.max_episode_steps + 1
     episodes = max(1, -(-(n_states + 1) // env.max_episode_steps))
-    buf = physics_buffer(episodes * per_episode, env)
+    buf = physics_buffer(episodes * (env.max_episode_steps + 1), env)  # an episode: its first frame, one a step
     for _ in range(episodes):
         obs, info = env.reset()
         buf.add_first(info["frame"], env.physics_state())

@@ -122,9 +122,7 @@ def collect(root: str) -> SweepResults:
     skipped: dict[str, str] = {}
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if d not in (CHECKPOINT_DIR, TB_DIR, VIDEOS_DIR))
-        if CONFIG_FILE not in filenames:
-            continue
-        run = _read_run(dirpath, root, notes, skipped)
+        run = _read_run(dirpath, root, notes, skipped) if CONFIG_FILE in filenames else None
         if run is not None:
             runs.append(run)
     if not runs:

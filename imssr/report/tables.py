@@ -205,15 +205,15 @@ def _expected_seeds(results: SweepResults, task: str) -> dict[str, set[int]]:
 
 
 def _mark_best(rows: list[Row]) -> None:
-    groups: dict[tuple[str, str], list[Row]] = {}
+    scored: dict[tuple[str, str, int], list[Cell]] = {}  # (mode, task, fraction's index) -> cells with seeds
     for row in rows:
-        groups.setdefault((row.mode, row.task), []).append(row)
-    for group in groups.values():
-        for i in range(len(FRACTIONS)):
-            scored = [row.cells[i] for row in group if row.cells[i].n]
-            top = max((cell.mean for cell in scored), default=None)
-            for cell in scored:
-                cell.best = cell.mean == top
+        for i, cell in enumerate(row.cells):
+            if cell.n:
+                scored.setdefault((row.mode, row.task, i), []).append(cell)
+    for cells in scored.values():
+        top = max(cell.mean for cell in cells)
+        for cell in cells:
+            cell.best = cell.mean == top
 
 
 # -- the published numbers ---------------------------------------------------------------
@@ -319,8 +319,8 @@ def markdown_tables(rows: list[Row], results: SweepResults, with_paper: bool) ->
                 if with_paper:
                     cols.append(paper_text(cell.paper) if cell.paper else "")
             final = row.cells[-1]
-            cols.append(per_seed_text(final))
-            cols.append(f"{final.n}/{final.expected}" + (f", {len(final.failed)} failed" if final.failed else ""))
+            cols += [per_seed_text(final),
+                     f"{final.n}/{final.expected}" + (f", {len(final.failed)} failed" if final.failed else "")]
             out.append("| " + " | ".join(cols) + " |")
         out.append("")
     return "\n".join(out)
