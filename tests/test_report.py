@@ -99,6 +99,21 @@ def test_aggregates_iqm_from_five_seeds_and_comparisons_within_a_task(tmp_path, 
     assert "| `training` | `cartpole_swingup_sparse` | 1.0T | im-curl | curl | 5, 5 | +200.0 | 0.78 | 0.167 |" in md
 
 
+def test_the_iqm_interval_is_the_same_in_every_report_and_leaves_numpys_generator_alone(tmp_path):
+    root = str(tmp_path / "sweep")
+    for seed, ret in zip((1, 2, 3, 4, 5), (100, 200, 300, 400, 1000)):
+        make_run(root, "curl", seed, curve(0, 0, ret))
+    intervals = []
+    for k in range(2):
+        np.random.seed(k)  # whatever state numpy's global generator is in
+        before = np.random.get_state()[1].copy()
+        out = str(tmp_path / f"report{k}")
+        write_report(root, out, reps=200)
+        assert (np.random.get_state()[1] == before).all()
+        intervals.append([(r["ci_low"], r["ci_high"]) for r in read_csv(os.path.join(out, "aggregates.csv"))])
+    assert intervals[0] and intervals[0] == intervals[1]
+
+
 def test_four_seeds_give_no_iqm_and_say_why(tmp_path, paper_csv):
     root, out = str(tmp_path / "sweep"), str(tmp_path / "report")
     for seed in (1, 2, 3, 4):

@@ -107,10 +107,17 @@ def _iqm_estimates(scores: dict, reps: int, seed: int):
     def iqm(x: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(x)])
 
-    with warnings.catch_warnings():
-        # rliable 1.2 passes a RandomState through arch's deprecated `random_state` keyword.
-        warnings.filterwarnings("ignore", message="random_state is deprecated", category=FutureWarning)
-        return rly.get_interval_estimates(scores, iqm, reps=reps, random_state=np.random.RandomState(seed))
+    # rliable 1.2 draws its resamples with numpy's global generator (np.random.choice), whatever
+    # random_state it is given: seed that generator for the call and give the caller's back after.
+    outside = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():
+            # rliable 1.2 passes a RandomState through arch's deprecated `random_state` keyword.
+            warnings.filterwarnings("ignore", message="random_state is deprecated", category=FutureWarning)
+            return rly.get_interval_estimates(scores, iqm, reps=reps, random_state=np.random.RandomState(seed))
+    finally:
+        np.random.set_state(outside)
 
 
 def markdown(aggregates: list[Aggregate]) -> str:
