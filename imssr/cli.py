@@ -563,24 +563,22 @@ def _main(argv: Optional[list[str]]) -> int:
                 "sweep": cmd_sweep, "report": cmd_report, "export": cmd_export}
     try:
         return handlers[args.command](args) or 0  # a command returns its exit status, or None for 0
-    except ImssrError as exc:
-        print(f"imssr: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # unwritable --out, full disk, ...
-        print(f"imssr: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
-        return 2
     except TrainingInterrupted as exc:
         print(f"imssr: {exc}", file=sys.stderr)
         return INTERRUPTED_EXIT
-    except (MemoryError, RuntimeError, ValueError) as exc:
-        text = out_of_memory_text(exc)
-        if text is None:
-            raise
-        print(f"imssr: error: {text}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"imssr: interrupted; {INTERRUPTED_TEXT.get(args.command, 'nothing was changed')}", file=sys.stderr)
         return INTERRUPTED_EXIT
+    except ImssrError as exc:
+        error = str(exc)
+    except OSError as exc:  # unwritable --out, full disk, ...
+        error = f"{exc.strerror or exc}: {exc.filename or ''}".rstrip(": ")
+    except (MemoryError, RuntimeError, ValueError) as exc:
+        error = out_of_memory_text(exc)
+        if error is None:
+            raise
+    print(f"imssr: error: {error}", file=sys.stderr)
+    return 2
 
 
 INTERRUPTED_TEXT = {
