@@ -18,7 +18,6 @@ import numpy as np
 from imssr.config import RunConfig
 from imssr.crash import report_native_crashes
 from imssr.envs import env_from_config
-from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.files import read_csv
 from imssr.rundir import (EVAL_LOG, EVAL_EPISODES_LOG, EVALUATE_EPISODES_LOG, EVALUATE_LOG, TRAIN_LOG, RunDir,
@@ -68,8 +67,6 @@ class Run:
         """A gymnasium env of the run's task in scene ``mode`` (None: the scene it trained in),
         built as the run's evaluation envs are (unseen footage); ``seed`` None: as
         :meth:`evaluate`'s."""
-        mode = self.config.env.mode if mode is None else mode
-        get_mode(mode)
         seed = evaluation_seed(self.config.train.seed) if seed is None else seed
         return env_from_config(self.config.env, seed=seed, mode=mode, footage_split="test")
 
@@ -93,8 +90,7 @@ class Run:
             returns = evaluate(self.agent, env, episodes)
         finally:
             env.close()
-        mode = self.config.env.mode if mode is None else mode
-        return {**eval_row(self.frame, self.step, mode, returns), "returns": returns}
+        return {**eval_row(self.frame, self.step, env.mode, returns), "returns": returns}
 
     def curves(self, name: str = "eval"):
         """The run's log ``RUN/<name>.csv`` (:data:`CURVES`) as a pandas DataFrame when pandas is installed, else a

@@ -5,11 +5,10 @@ Argument parsing and dispatch only: each command calls one function of the packa
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, NoReturn, Optional
+from typing import Any, Callable, NoReturn, Optional
 
 # What building the parser needs, and nothing that loads torch, dm_control or matplotlib: `imssr
 # --help`, `tasks`, `algos`, `modes` and every `SUBCOMMAND --help` answer without them.  Each
@@ -82,7 +81,7 @@ class FieldFlag:
     field: str
     """Dotted config field, ``section.name``."""
     type: Optional[Callable[[str], Any]] = None
-    """argparse type (None: the text); a switch (``--no-X``) sets the field to false."""
+    """argparse type (None: the text); a switch (``--no-X``) takes no value and sets the field to false."""
     metavar: Optional[str] = None
     default: str = ""
     """What the help says the default is; empty: the preset's value (the demo's for ``demo``)."""
@@ -236,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
                             f"trains on the RL batch (default: {preset}, 128)")
         for f in FIELD_FLAGS:
             if f.switch:
-                t.add_argument(f.flag, action="store_true", help=f.help(demo))
+                t.add_argument(f.flag, action="store_const", const=False, help=f.help(demo))
             else:
                 t.add_argument(f.flag, type=f.type, metavar=f.metavar, help=f.help(demo))
         t.add_argument("--logger", metavar="csv,tensorboard,wandb",
@@ -333,7 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def add_sweep_parsers(sub) -> None:
-    """``imssr sweep`` (a grid of runs on Ray) and ``imssr report`` (paper-style tables)."""
+    """``imssr sweep`` (a grid of runs on Ray), ``imssr report`` (paper-style tables) and ``imssr export``."""
     sw = sub.add_parser("sweep", help="train a grid of runs (algos x tasks x seeds [x beta0]) on Ray, "
                         "SLURM or local subprocesses",
                         description="Runs land in ROOT/<task>/<algo>/seed_<n> (ROOT/<task>/<algo>/"
@@ -390,7 +389,7 @@ def _check_out(out: Optional[str], flag: str = "--out") -> None:
         raise ImssrError(f"{flag} is empty; give a path, or omit {flag} for the default")
 
 
-def cmd_report(args) -> int:
+def cmd_report(args) -> None:
     # Imported here, not at the top, as every command's machinery: `imssr --help` loads none of it.
     from imssr.report.report import write_report
 
@@ -398,10 +397,9 @@ def cmd_report(args) -> int:
     out = args.out or os.path.join(args.root, "report")
     for path, text in write_report(args.root, out, paper_results=args.paper_results, reps=args.reps):
         print(f"{text}: {path}")
-    return 0
 
 
-def cmd_export(args) -> int:
+def cmd_export(args) -> None:
     from imssr.report.export import export_runs
 
     if not args.dest.strip():
@@ -415,49 +413,40 @@ def cmd_export(args) -> int:
     copied = sum(item.state in ("new", "updated") for item in exported)
     print(f"imssr: {copied} run(s) copied, {sum(item.state == 'unchanged' for item in exported)} unchanged, "
           f"{sum(item.state.startswith('skipped') for item in exported)} skipped")
-    return 0
 
 
-def train_request(args, demo: bool = False):
+def train_request(args):
     """The :class:`~imssr.training.entry.TrainRequest` of ``train`` / ``demo`` arguments."""
     from imssr.training.entry import TrainRequest
 
     seeds, runs = getattr(args, "seeds", None), getattr(args, "runs", None) or ()
     if seeds is None and not runs:
         _check_out(args.out)  # --seeds and --runs say what they need of --out themselves
-    values = {}
-    for f in FIELD_FLAGS:
-        given = getattr(args, f.dest)
-        if f.switch and given:
-            values[f.field] = False
-        elif not f.switch and given is not None:
-            values[f.field] = given
+    values = {f.field: getattr(args, f.dest) for f in FIELD_FLAGS if getattr(args, f.dest) is not None}
     if args.logger is not None:
-        values.update(logger_fields(args.logger, args.no_tensorboard))
+        values.update(logger_fields(args.logger, no_tensorboard="train.tensorboard" in values))
     return TrainRequest(algo=args.algo, task=args.task, out=args.out,
                         seeds=None if seeds is None else parse_seeds(seeds, repeats=False), runs=runs,
-                        resume=args.resume, refill_buffer=getattr(args, "refill_buffer", False), demo=demo,
+                        resume=args.resume, refill_buffer=args.refill_buffer, demo=args.command == "demo",
                         network=args.network, config_file=args.config, values=values, frames=args.frames,
                         batch_size=args.batch_size, beta0=args.beta0, overrides=args.set or ())
 
 
-def cmd_train(args, demo: bool = False) -> int:
+def cmd_train(args) -> None:
     from imssr.training.entry import train
 
-    train(train_request(args, demo), exit_on_second_signal=True)
-    return 0
+    train(train_request(args), exit_on_second_signal=True)
 
 
-def cmd_evaluate(args) -> int:
+def cmd_evaluate(args) -> None:
     from imssr.training.evaluate import evaluate_run
 
     evaluate_run(RunDir(args.run), checkpoint=args.checkpoint, episodes=args.episodes, modes=args.modes,
                  seed=args.seed, device=args.device, video=args.video, montage=args.montage,
                  footage=args.footage, progress=not args.no_progress)
-    return 0
 
 
-def cmd_analyze(args) -> int:
+def cmd_analyze(args) -> None:
     from imssr.analysis import AnalysisOptions, analyze_run
 
     _check_out(args.out)
@@ -468,34 +457,30 @@ def cmd_analyze(args) -> int:
     res = analyze_run(RunDir(args.run), opts)
     for path in (res.states_csv, res.correlations_csv, res.figure, res.montage):
         print(path)
-    return 0
 
 
-def cmd_modes(args) -> int:
+def cmd_modes(args) -> None:
     if not args.montage:
         for spec in MODES.values():
             print(f"{spec.name}\t{spec.description}")
-        return 0
+        return
     from imssr.plots.media import scenes_montage
 
     print(scenes_montage(args.task, args.montage, seed=args.seed, steps=args.steps, footage=args.footage or ""))
-    return 0
 
 
-def cmd_tasks(_args) -> int:
+def cmd_tasks(_args) -> None:
     print("# paper tasks (action repeat)")
     for name in PAPER_TASKS:
         print(f"{name}\t{get_task(name).action_repeat}")
     print("# all tasks")
     for name in list_tasks():
         print(name)
-    return 0
 
 
-def cmd_algos(_args) -> int:
+def cmd_algos(_args) -> None:
     for spec in ALGOS.values():
         print(f"{spec.name}\t{spec.description}")
-    return 0
 
 
 def explain(algo: str, task: str, network: str = "dmcgb") -> str:
@@ -504,21 +489,19 @@ def explain(algo: str, task: str, network: str = "dmcgb") -> str:
                       *markdown_table(preset_settings(algo, task, network))])
 
 
-def cmd_config(args) -> int:
+def cmd_config(args) -> None:
     if args.explain:
         print(explain(args.algo, args.task, args.network))
     else:
         print(make_config(args.algo, args.task, args.network).to_json())
-    return 0
 
 
-def cmd_plot(args) -> int:
+def cmd_plot(args) -> None:
     from imssr.plots.curves import plot_learning_curve
 
     run = RunDir(args.run).require()
     _check_out(args.out)
     print(plot_learning_curve(run, args.out))
-    return 0
 
 
 class _DropOnClosedPipe:
@@ -554,13 +537,15 @@ class _DropOnClosedPipe:
         return getattr(self.stream, name)
 
 
-@contextlib.contextmanager
-def _output_to_closed_pipes_dropped() -> Iterator[None]:
-    """stdout and stderr as :class:`_DropOnClosedPipe` inside the block."""
+def main(argv: Optional[list[str]] = None) -> int:
+    """``imssr ARGV``: the exit status.  Output to a closed pipe is dropped (:class:`_DropOnClosedPipe`)."""
     saved = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = _DropOnClosedPipe(sys.stdout), _DropOnClosedPipe(sys.stderr)
     try:
-        yield
+        return _main(argv)
+    except KeyboardInterrupt:
+        # A Ctrl-C after `imssr train` gave Python's handler back, while it says how it ended.
+        return INTERRUPTED_EXIT
     finally:
         try:
             sys.stdout.flush()
@@ -569,42 +554,31 @@ def _output_to_closed_pipes_dropped() -> Iterator[None]:
             sys.stdout, sys.stderr = saved
 
 
-def main(argv: Optional[list[str]] = None) -> int:
-    with _output_to_closed_pipes_dropped():
-        try:
-            return _main(argv)
-        except KeyboardInterrupt:
-            # A Ctrl-C after `imssr train` gave Python's handler back, while it says how it ended.
-            return INTERRUPTED_EXIT
-
-
 def _main(argv: Optional[list[str]]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    handlers = {"train": cmd_train, "demo": lambda a: cmd_train(a, demo=True),
+    handlers = {"train": cmd_train, "demo": cmd_train,
                 "evaluate": cmd_evaluate, "analyze": cmd_analyze, "tasks": cmd_tasks, "algos": cmd_algos,
                 "config": cmd_config, "plot": cmd_plot, "modes": cmd_modes,
                 "sweep": cmd_sweep, "report": cmd_report, "export": cmd_export}
     try:
-        return handlers[args.command](args)
-    except ImssrError as exc:
-        print(f"imssr: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # unwritable --out, full disk, ...
-        print(f"imssr: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), file=sys.stderr)
-        return 2
+        return handlers[args.command](args) or 0  # a command returns its exit status, or None for 0
     except TrainingInterrupted as exc:
         print(f"imssr: {exc}", file=sys.stderr)
         return INTERRUPTED_EXIT
-    except (MemoryError, RuntimeError, ValueError) as exc:
-        text = out_of_memory_text(exc)
-        if text is None:
-            raise
-        print(f"imssr: error: {text}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"imssr: interrupted; {INTERRUPTED_TEXT.get(args.command, 'nothing was changed')}", file=sys.stderr)
         return INTERRUPTED_EXIT
+    except ImssrError as exc:
+        error = str(exc)
+    except OSError as exc:  # unwritable --out, full disk, ...
+        error = f"{exc.strerror or exc}: {exc.filename or ''}".rstrip(": ")
+    except (MemoryError, RuntimeError, ValueError) as exc:
+        error = out_of_memory_text(exc)
+        if error is None:
+            raise
+    print(f"imssr: error: {error}", file=sys.stderr)
+    return 2
 
 
 INTERRUPTED_TEXT = {

@@ -88,15 +88,13 @@ def plan(request: TrainRequest) -> list[RunPlan]:
                 or "train.seed" in request.values:
             raise ImssrError("--runs takes each run's own config.json: leave out --seeds, --out, --config, "
                              "--algo, --task and --seed")
-        dirs = [os.path.normpath(d) for d in request.runs]
-        _refuse_twice(dirs)
-        for d in dirs:
-            if not os.path.isfile(os.path.join(d, CONFIG_FILE)):
-                raise ImssrError(f"--runs {d}: no {CONFIG_FILE} there (write one, or train it with --out)")
+        runs = [RunDir(os.path.normpath(d)) for d in request.runs]
+        _refuse_twice(runs)
+        for run in runs:
+            if not os.path.isfile(run.config_path):
+                raise ImssrError(f"--runs {run.path}: no {CONFIG_FILE} there (write one, or train it with --out)")
         # Each directory's config.json is its run's own file: the base whether new or resumed.
-        runs = [RunDir(d) for d in dirs]
-        return [RunPlan(cfg, run) for cfg, run in zip(_configs(request, runs, files=[r.config_path for r in runs]),
-                                                      runs)]
+        return _plans(request, runs, files=[run.config_path for run in runs])
     if request.seeds is not None:
         if "train.seed" in request.values:
             raise ImssrError("--seeds and --seed exclude each other")
@@ -109,19 +107,19 @@ def plan(request: TrainRequest) -> list[RunPlan]:
         if request.config_file and request.resume:
             raise ImssrError("--seeds --resume reads each seed's own config.json: leave out --config")
         runs = [RunDir(os.path.join(request.out, SEED_DIR.format(seed=seed))) for seed in request.seeds]
-        _refuse_twice([run.path for run in runs])
-        return [RunPlan(cfg, run) for cfg, run in zip(_configs(request, runs, seeds=request.seeds), runs)]
+        _refuse_twice(runs)
+        return _plans(request, runs, seeds=request.seeds)
     if request.resume and not request.config_file and not request.out:
         raise ImssrError("--resume needs --out RUN_DIR")
     cfg = _config(request, RunDir(request.out) if request.out else None)
     return [RunPlan(cfg, RunDir(request.out or run_path("runs", cfg.env.task, cfg.algo, cfg.train.seed)))]
 
 
-def _refuse_twice(dirs: Sequence[str]) -> None:
-    """A one-line error when two of ``dirs`` are one directory (the same path, or two paths to it:
+def _refuse_twice(runs: Sequence[RunDir]) -> None:
+    """A one-line error when two of ``runs`` are one directory (the same path, or two paths to it:
     ``X`` and ``/abs/X``, a symbolic link): each run trains once, under one lock."""
     seen: dict[str, str] = {}
-    for d in dirs:
+    for d in (run.path for run in runs):
         real = os.path.realpath(d)
         if real in seen:
             what = f"{d} is named twice" if seen[real] == d else f"{seen[real]} and {d} are one directory"
@@ -129,21 +127,21 @@ def _refuse_twice(dirs: Sequence[str]) -> None:
         seen[real] = d
 
 
-def _configs(request: TrainRequest, runs: Sequence[RunDir], seeds: Optional[Sequence[int]] = None,
-             files: Optional[Sequence[str]] = None) -> list[RunConfig]:
-    """The config of each of ``runs`` (:func:`_config`; ``seeds``: each run's, ``files``: each
+def _plans(request: TrainRequest, runs: Sequence[RunDir], seeds: Optional[Sequence[int]] = None,
+           files: Optional[Sequence[str]] = None) -> list[RunPlan]:
+    """Each of ``runs`` with its config (:func:`_config`; ``seeds``: each run's, ``files``: each
     run's config file), made once per base that differs from the others in more than the seed:
     the runs whose bases (the preset, a config file, a resumed run's ``config.json``) differ in
     the seed alone take a copy of the first one's with their own seed, so that planning 1000
     seeds merges and validates one config, not 1000."""
     made: dict[str, RunConfig] = {}
-    cfgs = []
+    plans = []
     for i, run in enumerate(runs):
         file = files[i] if files else None
         key, seed = _base_key(request, run, file)
         if seeds is not None:
             seed = seeds[i]
-        if key is not None and key in made:
+        if key in made:
             cfg = copy.deepcopy(made[key])
             if seed is not None:
                 check_seed(seed)
@@ -152,8 +150,8 @@ def _configs(request: TrainRequest, runs: Sequence[RunDir], seeds: Optional[Sequ
             cfg = _config(request, run, None if seeds is None else {"train.seed": seed}, file)
             if key is not None:
                 made[key] = cfg
-        cfgs.append(cfg)
-    return cfgs
+        plans.append(RunPlan(cfg, run))
+    return plans
 
 
 def _base_key(request: TrainRequest, run: RunDir, file: Optional[str]) -> tuple[Optional[str], Optional[int]]:
