@@ -24,9 +24,6 @@ from imssr.settings import Sections, type_phrase
 RunConfig = TypeVar("RunConfig", bound=Sections)
 """A run's config, :class:`imssr.config.RunConfig` (which reads and merges through this module)."""
 
-TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
-
-
 def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunConfig:
     """``cfg`` with the (nested) ``data`` merged on by OmegaConf; ``raw`` maps an override's
     dotted key to its text, for errors that quote what was typed.  Text is taken as it is
@@ -50,7 +47,7 @@ def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunCon
             raise ImssrError(f"{key} expects {_expected(key)}, got {raw[key]!r}") from None
         raise ImssrError(f"{key} must be {type_phrase(FIELD_TYPES.get(key, str))}, got {value!r}") from None
     for key, text in texts.items():
-        _set(merged, key, text)
+        set_field(merged, key, text)
     for key, text in raw.items():
         if FIELD_TYPES[key] is float and not _is_finite(_get(merged, key)):
             raise ImssrError(f"{key} expects a finite number, got {text!r}")
@@ -72,7 +69,7 @@ def _set_aside_text(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]
         value = _get(cfg, key)
         if isinstance(value, str) and kind is str:
             texts[key] = value
-            _set(base, key, "")
+            set_field(base, key, "")
         elif isinstance(value, str) and _interpolated(value):
             raise ImssrError(f"{key} expects {_expected(key)}, got {value!r}")
     rest: dict[str, Any] = {}
@@ -112,7 +109,7 @@ def _interpolated(text: str) -> bool:
 
 def _expected(key: str) -> str:
     kind = FIELD_TYPES.get(key, str)
-    return "a finite number" if kind is float else TYPE_WORDS[kind]
+    return "a finite number" if kind is float else type_phrase(kind)
 
 
 def _overflowing(data: dict[str, Any]) -> str:
@@ -130,7 +127,8 @@ def _get(cfg: RunConfig, key: str) -> Any:
     return getattr(getattr(cfg, section) if section else cfg, name)
 
 
-def _set(cfg: RunConfig, key: str, value: Any) -> None:
+def set_field(cfg: RunConfig, key: str, value: Any) -> None:
+    """Set the field ``section.name`` (or a top-level one) of ``cfg`` to ``value`` as it is."""
     section, _, name = key.rpartition(".")
     setattr(getattr(cfg, section) if section else cfg, name, value)
 
