@@ -74,15 +74,16 @@ class DMCEnv(gym.Env):
             if refused:
                 raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL=egl: {refused}") from None
             cause = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            backend = os.environ.get("MUJOCO_GL", "egl")
             # A limited address space fails the framebuffer's allocation, not a missing package.
             fix = raise_limit_text()
             if fix is None:
-                fix = "install " + (egl_vendor_hint(nvidia_driver_loaded()) if _gl_backend() == "egl" else
+                fix = "install " + (egl_vendor_hint(nvidia_driver_loaded()) if backend == "egl" else
                                     "the Debian package libgl1-mesa-dri for software rendering "
                                     "(apt-get install libgl1-mesa-dri)"
-                                    + (", or render headless with MUJOCO_GL=egl" if _gl_backend() == "glfw" else ""))
+                                    + (", or render headless with MUJOCO_GL=egl" if backend == "glfw" else ""))
             _drop_half_made_context_errors()
-            raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} ({cause}); {fix}") from None
+            raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL={backend} ({cause}); {fix}") from None
 
         # Evaluation envs draw footage from the unseen ``test`` pool.
         self.scene: Optional[Scene] = None
@@ -259,14 +260,9 @@ def _drop_half_made_context_errors() -> None:
     sys.unraisablehook = hook
 
 
-def _gl_backend() -> str:
-    return os.environ.get("MUJOCO_GL", "egl")
-
-
-def make_env(task: str, seed: int = 0, mode: str = "training", **kwargs) -> DMCEnv:
-    """A pixel DeepMind Control environment of ``task`` in scene ``mode``
-    (:data:`imssr.envs.scenes.MODES`); ``kwargs`` go to :class:`DMCEnv`."""
-    return DMCEnv(task, seed=seed, mode=mode, **kwargs)
+make_env = DMCEnv
+"""``make_env(task, seed=0, mode="training", **kwargs)``: a pixel DeepMind Control environment of
+``task`` in scene ``mode`` (:data:`imssr.envs.scenes.MODES`), the :class:`DMCEnv` itself."""
 
 
 def env_from_config(cfg: EnvConfig, *, seed: int, footage_split: str, mode: Optional[str] = None,
@@ -274,7 +270,7 @@ def env_from_config(cfg: EnvConfig, *, seed: int, footage_split: str, mode: Opti
     """The env that ``cfg`` describes, seeded with ``seed``; ``mode`` and ``footage_path`` replace
     the config's scene and footage when given.  ``footage_split``: ``train`` for the training
     env, ``test`` (unseen clips) for evaluation envs."""
-    return make_env(cfg.task, seed=seed, mode=cfg.mode if mode is None else mode,
-                    action_repeat=cfg.action_repeat, image_size=cfg.image_size,
-                    frame_stack=cfg.frame_stack, shadow_size=cfg.shadow_size, footage_split=footage_split,
-                    footage_path=cfg.footage_dir if footage_path is None else footage_path)
+    return DMCEnv(cfg.task, seed=seed, mode=cfg.mode if mode is None else mode,
+                  action_repeat=cfg.action_repeat, image_size=cfg.image_size,
+                  frame_stack=cfg.frame_stack, shadow_size=cfg.shadow_size, footage_split=footage_split,
+                  footage_path=cfg.footage_dir if footage_path is None else footage_path)

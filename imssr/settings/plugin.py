@@ -149,9 +149,6 @@ class SignalPlugin(Plugin):
     """The same in the paper's style, over ``{B}`` (``IM-{B}``)."""
     description: str
     """One line for ``imssr algos``, over ``{B}``."""
-    own_networks: bool = False
-    """Whether it has networks of its own (RND, RE3), which every member of a batch of agents
-    must then have too."""
 
     def chosen(self, cfg: Sections) -> bool:
         """Whether ``cfg`` adds this signal to the reward (its rules on other sections ask)."""
