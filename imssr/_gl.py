@@ -26,8 +26,7 @@ _BACKEND_LIBS = {
 
 def configure_gl() -> str:
     """Set ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` to one backend and return it."""
-    backend = os.environ.get("MUJOCO_GL") or os.environ.get("PYOPENGL_PLATFORM") or "egl"
-    backend = backend.lower()
+    backend = (os.environ.get("MUJOCO_GL") or os.environ.get("PYOPENGL_PLATFORM") or "egl").lower()
     os.environ["MUJOCO_GL"] = backend
     # glfw uses the platform's default PyOpenGL binding (no PYOPENGL_PLATFORM).
     if backend == "glfw":

@@ -171,12 +171,6 @@ def cpu_info() -> Optional[str]:
         return None
 
 
-def cpu_has_native_bf16() -> Optional[bool]:
-    """:func:`native_bf16` of this machine; None when it cannot tell (no /proc/cpuinfo)."""
-    info = cpu_info()
-    return None if info is None else native_bf16(info)
-
-
 _warned_slow_bf16 = False
 
 

@@ -30,7 +30,7 @@ import torch
 from imssr._version import __version__
 from imssr.errors import ImssrError
 from imssr.files import atomic_write_text
-from imssr.precision import cpu_has_native_bf16, cpu_info
+from imssr.precision import cpu_info, native_bf16
 
 FIELDS = ("imssr", "git_commit", "git_clean", "python", "torch", "cuda", "cudnn", "nvidia_driver", "numpy",
           "dm_control", "mujoco", "device", "device_name", "cpu", "cpu_native_bf16")
@@ -56,7 +56,7 @@ def record(device: torch.device, event: str, agent_step: int, argv: Optional[lis
         "numpy": _version("numpy"), "dm_control": _version("dm_control"), "mujoco": _version("mujoco"),
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if cuda else cpu_model(),
-        "cpu": cpu_model(), "cpu_native_bf16": cpu_has_native_bf16(),
+        "cpu": cpu_model(), "cpu_native_bf16": None if cpu_info() is None else native_bf16(cpu_info()),
         "command": command_line(sys.argv if argv is None else argv),
     }
 

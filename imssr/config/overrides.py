@@ -65,13 +65,9 @@ def _set_aside_text(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]
     and stays as written; such text in a field of another type is refused."""
     texts: dict[str, str] = {}
     base = copy.deepcopy(cfg)
-    for key, kind in FIELD_TYPES.items():
-        value = _get(cfg, key)
-        if isinstance(value, str) and kind is str:
-            texts[key] = value
+    for key in FIELD_TYPES:
+        if not _text_of(key, _get(cfg, key), {}, texts):
             set_field(base, key, "")
-        elif isinstance(value, str) and _interpolated(value):
-            raise ImssrError(f"{key} expects {_expected(key)}, got {value!r}")
     rest: dict[str, Any] = {}
     for name, value in data.items():
         if name in SECTIONS and isinstance(value, dict):

@@ -241,8 +241,7 @@ def _import_dm_control():
         except (ImportError, OSError, RuntimeError) as exc:  # GL or mujoco load failure
             if attempt == 0 and unpin_refused_egl_device(str(exc)) is not None:
                 continue
-            refused = egl_device_error(str(exc))
-            raise ImssrError(f"cannot load dm_control/mujoco: {refused or exc}") from None
+            raise ImssrError(f"cannot load dm_control/mujoco: {egl_device_error(str(exc)) or exc}") from None
     raise AssertionError("unreachable")
 
 

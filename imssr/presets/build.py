@@ -4,9 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
 
-from imssr.algos import get_algo
 from imssr.config import RunConfig, apply_overrides, check_version, read_config_file, set_field, steps_for_frames
-from imssr.envs.tasks import get_task
 from imssr.errors import ImssrError
 from imssr.presets.tables import DEMO, preset_settings
 
@@ -91,8 +89,6 @@ def base_config(algo: str | None = None, task: str | None = None, *, network: st
         task = task or ("cartpole_swingup" if demo else None)
         if algo is None or task is None:
             raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
-        get_algo(algo)
-        get_task(task)
         return (demo_config if demo else make_config)(algo, task, network or "dmcgb")
     if algo and algo != cfg.algo:
         raise ImssrError(f"--algo {algo} differs from the run's algo {cfg.algo}")
