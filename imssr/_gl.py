@@ -63,10 +63,8 @@ def check_gl() -> None:
                          "render headless with MUJOCO_GL=egl (or osmesa)")
     for lib, package in _BACKEND_LIBS[backend]:
         if ctypes.util.find_library(lib) is None:
-            hint = ""
-            if backend == "egl":
-                hint = (f" and {egl_vendor_hint(nvidia_driver_loaded())}"
-                        " (or set MUJOCO_GL=osmesa and install libosmesa6)")
+            hint = (f" and {egl_vendor_hint(nvidia_driver_loaded())} (or set MUJOCO_GL=osmesa and install libosmesa6)"
+                    if backend == "egl" else "")
             raise ImssrError(f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
                              f"install the Debian package {package} (apt-get install {package}){hint}")
 

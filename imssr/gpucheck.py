@@ -241,12 +241,11 @@ def _main(argv: Optional[list[str]]) -> int:
                   training_config(algo, device, steps, [f"agent.precision={precision}"], a.tiny))
                  for algo in (a.bases.split(",") if "train" not in skip else ())
                  for precision in ("fp32", "bf16")]
-    trainings += [(f"compile-{mode}", f"train curl fp32 agent.compile={mode}, {compile_steps} steps",
-                   training_config("curl", device, compile_steps, [f"agent.compile={mode}"], a.tiny))
-                  for mode in (a.compile_modes.split(",") if "compile" not in skip else ())]
     if "compile" not in skip:
-        trainings.append(("cuda-graphs", f"train curl fp32 agent.cuda_graphs=true, {compile_steps} steps",
-                          training_config("curl", device, compile_steps, ["agent.cuda_graphs=true"], a.tiny)))
+        trainings += [(setting, f"train curl fp32 {setting}, {compile_steps} steps",
+                       training_config("curl", device, compile_steps, [setting], a.tiny))
+                      for setting in [*(f"agent.compile={mode}" for mode in a.compile_modes.split(",")),
+                                      "agent.cuda_graphs=true"]]
     started = time.perf_counter()
     items: list[Item] = []
 

@@ -35,10 +35,10 @@ from imssr.settings import (COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE
                             type_phrase)
 
 __all__ = [
-    "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES",
-    "IntrinsicConfig", "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED",
-    "PRECISIONS", "REPLAY_DEVICES", "RESUMABLE_CHANGES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES",
-    "TrainConfig", "UPDATE_SCHEDULES", "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_seed", "check_version",
-    "dataclass_field_docs", "dataclass_field_types", "field_docs", "load_config", "logger_fields",
-    "read_config_file", "set_field", "steps_for_frames", "type_phrase",
+    "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES", "IntrinsicConfig",
+    "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "PRECISIONS", "REPLAY_DEVICES",
+    "RESUMABLE_CHANGES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TrainConfig", "UPDATE_SCHEDULES",
+    "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_seed", "check_version", "dataclass_field_docs",
+    "dataclass_field_types", "field_docs", "load_config", "logger_fields", "read_config_file", "set_field",
+    "steps_for_frames", "type_phrase",
 ]

@@ -17,10 +17,10 @@ from imssr.config.version import CONFIG_VERSION
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.intrinsic.registry import SIGNAL_PLUGINS
-from imssr.settings import (ADAM_BETA_RULE, BATCH_LAYOUTS, COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
-                            MAX_SEED, MAX_SHADOW_SIZE, MAX_TORCH_THREADS, MIN_CROP_SIZE, NORMALIZATIONS, PRECISIONS,
-                            REPLAY_DEVICES, SCHEDULES, SEED_RULE, STACKED_LAYOUTS, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS,
-                            Sections, conv_output_size, type_phrase)
+from imssr.settings import (ADAM_BETA_RULE, BATCH_LAYOUTS, COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE,
+                            MAX_INT, MAX_SEED, MAX_SHADOW_SIZE, MAX_TORCH_THREADS, MIN_CROP_SIZE, NORMALIZATIONS,
+                            PRECISIONS, REPLAY_DEVICES, SCHEDULES, SEED_RULE, STACKED_LAYOUTS, TF32_MODES,
+                            UPDATE_SCHEDULES, VIDEO_FORMATS, Sections, conv_output_size, type_phrase)
 
 
 _LEAST = {
@@ -50,7 +50,8 @@ def validate_config(cfg: Sections) -> None:
          "agent.compile=reduce-overhead is retired: CUDA graphs of whole agent steps are agent.cuda_graphs=true "
          "(with agent.compile=off or default)"),
         *((_get(cfg, key) >= least, f"{key} must be >= {least}") for key, least in _LEAST.items()),
-        *((_get(cfg, key) in choices, f"{key} must be one of {', '.join(choices)}") for key, choices in _CHOICES.items()),
+        *((_get(cfg, key) in choices, f"{key} must be one of {', '.join(choices)}")
+          for key, choices in _CHOICES.items()),
         (t.replay_device in REPLAY_DEVICES,
          f"train.replay_device must be one of {', '.join(REPLAY_DEVICES)}, got {t.replay_device!r}"),
         (1 <= e.shadow_size <= MAX_SHADOW_SIZE,
@@ -129,8 +130,8 @@ def _check_upper_bounds(cfg: Sections) -> None:
                          f"bytes of {e.image_size}px frames, more than a process can address; "
                          "lower the replay capacity")
     if e.image_size > MAX_IMAGE_SIZE:
-        raise ImssrError(f"env.image_size must be at most {MAX_IMAGE_SIZE} (the offscreen framebuffer of "
-                         f"the suite's models is 640x{MAX_IMAGE_SIZE}), got {e.image_size}")
+        raise ImssrError(f"env.image_size must be at most {MAX_IMAGE_SIZE} (the offscreen framebuffer of the suite's "
+                         f"models is 640x{MAX_IMAGE_SIZE}), got {e.image_size}")
     for key, kind in FIELD_TYPES.items():
         if kind is int and key != "train.seed" and _get(cfg, key) > MAX_INT:
             raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(cfg, key)}")

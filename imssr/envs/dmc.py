@@ -42,12 +42,10 @@ class DMCEnv(gym.Env):
                  shadow_size: int = 512):
         get_mode(mode)
         spec = task if isinstance(task, TaskSpec) else get_task(task)
-        if action_repeat is not None and action_repeat < 1:
-            raise ImssrError(f"action_repeat must be >= 1, got {action_repeat}")
-        if image_size < 16:
-            raise ImssrError(f"image_size must be >= 16, got {image_size}")
-        if frame_stack < 1:
-            raise ImssrError(f"frame_stack must be >= 1, got {frame_stack}")
+        for name, value, least in (("action_repeat", 1 if action_repeat is None else action_repeat, 1),
+                                   ("image_size", image_size, 16), ("frame_stack", frame_stack, 1)):
+            if value < least:
+                raise ImssrError(f"{name} must be >= {least}, got {value}")
         if not 1 <= shadow_size <= MAX_SHADOW_SIZE:
             raise ImssrError(f"shadow_size must be in [1, {MAX_SHADOW_SIZE}] (MuJoCo's default; a larger map "
                              f"renders many times slower and sharpens nothing), got {shadow_size}")
@@ -126,7 +124,6 @@ class DMCEnv(gym.Env):
         scaled = self._act_low + (action + 1.0) * 0.5 * (self._act_high - self._act_low)
         reward = 0.0
         sim_steps = 0
-        time_step = None
         for _ in range(self.action_repeat):
             time_step = self._env.step(scaled)
             sim_steps += 1
