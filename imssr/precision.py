@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from imssr.files import read_small
+
 
 def autocast(device: torch.device, precision: str) -> ContextManager:
     """The context of an agent's forward passes: bfloat16 autocast for ``bf16``, else nothing."""
@@ -164,11 +166,7 @@ def bf16_slowdown(vendor: str, flags: frozenset[str]) -> Optional[str]:
 @functools.cache
 def cpu_info() -> Optional[str]:
     """The text of this machine's /proc/cpuinfo; None where there is none."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            return f.read()
-    except OSError:
-        return None
+    return read_small("/proc/cpuinfo")
 
 
 _warned_slow_bf16 = False

@@ -29,7 +29,7 @@ import torch
 
 from imssr._version import __version__
 from imssr.errors import ImssrError
-from imssr.files import atomic_write_text
+from imssr.files import atomic_write_text, read_small
 from imssr.precision import cpu_info, native_bf16
 
 FIELDS = ("imssr", "git_commit", "git_clean", "python", "torch", "cuda", "cudnn", "nvidia_driver", "numpy",
@@ -157,11 +157,7 @@ def cpu_model() -> Optional[str]:
 
 def nvidia_driver() -> Optional[str]:
     """The NVIDIA kernel driver's version, where one is loaded (``/proc/driver/nvidia/version``)."""
-    try:
-        with open("/proc/driver/nvidia/version") as fh:
-            words = fh.readline().split()
-    except OSError:
-        return None
+    words = (read_small("/proc/driver/nvidia/version") or "").partition("\n")[0].split()
     # "NVRM version: NVIDIA UNIX x86_64 Kernel Module  580.159.04  <date>"
     return next((w for w in words if w[:1].isdigit() and "." in w), None)
 
