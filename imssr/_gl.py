@@ -26,8 +26,7 @@ _BACKEND_LIBS = {
 
 def configure_gl() -> str:
     """Set ``MUJOCO_GL`` and ``PYOPENGL_PLATFORM`` to one backend and return it."""
-    backend = os.environ.get("MUJOCO_GL") or os.environ.get("PYOPENGL_PLATFORM") or "egl"
-    backend = backend.lower()
+    backend = (os.environ.get("MUJOCO_GL") or os.environ.get("PYOPENGL_PLATFORM") or "egl").lower()
     os.environ["MUJOCO_GL"] = backend
     # glfw uses the platform's default PyOpenGL binding (no PYOPENGL_PLATFORM).
     if backend == "glfw":
@@ -64,10 +63,8 @@ def check_gl() -> None:
                          "render headless with MUJOCO_GL=egl (or osmesa)")
     for lib, package in _BACKEND_LIBS[backend]:
         if ctypes.util.find_library(lib) is None:
-            hint = ""
-            if backend == "egl":
-                hint = (f" and {egl_vendor_hint(nvidia_driver_loaded())}"
-                        " (or set MUJOCO_GL=osmesa and install libosmesa6)")
+            hint = (f" and {egl_vendor_hint(nvidia_driver_loaded())} (or set MUJOCO_GL=osmesa and install libosmesa6)"
+                    if backend == "egl" else "")
             raise ImssrError(f"OpenGL library lib{lib} for MUJOCO_GL={backend} not found: "
                              f"install the Debian package {package} (apt-get install {package}){hint}")
 

@@ -52,6 +52,7 @@ def _algos() -> dict[str, AlgoSpec]:
 
 ALGOS = _algos()
 
+
 def get_algo(name: str) -> AlgoSpec:
     if name not in ALGOS:
         raise ImssrError(f"unknown algo {name!r}; valid algos: {', '.join(ALGOS)}")

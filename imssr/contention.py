@@ -11,6 +11,8 @@ import os
 import time
 from typing import Callable, Optional
 
+from imssr.files import read_small
+
 
 def _cpu_times() -> Optional[tuple[int, int]]:
     """(idle, total) jiffies of all CPUs from ``/proc/stat`` (Linux), or None."""
@@ -34,26 +36,17 @@ levels the scheduler weighs it ~1/10 (at 19, ~1/70), so this process's threads g
 soon as they want one (a ``nice -n 19 imssr sweep`` beside ``imssr demo``)."""
 
 
-def _read(path: str) -> Optional[str]:
-    """A small /proc or /sys file's text (bytes that are not UTF-8 replaced), or None."""
-    try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
-            return fh.read()
-    except OSError:
-        return None
-
-
 def autogroup_scheduling() -> bool:
     """Whether Linux's autogroup scheduler is on (``kernel.sched_autogroup_enabled``): CPU time
     is then shared between sessions first, and a nice value counts only inside its session."""
-    return (_read("/proc/sys/kernel/sched_autogroup_enabled") or "").strip() == "1"
+    return (read_small("/proc/sys/kernel/sched_autogroup_enabled") or "").strip() == "1"
 
 
 def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
     """(name, nice) of the autogroup of process ``pid`` from ``/proc/PID/autogroup``; None when
     it has none (the boot-time group, whose file is empty) or the file cannot be read."""
     try:
-        name, _, nice = (_read(f"/proc/{pid}/autogroup") or "").split()
+        name, _, nice = (read_small(f"/proc/{pid}/autogroup") or "").split()
         return name, int(nice)
     except ValueError:
         return None
@@ -61,7 +54,7 @@ def autogroup(pid: int | str = "self") -> Optional[tuple[str, int]]:
 
 def _v2_has_cpu(path: str) -> Optional[bool]:
     """Whether the cgroup v2 group at ``path`` has the cpu controller (None: unknown)."""
-    text = _read(f"/sys/fs/cgroup{path.rstrip('/')}/cgroup.controllers")
+    text = read_small(f"/sys/fs/cgroup{path.rstrip('/')}/cgroup.controllers")
     return None if text is None else "cpu" in text.split()
 
 
@@ -86,7 +79,7 @@ def parse_cpu_cgroup(text: str, has_cpu: Callable[[str], Optional[bool]] = _v2_h
 def cpu_cgroup(pid: int | str = "self") -> Optional[str]:
     """:func:`parse_cpu_cgroup` of process ``pid``; None when ``/proc/PID/cgroup`` cannot be read
     (not Linux, or the process ended)."""
-    text = _read(f"/proc/{pid}/cgroup")
+    text = read_small(f"/proc/{pid}/cgroup")
     return None if text is None else parse_cpu_cgroup(text)
 
 
@@ -117,7 +110,7 @@ def yields_to(task_nice: int, group: Optional[tuple[str, Optional[int]]], own_ni
 
 def _proc_stat(pid: int | str) -> Optional[tuple[int, int]]:
     """(user + system clock ticks of all its threads, nice value) of process ``pid``."""
-    text = _read(f"/proc/{pid}/stat")
+    text = read_small(f"/proc/{pid}/stat")
     try:
         fields = text.rpartition(")")[2].split()  # after the name: from field 3 (state) on
         return int(fields[11]) + int(fields[12]), int(fields[16])  # fields 14, 15 and 19

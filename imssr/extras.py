@@ -1,7 +1,7 @@
 """Optional dependencies: training and evaluating one run need none of them.
 
 Each is imported where it is used, through :func:`require`, so that a missing one is one line
-naming the extra that installs it (:data:`EXTRAS`).
+naming the extra that installs it (pyproject.toml's optional dependencies).
 """
 from __future__ import annotations
 
@@ -9,9 +9,6 @@ import importlib
 from types import ModuleType
 
 from imssr.errors import ImssrError
-
-EXTRAS = {"sweep": ("ray",), "report": ("rliable", "pandas"), "wandb": ("wandb",), "slurm": ("submitit",)}
-"""Extra -> the top-level modules it installs (pyproject.toml's optional dependencies)."""
 
 
 def require(module: str, extra: str) -> ModuleType:

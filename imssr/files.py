@@ -128,6 +128,16 @@ def _fsize_limit() -> str:
     return "unlimited" if soft == resource.RLIM_INFINITY else f"{_mb(soft)} MB"
 
 
+def read_small(path: str) -> Optional[str]:
+    """A small file's text (a /proc or /sys file; bytes that are not UTF-8 replaced), or None when
+    it cannot be read."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            return fh.read()
+    except OSError:
+        return None
+
+
 def atomic_write_text(path: str, text: str) -> None:
     with atomic_path(path, needed=len(text.encode())) as tmp:
         with open(tmp, "w") as fh:

@@ -40,7 +40,7 @@ from imssr.algos import BASES
 from imssr.config import COMPILE_MODES, RunConfig, apply_overrides
 from imssr.errors import ImssrError
 from imssr.presets import make_config
-from imssr.provenance import git_state
+from imssr.provenance import git_state, nvidia_driver
 
 ROOT = Path(__file__).resolve().parent.parent
 SUBPROCESS_TIMEOUT_S = 600
@@ -89,20 +89,10 @@ def versions(device: torch.device) -> list[str]:
     if device.type == "cuda":
         props = torch.cuda.get_device_properties(device)
         lines.append(f"- GPU {props.name}, {props.total_memory / 2**30:.0f} GiB, compute capability "
-                     f"{props.major}.{props.minor}; driver {driver_version()}")
+                     f"{props.major}.{props.minor}; driver {nvidia_driver() or 'unknown'}")
     else:
         lines.append(f"- device {device}: no GPU (a smoke run; its figures say nothing about a GPU)")
     return lines
-
-
-def driver_version() -> str:
-    """The NVIDIA driver's version from ``nvidia-smi``, or why it is unknown."""
-    try:
-        out = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
-                             capture_output=True, text=True, timeout=30)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return f"unknown ({type(exc).__name__})"
-    return out.stdout.strip().splitlines()[0] if out.returncode == 0 and out.stdout.strip() else "unknown"
 
 
 def run_item(item: Item, fn: Callable[[], Optional[str]], device: torch.device) -> Item:
@@ -251,26 +241,27 @@ def _main(argv: Optional[list[str]]) -> int:
                   training_config(algo, device, steps, [f"agent.precision={precision}"], a.tiny))
                  for algo in (a.bases.split(",") if "train" not in skip else ())
                  for precision in ("fp32", "bf16")]
-    trainings += [(f"compile-{mode}", f"train curl fp32 agent.compile={mode}, {compile_steps} steps",
-                   training_config("curl", device, compile_steps, [f"agent.compile={mode}"], a.tiny))
-                  for mode in (a.compile_modes.split(",") if "compile" not in skip else ())]
     if "compile" not in skip:
-        trainings.append(("cuda-graphs", f"train curl fp32 agent.cuda_graphs=true, {compile_steps} steps",
-                          training_config("curl", device, compile_steps, ["agent.cuda_graphs=true"], a.tiny)))
+        trainings += [(setting, f"train curl fp32 {setting}, {compile_steps} steps",
+                       training_config("curl", device, compile_steps, [setting], a.tiny))
+                      for setting in [*(f"agent.compile={mode}" for mode in a.compile_modes.split(",")),
+                                      "agent.cuda_graphs=true"]]
     started = time.perf_counter()
     items: list[Item] = []
+
+    def report(item: Item) -> None:
+        items.append(item)
+        print(item.row(), flush=True)
+
     with tempfile.TemporaryDirectory(prefix="imssr-gpucheck-") as tmp:
         if "tests" not in skip:
-            items.append(cuda_tests(device, Item("CUDA tests (pytest -k cuda)")))
-            print(items[-1].row(), flush=True)
+            report(cuda_tests(device, Item("CUDA tests (pytest -k cuda)")))
         for folder, name, cfg in trainings:
             item = Item(name)
-            items.append(run_item(item, lambda: train(cfg, os.path.join(tmp, folder), item), device))
-            print(items[-1].row(), flush=True)
+            report(run_item(item, lambda: train(cfg, os.path.join(tmp, folder), item), device))
         bench_item = Item(f"bench/gpu.py {bench_args}")
         if "bench" not in skip:
-            items.append(bench(device, bench_args, bench_item))
-            print(items[-1].row(), flush=True)
+            report(bench(device, bench_args, bench_item))
     failed = [i for i in items if i.ok is False]
     commit = git_state()[0]
     lines = ["# imssr GPU check", "", *versions(device),
@@ -287,6 +278,7 @@ def _main(argv: Optional[list[str]]) -> int:
     Path(a.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {a.out}" + (f"; {len(failed)} item(s) failed" if failed else ""), flush=True)
     return 1 if failed else 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from imssr.files import read_small
+
 
 def autocast(device: torch.device, precision: str) -> ContextManager:
     """The context of an agent's forward passes: bfloat16 autocast for ``bf16``, else nothing."""
@@ -164,17 +166,7 @@ def bf16_slowdown(vendor: str, flags: frozenset[str]) -> Optional[str]:
 @functools.cache
 def cpu_info() -> Optional[str]:
     """The text of this machine's /proc/cpuinfo; None where there is none."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            return f.read()
-    except OSError:
-        return None
-
-
-def cpu_has_native_bf16() -> Optional[bool]:
-    """:func:`native_bf16` of this machine; None when it cannot tell (no /proc/cpuinfo)."""
-    info = cpu_info()
-    return None if info is None else native_bf16(info)
+    return read_small("/proc/cpuinfo")
 
 
 _warned_slow_bf16 = False

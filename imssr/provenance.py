@@ -29,8 +29,8 @@ import torch
 
 from imssr._version import __version__
 from imssr.errors import ImssrError
-from imssr.files import atomic_write_text
-from imssr.precision import cpu_has_native_bf16, cpu_info
+from imssr.files import atomic_write_text, read_small
+from imssr.precision import cpu_info, native_bf16
 
 FIELDS = ("imssr", "git_commit", "git_clean", "python", "torch", "cuda", "cudnn", "nvidia_driver", "numpy",
           "dm_control", "mujoco", "device", "device_name", "cpu", "cpu_native_bf16")
@@ -56,7 +56,7 @@ def record(device: torch.device, event: str, agent_step: int, argv: Optional[lis
         "numpy": _version("numpy"), "dm_control": _version("dm_control"), "mujoco": _version("mujoco"),
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if cuda else cpu_model(),
-        "cpu": cpu_model(), "cpu_native_bf16": cpu_has_native_bf16(),
+        "cpu": cpu_model(), "cpu_native_bf16": None if cpu_info() is None else native_bf16(cpu_info()),
         "command": command_line(sys.argv if argv is None else argv),
     }
 
@@ -111,9 +111,9 @@ def _package_modules(top: str) -> set[str]:
             for f in files if f.endswith(".py")}
 
 
-def write_stamp(top: Optional[str] = None, path: Optional[str] = None) -> str:
-    """Write the source stamp of the checkout ``top`` (default: the one imssr is imported from)
-    into ``path`` (default: :data:`SOURCE_STAMP` in ``top``); returns its path."""
+def write_stamp(top: Optional[str] = None) -> str:
+    """Write the source stamp :data:`SOURCE_STAMP` into the checkout ``top`` (default: the one imssr is imported
+    from); returns its path."""
     top = top or _checkout()
     commit, clean = _git(top) if os.path.exists(os.path.join(top, ".git")) else (None, None)
     if commit is None:
@@ -121,7 +121,7 @@ def write_stamp(top: Optional[str] = None, path: Optional[str] = None) -> str:
     listed = subprocess.run(["git", "-C", top, "ls-files", "-z", "--", "imssr"], capture_output=True, text=True,
                             timeout=30, check=True).stdout
     files = {name: _sha256(os.path.join(top, name)) for name in sorted(listed.split("\0")) if name}
-    path = path or os.path.join(top, SOURCE_STAMP)
+    path = os.path.join(top, SOURCE_STAMP)
     atomic_write_text(path, json.dumps({"commit": commit, "clean": clean, "files": files}, indent=1) + "\n")
     return path
 
@@ -157,11 +157,7 @@ def cpu_model() -> Optional[str]:
 
 def nvidia_driver() -> Optional[str]:
     """The NVIDIA kernel driver's version, where one is loaded (``/proc/driver/nvidia/version``)."""
-    try:
-        with open("/proc/driver/nvidia/version") as fh:
-            words = fh.readline().split()
-    except OSError:
-        return None
+    words = (read_small("/proc/driver/nvidia/version") or "").partition("\n")[0].split()
     # "NVRM version: NVIDIA UNIX x86_64 Kernel Module  580.159.04  <date>"
     return next((w for w in words if w[:1].isdigit() and "." in w), None)
 

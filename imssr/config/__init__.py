@@ -24,7 +24,7 @@ No module here imports torch.  The modules, each name re-exported here:
 - ``files``: ``read_config_file`` and ``load_config``.
 """
 from imssr.config.files import load_config, read_config_file
-from imssr.config.overrides import LOGGERS, TYPE_WORDS, apply_overrides, logger_fields
+from imssr.config.overrides import LOGGERS, apply_overrides, logger_fields, set_field
 from imssr.config.runconfig import RESUMABLE_CHANGES, RunConfig
 from imssr.config.schema import FIELD_TYPES, SECTIONS, AuxConfig, IntrinsicConfig, field_docs
 from imssr.config.validation import check_seed
@@ -35,10 +35,10 @@ from imssr.settings import (COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE
                             type_phrase)
 
 __all__ = [
-    "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES",
-    "IntrinsicConfig", "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED",
-    "PRECISIONS", "REPLAY_DEVICES", "RESUMABLE_CHANGES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TYPE_WORDS",
-    "TrainConfig", "UPDATE_SCHEDULES", "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_seed", "check_version",
-    "dataclass_field_docs", "dataclass_field_types", "field_docs", "load_config", "logger_fields",
-    "read_config_file", "steps_for_frames", "type_phrase",
+    "AgentConfig", "AuxConfig", "COMPILE_MODES", "CONFIG_VERSION", "EnvConfig", "FIELD_TYPES", "IntrinsicConfig",
+    "LOGGERS", "MAX_ADDRESSABLE_BYTES", "MAX_IMAGE_SIZE", "MAX_INT", "MAX_SEED", "PRECISIONS", "REPLAY_DEVICES",
+    "RESUMABLE_CHANGES", "RunConfig", "SECTIONS", "SEED_RULE", "TF32_MODES", "TrainConfig", "UPDATE_SCHEDULES",
+    "V1_KEYS", "VIDEO_FORMATS", "apply_overrides", "check_seed", "check_version", "dataclass_field_docs",
+    "dataclass_field_types", "field_docs", "load_config", "logger_fields", "read_config_file", "set_field",
+    "steps_for_frames", "type_phrase",
 ]

@@ -12,10 +12,10 @@ from imssr.config.runconfig import RunConfig
 from imssr.errors import ImssrError
 from imssr.settings import STACKED_LAYOUTS
 
-SHARED_EXCEPT = {("algo",), ("train", "seed"), ("intrinsic",)}
-"""What the runs of one batch may differ in: the seed, and the intrinsic reward (whose settings
-but ``beta0`` and ``enabled`` its members share: :func:`batch_refusal`), hence the algo's name
-(CURL and IM-CURL)."""
+SHARED_EXCEPT = ("algo", "train.seed", "intrinsic")
+"""What the runs of one batch may differ in (dotted names; a section's name: all of it): the
+seed, and the intrinsic reward (whose settings but ``beta0`` and ``enabled`` its members share:
+:func:`batch_refusal`), hence the algo's name (CURL and IM-CURL)."""
 
 
 def agent_refusal(agent) -> Optional[str]:
@@ -36,18 +36,10 @@ def seedless(data: dict) -> str:
     return json.dumps(data, sort_keys=True)
 
 
-def shared_settings(cfg: RunConfig) -> dict[tuple[str, ...], object]:
-    """Every setting of ``cfg`` that the runs of one batch share, by its path."""
-    def flat(d: dict, prefix: tuple = ()) -> dict:
-        out = {}
-        for k, v in d.items():
-            key = (*prefix, k)
-            if key in SHARED_EXCEPT or key[:1] in SHARED_EXCEPT:
-                continue
-            out.update(flat(v, key) if isinstance(v, dict) else {key: v})
-        return out
-
-    return flat(cfg.to_dict())
+def shared_settings(cfg: RunConfig) -> dict[str, object]:
+    """Every setting of ``cfg`` that the runs of one batch share, by its dotted name."""
+    return {key: value for key, value in cfg.flat().items()
+            if key not in SHARED_EXCEPT and key.partition(".")[0] not in SHARED_EXCEPT}
 
 
 def _intrinsic(cfg: RunConfig) -> Optional[str]:
@@ -75,7 +67,7 @@ def batch_refusal(cfgs: Sequence[RunConfig]) -> Optional[str]:
         for key in sorted(first.keys() | other.keys()):
             if first.get(key) != other.get(key):
                 return (f"runs in one process must share every setting but the seed and the intrinsic reward: "
-                        f"{'.'.join(key)} is {first.get(key)!r} in one and {other.get(key)!r} in another")
+                        f"{key} is {first.get(key)!r} in one and {other.get(key)!r} in another")
     if len({_intrinsic(cfg) for cfg in cfgs} - {None}) > 1:
         return "the runs of one process may differ in intrinsic.beta0 and intrinsic.enabled only"
     return None

@@ -24,9 +24,6 @@ from imssr.settings import Sections, type_phrase
 RunConfig = TypeVar("RunConfig", bound=Sections)
 """A run's config, :class:`imssr.config.RunConfig` (which reads and merges through this module)."""
 
-TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
-
-
 def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunConfig:
     """``cfg`` with the (nested) ``data`` merged on by OmegaConf; ``raw`` maps an override's
     dotted key to its text, for errors that quote what was typed.  Text is taken as it is
@@ -50,7 +47,7 @@ def _merged(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]) -> RunCon
             raise ImssrError(f"{key} expects {_expected(key)}, got {raw[key]!r}") from None
         raise ImssrError(f"{key} must be {type_phrase(FIELD_TYPES.get(key, str))}, got {value!r}") from None
     for key, text in texts.items():
-        _set(merged, key, text)
+        set_field(merged, key, text)
     for key, text in raw.items():
         if FIELD_TYPES[key] is float and not _is_finite(_get(merged, key)):
             raise ImssrError(f"{key} expects a finite number, got {text!r}")
@@ -68,13 +65,9 @@ def _set_aside_text(cfg: RunConfig, data: dict[str, Any], raw: dict[str, str]
     and stays as written; such text in a field of another type is refused."""
     texts: dict[str, str] = {}
     base = copy.deepcopy(cfg)
-    for key, kind in FIELD_TYPES.items():
-        value = _get(cfg, key)
-        if isinstance(value, str) and kind is str:
-            texts[key] = value
-            _set(base, key, "")
-        elif isinstance(value, str) and _interpolated(value):
-            raise ImssrError(f"{key} expects {_expected(key)}, got {value!r}")
+    for key in FIELD_TYPES:
+        if not _text_of(key, _get(cfg, key), {}, texts):
+            set_field(base, key, "")
     rest: dict[str, Any] = {}
     for name, value in data.items():
         if name in SECTIONS and isinstance(value, dict):
@@ -112,7 +105,7 @@ def _interpolated(text: str) -> bool:
 
 def _expected(key: str) -> str:
     kind = FIELD_TYPES.get(key, str)
-    return "a finite number" if kind is float else TYPE_WORDS[kind]
+    return "a finite number" if kind is float else type_phrase(kind)
 
 
 def _overflowing(data: dict[str, Any]) -> str:
@@ -130,7 +123,8 @@ def _get(cfg: RunConfig, key: str) -> Any:
     return getattr(getattr(cfg, section) if section else cfg, name)
 
 
-def _set(cfg: RunConfig, key: str, value: Any) -> None:
+def set_field(cfg: RunConfig, key: str, value: Any) -> None:
+    """Set the field ``section.name`` (or a top-level one) of ``cfg`` to ``value`` as it is."""
     section, _, name = key.rpartition(".")
     setattr(getattr(cfg, section) if section else cfg, name, value)
 

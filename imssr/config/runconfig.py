@@ -20,8 +20,9 @@ from imssr.jsonio import dumps
 
 RESUMABLE_CHANGES = frozenset({
     "train.steps", "train.device", "train.replay_device", "train.gpu_share", "train.progress", "train.tensorboard",
-    "agent.tf32", "agent.compile", "agent.fused_adam", "agent.cuda_graphs", "agent.batch_layout", "train.torch_threads", "train.eval_episodes", "train.eval_every_steps", "train.checkpoint_every_steps", "train.eval_modes", "train.save_buffer",
-    "train.wandb", "train.wandb_project", "train.wandb_group", "train.eval_video_every",
+    "agent.tf32", "agent.compile", "agent.fused_adam", "agent.cuda_graphs", "agent.batch_layout", "train.torch_threads",
+    "train.eval_episodes", "train.eval_every_steps", "train.checkpoint_every_steps", "train.eval_modes",
+    "train.save_buffer", "train.wandb", "train.wandb_project", "train.wandb_group", "train.eval_video_every",
     "train.eval_video_format", "train.env_workers"})
 """The settings a resume may change (:meth:`RunConfig.resume_conflicts`): the budget, where and how
 fast the run computes, and what it evaluates, logs and keeps; every other setting shapes the

@@ -17,10 +17,26 @@ from imssr.config.version import CONFIG_VERSION
 from imssr.envs.scenes import get_mode
 from imssr.errors import ImssrError
 from imssr.intrinsic.registry import SIGNAL_PLUGINS
-from imssr.settings import (ADAM_BETA_RULE, BATCH_LAYOUTS, COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE, MAX_INT,
-                            MAX_SEED, MAX_SHADOW_SIZE, MAX_TORCH_THREADS, MIN_CROP_SIZE, NORMALIZATIONS, PRECISIONS,
-                            REPLAY_DEVICES, SCHEDULES, SEED_RULE, STACKED_LAYOUTS, TF32_MODES, UPDATE_SCHEDULES, VIDEO_FORMATS,
-                            Sections, conv_output_size, type_phrase)
+from imssr.settings import (ADAM_BETA_RULE, BATCH_LAYOUTS, COMPILE_MODES, MAX_ADDRESSABLE_BYTES, MAX_IMAGE_SIZE,
+                            MAX_INT, MAX_SEED, MAX_SHADOW_SIZE, MAX_TORCH_THREADS, MIN_CROP_SIZE, NORMALIZATIONS,
+                            PRECISIONS, REPLAY_DEVICES, SCHEDULES, SEED_RULE, STACKED_LAYOUTS, TF32_MODES,
+                            UPDATE_SCHEDULES, VIDEO_FORMATS, Sections, conv_output_size, type_phrase)
+
+
+_LEAST = {
+    **dict.fromkeys(("env.action_repeat", "env.frame_stack", "agent.encoder_layers", "agent.encoder_filters",
+                     "agent.feature_dim", "agent.hidden_dim", "aux.update_every", "intrinsic.decay_every_steps",
+                     "train.steps", "train.eval_episodes"), 1),
+    **dict.fromkeys(("aux.batch_size", "agent.batch_size", "train.replay_capacity"), 2),
+    **dict.fromkeys(("intrinsic.beta0", "intrinsic.norm_eps", "intrinsic.norm_rtol", "train.burst_updates",
+                     "train.keep_checkpoints", "train.eval_every_steps", "train.checkpoint_every_steps",
+                     "train.eval_video_every"), 0),
+}
+"""The settings with a lower bound alone, and that bound."""
+_CHOICES = {"agent.update_schedule": UPDATE_SCHEDULES, "agent.precision": PRECISIONS, "agent.tf32": TF32_MODES,
+            "agent.compile": COMPILE_MODES, "intrinsic.schedule": SCHEDULES, "intrinsic.normalization": NORMALIZATIONS,
+            "train.eval_video_format": VIDEO_FORMATS}
+"""The settings that take one of a few words, and those words."""
 
 
 def validate_config(cfg: Sections) -> None:
@@ -30,8 +46,14 @@ def validate_config(cfg: Sections) -> None:
     _check_types(cfg)
     e, a, x, i, t = cfg.env, cfg.agent, cfg.aux, cfg.intrinsic, cfg.train
     checks = [
-        (e.action_repeat >= 1, "env.action_repeat must be >= 1"),
-        (e.frame_stack >= 1, "env.frame_stack must be >= 1"),
+        (a.compile != "reduce-overhead",
+         "agent.compile=reduce-overhead is retired: CUDA graphs of whole agent steps are agent.cuda_graphs=true "
+         "(with agent.compile=off or default)"),
+        *((_get(cfg, key) >= least, f"{key} must be >= {least}") for key, least in _LEAST.items()),
+        *((_get(cfg, key) in choices, f"{key} must be one of {', '.join(choices)}")
+          for key, choices in _CHOICES.items()),
+        (t.replay_device in REPLAY_DEVICES,
+         f"train.replay_device must be one of {', '.join(REPLAY_DEVICES)}, got {t.replay_device!r}"),
         (1 <= e.shadow_size <= MAX_SHADOW_SIZE,
          f"env.shadow_size must be in [1, {MAX_SHADOW_SIZE}] (MuJoCo's default; a larger map sharpens no shadow "
          f"of a frame of at most {MAX_IMAGE_SIZE} px and renders many times slower), got {e.shadow_size}"),
@@ -39,14 +61,10 @@ def validate_config(cfg: Sections) -> None:
         (a.crop_size >= MIN_CROP_SIZE,
          f"agent.crop_size must be at least {MIN_CROP_SIZE} (the encoder's first convolution is "
          f"{MIN_CROP_SIZE}x{MIN_CROP_SIZE}), got {a.crop_size}"),
-        (a.encoder_layers >= 1, "agent.encoder_layers must be >= 1"),
-        (a.encoder_filters >= 1, "agent.encoder_filters must be >= 1"),
         (0 <= a.encoder_head_layers < a.encoder_layers,
          "agent.encoder_head_layers must be in [0, agent.encoder_layers)"),
         (conv_output_size(a.crop_size, a.encoder_layers) >= 1,
          f"agent.encoder_layers={a.encoder_layers} leaves no pixels of a {a.crop_size}px crop"),
-        (a.feature_dim >= 1, "agent.feature_dim must be >= 1"),
-        (a.hidden_dim >= 1, "agent.hidden_dim must be >= 1"),
         (a.log_std_min < a.log_std_max, "agent.log_std_min must be < agent.log_std_max"),
         (0.0 < a.critic_tau <= 1.0 and 0.0 < a.encoder_tau <= 1.0, "agent taus must be in (0, 1]"),
         (min(a.critic_lr, a.actor_lr, a.alpha_lr, x.lr) > 0, "learning rates must be > 0"),
@@ -56,52 +74,22 @@ def validate_config(cfg: Sections) -> None:
         (a.init_temperature > 0, "agent.init_temperature must be > 0"),
         (min(a.actor_update_every, a.critic_update_every, a.target_update_every) >= 1,
          "agent update intervals must be >= 1"),
-        (x.batch_size >= 2, "aux.batch_size must be >= 2"),
-        (a.batch_size >= 2, "agent.batch_size must be >= 2"),
         (0.0 <= a.discount <= 1.0, "agent.discount must be in [0, 1]"),
-        (a.update_schedule in UPDATE_SCHEDULES,
-         f"agent.update_schedule must be one of {', '.join(UPDATE_SCHEDULES)}"),
         (a.update_schedule != "fused" or a.critic_update_every == 1,
          "agent.update_schedule=fused needs agent.critic_update_every=1"),
-        (a.precision in PRECISIONS, f"agent.precision must be one of {', '.join(PRECISIONS)}"),
-        (a.tf32 in TF32_MODES, f"agent.tf32 must be one of {', '.join(TF32_MODES)}"),
-        (a.compile != "reduce-overhead",
-         "agent.compile=reduce-overhead is retired: CUDA graphs of whole agent steps are agent.cuda_graphs=true "
-         "(with agent.compile=off or default)"),
-        (a.compile in COMPILE_MODES, f"agent.compile must be one of {', '.join(COMPILE_MODES)}"),
         # A saved config's stacked layout resumes as the one batch (imssr.config.batching.stacked_layout).
         (a.batch_layout in (*BATCH_LAYOUTS, *STACKED_LAYOUTS),
          f"agent.batch_layout must be one of {', '.join(BATCH_LAYOUTS)}"),
-        (x.update_every >= 1, "aux.update_every must be >= 1"),
         (i.source in SIGNAL_PLUGINS, f"intrinsic.source must be one of {', '.join(SIGNAL_PLUGINS)}"),
         # Each auxiliary task and signal checks its own settings.
         *(rule for plugin in (*AUX_PLUGINS.values(), *SIGNAL_PLUGINS.values()) for rule in plugin.rules(cfg)),
-        # The intrinsic reward's normalisation and schedule.
-        (i.beta0 >= 0.0, "intrinsic.beta0 must be >= 0"),
-        (i.schedule in SCHEDULES, f"intrinsic.schedule must be one of {', '.join(SCHEDULES)}"),
-        (i.normalization in NORMALIZATIONS, f"intrinsic.normalization must be one of {', '.join(NORMALIZATIONS)}"),
-        (i.norm_eps >= 0.0, "intrinsic.norm_eps must be >= 0"),
-        (i.norm_rtol >= 0.0, "intrinsic.norm_rtol must be >= 0"),
         (0.0 < i.decay <= 1.0, "intrinsic.decay must be in (0, 1]"),
-        (i.decay_every_steps >= 1, "intrinsic.decay_every_steps must be >= 1"),
         (cfg.version == CONFIG_VERSION, f"version must be {CONFIG_VERSION}"),
-        (t.steps >= 1, "train.steps must be >= 1"),
         (t.seed_steps >= 1, "train.seed_steps must be >= 1 (the first update needs a transition)"),
-        (t.burst_updates >= 0, "train.burst_updates must be >= 0"),
         (0 <= t.torch_threads <= MAX_TORCH_THREADS,
          f"train.torch_threads must be in [0, {MAX_TORCH_THREADS}] (0: torch's default; OpenMP aborts the "
          f"process when it cannot start a thread, and no CPU runs more at once), got {t.torch_threads}"),
-        (t.keep_checkpoints >= 0, "train.keep_checkpoints must be >= 0"),
-        (t.replay_capacity >= 2, "train.replay_capacity must be >= 2"),
-        (t.replay_device in REPLAY_DEVICES,
-         f"train.replay_device must be one of {', '.join(REPLAY_DEVICES)}, got {t.replay_device!r}"),
         (0 < t.gpu_share <= 1, f"train.gpu_share must be in (0, 1], got {t.gpu_share}"),
-        (t.eval_every_steps >= 0, "train.eval_every_steps must be >= 0"),
-        (t.eval_episodes >= 1, "train.eval_episodes must be >= 1"),
-        (t.checkpoint_every_steps >= 0, "train.checkpoint_every_steps must be >= 0"),
-        (t.eval_video_every >= 0, "train.eval_video_every must be >= 0"),
-        (t.eval_video_format in VIDEO_FORMATS,
-         f"train.eval_video_format must be one of {', '.join(VIDEO_FORMATS)}"),
         (bool(t.wandb_project.strip()), "train.wandb_project must not be empty"),
     ]
     for ok, message in checks:
@@ -142,8 +130,8 @@ def _check_upper_bounds(cfg: Sections) -> None:
                          f"bytes of {e.image_size}px frames, more than a process can address; "
                          "lower the replay capacity")
     if e.image_size > MAX_IMAGE_SIZE:
-        raise ImssrError(f"env.image_size must be at most {MAX_IMAGE_SIZE} (the offscreen framebuffer of "
-                         f"the suite's models is 640x{MAX_IMAGE_SIZE}), got {e.image_size}")
+        raise ImssrError(f"env.image_size must be at most {MAX_IMAGE_SIZE} (the offscreen framebuffer of the suite's "
+                         f"models is 640x{MAX_IMAGE_SIZE}), got {e.image_size}")
     for key, kind in FIELD_TYPES.items():
         if kind is int and key != "train.seed" and _get(cfg, key) > MAX_INT:
             raise ImssrError(f"{key} must be at most {MAX_INT:,}, got {_get(cfg, key)}")

@@ -42,12 +42,10 @@ class DMCEnv(gym.Env):
                  shadow_size: int = 512):
         get_mode(mode)
         spec = task if isinstance(task, TaskSpec) else get_task(task)
-        if action_repeat is not None and action_repeat < 1:
-            raise ImssrError(f"action_repeat must be >= 1, got {action_repeat}")
-        if image_size < 16:
-            raise ImssrError(f"image_size must be >= 16, got {image_size}")
-        if frame_stack < 1:
-            raise ImssrError(f"frame_stack must be >= 1, got {frame_stack}")
+        for name, value, least in (("action_repeat", 1 if action_repeat is None else action_repeat, 1),
+                                   ("image_size", image_size, 16), ("frame_stack", frame_stack, 1)):
+            if value < least:
+                raise ImssrError(f"{name} must be >= {least}, got {value}")
         if not 1 <= shadow_size <= MAX_SHADOW_SIZE:
             raise ImssrError(f"shadow_size must be in [1, {MAX_SHADOW_SIZE}] (MuJoCo's default; a larger map "
                              f"renders many times slower and sharpens nothing), got {shadow_size}")
@@ -74,15 +72,16 @@ class DMCEnv(gym.Env):
             if refused:
                 raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL=egl: {refused}") from None
             cause = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            backend = os.environ.get("MUJOCO_GL", "egl")
             # A limited address space fails the framebuffer's allocation, not a missing package.
             fix = raise_limit_text()
             if fix is None:
-                fix = "install " + (egl_vendor_hint(nvidia_driver_loaded()) if _gl_backend() == "egl" else
+                fix = "install " + (egl_vendor_hint(nvidia_driver_loaded()) if backend == "egl" else
                                     "the Debian package libgl1-mesa-dri for software rendering "
                                     "(apt-get install libgl1-mesa-dri)"
-                                    + (", or render headless with MUJOCO_GL=egl" if _gl_backend() == "glfw" else ""))
+                                    + (", or render headless with MUJOCO_GL=egl" if backend == "glfw" else ""))
             _drop_half_made_context_errors()
-            raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL={_gl_backend()} ({cause}); {fix}") from None
+            raise ImssrError(f"cannot create an OpenGL context with MUJOCO_GL={backend} ({cause}); {fix}") from None
 
         # Evaluation envs draw footage from the unseen ``test`` pool.
         self.scene: Optional[Scene] = None
@@ -125,7 +124,6 @@ class DMCEnv(gym.Env):
         scaled = self._act_low + (action + 1.0) * 0.5 * (self._act_high - self._act_low)
         reward = 0.0
         sim_steps = 0
-        time_step = None
         for _ in range(self.action_repeat):
             time_step = self._env.step(scaled)
             sim_steps += 1
@@ -240,8 +238,7 @@ def _import_dm_control():
         except (ImportError, OSError, RuntimeError) as exc:  # GL or mujoco load failure
             if attempt == 0 and unpin_refused_egl_device(str(exc)) is not None:
                 continue
-            refused = egl_device_error(str(exc))
-            raise ImssrError(f"cannot load dm_control/mujoco: {refused or exc}") from None
+            raise ImssrError(f"cannot load dm_control/mujoco: {egl_device_error(str(exc)) or exc}") from None
     raise AssertionError("unreachable")
 
 
@@ -259,14 +256,9 @@ def _drop_half_made_context_errors() -> None:
     sys.unraisablehook = hook
 
 
-def _gl_backend() -> str:
-    return os.environ.get("MUJOCO_GL", "egl")
-
-
-def make_env(task: str, seed: int = 0, mode: str = "training", **kwargs) -> DMCEnv:
-    """A pixel DeepMind Control environment of ``task`` in scene ``mode``
-    (:data:`imssr.envs.scenes.MODES`); ``kwargs`` go to :class:`DMCEnv`."""
-    return DMCEnv(task, seed=seed, mode=mode, **kwargs)
+make_env = DMCEnv
+"""``make_env(task, seed=0, mode="training", **kwargs)``: a pixel DeepMind Control environment of
+``task`` in scene ``mode`` (:data:`imssr.envs.scenes.MODES`), the :class:`DMCEnv` itself."""
 
 
 def env_from_config(cfg: EnvConfig, *, seed: int, footage_split: str, mode: Optional[str] = None,
@@ -274,7 +266,7 @@ def env_from_config(cfg: EnvConfig, *, seed: int, footage_split: str, mode: Opti
     """The env that ``cfg`` describes, seeded with ``seed``; ``mode`` and ``footage_path`` replace
     the config's scene and footage when given.  ``footage_split``: ``train`` for the training
     env, ``test`` (unseen clips) for evaluation envs."""
-    return make_env(cfg.task, seed=seed, mode=cfg.mode if mode is None else mode,
-                    action_repeat=cfg.action_repeat, image_size=cfg.image_size,
-                    frame_stack=cfg.frame_stack, shadow_size=cfg.shadow_size, footage_split=footage_split,
-                    footage_path=cfg.footage_dir if footage_path is None else footage_path)
+    return DMCEnv(cfg.task, seed=seed, mode=cfg.mode if mode is None else mode,
+                  action_repeat=cfg.action_repeat, image_size=cfg.image_size,
+                  frame_stack=cfg.frame_stack, shadow_size=cfg.shadow_size, footage_split=footage_split,
+                  footage_path=cfg.footage_dir if footage_path is None else footage_path)

@@ -6,13 +6,9 @@ The scene is the ``mode`` keyword, so one id per task covers every scene.
 """
 from __future__ import annotations
 
-NAMESPACE = "imssr"
-VERSION = 0
-
-
 def gym_id(task: str) -> str:
     """The gymnasium id of an imssr task name."""
-    return f"{NAMESPACE}/{task}-v{VERSION}"
+    return f"imssr/{task}-v0"
 
 
 def register_envs() -> None:

@@ -45,86 +45,60 @@ class TaskSpec:
 _CUSTOM = {"walker_walk_sparse": ("walker", "walk", _walker_sparse)}
 
 
-# dm_control 1.0.50's ``suite.ALL_TASKS`` (pinned in pyproject.toml) with each task's action size
-# and physics-state length, written out so that the gymnasium ids are registered on ``import
-# imssr`` without loading mujoco; tests/test_gym_ids.py checks them against the installed suite.
-_SUITE: tuple[tuple[str, str, int, int], ...] = (
-    ('acrobot', 'swingup', 1, 4),
-    ('acrobot', 'swingup_sparse', 1, 4),
-    ('ball_in_cup', 'catch', 2, 8),
-    ('cartpole', 'balance', 1, 4),
-    ('cartpole', 'balance_sparse', 1, 4),
-    ('cartpole', 'swingup', 1, 4),
-    ('cartpole', 'swingup_sparse', 1, 4),
-    ('cartpole', 'two_poles', 1, 6),
-    ('cartpole', 'three_poles', 1, 8),
-    ('cheetah', 'run', 6, 18),
-    ('dog', 'stand', 38, 197),
-    ('dog', 'walk', 38, 197),
-    ('dog', 'trot', 38, 197),
-    ('dog', 'run', 38, 197),
-    ('dog', 'fetch', 38, 210),
-    ('finger', 'spin', 2, 6),
-    ('finger', 'turn_easy', 2, 6),
-    ('finger', 'turn_hard', 2, 6),
-    ('fish', 'upright', 5, 27),
-    ('fish', 'swim', 5, 27),
-    ('hopper', 'stand', 4, 14),
-    ('hopper', 'hop', 4, 14),
-    ('humanoid', 'stand', 21, 55),
-    ('humanoid', 'walk', 21, 55),
-    ('humanoid', 'run', 21, 55),
-    ('humanoid', 'run_pure_state', 21, 55),
-    ('humanoid_CMU', 'stand', 56, 125),
-    ('humanoid_CMU', 'walk', 56, 125),
-    ('humanoid_CMU', 'run', 56, 125),
-    ('lqr', 'lqr_2_1', 1, 4),
-    ('lqr', 'lqr_6_2', 2, 12),
-    ('manipulator', 'bring_ball', 5, 22),
-    ('manipulator', 'bring_peg', 5, 22),
-    ('manipulator', 'insert_ball', 5, 22),
-    ('manipulator', 'insert_peg', 5, 22),
-    ('pendulum', 'swingup', 1, 2),
-    ('point_mass', 'easy', 2, 4),
-    ('point_mass', 'hard', 2, 4),
-    ('quadruped', 'walk', 12, 57),
-    ('quadruped', 'run', 12, 57),
-    ('quadruped', 'escape', 12, 57),
-    ('quadruped', 'fetch', 12, 70),
-    ('reacher', 'easy', 2, 4),
-    ('reacher', 'hard', 2, 4),
-    ('stacker', 'stack_2', 5, 28),
-    ('stacker', 'stack_4', 5, 40),
-    ('swimmer', 'swimmer6', 5, 16),
-    ('swimmer', 'swimmer15', 14, 34),
-    ('walker', 'stand', 6, 18),
-    ('walker', 'walk', 6, 18),
-    ('walker', 'run', 6, 18),
+# dm_control 1.0.50's ``suite.ALL_TASKS`` (pinned in pyproject.toml) in its order, by domain, with the tasks' action
+# size and physics-state length, written out so that the gymnasium ids are registered on ``import imssr`` without
+# loading mujoco; tests/test_gym_ids.py checks them against the installed suite.
+_SUITE: tuple[tuple[str, tuple[str, ...], int, int], ...] = (
+    ('acrobot', ('swingup', 'swingup_sparse'), 1, 4),
+    ('ball_in_cup', ('catch',), 2, 8),
+    ('cartpole', ('balance', 'balance_sparse', 'swingup', 'swingup_sparse'), 1, 4),
+    ('cartpole', ('two_poles',), 1, 6),
+    ('cartpole', ('three_poles',), 1, 8),
+    ('cheetah', ('run',), 6, 18),
+    ('dog', ('stand', 'walk', 'trot', 'run'), 38, 197),
+    ('dog', ('fetch',), 38, 210),
+    ('finger', ('spin', 'turn_easy', 'turn_hard'), 2, 6),
+    ('fish', ('upright', 'swim'), 5, 27),
+    ('hopper', ('stand', 'hop'), 4, 14),
+    ('humanoid', ('stand', 'walk', 'run', 'run_pure_state'), 21, 55),
+    ('humanoid_CMU', ('stand', 'walk', 'run'), 56, 125),
+    ('lqr', ('lqr_2_1',), 1, 4),
+    ('lqr', ('lqr_6_2',), 2, 12),
+    ('manipulator', ('bring_ball', 'bring_peg', 'insert_ball', 'insert_peg'), 5, 22),
+    ('pendulum', ('swingup',), 1, 2),
+    ('point_mass', ('easy', 'hard'), 2, 4),
+    ('quadruped', ('walk', 'run', 'escape'), 12, 57),
+    ('quadruped', ('fetch',), 12, 70),
+    ('reacher', ('easy', 'hard'), 2, 4),
+    ('stacker', ('stack_2',), 5, 28),
+    ('stacker', ('stack_4',), 5, 40),
+    ('swimmer', ('swimmer6',), 5, 16),
+    ('swimmer', ('swimmer15',), 14, 34),
+    ('walker', ('stand', 'walk', 'run'), 6, 18),
 )
-SUITE_TASKS: tuple[tuple[str, str], ...] = tuple((domain, task) for domain, task, *_ in _SUITE)
+SUITE_TASKS: tuple[tuple[str, str], ...] = tuple((domain, task) for domain, tasks, *_ in _SUITE for task in tasks)
 TASK_DIMS: dict[str, tuple[int, int]] = {f"{domain}_{task}": (action, physics)
-                                         for domain, task, action, physics in _SUITE}
+                                         for domain, tasks, action, physics in _SUITE for task in tasks}
 """Each suite task's action size and physics-state length (qpos, qvel, act: what
 :meth:`~imssr.envs.dmc.DMCEnv.physics_state` records), so that a training's memory plan
 (:mod:`imssr.training.memory`) needs no simulator."""
+_TASKS = {**{f"{domain}_{task}": (domain, task, None) for domain, task in SUITE_TASKS}, **_CUSTOM}
+"""Every task name -> its domain, suite task and reward transform."""
 
 
 def list_tasks() -> list[str]:
     """Every task name accepted by :func:`imssr.make_env`, sorted, from the static list (importing
     dm_control opens its EGL display, which must wait until the run's GPU is known)."""
-    return sorted({f"{d}_{t}" for d, t in SUITE_TASKS} | set(_CUSTOM))
+    return sorted(_TASKS)
 
 
 def get_task(name: str) -> TaskSpec:
     """Resolve a task name; unknown names raise a one-line :class:`ImssrError`."""
-    if name in _CUSTOM:
-        domain, task, fn = _CUSTOM[name]
-        return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT), fn)
-    for domain, task in SUITE_TASKS:
-        if f"{domain}_{task}" == name:
-            return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT))
-    raise ImssrError(f"unknown task {name!r}; paper tasks: {', '.join(PAPER_TASKS)} "
-                     f"(`imssr tasks` lists all {len(list_tasks())})")
+    if name not in _TASKS:
+        raise ImssrError(f"unknown task {name!r}; paper tasks: {', '.join(PAPER_TASKS)} "
+                         f"(`imssr tasks` lists all {len(_TASKS)})")
+    domain, task, reward_fn = _TASKS[name]
+    return TaskSpec(name, domain, task, _ACTION_REPEAT.get(name, DEFAULT_ACTION_REPEAT), reward_fn)
 
 
 def task_dims(name: str) -> tuple[int, int]:

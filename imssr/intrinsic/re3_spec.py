@@ -29,5 +29,4 @@ PLUGIN = SignalPlugin(
     description="{B} with RE3's k-NN state entropy (fixed random encoder) as intrinsic reward",
     preset=(Setting("intrinsic.re3_k", 3, "RE3 (Seo et al. 2021)"),
             Setting("intrinsic.re3_dim", 50, "RE3 (Seo et al. 2021)")),
-    own_networks=True,
 )

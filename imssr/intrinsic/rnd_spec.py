@@ -32,5 +32,4 @@ PLUGIN = SignalPlugin(
     description="{B} with random network distillation error of o' as intrinsic reward",
     preset=(Setting("intrinsic.rnd_lr", 1e-4, "RND (Burda et al. 2018)"),
             Setting("intrinsic.rnd_dim", 128, IMSSR, "RND's output size")),
-    own_networks=True,
 )

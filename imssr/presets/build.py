@@ -4,20 +4,9 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
 
-from imssr.algos import get_algo
-from imssr.config import RunConfig, apply_overrides, check_version, read_config_file, steps_for_frames
-from imssr.envs.tasks import get_task
+from imssr.config import RunConfig, apply_overrides, check_version, read_config_file, set_field, steps_for_frames
 from imssr.errors import ImssrError
 from imssr.presets.tables import DEMO, preset_settings
-
-
-def set_field(cfg: RunConfig, dotted: str, value) -> None:
-    """Set ``section.name`` (or a top-level field) of ``cfg``."""
-    if "." not in dotted:
-        setattr(cfg, dotted, value)
-        return
-    section, name = dotted.split(".", 1)
-    setattr(getattr(cfg, section), name, value)
 
 
 def make_config(algo: str, task: str, network: str = "dmcgb") -> RunConfig:
@@ -45,10 +34,10 @@ def load_partial_config(path: str, algo: str | None = None, task: str | None = N
     algo = file_algo if isinstance(file_algo, str) else algo
     task = file_task if isinstance(file_task, str) else task
     # A preset is chosen only by name: a file that names none would otherwise train a default.
-    if algo is None or task is None:
-        missing = " and ".join(n for n, v in (("algo", algo), ("env.task", task)) if v is None)
-        raise ImssrError(f"config {path} names no {missing}; add it to the file or pass "
-                         f"{' and '.join('--' + n.split('.')[-1] for n, v in (('algo', algo), ('env.task', task)) if v is None)}")
+    missing = [name for name, value in (("algo", algo), ("env.task", task)) if value is None]
+    if missing:
+        raise ImssrError(f"config {path} names no {' and '.join(missing)}; add it to the file or pass "
+                         f"{' and '.join('--' + name.split('.')[-1] for name in missing)}")
     merged = make_config(algo, task, network).to_dict()
     for key, value in data.items():
         if isinstance(value, dict) and isinstance(merged.get(key), dict):
@@ -100,8 +89,6 @@ def base_config(algo: str | None = None, task: str | None = None, *, network: st
         task = task or ("cartpole_swingup" if demo else None)
         if algo is None or task is None:
             raise ImssrError("train needs --algo and --task (see imssr algos, imssr tasks)")
-        get_algo(algo)
-        get_task(task)
         return (demo_config if demo else make_config)(algo, task, network or "dmcgb")
     if algo and algo != cfg.algo:
         raise ImssrError(f"--algo {algo} differs from the run's algo {cfg.algo}")

@@ -27,10 +27,6 @@ CONSTANT_BETA_TASKS = ("cartpole_swingup_sparse",)
 # Each base's rows are its plug-in's (its auxiliary task's ``*_spec.py``), gathered here by base.
 PAPER_BETA0 = {b: dict(p.beta0.by_task) for b, p in AUX_PLUGINS.items() if p.beta0.by_task}
 """Table V: beta_0 per base and task (../shared/spec/paper_beta0.csv; tests check the copy)."""
-BASE_BETA0 = {b: p.beta0.every_task for b, p in AUX_PLUGINS.items() if p.beta0.every_task is not None}
-"""beta_0 of the bases for which the paper reports one value (IM-PAD and IM-SVEA: 0.05)."""
-SCRIPT_BETA0 = {(b, task): note for b, p in AUX_PLUGINS.items() for task, note in p.beta0.notes.items()}
-"""Where the authors' scripts pass another in_gamma than Table V (Table V wins)."""
 
 
 RUN = "run setting"
@@ -101,14 +97,7 @@ COMMON = (
     *(Setting(f, getattr(getattr(RunConfig(), f.split(".")[0]), f.split(".")[1]), RUN) for f in RUN_FIELDS),
 )
 """Settings every algorithm shares (the SAC core, the loop, the budget), after the algo, the task
-and its action repeat."""
-
-BASE_SETTINGS = {b: p.preset for b, p in AUX_PLUGINS.items()}
-"""Settings of each base algorithm (its auxiliary task and networks), after ``aux.name``."""
-SCHEDULE = {b: p.schedule for b, p in AUX_PLUGINS.items()}
-"""The beta schedule of each base's intrinsic reward, on a task outside :data:`CONSTANT_BETA_TASKS`."""
-CONSTANT_BETA_SCHEDULE = {b: p.constant_beta_schedule for b, p in AUX_PLUGINS.items()}
-"""The beta schedule of each base's intrinsic reward on the tasks of :data:`CONSTANT_BETA_TASKS`."""
+and its action repeat, before the base's own (its plug-in's ``preset``)."""
 
 INTRINSIC = (
     Setting("intrinsic.decay", 0.8, PAPER, "the authors' in_decay"),
@@ -116,12 +105,8 @@ INTRINSIC = (
     Setting("intrinsic.normalization", "zscore", AUTHORS_SIGNAL),
     Setting("intrinsic.unbiased_std", True, AUTHORS_SIGNAL, "torch's default std"),
 )
-"""Settings every intrinsic reward shares, after its signal, beta_0 and schedule (then its
-base's :data:`NORM_EPS`, then :data:`INTRINSIC_LAST`)."""
-
-NORM_EPS = {b: p.norm_eps for b, p in AUX_PLUGINS.items()}
-"""The normalisation's epsilon of each base's intrinsic reward, as the authors' code computes it
-(IM-CURL, IM-SODA; IM-PAD and IM-SVEA have no code of the authors and follow IM-CURL's)."""
+"""Settings every intrinsic reward shares, after its signal, beta_0 and its base's schedule (then
+its base's normalisation epsilon, then :data:`INTRINSIC_LAST`)."""
 
 INTRINSIC_LAST = (
     Setting("intrinsic.norm_rtol", 1e-5, IMSSR, "a batch of equal losses gets a zero bonus, not "
@@ -129,10 +114,8 @@ INTRINSIC_LAST = (
     Setting("intrinsic.form", "authors", AUTHORS_SIGNAL, "IM-CURL, IM-SODA: as the authors "
             "computed the signal (docs/algorithms.md); 'training' keeps the training loss's form"),
 )
-"""Settings every intrinsic reward shares, after its base's :data:`NORM_EPS`."""
-
-SIGNAL_SETTINGS = {name: p.preset for name, p in SIGNAL_PLUGINS.items()}
-"""Settings of each intrinsic signal's own networks."""
+"""Settings every intrinsic reward shares, after its base's normalisation epsilon and before
+its signal's own (its plug-in's ``preset``)."""
 
 
 def _beta0(spec: AlgoSpec, task: str) -> Setting:
@@ -168,16 +151,17 @@ def preset_settings(algo: str, task: str, network: str = "dmcgb") -> list[Settin
     setting of the same field wins."""
     spec = get_algo(algo)
     tspec = get_task(task)
+    base = AUX_PLUGINS[spec.base]
     if network not in NETWORKS:
         raise ImssrError(f"unknown network {network!r}; valid: {', '.join(NETWORKS)}")
     rows = [Setting("algo", spec.name, "user"), Setting("env.task", tspec.name, "user"),
             Setting("env.action_repeat", tspec.action_repeat, TABLE3), *COMMON,
-            Setting("aux.name", spec.aux, "algo"), *BASE_SETTINGS[spec.base]]
+            Setting("aux.name", spec.aux, "algo"), *base.preset]
     if spec.intrinsic_enabled:
-        schedule = (CONSTANT_BETA_SCHEDULE if tspec.name in CONSTANT_BETA_TASKS else SCHEDULE)[spec.base]
+        schedule = base.constant_beta_schedule if tspec.name in CONSTANT_BETA_TASKS else base.schedule
         rows += [Setting("intrinsic.enabled", True, "algo"), Setting("intrinsic.source", spec.intrinsic, "algo"),
-                 _beta0(spec, tspec.name), schedule, *INTRINSIC, NORM_EPS[spec.base], *INTRINSIC_LAST,
-                 *SIGNAL_SETTINGS[spec.intrinsic]]
+                 _beta0(spec, tspec.name), schedule, *INTRINSIC, base.norm_eps, *INTRINSIC_LAST,
+                 *SIGNAL_PLUGINS[spec.intrinsic].preset]
     rows += NETWORKS[network]
     merged: dict[str, Setting] = {}
     for row in rows:

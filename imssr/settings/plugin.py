@@ -70,10 +70,6 @@ plug-in's settings, chosen or not, so a rule on another section tests whether th
 chosen (``cfg.aux.name``, ``cfg.intrinsic.source``)."""
 
 
-def no_rules(cfg: Sections) -> list[tuple[bool, str]]:
-    return []
-
-
 @dataclass(frozen=True, kw_only=True)
 class Plugin:
     """What every plug-in declares."""
@@ -86,8 +82,8 @@ class Plugin:
     settings: Optional[type] = None
     """A dataclass of its own fields, every one with a default and a docstring, composed flat
     into its config section (``aux.overlay_alpha``); None: it has none."""
-    rules: Rules = no_rules
-    """Its rules on a config (:data:`Rules`)."""
+    rules: Rules = lambda cfg: []
+    """Its rules on a config (:data:`Rules`); none by default."""
     preset: tuple[Setting, ...] = ()
     """The preset values it sets, with their sources, in the order ``imssr config --explain``
     shows them."""
@@ -149,9 +145,6 @@ class SignalPlugin(Plugin):
     """The same in the paper's style, over ``{B}`` (``IM-{B}``)."""
     description: str
     """One line for ``imssr algos``, over ``{B}``."""
-    own_networks: bool = False
-    """Whether it has networks of its own (RND, RE3), which every member of a batch of agents
-    must then have too."""
 
     def chosen(self, cfg: Sections) -> bool:
         """Whether ``cfg`` adds this signal to the reward (its rules on other sections ask)."""
