@@ -156,8 +156,7 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
     _check_writable(run, video=bool(video), montage=montage)
     seed = evaluation_seed(cfg.train.seed) if seed is None else seed
     agent = None
-    pictures = {}
-    rows, episodes_rows = [], []
+    pictures, rows, episodes_rows = {}, [], []
     for mode in dict.fromkeys(scenes):
         # Unseen footage: evaluation draws from the test pool.
         env = env_from_config(cfg.env, seed=seed, mode=mode, footage_split="test", footage_path=footage)

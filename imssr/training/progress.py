@@ -180,19 +180,21 @@ def advance(n: int = 1) -> None:
 
 @contextlib.contextmanager
 def phase(what: str, total: Optional[int] = None, unit: str = "", done: int = 0, show: bool = True,
-          every_s: float = PROGRESS_EVERY_S) -> Iterator[Phase]:
+          every_s: Optional[float] = None) -> Iterator[Phase]:
     """Show the progress of a long phase between two agent steps (the run's own progress moves
     only from one agent step to the next): the block gets a :class:`Phase` at ``done`` of
     ``total`` ``unit``, which :meth:`Phase.advance` (or :func:`advance`, from code below) counts up.
 
     How it shows is :func:`display`'s: on a terminal, a bar of its own below the run's, removed
-    when the block ends; in a log, a line (:meth:`Phase.line`) every ``every_s`` seconds while the
-    block lasts, so none for a shorter block; with ``show`` off, nothing.  A daemon thread redraws
-    the bar (its elapsed time runs while nothing advances, as in a checkpoint's write) or writes
-    the lines.  It reads the count and the clock only, never torch or a random generator, so the
-    training's numbers are those of a run without it; and it has stopped when the block is left,
-    by an exception too, so nothing is printed after it."""
+    when the block ends; in a log, a line (:meth:`Phase.line`) every ``every_s`` seconds (None:
+    :data:`PROGRESS_EVERY_S` as it is then) while the block lasts, so none for a shorter block;
+    with ``show`` off, nothing.  A daemon thread redraws the bar (its elapsed time runs while
+    nothing advances, as in a checkpoint's write) or writes the lines.  It reads the count and the
+    clock only, never torch or a random generator, so the training's numbers are those of a run
+    without it; and it has stopped when the block is left, by an exception too, so nothing is
+    printed after it."""
     shown = display(show)
+    every_s = PROGRESS_EVERY_S if every_s is None else every_s
     bar = None if shown != "bar" else tqdm(
         total=total, initial=done, desc=what, unit=f" {unit}" if unit else "it", leave=False, dynamic_ncols=True,
         bar_format=None if total is not None else "{desc}: {elapsed}")
