@@ -1,12 +1,6 @@
-"""A training's checkpoints: the :class:`~imssr.rundir.checkpoint.Checkpoint` a training makes of
-its state, and how a resume restores it.
-
-A checkpoint holds the config, the agent (networks, optimisers, its generators), the loop's
-:class:`~imssr.training.state.RunState`, the training and evaluation envs' generators, the
-global generators, the replay buffer's file and sampler state, the torch thread count, and,
-when the training stopped in the middle of one, the open episode and the burst of updates a
-stop interrupted.  Writing it with its replay files, in their atomic order, and loading them
-back are :class:`~imssr.rundir.RunDir`'s.
+"""A training's checkpoints: the :class:`~imssr.rundir.checkpoint.Checkpoint` (its fields say what
+it holds) a training makes of its state, and how a resume restores it.  Writing it with its
+replay files, in their atomic order, and loading them back are :class:`~imssr.rundir.RunDir`'s.
 
 Resuming from one (:func:`resume_point`, :meth:`Checkpointer.restore`) gives the run the
 uninterrupted run would have had: the open episode is stepped through again from its reset
@@ -139,9 +133,8 @@ class Checkpointer:
         if self.cfg.total_steps <= self.state.step:
             self.before_final = before
             return
-        s = self.state
-        del s.eval_history[before["evaluations"]:]
-        s.last_eval_step = before["last_eval_step"]
+        del self.state.eval_history[before["evaluations"]:]
+        self.state.last_eval_step = before["last_eval_step"]
         for mode, env in self.eval_envs.items():
             if mode in before["eval_env_rngs"]:
                 env.set_rng_state(before["eval_env_rngs"][mode])
@@ -172,12 +165,11 @@ class Checkpointer:
     def keep_before_final(self) -> None:
         """Before the off-schedule evaluation where the budget runs out: what it is about to
         change, for the checkpoint (:meth:`_restore_before_final`)."""
-        s = self.state
         rngs = self.batch.eval_rngs_before() if self.batch is not None else None
         if rngs is None:
             rngs = {m: env.get_rng_state() for m, env in self.eval_envs.items()}
-        self.before_final = {"eval_env_rngs": rngs, "evaluations": len(s.eval_history),
-                             "last_eval_step": s.last_eval_step}
+        self.before_final = {"eval_env_rngs": rngs, "evaluations": len(self.state.eval_history),
+                             "last_eval_step": self.state.last_eval_step}
 
     def save(self, episode: Optional[Episode] = None, burst: Optional[dict] = None) -> None:
         """Checkpoint now (``episode``: the open episode, when stopping in its middle; ``burst``:
@@ -186,8 +178,18 @@ class Checkpointer:
         (:meth:`RunDir.stage_checkpoint`); the batch promotes and prunes it once every run staged
         its own, so that a batch's checkpoint is every run's or none."""
         step = self.state.step
-        replay_file = self.run.replay_name(step) if self.cfg.train.save_buffer else None
-        ckpt = self.snapshot(replay_file, episode, burst)
+        ckpt = Checkpoint(
+            config=self.cfg.to_dict(), **self.state.state_dict(), agent=self.agent.state_dict(),
+            env_rng=self.env.get_rng_state(),
+            eval_env_rngs={m: env.get_rng_state() for m, env in self.eval_envs.items()},
+            global_rng=rng_states(),
+            replay_file=self.run.replay_name(step) if self.cfg.train.save_buffer else None,
+            replay_state=self.replay.state_dict(),
+            # A resume with another thread count is valid but not bit-identical (thread_warning).
+            torch_threads=torch.get_num_threads(),
+            episode_state=None if episode is None else episode.state_dict(self.env.action_space.shape[0]),
+            burst_state=burst, before_final_eval=self.before_final,
+        )
         if self.batch is not None:
             self.run.stage_checkpoint(ckpt, replay=self.replay)
             self.staged = True
@@ -208,22 +210,6 @@ class Checkpointer:
             self.staged = False
             with contextlib.suppress(OSError):
                 self.run.unstage_checkpoint()
-
-    def snapshot(self, replay_file: Optional[str], episode: Optional[Episode] = None,
-                   burst: Optional[dict] = None) -> Checkpoint:
-        """The training's state now, as a checkpoint that names ``replay_file``."""
-        return Checkpoint(
-            config=self.cfg.to_dict(), **self.state.state_dict(), agent=self.agent.state_dict(),
-            env_rng=self.env.get_rng_state(),
-            eval_env_rngs={m: env.get_rng_state() for m, env in self.eval_envs.items()},
-            global_rng=rng_states(),
-            replay_file=replay_file, replay_state=self.replay.state_dict(),
-            # A resume with another thread count is valid but not bit-identical (thread_warning).
-            torch_threads=torch.get_num_threads(),
-            episode_state=None if episode is None else episode.state_dict(self.env.action_space.shape[0]),
-            burst_state=burst, before_final_eval=self.before_final,
-        )
-
 
 def thread_warning(saved: Optional[int], now: int, device) -> Optional[str]:
     """A one-line warning when a CPU run resumes with another torch thread count than it was

@@ -2,6 +2,7 @@
 evaluation of a saved run (``imssr evaluate``)."""
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
 import time
@@ -29,10 +30,8 @@ def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[f
     With ``record`` (a list), the first episode's frames (``(H, W, 3)`` uint8,
     what the agent sees) are appended to it.
     """
-    def act(obs: dict) -> dict:
-        return {k: agent.act(o, deterministic=True) for k, o in obs.items()}
-
-    ((returns, frames, error),) = evaluate_members(act, [env], episodes, record is not None)
+    ((returns, frames, error),) = evaluate_members(
+        lambda obs: {k: agent.act(o, deterministic=True) for k, o in obs.items()}, [env], episodes, record is not None)
     if record is not None:
         record.extend(frames)
     if error is not None:
@@ -40,15 +39,14 @@ def evaluate(agent, env, episodes: int, record: Optional[list] = None) -> list[f
     return returns
 
 
-def evaluate_members(act, envs: list, episodes: int, record: bool = False
-                     ) -> list[tuple[list[float], list, Optional[Exception]]]:
+def evaluate_members(act, envs: list, episodes: int, record: bool = False) -> list[list]:
     """:func:`evaluate` of several agents at once, each in its own env (``envs[k]``), their
     episodes in lockstep: ``act(observations)`` gives every agent's deterministic action for its
     observation in one call (a batch of agents' members).  Returns, per env, its returns, the
     first episode's frames when ``record``, and the error that stopped it (a non-finite action),
     as :func:`evaluate` would have raised it (the simulator would end in a PhysicsError traceback;
     the trainer adds the step); an env that ended its episode waits for the others."""
-    results = [([], [], None) for _ in envs]
+    results = [[[], [], None] for _ in envs]
     for episode in range(episodes):
         live = [k for k, r in enumerate(results) if r[2] is None]
         obs, totals, done = {}, {k: 0.0 for k in live}, set()
@@ -60,8 +58,7 @@ def evaluate_members(act, envs: list, episodes: int, record: bool = False
             actions = act(obs)
             for k in live:
                 if k not in done and not np.isfinite(actions[k]).all():
-                    results[k] = (results[k][0], results[k][1],
-                                  DivergedError(f"evaluation action {non_finite_text(actions[k])}"))
+                    results[k][2] = DivergedError(f"evaluation action {non_finite_text(actions[k])}")
                     done.add(k)
             stepping = [k for k in live if k not in done]
             for k, step in zip(stepping, step_all([envs[k] for k in stepping], [actions[k] for k in stepping])):
@@ -146,11 +143,10 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
         progress: show each scene's episodes as they run (a bar on a terminal, else a line
             every minute: :func:`~imssr.training.progress.phase`).
     """
-    log = log or _say
+    log = log or functools.partial(print, flush=True)
     run = as_run_dir(run_dir).require()
     cfg = run.read_config()
-    scenes = ([m.strip() for m in modes.split(",") if m.strip()] if modes
-              else cfg.train.eval_mode_list(cfg.env.mode))
+    scenes = [m.strip() for m in modes.split(",") if m.strip()] if modes else cfg.train.eval_mode_list(cfg.env.mode)
     for mode in scenes:
         get_mode(mode)
     ckpt, _, note = run.checkpoint(checkpoint, verb="evaluating")
@@ -160,8 +156,7 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
     _check_writable(run, video=bool(video), montage=montage)
     seed = evaluation_seed(cfg.train.seed) if seed is None else seed
     agent = None
-    pictures = {}
-    rows, episodes_rows = [], []
+    pictures, rows, episodes_rows = {}, [], []
     for mode in dict.fromkeys(scenes):
         # Unseen footage: evaluation draws from the test pool.
         env = env_from_config(cfg.env, seed=seed, mode=mode, footage_split="test", footage_path=footage)
@@ -183,8 +178,7 @@ def evaluate_run(run_dir: RunDir | str, checkpoint: Optional[str] = None, episod
         if montage:
             pictures[mode] = frames[min(len(frames) - 1, 20)]
     if pictures:
-        path = save_montage(pictures, run.montage_path,
-                            f"{cfg.algo} on {cfg.env.task}, frame {ckpt.frame}")
+        path = save_montage(pictures, run.montage_path, f"{cfg.algo} on {cfg.env.task}, frame {ckpt.frame}")
         log(f"montage: {path}")
     # Appended to, one summary row per scene and one row per episode (with the checkpoint's step),
     # each file in one locked append: two evaluations of the run at once never interleave.
@@ -202,7 +196,6 @@ def _check_writable(run: RunDir, video: bool, montage: bool) -> None:
     folders = {run.path for made in (montage, not all(os.path.lexists(p) for p in logs)) if made}
     if video:  # its folder is made in the run when missing
         folders.add(run.videos_dir if os.path.isdir(run.videos_dir) else run.path)
-    where = run.path
     try:
         for where in logs:
             if os.path.lexists(where):
@@ -213,7 +206,3 @@ def _check_writable(run: RunDir, video: bool, montage: bool) -> None:
     except OSError as exc:
         raise ImssrError(f"imssr evaluate cannot write its results to {where} ({exc.strerror or exc}): nothing was "
                          "evaluated; evaluate a copy of the run in a folder you can write") from None
-
-
-def _say(text: str) -> None:
-    print(text, flush=True)

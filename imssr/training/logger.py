@@ -24,9 +24,9 @@ from imssr.rundir import RunDir
 VIDEO_FPS = 25.0
 """Frames per second of evaluation videos (one frame per agent step), as ``imssr evaluate --video``."""
 
-TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps",
-                 "critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q_mean",
-                 "aux_loss", "rnd_loss", "r_int_raw", "r_int_raw_std", "r_int_mean", "r_int_std", "bonus_std", "beta", "updates", "wall_time"]
+TRAIN_COLUMNS = ["frame", "step", "episode", "episode_return", "episode_frames", "fps", "critic_loss", "actor_loss",
+                 "alpha_loss", "alpha", "entropy", "q_mean", "aux_loss", "rnd_loss", "r_int_raw", "r_int_raw_std",
+                 "r_int_mean", "r_int_std", "bonus_std", "beta", "updates", "wall_time"]
 EVAL_COLUMNS = ["frame", "step", "mode", "return_mean", "return_std", "episodes",
                 "return_min", "return_max", "wall_time"]
 EVAL_EPISODE_COLUMNS = ["frame", "step", "mode", "episode", "return"]
@@ -53,18 +53,14 @@ class CSVLog:
         # A process killed mid-write can leave a partial last line: drop it.
         complete = [r for r in rows if None not in r.values() and None not in r and _is_number(r.get("frame"))]
         kept = [r for r in complete if int(float(r["frame"])) <= frame]
-        lines = [",".join(self.columns)]
-        for r in kept:
-            lines.append(",".join(_quote(r.get(c, "")) for c in self.columns))
+        lines = [",".join(self.columns)] + [",".join(_quote(r.get(c, "")) for c in self.columns) for r in kept]
         atomic_write_text(self.path, "\n".join(lines) + "\n")
 
 
 def _fmt(v) -> str:
-    if v is None:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
         return ""
     if isinstance(v, float):
-        if math.isnan(v):
-            return ""
         return f"{v:.3f}" if abs(v) >= 1e5 else f"{v:.6g}"
     return str(v)
 
@@ -87,11 +83,12 @@ def episode_rows(row: dict, returns: Iterable[float]) -> list[dict]:
             for i, ret in enumerate(returns)]
 
 
-def write_eval(summary: CSVLog, episodes: CSVLog, row: dict, returns: Iterable[float]) -> None:
-    """Append one evaluation: its summary row and one row per episode."""
-    summary.write(row)
-    for episode in episode_rows(row, returns):
-        episodes.write(episode)
+def _series(row: dict) -> dict[str, float]:
+    """The TensorBoard and W&B scalars of a ``train.csv`` or ``eval.csv`` row, as logged or as read
+    back from its file: ``train/<column>`` or ``eval/<mode>/<column>``, its counters left out."""
+    prefix = f"eval/{row['mode']}" if "mode" in row else "train"
+    return {f"{prefix}/{k}": float(v) for k, v in row.items()
+            if k not in ("frame", "step", "episode", "mode", "episodes") and _is_number(v)}
 
 
 def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
@@ -110,25 +107,12 @@ def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
 
 def _drop_torn_line(path: str) -> None:
     """Cut a last line without its newline (a row that a full disk or a kill cut short) off the
-    file, so that the next row starts on a line of its own instead of continuing the torn one."""
+    file, so that the next row starts on a line of its own instead of continuing the torn one.
+    The file is read whole: ``imssr evaluate`` appends a few rows per call to it."""
     with open(path, "rb") as fh:
-        end = fh.seek(0, os.SEEK_END)
-        if end == 0:
-            return
-        fh.seek(end - 1)
-        if fh.read(1) == b"\n":
-            return
-        pos = end
-        while pos > 0:  # back to the last newline, a block at a time
-            start = max(0, pos - 4096)
-            fh.seek(start)
-            block = fh.read(pos - start)
-            i = block.rfind(b"\n")
-            if i >= 0:
-                pos = start + i + 1
-                break
-            pos = start
-    os.truncate(path, pos)
+        text = fh.read()
+    if text and not text.endswith(b"\n"):
+        os.truncate(path, text.rfind(b"\n") + 1)
 
 
 class Logger:
@@ -138,8 +122,7 @@ class Logger:
     finishes it on :meth:`close`.
     """
 
-    def __init__(self, run: RunDir, tensorboard: bool = True, resume_frame: Optional[int] = None,
-                 wandb=None):
+    def __init__(self, run: RunDir, tensorboard: bool = True, resume_frame: Optional[int] = None, wandb=None):
         self.run, self.wandb = run, wandb
         if resume_frame is None:
             # A fresh run starts only where no log holds a row (RunDir.refuse_fresh_start): the
@@ -156,62 +139,59 @@ class Logger:
         self.tb = None
         self._tb_video: Optional[bool] = None  # whether TensorBoard can take videos (moviepy)
         if tensorboard:
-            try:
-                from torch.utils.tensorboard import SummaryWriter
-            except ImportError:  # tensorboard is a dependency, but keep CSV logs working
-                SummaryWriter = None
-            if SummaryWriter is not None:
-                _quiet_tensorboard_disk_full()
-                self.tb_dir = run.tb_dir
-                # purge_step drops events newer than the checkpoint on resume.
-                with disk_full_as_error(run.tb_dir):
-                    self.tb = SummaryWriter(run.tb_dir, purge_step=None if resume_frame is None else resume_frame + 1)
+            from torch.utils.tensorboard import SummaryWriter
+
+            _quiet_tensorboard_disk_full()
+            # purge_step drops events newer than the checkpoint on resume.
+            with disk_full_as_error(run.tb_dir):
+                self.tb = SummaryWriter(run.tb_dir, purge_step=None if resume_frame is None else resume_frame + 1)
 
     def relog_to_wandb(self) -> None:
         """On resume, log the CSV rows (up to the checkpoint) that the W&B run lacks, in frame
         order: those that W&B had not written when an earlier process was killed."""
         if self.wandb is None or not self.wandb.active:
             return
-        rows = [(r, "train", ("frame", "step", "episode")) for r in read_csv(self.train.path)]
-        rows += [(r, f"eval/{r.get('mode')}", ("frame", "step", "mode", "episodes"))
-                 for r in read_csv(self.eval.path)]
-        rows.sort(key=lambda item: float(item[0]["frame"]))
-        for row, prefix, skip in rows:
-            values = {f"{prefix}/{k}": float(v) for k, v in row.items() if k not in skip and _is_number(v)}
-            self.wandb.log(values, int(float(row["frame"])), int(float(row["step"])))
+        rows = sorted(read_csv(self.train.path) + read_csv(self.eval.path), key=lambda row: float(row["frame"]))
+        for row in rows:
+            self.wandb.log(_series(row), int(float(row["frame"])), int(float(row["step"])))
 
     def rewrite_eval(self, history: list[dict]) -> None:
         """Rewrite the evaluation CSVs from a checkpoint's history (``row`` + ``returns``)."""
         for log in (self.eval, self.eval_episodes):
             atomic_write_text(log.path, ",".join(log.columns) + "\n")
         for item in history:
-            write_eval(self.eval, self.eval_episodes, item["row"], item["returns"])
+            self._write_eval(item["row"], item["returns"])
 
     def log_train(self, row: dict) -> None:
         self.train.write(row)
-        self._scalars("train", row, skip=("frame", "step", "episode"))
+        self._scalars(row)
 
     def log_eval(self, row: dict, returns: Iterable[float]) -> None:
-        write_eval(self.eval, self.eval_episodes, row, returns)
-        self._scalars(f"eval/{row['mode']}", row, skip=("frame", "step", "mode", "episodes"))
+        self._write_eval(row, returns)
+        self._scalars(row)
+
+    def _write_eval(self, row: dict, returns: Iterable[float]) -> None:
+        """Append one evaluation: its summary row and one row per episode."""
+        self.eval.write(row)
+        for episode in episode_rows(row, returns):
+            self.eval_episodes.write(episode)
 
     def log_video(self, mode: str, frames: list[np.ndarray], frame: int, step: int, fmt: str) -> str:
         """One evaluation episode in scene ``mode`` (``(H, W, 3)`` uint8 frames) as
         ``videos/step_<step>_<mode>.<fmt>``, to TensorBoard and to W&B; returns the file's path."""
-        path = save_video(frames, self.run.video_path(f"step_{step:09d}_{mode}.{fmt}"),
-                          fps=VIDEO_FPS)
+        path = save_video(frames, self.run.video_path(f"step_{step:09d}_{mode}.{fmt}"), fps=VIDEO_FPS)
         if self.tb is not None and self._tensorboard_takes_video():
             # (N, T, C, H, W) uint8, one video.
             clip = np.moveaxis(np.stack(frames), -1, 1)[None]
             self._to_tensorboard(lambda tb: tb.add_video(f"eval/{mode}/video", clip, global_step=frame, fps=VIDEO_FPS))
         if self.wandb is not None:
-            self.wandb.log_video(f"media/{mode}_video", path, frame, step)
+            self.wandb.log_file(f"media/{mode}_video", path, frame, step)
         return path
 
     def log_image(self, key: str, path: str, frame: int, step: int) -> None:
         """A PNG (the learning curve) to W&B (TensorBoard plots its own curves)."""
         if self.wandb is not None:
-            self.wandb.log_image(f"media/{key}", path, frame, step)
+            self.wandb.log_file(f"media/{key}", path, frame, step)
 
     @property
     def wants_media(self) -> bool:
@@ -231,10 +211,8 @@ class Logger:
                       "(its add_video needs moviepy < 2: pip install 'moviepy<2')", flush=True)
         return self._tb_video
 
-    def _scalars(self, prefix: str, row: dict, skip: tuple) -> None:
-        values = {f"{prefix}/{k}": float(v) for k, v in row.items()
-                  if k not in skip and v is not None and not isinstance(v, str)}
-        frame = int(row["frame"])
+    def _scalars(self, row: dict) -> None:
+        values, frame = _series(row), int(row["frame"])
 
         def add(tb) -> None:
             for key, value in values.items():
@@ -253,29 +231,20 @@ class Logger:
         if self.tb is None:
             return
         try:
-            with disk_full_as_error(self.tb_dir):
+            with disk_full_as_error(self.run.tb_dir):
                 write(self.tb)
         except ImssrError as exc:
             self.tb = None  # its writer thread has ended on the error
-            print(f"imssr: warning: {exc}: TensorBoard stops here (train.csv and eval.csv keep every row)",
-                  flush=True)
+            print(f"imssr: warning: {exc}: TensorBoard stops here (train.csv and eval.csv keep every row)", flush=True)
 
     def close(self) -> None:
         """Flush and close TensorBoard (:meth:`_to_tensorboard` on a full disk) and W&B."""
         try:
-            if self.tb is not None:
-                self._to_tensorboard(_flush_and_close)
-                self.tb = None
+            self._to_tensorboard(lambda tb: tb.close())  # SummaryWriter.close flushes first
+            self.tb = None
         finally:
             if self.wandb is not None:
                 self.wandb.finish()
-
-
-def _flush_and_close(tb) -> None:
-    try:
-        tb.flush()
-    finally:
-        tb.close()
 
 
 def _quiet_tensorboard_disk_full() -> None:
@@ -306,5 +275,5 @@ def open_logger(run: RunDir, cfg, resume_frame: Optional[int] = None) -> Logger:
         # Imported here: W&B is an extra, and a run without it must not load it.
         from imssr.training.wandb_run import WandbRun
 
-        wandb = WandbRun(cfg, run, resume=resume_frame is not None, warn=lambda text: print(text, flush=True))
+        wandb = WandbRun(cfg, run, resume=resume_frame is not None)
     return Logger(run, cfg.train.tensorboard, resume_frame=resume_frame, wandb=wandb)

@@ -82,8 +82,6 @@ class RunNeeds:
     """The agent's weights, gradients and Adam moments."""
     activation_bytes: int
     """One update's activations (the encoder's feature maps kept for the backward pass)."""
-    host_bytes: int = RUN_HOST_BYTES
-    """The rest of the run in host memory (:data:`RUN_HOST_BYTES`)."""
 
     @property
     def frames_bytes(self) -> int:
@@ -102,11 +100,6 @@ def replay_slots(cfg: RunConfig) -> int:
     return min(cfg.train.replay_capacity, steps + math.ceil(steps / episode) + 1)
 
 
-def frame_bytes(cfg: RunConfig) -> int:
-    """Bytes of one stored frame of a run of ``cfg`` (uint8 RGB at ``env.image_size``)."""
-    return 3 * cfg.env.image_size ** 2
-
-
 def run_needs(cfg: RunConfig) -> RunNeeds:
     """What a run of ``cfg`` will hold, from its config alone (nothing is built but one agent, to
     count its parameters)."""
@@ -114,7 +107,7 @@ def run_needs(cfg: RunConfig) -> RunNeeds:
     other = 4 * action_dim + 4 + 4 + 4 + (8 * physics_dim + 4)  # as FrameReplayBuffer.bytes_per_slot
     trainable, other_params = _parameter_counts(cfg, action_dim)
     return RunNeeds(slots=replay_slots(cfg), capacity=cfg.train.replay_capacity,
-                    frame_bytes=frame_bytes(cfg), other_bytes=other,
+                    frame_bytes=3 * cfg.env.image_size ** 2, other_bytes=other,  # uint8 RGB
                     agent_bytes=4 * (4 * trainable + other_params), activation_bytes=_activation_bytes(cfg))
 
 
@@ -149,8 +142,6 @@ class MemoryPlan:
 
     needs: RunNeeds
     """One run's (the runs of a batch share their sizes)."""
-    runs: int
-    """How many runs train in the process."""
     device: torch.device
     """The runs' torch device (``train.device``)."""
     placement: ReplayPlacement
@@ -166,24 +157,17 @@ def memory_plan(cfgs: Sequence[RunConfig], runs: Sequence[RunDir]) -> MemoryPlan
     cfg = cfgs[0]
     needs = max((run_needs(c) for c in {c.algo: c for c in cfgs}.values()), key=lambda n: n.agent_bytes)
     n, device = len(cfgs), resolve_device(cfg.train.device)
-    placement = _placement(cfg, needs, n, device)
+    placement = replay_placement(cfg.train.replay_device, device, n * needs.capacity * needs.frame_bytes,
+                                 cfg.train.gpu_share, margin_nbytes=auto_margin(needs, n))
     on_gpu = device.type == "cuda"
     frames_in_ram = placement.device.type == "cpu" and not placement.disk
     agents = n * (needs.agent_bytes + needs.activation_bytes)
-    _check_host(needs, n, frames_in_ram, 0 if on_gpu else agents, placement.disk, n * needs.host_bytes)
+    _check_host(needs, n, frames_in_ram, 0 if on_gpu else agents, placement.disk)
     if on_gpu:
         _check_gpu(needs, n, placement.device.type == "cuda", agents, device, cfg.train.gpu_share)
     if placement.disk:
         _check_disk(needs, runs)
-    return MemoryPlan(needs, n, device, placement)
-
-
-def _placement(cfg: RunConfig, needs: RunNeeds, n: int, device: torch.device) -> ReplayPlacement:
-    """Where ``train.replay_device`` puts the frames of ``n`` runs (:func:`replay_placement`, with
-    this machine's GPU): for ``auto``, the GPU when all the runs' frames (each mapped at its
-    capacity there) fit beside :func:`auto_margin`."""
-    return replay_placement(cfg.train.replay_device, device, n * needs.capacity * needs.frame_bytes,
-                            cfg.train.gpu_share, margin_nbytes=auto_margin(needs, n))
+    return MemoryPlan(needs, device, placement)
 
 
 def auto_margin(needs: RunNeeds, n: int) -> int:
@@ -197,17 +181,17 @@ def _runs(n: int) -> str:
     return "this run needs" if n == 1 else f"{n:,} runs need"
 
 
-def _check_host(needs: RunNeeds, n: int, frames: bool, agents: int, disk: bool, runs: int) -> None:
+def _check_host(needs: RunNeeds, n: int, frames: bool, agents: int, disk: bool) -> None:
     """Host memory: the replay (frames when they live there), the agents on the CPU and the rest
-    of the runs (``runs`` bytes: environments, renderers), against what is available, and the
-    replay and agents against what an address-space limit leaves."""
+    of the runs (:data:`RUN_HOST_BYTES` each: environments, renderers), against what is available,
+    and the replay and agents against what an address-space limit leaves."""
+    runs = n * RUN_HOST_BYTES
     per_slot = (needs.frame_bytes if frames else 0) + needs.other_bytes
     replay = n * needs.slots * per_slot
-    what = f"{replay / GB:.1f} GB of host memory for replay ({needs.slots:,} slots x {per_slot:,} B each)"
-    if agents:
-        what += f" and {agents / GB:.1f} GB for agents"
-    what += (f" and {runs / GB:.1f} GB for {'its' if n == 1 else 'their'} environments and renderers "
-             f"({needs.host_bytes / 1e6:,.0f} MB a run)")
+    also = f" and {agents / GB:.1f} GB for agents" if agents else ""
+    what = (f"{replay / GB:.1f} GB of host memory for replay ({needs.slots:,} slots x {per_slot:,} B each){also}"
+            f" and {runs / GB:.1f} GB for {'its' if n == 1 else 'their'} environments and renderers "
+            f"({RUN_HOST_BYTES / 1e6:,.0f} MB a run)")
     ways = "train fewer seeds at once" if n > 1 else "train with a smaller replay"
     ways += ", lower train.replay_capacity" + ("" if disk or not frames else
                                                 ", or put the frames on disk with --set train.replay_device=disk")
@@ -219,7 +203,6 @@ def _check_host(needs: RunNeeds, n: int, frames: bool, agents: int, disk: bool, 
         # The arrays (and a frames file) are mapped at their capacity as the buffer is made.
         mapped = n * needs.capacity * (needs.frame_bytes + needs.other_bytes if frames or disk else needs.other_bytes)
         if mapped + agents > limit - used:
-            also = f" and {agents / GB:.1f} GB for agents" if agents else ""
             fewer = "train fewer seeds at once, " if n > 1 else ""
             raise ImssrError(f"{_runs(n)} {mapped / GB:.1f} GB of address space for replay ({needs.capacity:,} "
                              f"slots each){also}; {max(limit - used, 0) / GB:.1f} GB is left: {raise_limit_text()}, "
@@ -246,13 +229,12 @@ def _check_gpu(needs: RunNeeds, n: int, frames: bool, agents: int, device: torch
 def _check_disk(needs: RunNeeds, runs: Sequence[RunDir]) -> None:
     """Local disk: each run's frames file (:meth:`RunDir.frames_file`) against the free space of
     its file system, the runs on one file system together."""
-    by_fs: dict[int, tuple[str, int]] = {}
+    by_fs: dict[int, list[str]] = {}
     for run in runs:
         where = _existing(run.path)
-        dev = os.stat(where).st_dev
-        _, count = by_fs.get(dev, (where, 0))
-        by_fs[dev] = (where, count + 1)
-    for where, count in by_fs.values():
+        by_fs.setdefault(os.stat(where).st_dev, []).append(where)
+    for wheres in by_fs.values():
+        where, count = wheres[0], len(wheres)
         st = os.statvfs(where)
         free = st.f_bavail * st.f_frsize
         need = count * needs.frames_bytes

@@ -59,9 +59,7 @@ class Eta:
 
     def text(self, step: int) -> str:
         """``3:12:40``, or ``after agent step 1,002`` while there is no estimate yet."""
-        if step >= self.total:
-            return _hms(0)
-        left = self.seconds(step)
+        left = 0 if step >= self.total else self.seconds(step)
         if left is not None:
             return _hms(left)
         first = self.since[1] if self.since is not None else self.learning_starts + 1
@@ -189,21 +187,20 @@ def phase(what: str, total: Optional[int] = None, unit: str = "", done: int = 0,
 
     How it shows is :func:`display`'s: on a terminal, a bar of its own below the run's, removed
     when the block ends; in a log, a line (:meth:`Phase.line`) every ``every_s`` seconds (None:
-    :data:`PROGRESS_EVERY_S`) while the block lasts, so none for a shorter block; with ``show``
-    off, nothing.  A daemon thread redraws the bar (its elapsed time runs while nothing advances,
-    as in a checkpoint's write) or writes the lines.  It reads the count and the clock only, never
-    torch or a random generator, so the training's numbers are those of a run without it; and it
-    has stopped when the block is left, by an exception too, so nothing is printed after it."""
+    :data:`PROGRESS_EVERY_S` as it is then) while the block lasts, so none for a shorter block;
+    with ``show`` off, nothing.  A daemon thread redraws the bar (its elapsed time runs while
+    nothing advances, as in a checkpoint's write) or writes the lines.  It reads the count and the
+    clock only, never torch or a random generator, so the training's numbers are those of a run
+    without it; and it has stopped when the block is left, by an exception too, so nothing is
+    printed after it."""
     shown = display(show)
     every_s = PROGRESS_EVERY_S if every_s is None else every_s
-    bar = None
-    if shown == "bar":
-        bar = tqdm(total=total, initial=done, desc=what, unit=f" {unit}" if unit else "it", leave=False,
-                   dynamic_ncols=True, bar_format=None if total is not None else "{desc}: {elapsed}")
+    bar = None if shown != "bar" else tqdm(
+        total=total, initial=done, desc=what, unit=f" {unit}" if unit else "it", leave=False, dynamic_ncols=True,
+        bar_format=None if total is not None else "{desc}: {elapsed}")
     current, stop = Phase(what, total, unit, done, bar), threading.Event()
     thread = None if shown is None else threading.Thread(
-        target=_show_phase, args=(current, stop, every_s, _line_writer(sys.stdout)), name="imssr-progress",
-        daemon=True)
+        target=_show_phase, args=(current, stop, every_s, sys.stdout), name="imssr-progress", daemon=True)
     token = _current.set(current)
     try:
         if thread is not None:
@@ -218,35 +215,27 @@ def phase(what: str, total: Optional[int] = None, unit: str = "", done: int = 0,
         _current.reset(token)
 
 
-def _show_phase(current: Phase, stop: threading.Event, every_s: float, write: Callable[[str], None]) -> None:
+def _show_phase(current: Phase, stop: threading.Event, every_s: float, stream) -> None:
     """The thread of :func:`phase`: until ``stop``, redraw ``current``'s bar, or write its line
-    every ``every_s`` seconds."""
+    every ``every_s`` seconds to ``stream`` (the stdout the phase began on), the line and its
+    newline in one write, flushed (a batch's run's stdout, :func:`member_lines`: with the run's
+    label, at once even where the run's other lines are held)."""
+    label = stream.label if isinstance(stream, _MemberStdout) else None
+    stream = stream.stream if label is not None else stream
     started = time.monotonic()
     while not stop.wait(BAR_REFRESH_S if current.bar is not None else max(every_s, PHASE_LINE_MIN_S)):
         try:
             if current.bar is not None:
                 current.bar.refresh()
             else:
-                write(current.line(time.monotonic() - started))
+                line = current.line(time.monotonic() - started)
+                stream.write((line if label is None else with_member(label, line)) + "\n")
+                stream.flush()
         except (OSError, ValueError):  # a stream closed under the thread: the training goes on
             return
 
 
-def _line_writer(stream) -> Callable[[str], None]:
-    """What writes a line of a phase's thread to ``stream``: the line and its newline in one write,
-    flushed (a batch's run's stdout, :func:`member_lines`: with the run's label, at once even where
-    the run's other lines are held)."""
-    if isinstance(stream, _MemberStdout):
-        return stream.write_now
-
-    def write(line: str) -> None:
-        stream.write(line + "\n")
-        stream.flush()
-    return write
-
-
-def progress_line(step: int, total: int, frames: int, seconds: float, eta: str,
-                  last_return: Optional[float]) -> str:
+def progress_line(step: int, total: int, frames: int, seconds: float, eta: str, last_return: Optional[float]) -> str:
     """``imssr: agent step 1,200/500,000 (0.2%), 310 frames/s, ETA 3:12:40, last episode return 12.5``:
     the frame rate over this process's training so far (``frames`` in ``seconds``), the
     estimate ``eta`` (:meth:`Eta.text`)."""
@@ -298,11 +287,6 @@ class _MemberStdout:
                 self.stream.write(with_member(self.label, line) + "\n")
         return len(text)
 
-    def write_now(self, line: str) -> None:
-        """``line``, with the label, on ``stream`` now, even where the block holds its lines."""
-        self.stream.write(with_member(self.label, line) + "\n")
-        self.stream.flush()
-
     def flush(self) -> None:
         if self.held is None:
             self.stream.flush()
@@ -322,13 +306,12 @@ def member_lines(label: str, held: Optional[list[str]] = None) -> Iterator[None]
     """Inside the block, every line printed to stdout is of the run ``label`` of a batch
     (:func:`member_labels`): written with the label (:func:`with_member`), or, with ``held``,
     appended there (without it) for :func:`say_held`.  A run alone prints its lines as they are."""
-    stream = sys.stdout
-    sys.stdout = ours = _MemberStdout(stream, label, held)
-    try:
-        yield
-    finally:
-        ours.end()
-        sys.stdout = stream
+    ours = _MemberStdout(sys.stdout, label, held)
+    with contextlib.redirect_stdout(ours):
+        try:
+            yield
+        finally:
+            ours.end()
 
 
 def say_held(held: dict[str, list[str]], once: bool = True) -> None:

@@ -30,10 +30,6 @@ class StepSchedule:
         if self.next_step is None and self.every:
             self.next_step = self.every
 
-    @property
-    def key(self) -> str:
-        return f"next_{self.name}_step"
-
     def due(self, step: int) -> bool:
         return self.next_step is not None and step >= self.next_step
 
@@ -43,16 +39,13 @@ class StepSchedule:
             self.next_step += self.every
 
     def state_dict(self) -> dict:
-        return {self.key: self.next_step}
+        return {f"next_{self.name}_step": self.next_step}
 
     def load(self, saved_next: Optional[int], step: int, saved_every: int) -> None:
         """Resume at agent step ``step``: the saved next step ``saved_next`` if the interval is
         unchanged (``saved_every``), else the first multiple of the new interval after ``step``."""
-        self.next_step = saved_next if saved_every == self.every else _next_multiple(step, self.every)
-
-
-def _next_multiple(step: int, every: int) -> Optional[int]:
-    return None if not every else (step // every + 1) * every
+        first_after = (step // self.every + 1) * self.every if self.every else None
+        self.next_step = saved_next if saved_every == self.every else first_after
 
 
 @dataclass
@@ -171,8 +164,6 @@ class Episode:
     @classmethod
     def from_state_dict(cls, state: dict) -> "Episode":
         """The episode a checkpoint's ``episode_state`` saved (its actions as float32 arrays)."""
-        episode = cls(env_rng=state["env_rng"], actions=list(state["actions"].numpy()),
-                      total_reward=state["return"], frames=state["frames"])
-        episode.sums.update(state["sums"])
-        episode.counts.update(state["counts"])
-        return episode
+        return cls(env_rng=state["env_rng"], actions=list(state["actions"].numpy()), total_reward=state["return"],
+                   frames=state["frames"], sums=defaultdict(float, state["sums"]),
+                   counts=defaultdict(int, state["counts"]))

@@ -69,28 +69,23 @@ class StopRequest:
     def _handle(self, signum, frame) -> None:
         if self.signal_name is not None:
             # A second signal that came before this handler had given way to the next: Python runs
-            # it inside the first one's call (signal.signal handles what is pending first).
-            self._again(signum, frame)
+            # it inside the first one's call (signal.signal handles what is pending first), so it
+            # does here what the next handler does.
+            if self.runs:
+                self._exit_at_once(signum, frame)
+            elif signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            else:
+                signal.signal(signum, signal.SIG_DFL)
+                os.kill(os.getpid(), signum)
             return
         self.signal_name = signal.Signals(signum).name
         # os.write, not print: a signal handler may run inside a print to the same stream.
         _say(f"imssr: {self.signal_name}: stopping after this agent step with a checkpoint "
              "(a second signal stops at once)\n")
         for sig in self.SIGNALS:  # the next signal acts at once
-            if self.runs:
-                signal.signal(sig, self._exit_at_once)
-            else:
-                signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
-
-    def _again(self, signum, frame) -> None:
-        """What a second signal does where :meth:`_handle` still receives it."""
-        if self.runs:
-            self._exit_at_once(signum, frame)
-        elif signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        else:
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
+            default = signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL
+            signal.signal(sig, self._exit_at_once if self.runs else default)
 
     def _exit_at_once(self, signum, frame) -> None:
         """The second signal on the command line: one line and the exit, with no exception that
@@ -106,11 +101,9 @@ class StopRequest:
         if not without:
             return f"stopped at once, keeping the last checkpoint; continue with: {self.resume_command}"
         # The directories hold the logs of the runs so far, so the same command is refused.
-        if len(self.runs) == 1:
-            return (f"stopped at once, before the run's first checkpoint: nothing to resume; choose "
-                    f"another --out or remove {without[0]}")
         if len(without) == len(self.runs):
-            return (f"stopped at once, before the runs' first checkpoint: nothing to resume; choose "
+            whose = "run's" if len(self.runs) == 1 else "runs'"
+            return (f"stopped at once, before the {whose} first checkpoint: nothing to resume; choose "
                     f"another --out or remove {', '.join(without)}")
         return (f"stopped at once, during the runs' first checkpoint: {', '.join(without)} "
                 f"{'has' if len(without) == 1 else 'have'} none, so the runs cannot resume together; "

@@ -56,20 +56,18 @@ class WandbRun:
         run: the run directory (the run id file; W&B's files go to ``RUN/wandb`` unless
             ``WANDB_DIR`` says otherwise).
         resume: continue the W&B run whose id ``run`` keeps (a new one if it keeps none).
-        warn: where the one warning line goes.
     """
 
-    def __init__(self, cfg: RunConfig, run: RunDir, resume: bool, warn=print):
+    def __init__(self, cfg: RunConfig, run: RunDir, resume: bool):
         # A missing extra is the user's error (they asked for W&B): one line, before training.
         self._wandb = require("wandb", "wandb")
-        self._warn, self.run = warn, None
+        self.run = None
         self.held: set[tuple[str, int]] = set()
         run_id = read_run_id(run) if resume else None
         if run_id is None:
             # From the OS's entropy: the seeded random streams of the run are left alone.
             run_id = secrets.token_hex(6)
             atomic_write_text(run.wandb_run_path, json.dumps({"id": run_id}) + "\n")
-        self.run_id = run_id
         directory = os.environ.get("WANDB_DIR") or run.path
         problem = _unwritable(directory)
         if problem:
@@ -107,19 +105,12 @@ class WandbRun:
         """Whether an earlier process of the W&B run logged ``key``'s series at ``frame``."""
         return (series_of(key), frame) in self.held
 
-    def log_video(self, key: str, path: str, frame: int, step: int) -> None:
-        """A gif or mp4 file as a W&B video."""
+    def log_file(self, key: str, path: str, frame: int, step: int) -> None:
+        """A PNG file as a W&B image, a gif or mp4 file as a W&B video."""
         fmt = os.path.splitext(path)[1].lstrip(".")
-        if self.holds(key, frame):
-            return
-        self._call(lambda: self.run.log({key: self._wandb.Video(path, format=fmt),
-                                         "frame": frame, "step": step}))
-
-    def log_image(self, key: str, path: str, frame: int, step: int) -> None:
-        """A PNG file as a W&B image."""
-        if self.holds(key, frame):
-            return
-        self._call(lambda: self.run.log({key: self._wandb.Image(path), "frame": frame, "step": step}))
+        media = (lambda: self._wandb.Image(path)) if fmt == "png" else (lambda: self._wandb.Video(path, format=fmt))
+        if not self.holds(key, frame):
+            self._call(lambda: self.run.log({key: media(), "frame": frame, "step": step}))
 
     def finish(self) -> None:
         if self.run is not None:
@@ -127,7 +118,7 @@ class WandbRun:
             try:
                 run.finish()
             except Exception as exc:  # noqa: BLE001
-                self._warn(f"imssr: warning: W&B did not finish cleanly: {_first_line(exc)}")
+                print(f"imssr: warning: W&B did not finish cleanly: {_first_line(exc)}", flush=True)
 
     def _call(self, fn) -> None:
         if self.run is None:
@@ -136,16 +127,11 @@ class WandbRun:
             fn()
         except Exception as exc:  # noqa: BLE001 - W&B failing mid-run must not stop training
             self._off(f"a log call failed: {_first_line(exc)}")
-            try:
-                self.run.finish()
-            except Exception:  # noqa: BLE001
-                pass
-            self.run = None
 
     def _off(self, why: str) -> None:
         self.run = None
-        self._warn(f"imssr: warning: Weights & Biases is off for this run: {why}; "
-                   "the CSV logs (and TensorBoard) go on")
+        print(f"imssr: warning: Weights & Biases is off for this run: {why}; the CSV logs (and TensorBoard) go on",
+              flush=True)
 
 
 def _unwritable(directory: str) -> str:
