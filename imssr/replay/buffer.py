@@ -459,19 +459,18 @@ class FrameReplayBuffer:
 
     def _read_npy_header(self, fh, h, fpath: str, n: int) -> None:
         """Read a frame file's ``.npy`` header (hashed into ``h``); it must describe ``n`` frames."""
-        reader = _HashingReader(fh, h)
         try:
-            version = np.lib.format.read_magic(reader)
-            if version == (1, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_1_0(reader)
-            elif version == (2, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_2_0(reader)
-            else:
+            version = np.lib.format.read_magic(fh)
+            if version != (1, 0):  # what np.save and _save_chunk write for frames
                 raise ValueError(f"npy format version {version}")
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
         except Exception as exc:  # noqa: BLE001 - numpy's header parser fails in many ways
             # Named here: the index that lists this file is whole (its seal verified).
-            what = "empty" if not reader.nread else f"its .npy header is unreadable: {exc}"
+            what = "empty" if not fh.tell() else f"its .npy header is unreadable: {exc}"
             raise ReplayFileError(f"replay frames {fpath} are damaged ({what})") from None
+        end = fh.tell()
+        fh.seek(0)
+        h.update(fh.read(end))
         if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
             raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
                                   f"expected {(n, *self.frame_shape)} (uint8)")
@@ -609,17 +608,3 @@ class Packing:
             nbytes = math.prod(shape) * dtype.itemsize
             out.append(buf[offset:offset + nbytes].view(dtype).view(shape))
         return out
-
-
-class _HashingReader:
-    """Reads from ``fh`` and hashes what it returns (for the ``.npy`` header)."""
-
-    def __init__(self, fh, h):
-        self.fh, self.h = fh, h
-        self.nread = 0
-
-    def read(self, size: int = -1) -> bytes:
-        data = self.fh.read(size)
-        self.h.update(data)
-        self.nread += len(data)
-        return data

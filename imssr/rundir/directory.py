@@ -1,16 +1,10 @@
 """A run directory: the one place that knows its layout and its life.
 
-:class:`RunDir` is made of one part per concern, each a class of its own module:
-
-- :class:`~imssr.rundir.layout.RunLayout`: where each file lies (the layout: :mod:`imssr.rundir.layout`);
-- :class:`~imssr.rundir.records.Records`: the config, provenance, status and done records, and
-  how the run stands;
-- :class:`~imssr.rundir.checkpoints.Checkpoints`: which checkpoints there are, the save of one
-  with the replay files it names, and which one a command continues from;
-- :class:`~imssr.rundir.batch.BatchCheckpoints`: a run's part in its batch's set of checkpoints;
-
-and this module's own: what the directory holds of a run, which a fresh start must not replace
-or may clear, and the lock a writer takes.
+:class:`RunDir` is made of one part per concern, each a class of its own module: where each file
+lies (:mod:`~imssr.rundir.layout`), the records and how the run stands (:mod:`~imssr.rundir.records`),
+its checkpoints (:mod:`~imssr.rundir.checkpoint`) and its part in its batch's set of checkpoints
+(:mod:`~imssr.rundir.batch`); and this module's own: what the directory holds of a run, which a
+fresh start must not replace or may clear, and the lock a writer takes.
 
 Readers (``imssr evaluate``, ``analyze``, ``report``, :class:`imssr.api.Run`) take no lock:
 every file they read is replaced atomically.
@@ -24,7 +18,7 @@ from typing import Union
 
 from imssr.errors import ImssrError
 from imssr.rundir.batch import BatchCheckpoints
-from imssr.rundir.checkpoints import Checkpoints
+from imssr.rundir.checkpoint import Checkpoints
 from imssr.rundir.layout import (ANALYSIS_DIR, CHECKPOINT_DIR, CHECKPOINT_GLOB, CSV_LOGS, DONE_FILE, EARLY_PARTS,
                                  EPISODE_GIF, LATEST_CHECKPOINT, LEARNING_CURVE_FILE, MONTAGE_FILE, REPLAY_GLOB,
                                  TB_DIR, VIDEOS_DIR, some)

@@ -149,13 +149,9 @@ class RunLayout:
         """``RUN/name``."""
         return os.path.join(self.path, name)
 
-    @property
-    def exists(self) -> bool:
-        return os.path.isdir(self.path)
-
     def require(self):
         """Self, or a one-line error when the directory does not exist."""
-        if not self.exists:
+        if not os.path.isdir(self.path):
             raise ImssrError(f"run directory not found: {self.path}")
         return self
 
@@ -210,9 +206,3 @@ class RunLayout:
     def replay_path(self, name: str) -> str:
         """``checkpoints/<name>``: a replay file a checkpoint names."""
         return os.path.join(self.checkpoint_dir, name)
-
-
-def numbered_step(path: str) -> Optional[int]:
-    """The agent step in the name of a numbered checkpoint ``step-<step>.pt`` (None: not digits)."""
-    digits = os.path.basename(path)[len("step-"):-len(".pt")]
-    return int(digits) if digits.isdigit() else None
