@@ -262,8 +262,7 @@ class FrameReplayBuffer:
 
     def sample(self, batch_size: int) -> dict[str, np.ndarray]:
         """A batch of stacked transitions as numpy arrays (``obs`` is uint8)."""
-        idx = self.sample_indices(batch_size)
-        return self.gather(idx)
+        return self.gather(self.sample_indices(batch_size))
 
     def sample_batch(self, batch_size: int, device: str | torch.device) -> dict[str, torch.Tensor]:
         """:meth:`sample` as tensors on ``device`` (what an update consumes): the same draws of
@@ -397,30 +396,24 @@ class FrameReplayBuffer:
                         f"replay buffer {path} has capacity {capacity} and frames "
                         f"{tuple(data['frame_shape'])}, expected {self.capacity} and {self.frame_shape}")
                 n = data["actions"].shape[0]
-                self.actions[:n] = data["actions"]
-                self.rewards[:n] = data["rewards"]
-                self.discounts[:n] = data["discounts"]
-                self.step_in_episode[:n] = data["step_in_episode"]
+                for name in ("actions", "rewards", "discounts", "step_in_episode"):
+                    getattr(self, name)[:n] = data[name]
                 self._read_physics(data, path, n)
+                directory, chunks = os.path.dirname(os.path.abspath(path)), []
                 if "frame_chunks" in data.files:
                     chunks = [(int(a), int(b), str(h)) for (a, b), h in
                               zip(data["frame_chunks"], data["frame_chunk_sha256"], strict=True)]
+                    self._read_chunks(path, directory, chunks, written - size, written)
+                elif "frames_sha256" in data.files:  # from before frame files: one file, the ring's first slots
+                    self._read_frame_file(frames_path(path), n, str(data["frames_sha256"]), 0, [(0, n)])
                 else:
-                    chunks = None
-                    if "frames_sha256" not in data.files:
-                        raise ReplayFileError(f"replay buffer {path} holds no checksum of its frames")
-                    expected = str(data["frames_sha256"])
-            directory = os.path.dirname(os.path.abspath(path))
-            if chunks is None:  # an index written before frame files: one file, the ring's first slots
-                self._read_frame_file(frames_path(path), n, expected, 0, [(0, n)])
-            else:
-                self._read_chunks(path, directory, chunks, written - size, written)
+                    raise ReplayFileError(f"replay buffer {path} holds no checksum of its frames")
         except ImssrError:
             raise
         except Exception as exc:  # noqa: BLE001 - zip/npy corruption has many faces
             raise ReplayFileError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
         self.head, self.size, self._open_episode, self.written = head, size, bool(open_), written
-        self._chunks, self._chunks_dir = (chunks, directory) if chunks is not None else ([], None)
+        self._chunks, self._chunks_dir = chunks, directory
         if rng_state is not None:
             self.rng.bit_generator.state = rng_state
 
@@ -519,11 +512,9 @@ class DiskFrameReplayBuffer(FrameReplayBuffer):
             :class:`FrameReplayBuffer`'s.
     """
 
-    def __init__(self, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,
-                 frame_stack: int = 3, seed: int = 0, warn_memory: bool = True, physics_dim: int = 0, *,
-                 path: str, reserve_slots: int = 0):
+    def __init__(self, *args, path: str, reserve_slots: int = 0, **kwargs):
         self.path, self.reserve_slots = path, reserve_slots
-        super().__init__(capacity, frame_shape, action_dim, frame_stack, seed, warn_memory, physics_dim)
+        super().__init__(*args, **kwargs)
 
     def host_nbytes_expected(self) -> int:
         return self.nbytes_expected() - self.capacity * self.frame_nbytes()

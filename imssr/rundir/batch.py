@@ -110,12 +110,6 @@ class BatchCheckpoints(RunLayout):
             return None
         return parts
 
-    def clear_first_set_leftovers(self, parts: list[str]) -> None:
-        """Remove ``parts`` (:func:`first_set_leftovers`) and ``tb/``, so that a batch starts
-        afresh here; the caller holds the lock."""
-        self._remove(parts)
-
-
 def batch_checkpoints(runs: Sequence[RunDir], budget: int) -> list[CheckpointFile]:
     """The checkpoints a batch of runs (``imssr train --seeds/--runs --resume``) continues from,
     one per run, all of one agent step: the newest step at which every run holds a checkpoint that

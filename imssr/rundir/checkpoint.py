@@ -184,7 +184,8 @@ def load_checkpoint(path: str) -> Checkpoint:
         raise ImssrError(f"checkpoint not found: {path}")
     try:
         problem = zip_seal_problem(path)
-        starts_as_zip = _starts_as_zip(path)
+        with open(path, "rb") as fh:
+            starts_as_zip = fh.read(4) == b"PK\x03\x04"  # a checkpoint cut short keeps its start
     except OSError as exc:
         raise CheckpointDamaged(f"cannot read checkpoint {path}: {exc.strerror or exc}", path,
                                 f"unreadable: {exc.strerror or exc}") from None
@@ -199,20 +200,14 @@ def load_checkpoint(path: str) -> Checkpoint:
         raise CheckpointDamaged(f"corrupt checkpoint {path}: cut short (its zip directory is missing)", path,
                                 "unreadable: cut short")
     if problem == UNSEALED:
-        # imssr seals every checkpoint it writes: this one comes from elsewhere.  Listing what its
-        # pickle would import runs none of it.
-        foreign = _foreign_globals(path)
-        what = f"it contains objects of type {', '.join(foreign)}" if foreign else "it carries no imssr checksum"
-        raise CheckpointDamaged(f"{path} is not an imssr checkpoint: {what}", path, "not an imssr checkpoint")
+        # imssr seals every checkpoint it writes: this one comes from elsewhere.
+        raise _not_ours(path, "it carries no imssr checksum")
     try:
         # Never unpickle arbitrary objects: a checkpoint from a shared file system could run code.
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         # The bytes are as sealed, so this is a file imssr did not write, not a damaged one.
-        foreign = _foreign_globals(path)
-        what = (f"it contains objects of type {', '.join(foreign)}" if foreign else
-                f"a weights-only load refuses it ({_unpickler_reason(exc)})")
-        raise CheckpointDamaged(f"{path} is not an imssr checkpoint: {what}", path, "not an imssr checkpoint") from None
+        raise _not_ours(path, f"a weights-only load refuses it ({_unpickler_reason(exc)})") from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CheckpointDamaged(f"corrupt checkpoint {path}: {first}", path, f"unreadable: {first}") from None
@@ -234,26 +229,22 @@ def _unpickler_reason(exc: pickle.UnpicklingError) -> str:
     return reason or type(exc).__name__
 
 
-def _starts_as_zip(path: str) -> bool:
-    """Whether ``path`` begins as a zip archive does (a checkpoint cut short keeps its start)."""
-    with open(path, "rb") as fh:
-        return fh.read(4) == b"PK\x03\x04"
-
-
-def _foreign_globals(path: str) -> list[str]:
-    """The globals (``module.name``) a checkpoint file needs beyond what :func:`load_checkpoint`
-    allows, as the user knows them (``posix.system`` is ``os.system``)."""
+def _not_ours(path: str, otherwise: str) -> CheckpointDamaged:
+    """The error for a file imssr did not write: it names the globals (``module.name``) its pickle
+    needs beyond what :func:`load_checkpoint` allows, as the user knows them (``posix.system`` is
+    ``os.system``), or says ``otherwise`` when it needs none.  Listing them runs none of them."""
     import torch
 
     try:
         names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
     except Exception:  # noqa: BLE001 - a file too damaged to list: reported as corrupt instead
-        return []
-    shown = []
+        names = []
+    shown = set()
     for name in names:
         module, _, attr = name.rpartition(".")
-        shown.append(f"os.{attr}" if module in ("posix", "nt") else name)
-    return sorted(set(shown))
+        shown.add(f"os.{attr}" if module in ("posix", "nt") else name)
+    what = f"it contains objects of type {', '.join(sorted(shown))}" if shown else otherwise
+    return CheckpointDamaged(f"{path} is not an imssr checkpoint: {what}", path, "not an imssr checkpoint")
 
 
 class CheckpointFile(NamedTuple):

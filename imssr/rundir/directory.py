@@ -48,9 +48,7 @@ class RunDir(BatchCheckpoints, Checkpoints, Records):
             for pattern in (LATEST_CHECKPOINT, CHECKPOINT_GLOB, REPLAY_GLOB):
                 parts += sorted(os.path.join(CHECKPOINT_DIR, os.path.basename(p))
                                 for p in glob.glob(os.path.join(self.checkpoint_dir, pattern)))
-        for name in CSV_LOGS:
-            if _has_rows(self.file(name)):
-                parts.append(name)
+        parts += [name for name in CSV_LOGS if _has_rows(self.file(name))]
         for name in (VIDEOS_DIR, ANALYSIS_DIR, MONTAGE_FILE, LEARNING_CURVE_FILE, EPISODE_GIF, DONE_FILE):
             path = self.file(name)
             if os.path.isfile(path) or (os.path.isdir(path) and os.listdir(path)):
@@ -96,11 +94,13 @@ class RunDir(BatchCheckpoints, Checkpoints, Records):
             if results:
                 raise ImssrError(f"{self.path} holds results of a run without a checkpoint ({some(results)}); "
                                  "move it away to train it again")
-            self._remove(parts)
+            self.remove_parts(parts)
             return parts
 
-    def _remove(self, parts: list[str]) -> None:
-        """Remove ``parts`` (names of :meth:`run_parts`) and ``tb/``; the caller holds the lock."""
+    def remove_parts(self, parts: list[str]) -> None:
+        """Remove ``parts`` (names of :meth:`run_parts`) and ``tb/``: what a training that failed before
+        its first checkpoint left (:meth:`discard_unresumable`), or a batch stopped before its first
+        whole set of checkpoints (:func:`~imssr.rundir.first_set_leftovers`); the caller holds the lock."""
         for name in parts + [TB_DIR]:
             path = self.file(name)
             if os.path.isdir(path):

@@ -189,10 +189,7 @@ class RunLayout:
         """``RUN/videos/name``."""
         return os.path.join(self.videos_dir, name)
 
-    @property
-    def latest(self) -> str:
-        """``checkpoints/latest.pt``."""
-        return os.path.join(self.checkpoint_dir, LATEST_CHECKPOINT)
+    latest = _in_run(os.path.join(CHECKPOINT_DIR, LATEST_CHECKPOINT))
 
     def numbered(self, step: int) -> str:
         """``checkpoints/step-<step>.pt``."""
