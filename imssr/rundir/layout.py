@@ -175,6 +175,7 @@ class RunLayout:
     frames_file = _in_run(FRAMES_FILE)
     lock_path = _in_run(LOCK_FILE)
     checkpoint_dir = _in_run(CHECKPOINT_DIR)
+    latest = _in_run(os.path.join(CHECKPOINT_DIR, LATEST_CHECKPOINT))
 
     @property
     def training_logs(self) -> tuple[str, ...]:
@@ -188,8 +189,6 @@ class RunLayout:
     def video_path(self, name: str) -> str:
         """``RUN/videos/name``."""
         return os.path.join(self.videos_dir, name)
-
-    latest = _in_run(os.path.join(CHECKPOINT_DIR, LATEST_CHECKPOINT))
 
     def numbered(self, step: int) -> str:
         """``checkpoints/step-<step>.pt``."""
