@@ -262,8 +262,7 @@ class FrameReplayBuffer:
 
     def sample(self, batch_size: int) -> dict[str, np.ndarray]:
         """A batch of stacked transitions as numpy arrays (``obs`` is uint8)."""
-        idx = self.sample_indices(batch_size)
-        return self.gather(idx)
+        return self.gather(self.sample_indices(batch_size))
 
     def sample_batch(self, batch_size: int, device: str | torch.device) -> dict[str, torch.Tensor]:
         """:meth:`sample` as tensors on ``device`` (what an update consumes): the same draws of
@@ -397,30 +396,24 @@ class FrameReplayBuffer:
                         f"replay buffer {path} has capacity {capacity} and frames "
                         f"{tuple(data['frame_shape'])}, expected {self.capacity} and {self.frame_shape}")
                 n = data["actions"].shape[0]
-                self.actions[:n] = data["actions"]
-                self.rewards[:n] = data["rewards"]
-                self.discounts[:n] = data["discounts"]
-                self.step_in_episode[:n] = data["step_in_episode"]
+                for name in ("actions", "rewards", "discounts", "step_in_episode"):
+                    getattr(self, name)[:n] = data[name]
                 self._read_physics(data, path, n)
+                directory, chunks = os.path.dirname(os.path.abspath(path)), []
                 if "frame_chunks" in data.files:
                     chunks = [(int(a), int(b), str(h)) for (a, b), h in
                               zip(data["frame_chunks"], data["frame_chunk_sha256"], strict=True)]
+                    self._read_chunks(path, directory, chunks, written - size, written)
+                elif "frames_sha256" in data.files:  # from before frame files: one file, the ring's first slots
+                    self._read_frame_file(frames_path(path), n, str(data["frames_sha256"]), 0, [(0, n)])
                 else:
-                    chunks = None
-                    if "frames_sha256" not in data.files:
-                        raise ReplayFileError(f"replay buffer {path} holds no checksum of its frames")
-                    expected = str(data["frames_sha256"])
-            directory = os.path.dirname(os.path.abspath(path))
-            if chunks is None:  # an index written before frame files: one file, the ring's first slots
-                self._read_frame_file(frames_path(path), n, expected, 0, [(0, n)])
-            else:
-                self._read_chunks(path, directory, chunks, written - size, written)
+                    raise ReplayFileError(f"replay buffer {path} holds no checksum of its frames")
         except ImssrError:
             raise
         except Exception as exc:  # noqa: BLE001 - zip/npy corruption has many faces
             raise ReplayFileError(f"corrupt replay buffer file {path}: {type(exc).__name__}: {exc}") from None
         self.head, self.size, self._open_episode, self.written = head, size, bool(open_), written
-        self._chunks, self._chunks_dir = (chunks, directory) if chunks is not None else ([], None)
+        self._chunks, self._chunks_dir = chunks, directory
         if rng_state is not None:
             self.rng.bit_generator.state = rng_state
 
@@ -459,19 +452,18 @@ class FrameReplayBuffer:
 
     def _read_npy_header(self, fh, h, fpath: str, n: int) -> None:
         """Read a frame file's ``.npy`` header (hashed into ``h``); it must describe ``n`` frames."""
-        reader = _HashingReader(fh, h)
         try:
-            version = np.lib.format.read_magic(reader)
-            if version == (1, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_1_0(reader)
-            elif version == (2, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_2_0(reader)
-            else:
+            version = np.lib.format.read_magic(fh)
+            if version != (1, 0):  # what np.save and _save_chunk write for frames
                 raise ValueError(f"npy format version {version}")
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
         except Exception as exc:  # noqa: BLE001 - numpy's header parser fails in many ways
             # Named here: the index that lists this file is whole (its seal verified).
-            what = "empty" if not reader.nread else f"its .npy header is unreadable: {exc}"
+            what = "empty" if not fh.tell() else f"its .npy header is unreadable: {exc}"
             raise ReplayFileError(f"replay frames {fpath} are damaged ({what})") from None
+        end = fh.tell()
+        fh.seek(0)
+        h.update(fh.read(end))
         if shape != (n, *self.frame_shape) or fortran or dtype != np.uint8:
             raise ReplayFileError(f"replay frames {fpath} have shape {shape} ({dtype}), "
                                   f"expected {(n, *self.frame_shape)} (uint8)")
@@ -520,11 +512,9 @@ class DiskFrameReplayBuffer(FrameReplayBuffer):
             :class:`FrameReplayBuffer`'s.
     """
 
-    def __init__(self, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,
-                 frame_stack: int = 3, seed: int = 0, warn_memory: bool = True, physics_dim: int = 0, *,
-                 path: str, reserve_slots: int = 0):
+    def __init__(self, *args, path: str, reserve_slots: int = 0, **kwargs):
         self.path, self.reserve_slots = path, reserve_slots
-        super().__init__(capacity, frame_shape, action_dim, frame_stack, seed, warn_memory, physics_dim)
+        super().__init__(*args, **kwargs)
 
     def host_nbytes_expected(self) -> int:
         return self.nbytes_expected() - self.capacity * self.frame_nbytes()
@@ -609,17 +599,3 @@ class Packing:
             nbytes = math.prod(shape) * dtype.itemsize
             out.append(buf[offset:offset + nbytes].view(dtype).view(shape))
         return out
-
-
-class _HashingReader:
-    """Reads from ``fh`` and hashes what it returns (for the ``.npy`` header)."""
-
-    def __init__(self, fh, h):
-        self.fh, self.h = fh, h
-        self.nread = 0
-
-    def read(self, size: int = -1) -> bytes:
-        data = self.fh.read(size)
-        self.h.update(data)
-        self.nread += len(data)
-        return data

@@ -42,11 +42,9 @@ class TensorFrameReplayBuffer(FrameReplayBuffer):
             :class:`~imssr.replay.buffer.FrameReplayBuffer`'s.
     """
 
-    def __init__(self, capacity: int, frame_shape: tuple[int, int, int], action_dim: int,
-                 frame_stack: int = 3, seed: int = 0, warn_memory: bool = True, physics_dim: int = 0,
-                 device: str | torch.device = "cpu"):
+    def __init__(self, *args, device: str | torch.device = "cpu", **kwargs):
         self.device = torch.device(device)
-        super().__init__(capacity, frame_shape, action_dim, frame_stack, seed, warn_memory, physics_dim)
+        super().__init__(*args, **kwargs)
 
     def host_nbytes_expected(self) -> int:
         on_host = self.device.type == "cpu"

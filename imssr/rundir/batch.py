@@ -12,13 +12,13 @@ import glob
 import os
 from typing import TYPE_CHECKING, Optional, Sequence
 
+import imssr.rundir.checkpoint as checkpoint_file
 from imssr.errors import ImssrError
 from imssr.files import TEMP_GLOB
-from imssr.rundir.checkpoints import CheckpointFile
-from imssr.rundir.layout import CHECKPOINT_DIR, EARLY_PARTS, RunLayout, numbered_step, some
+from imssr.rundir.checkpoint import Checkpoint, CheckpointDamaged, CheckpointFile, load_checkpoint
+from imssr.rundir.layout import CHECKPOINT_DIR, EARLY_PARTS, RunLayout, some
 
 if TYPE_CHECKING:
-    from imssr.rundir.checkpoint import Checkpoint
     from imssr.rundir.directory import RunDir
 
 
@@ -33,18 +33,16 @@ class BatchCheckpoints(RunLayout):
     _kept_replay: Optional[str] = None
     """The replay file ``latest.pt`` names, as this object promoted or returned to it."""
 
-    def stage_checkpoint(self, ckpt: "Checkpoint", replay=None) -> str:
+    def stage_checkpoint(self, ckpt: Checkpoint, replay=None) -> str:
         """The first stage of a batch's checkpoint: ``ckpt`` as ``step-<step>.pt``, after its replay
         files (as :meth:`save_checkpoint` writes them); ``latest.pt``, the older numbered copies and
         the replay files they name stay.  A stage that fails removes what it wrote (the numbered
         copy only when it was not there before).  Returns the numbered copy's path."""
-        from imssr.rundir.checkpoint import write_checkpoint
-
         path = self.numbered(ckpt.step)
         self._staged = (ckpt.step, ckpt.replay_file, os.path.exists(path), self._all_replay_files())
         try:
             self.write_replay(ckpt, replay)
-            write_checkpoint(path, ckpt)
+            checkpoint_file.write_checkpoint(path, ckpt)
         except BaseException:
             self.unstage_checkpoint()
             raise
@@ -66,12 +64,10 @@ class BatchCheckpoints(RunLayout):
     def promote_checkpoint(self) -> str:
         """The second stage, once every run of the batch staged: the staged copy becomes
         ``latest.pt`` (a real copy, written atomically).  Returns ``latest.pt``'s path."""
-        from imssr.rundir.checkpoint import copy_checkpoint
-
         if self._staged is None:
             raise ValueError("no staged checkpoint to promote")
         step, replay_file, _, _ = self._staged
-        copy_checkpoint(self.numbered(step), self.latest)
+        checkpoint_file.copy_checkpoint(self.numbered(step), self.latest)
         self._kept_replay = replay_file
         return self.latest
 
@@ -90,15 +86,12 @@ class BatchCheckpoints(RunLayout):
         ``latest.pt`` and remove what belongs to a checkpoint of the batch that not every run
         completed: the numbered copies of later steps and the replay files ``found`` does not
         name.  Returns ``found`` as ``latest.pt``."""
-        from imssr.rundir.checkpoint import copy_checkpoint
-
         step, replay_file = found.checkpoint.step, found.checkpoint.replay_file
         if found.path != self.latest:
-            copy_checkpoint(found.path, self.latest)
-        for path in self.numbered_checkpoints():
-            later = numbered_step(path)
-            if later is not None and later > step:
-                os.unlink(path)
+            checkpoint_file.copy_checkpoint(found.path, self.latest)
+        for later in self.checkpoint_steps():
+            if later > step:
+                os.unlink(self.numbered(later))
         if not replay_file or all(os.path.exists(p) for p in self.replay_files(replay_file)):
             self.remove_unnamed_replay_files(replay_file)
         self._kept_replay = replay_file
@@ -117,12 +110,6 @@ class BatchCheckpoints(RunLayout):
             return None
         return parts
 
-    def clear_first_set_leftovers(self, parts: list[str]) -> None:
-        """Remove ``parts`` (:func:`first_set_leftovers`) and ``tb/``, so that a batch starts
-        afresh here; the caller holds the lock."""
-        self._remove(parts)
-
-
 def batch_checkpoints(runs: Sequence[RunDir], budget: int) -> list[CheckpointFile]:
     """The checkpoints a batch of runs (``imssr train --seeds/--runs --resume``) continues from,
     one per run, all of one agent step: the newest step at which every run holds a checkpoint that
@@ -134,8 +121,6 @@ def batch_checkpoints(runs: Sequence[RunDir], budget: int) -> list[CheckpointFil
     runs share no step (trained apart: the line says which to bring where alone first, then to
     resume together with ``--steps`` the budget, or the furthest run's step when that is past
     it); a run none of whose checkpoints verifies (:meth:`RunDir.checkpoint`'s error)."""
-    from imssr.rundir.checkpoint import CheckpointDamaged, load_checkpoint
-
     without = [run for run in runs if not run.has_checkpoint()]
     if len(without) == len(runs):
         if len(runs) == 1:
@@ -151,7 +136,7 @@ def batch_checkpoints(runs: Sequence[RunDir], budget: int) -> list[CheckpointFil
         raise ImssrError(f"nothing to resume as one batch: {some(r.path for r in without)} "
                          f"{'holds' if len(without) == 1 else 'hold'} no checkpoint (the batch stopped during its "
                          "first one); start every run afresh: the same command without --resume")
-    loaded: dict[str, "Checkpoint"] = {}
+    loaded: dict[str, Checkpoint] = {}
     damaged: dict[str, str] = {}
     offers: list[dict[int, str]] = []  # per run: agent step -> the file that holds it
     for run in runs:

@@ -1,16 +1,10 @@
 """A run directory: the one place that knows its layout and its life.
 
-:class:`RunDir` is made of one part per concern, each a class of its own module:
-
-- :class:`~imssr.rundir.layout.RunLayout`: where each file lies (the layout: :mod:`imssr.rundir.layout`);
-- :class:`~imssr.rundir.records.Records`: the config, provenance, status and done records, and
-  how the run stands;
-- :class:`~imssr.rundir.checkpoints.Checkpoints`: which checkpoints there are, the save of one
-  with the replay files it names, and which one a command continues from;
-- :class:`~imssr.rundir.batch.BatchCheckpoints`: a run's part in its batch's set of checkpoints;
-
-and this module's own: what the directory holds of a run, which a fresh start must not replace
-or may clear, and the lock a writer takes.
+:class:`RunDir` is made of one part per concern, each a class of its own module: where each file
+lies (:mod:`~imssr.rundir.layout`), the records and how the run stands (:mod:`~imssr.rundir.records`),
+its checkpoints (:mod:`~imssr.rundir.checkpoint`) and its part in its batch's set of checkpoints
+(:mod:`~imssr.rundir.batch`); and this module's own: what the directory holds of a run, which a
+fresh start must not replace or may clear, and the lock a writer takes.
 
 Readers (``imssr evaluate``, ``analyze``, ``report``, :class:`imssr.api.Run`) take no lock:
 every file they read is replaced atomically.
@@ -24,7 +18,7 @@ from typing import Union
 
 from imssr.errors import ImssrError
 from imssr.rundir.batch import BatchCheckpoints
-from imssr.rundir.checkpoints import Checkpoints
+from imssr.rundir.checkpoint import Checkpoints
 from imssr.rundir.layout import (ANALYSIS_DIR, CHECKPOINT_DIR, CHECKPOINT_GLOB, CSV_LOGS, DONE_FILE, EARLY_PARTS,
                                  EPISODE_GIF, LATEST_CHECKPOINT, LEARNING_CURVE_FILE, MONTAGE_FILE, REPLAY_GLOB,
                                  TB_DIR, VIDEOS_DIR, some)
@@ -54,9 +48,7 @@ class RunDir(BatchCheckpoints, Checkpoints, Records):
             for pattern in (LATEST_CHECKPOINT, CHECKPOINT_GLOB, REPLAY_GLOB):
                 parts += sorted(os.path.join(CHECKPOINT_DIR, os.path.basename(p))
                                 for p in glob.glob(os.path.join(self.checkpoint_dir, pattern)))
-        for name in CSV_LOGS:
-            if _has_rows(self.file(name)):
-                parts.append(name)
+        parts += [name for name in CSV_LOGS if _has_rows(self.file(name))]
         for name in (VIDEOS_DIR, ANALYSIS_DIR, MONTAGE_FILE, LEARNING_CURVE_FILE, EPISODE_GIF, DONE_FILE):
             path = self.file(name)
             if os.path.isfile(path) or (os.path.isdir(path) and os.listdir(path)):
@@ -102,11 +94,13 @@ class RunDir(BatchCheckpoints, Checkpoints, Records):
             if results:
                 raise ImssrError(f"{self.path} holds results of a run without a checkpoint ({some(results)}); "
                                  "move it away to train it again")
-            self._remove(parts)
+            self.remove_parts(parts)
             return parts
 
-    def _remove(self, parts: list[str]) -> None:
-        """Remove ``parts`` (names of :meth:`run_parts`) and ``tb/``; the caller holds the lock."""
+    def remove_parts(self, parts: list[str]) -> None:
+        """Remove ``parts`` (names of :meth:`run_parts`) and ``tb/``: what a training that failed before
+        its first checkpoint left (:meth:`discard_unresumable`), or a batch stopped before its first
+        whole set of checkpoints (:func:`~imssr.rundir.first_set_leftovers`); the caller holds the lock."""
         for name in parts + [TB_DIR]:
             path = self.file(name)
             if os.path.isdir(path):

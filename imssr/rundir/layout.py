@@ -149,13 +149,9 @@ class RunLayout:
         """``RUN/name``."""
         return os.path.join(self.path, name)
 
-    @property
-    def exists(self) -> bool:
-        return os.path.isdir(self.path)
-
     def require(self):
         """Self, or a one-line error when the directory does not exist."""
-        if not self.exists:
+        if not os.path.isdir(self.path):
             raise ImssrError(f"run directory not found: {self.path}")
         return self
 
@@ -179,6 +175,7 @@ class RunLayout:
     frames_file = _in_run(FRAMES_FILE)
     lock_path = _in_run(LOCK_FILE)
     checkpoint_dir = _in_run(CHECKPOINT_DIR)
+    latest = _in_run(os.path.join(CHECKPOINT_DIR, LATEST_CHECKPOINT))
 
     @property
     def training_logs(self) -> tuple[str, ...]:
@@ -193,11 +190,6 @@ class RunLayout:
         """``RUN/videos/name``."""
         return os.path.join(self.videos_dir, name)
 
-    @property
-    def latest(self) -> str:
-        """``checkpoints/latest.pt``."""
-        return os.path.join(self.checkpoint_dir, LATEST_CHECKPOINT)
-
     def numbered(self, step: int) -> str:
         """``checkpoints/step-<step>.pt``."""
         return os.path.join(self.checkpoint_dir, NUMBERED_CHECKPOINT.format(step=step))
@@ -210,9 +202,3 @@ class RunLayout:
     def replay_path(self, name: str) -> str:
         """``checkpoints/<name>``: a replay file a checkpoint names."""
         return os.path.join(self.checkpoint_dir, name)
-
-
-def numbered_step(path: str) -> Optional[int]:
-    """The agent step in the name of a numbered checkpoint ``step-<step>.pt`` (None: not digits)."""
-    digits = os.path.basename(path)[len("step-"):-len(".pt")]
-    return int(digits) if digits.isdigit() else None

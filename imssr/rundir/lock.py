@@ -96,10 +96,6 @@ class DirectoryLock:
             remove_crash_log(self.directory)
         self._remove_created()
 
-    @property
-    def held(self) -> bool:
-        return self._fd is not None
-
     def _remove_created(self) -> None:
         for path in reversed(self._created):
             try:

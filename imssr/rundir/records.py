@@ -126,20 +126,17 @@ class Records(RunLayout):
         training is the one to show, and the status then follows from the run's files."""
         if os.path.exists(self.status_path):
             os.unlink(self.status_path)
+        state, error = FINISHED, ""
         try:
             yield
         except BaseException as exc:
             state = (INTERRUPTED if isinstance(exc, (KeyboardInterrupt, *interrupted)) else
                      DIVERGED if isinstance(exc, DivergedError) else FAILED)
-            self._record(state, step(), str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+            error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise
-        self._record(FINISHED, step())
-
-    def _record(self, state: str, step: int, error: str = "") -> None:
-        try:
-            self.write_status(state, step, error)
-        except (ImssrError, OSError):
-            pass
+        finally:
+            with contextlib.suppress(ImssrError, OSError):
+                self.write_status(state, step(), error)
 
     def read_done(self) -> Optional[dict]:
         """The run's done marker, or None (absent, unreadable or without a budget: not done)."""

@@ -101,7 +101,7 @@ class Trainer:
         cfg, start = self.cfg, self._start
         os.makedirs(self.run_dir.path, exist_ok=True)
         if start.leftovers:
-            self.run_dir.clear_first_set_leftovers(start.leftovers)
+            self.run_dir.remove_parts(start.leftovers)
         if start.found is not None and start.rewind:
             self.run_dir.return_to(start.found)
             self.checkpoints.saved_step = self.step  # latest.pt holds this step now
