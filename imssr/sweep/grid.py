@@ -86,16 +86,6 @@ class SweepConfig:
     """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's default.  With
     ``wandb``, runs are grouped under the root's name in W&B and tagged with their algo, task, seed and beta_0."""
 
-    @property
-    def gpus(self) -> float:
-        """GPUs each run gets from its launcher."""
-        return self.slurm_gpus_per_task if self.launcher == "slurm" else self.gpus_per_run
-
-    @property
-    def wandb_group(self) -> str:
-        """The W&B group of the sweep's runs: the root directory's name."""
-        return os.path.basename(os.path.abspath(self.root))
-
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SweepConfig":
         """A sweep from a JSON object whose keys are the CLI's (:func:`setting_key`: ``set`` for
@@ -116,16 +106,6 @@ class SweepConfig:
         # A committed sweep file can keep its runs outside the repository ("~/imssr-runs/...").
         cfg.root = os.path.expanduser(cfg.root)
         return cfg
-
-    def grid_fields(self) -> dict[str, str]:
-        """The run settings the grid gives each run, which an override would silently replace:
-        field -> the sweep setting that sets it."""
-        fields = {"algo": "--algos", "env.task": "--tasks", "train.seed": "--seeds"}
-        if self.beta0:
-            fields["intrinsic.beta0"] = "--beta0"
-        if self.steps is not None or self.frames is not None:
-            fields.update({"train.steps": "--steps/--frames", "train.frames": "--steps/--frames"})
-        return fields
 
     def validate(self) -> "SweepConfig":
         if not self.algos:
@@ -165,16 +145,20 @@ class SweepConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
-        for override in self.overrides:
-            key = override.partition("=")[0].strip()
-            if key in self.grid_fields():
-                raise ImssrError(f"--set {key} is set by the sweep's grid for every run ({self.grid_fields()[key]}); "
+        # The run settings the grid gives each run, which an override would silently replace: field -> its setting.
+        grid = {"algo": "--algos", "env.task": "--tasks", "train.seed": "--seeds"}
+        if self.beta0:
+            grid["intrinsic.beta0"] = "--beta0"
+        if self.steps is not None or self.frames is not None:
+            grid.update(dict.fromkeys(("train.steps", "train.frames"), "--steps/--frames"))
+        for key in (override.partition("=")[0].strip() for override in self.overrides):
+            if key in grid:
+                raise ImssrError(f"--set {key} is set by the sweep's grid for every run ({grid[key]}); "
                                  "leave it out of --set")
         if self.logger:
             logger_fields(self.logger)
-        if self.beta0:
-            if not any(ALGOS[a].intrinsic_enabled for a in self.algos):
-                raise ImssrError("--beta0 needs an algo with an intrinsic reward (im-X, X+rnd, X+re3)")
+        if self.beta0 and not any(ALGOS[a].intrinsic_enabled for a in self.algos):
+            raise ImssrError("--beta0 needs an algo with an intrinsic reward (im-X, X+rnd, X+re3)")
         return self
 
 
@@ -205,11 +189,6 @@ class Run:
         beta = "" if self.beta0 is None else f" beta0={beta_label(self.beta0)}"
         return f"{self.algo} {self.task}{beta} seed {self.seed}"
 
-    def on_gpu(self, cfg: SweepConfig) -> bool:
-        """Whether the run trains on ``cuda`` because the sweep gives it a GPU (an override of
-        ``train.device`` wins)."""
-        return cfg.gpus > 0 and not any(o.startswith("train.device=") for o in cfg.overrides)
-
     def resolved_config(self, cfg: SweepConfig) -> RunConfig:
         """The run's whole config, which the sweep writes to its ``config.json``: the preset of its
         algo and task (a run with a checkpoint: its own ``config.json``), then the sweep's seed,
@@ -219,15 +198,16 @@ class Run:
                                   "train.torch_threads": max(1, int(cfg.cpus_per_run))}
         if cfg.steps is not None:
             values["train.steps"] = cfg.steps
-        if self.on_gpu(cfg):
+        gpus = cfg.slurm_gpus_per_task if cfg.launcher == "slurm" else cfg.gpus_per_run  # from its launcher
+        if gpus > 0 and not any(o.startswith("train.device=") for o in cfg.overrides):  # the override wins
             values["train.device"] = "cuda"
-        if 0 < cfg.gpus < 1:
+        if 0 < gpus < 1:
             # Runs share a GPU: each places its replay frames within its share of the memory.
-            values["train.gpu_share"] = cfg.gpus
+            values["train.gpu_share"] = gpus
         if cfg.logger:
             values.update(logger_fields(cfg.logger))
-            if values["train.wandb"]:
-                values["train.wandb_group"] = cfg.wandb_group
+            if values["train.wandb"]:  # grouped under the root directory's name
+                values["train.wandb_group"] = os.path.basename(os.path.abspath(cfg.root))
         # Planned as `imssr train [--resume]` plans it (no torch: the trainer is not loaded).
         from imssr.training.entry import TrainRequest, plan
 

@@ -118,32 +118,26 @@ class RunAttempt:
         self.start = time.time()
         self.proc: Optional[subprocess.Popen] = None
         self.error = ""
-        if not self.resumed:
-            # An earlier attempt that failed before its first checkpoint left logs that nothing
-            # continues; `imssr train` refuses to start over them, so the sweep clears them (and
-            # nothing else: a finished run, a training still running there, fail the attempt).
-            try:
+        doing = f"clear {run.path} for a fresh attempt"
+        try:
+            if not self.resumed:
+                # An earlier attempt that failed before its first checkpoint left logs that nothing
+                # continues; `imssr train` refuses to start over them, so the sweep clears them (and
+                # nothing else: a finished run, a training still running there, fail the attempt).
                 for r in self.runs:
                     r.discard_unresumable()
-            except ImssrError as exc:
-                self.error = str(exc)
-                return
-            except OSError as exc:
-                self.error = f"cannot clear {run.path} for a fresh attempt: {exc.strerror or exc}"
-                return
-        header = (f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
-                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
-        try:
+            doing = f"write {self.log_path}"
             for other in self.runs[1:]:
                 _open_log(other.sweep_log, f"==> attempt {attempt}: trained in one process with "
                                            f"{len(self.runs) - 1} other run(s); its output is in {self.log_path}\n"
                           ).close()
-            log = _open_log(self.log_path, header)
-        except ImssrError as exc:  # a full disk, a link: the attempt fails in one line, nothing started
+            log = _open_log(self.log_path, f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
+                                           f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
+        except ImssrError as exc:  # a full disk, a link, a run not ours to clear: one line, nothing started
             self.error = str(exc)
             return
         except OSError as exc:  # a directory in its place, no permission
-            self.error = f"cannot write {self.log_path}: {exc.strerror or exc}"
+            self.error = f"cannot {doing}: {exc.strerror or exc}"
             return
         with log:
             self.offset = log.tell()
@@ -242,16 +236,14 @@ def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[in
     retry), ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``:
     as in :class:`RunAttempt`.
     """
-    attempt_ = None
+    attempt_ = RunAttempt(list(run_dirs), steps, attempt, niceness)
     try:
-        attempt_ = RunAttempt(list(run_dirs), steps, attempt, niceness)
         # In steps: a Ray cancel interrupts the main thread between bytecodes, which a
         # blocking wait for the child never returns to.
         while not attempt_.ended:
             time.sleep(0.5)
     finally:
-        if attempt_ is not None:
-            attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
+        attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
     return attempt_.finish_all()
 
 
