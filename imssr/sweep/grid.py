@@ -108,20 +108,13 @@ class SweepConfig:
         return cfg
 
     def validate(self) -> "SweepConfig":
-        if not self.algos:
-            raise ImssrError("a sweep needs --algos (see imssr algos)")
-        if not self.tasks:
-            raise ImssrError("a sweep needs --tasks (see imssr tasks)")
-        if not self.seeds:
-            raise ImssrError("a sweep needs --seeds")
-        for algo in self.algos:
-            get_algo(algo)
-        for task in self.tasks:
-            get_task(task)
         checks = [
-            (bool(self.root.strip()), 'the sweep\'s root is empty: give --root DIR (or "root" in the sweep file)'),
             (self.steps is None or self.frames is None,
              "give the budget as --steps (agent steps) or --frames, not both"),
+            (bool(self.algos), "a sweep needs --algos (see imssr algos)"),
+            (bool(self.tasks), "a sweep needs --tasks (see imssr tasks)"),
+            (bool(self.seeds), "a sweep needs --seeds"),
+            (bool(self.root.strip()), 'the sweep\'s root is empty: give --root DIR (or "root" in the sweep file)'),
             (self.steps is None or self.steps >= 1, "--steps must be >= 1"),
             (self.frames is None or self.frames >= 1, "--frames must be >= 1"),
             (self.retries >= 0, "--retries must be >= 0"),
@@ -145,6 +138,10 @@ class SweepConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
+        for algo in self.algos:
+            get_algo(algo)
+        for task in self.tasks:
+            get_task(task)
         # The run settings the grid gives each run, which an override would silently replace: field -> its setting.
         grid = {"algo": "--algos", "env.task": "--tasks", "train.seed": "--seeds"}
         if self.beta0:
@@ -267,10 +264,7 @@ def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
     for item in items:
         if isinstance(item, bool):
             raise ImssrError(f"bad seed {item!r}")
-        if isinstance(item, int):
-            seeds.append(_seed(item))
-            continue
-        part = str(item).strip()
+        part = str(item).strip()  # an integer of a JSON list too
         if not part:
             # 1,,2 or 1,2, is a seed left out or a typo: which one is not ours to guess.
             raise ImssrError(f"bad seeds {text!r}: an empty item between commas; "
@@ -381,8 +375,6 @@ def sweep_config(values: dict[str, Any], file: Optional[str] = None) -> SweepCon
     """The sweep ``imssr sweep`` describes, not yet validated: the sweep file's settings (no file:
     the defaults), then ``values`` over them, a field's name -> the value of its flag for each flag
     given.  ``overrides`` add to the file's, and a budget in either unit replaces the file's."""
-    if values.get("steps") is not None and values.get("frames") is not None:
-        raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
     cfg = load_sweep_file(file) if file else SweepConfig()
     if "steps" in values or "frames" in values:
         cfg.steps = cfg.frames = None

@@ -100,20 +100,16 @@ class RunAttempt:
         # during its first one) it starts afresh, which clears what that left.
         wait_for_writers(self.runs)
         self.resumed = all(r.has_checkpoint() for r in self.runs)
-        if len(self.runs) == 1:
-            cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
-        else:
-            cmd = [sys.executable, "-m", "imssr", "train", "--runs", *(r.path for r in self.runs)]
-        if self.resumed:
-            cmd.append("--resume")
+        what = ["--config", run.config_path, "--out", run.path] if len(self.runs) == 1 else \
+            ["--runs", *(r.path for r in self.runs)]
+        cmd = [sys.executable, "-m", "imssr", "train", *what] + (["--resume"] if self.resumed else [])
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         # One thread pool per reserved CPU (the config's train.torch_threads, which the sweep sets
         # from --cpus-per-run) for every library, not torch's alone: the default (every core) makes
         # parallel runs spin against each other, 10x slower on a shared 2-core machine.
         threads = _torch_threads(run)
         if threads:
-            for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-                env[var] = str(threads)
+            env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
         self.log_path = run.sweep_log
         self.start = time.time()
         self.proc: Optional[subprocess.Popen] = None
