@@ -251,16 +251,14 @@ class SlurmLauncher(Launcher):
     def start(self) -> None:
         submitit = require("submitit", "slurm")
         c = self.cfg
-        folder = os.path.join(SweepDir(c.root).submitit_dir, "%j")
-        self.executor = submitit.AutoExecutor(folder=folder, cluster=self.cluster)
+        self.executor = submitit.AutoExecutor(folder=os.path.join(SweepDir(c.root).submitit_dir, "%j"),
+                                              cluster=self.cluster)
         params: dict[str, Any] = dict(name="imssr", timeout_min=c.slurm_time or SLURM_DEFAULT_MINUTES,
                                       cpus_per_task=max(1, math.ceil(c.cpus_per_run)), tasks_per_node=1, nodes=1)
         if self.cluster == "slurm":
-            params.update(slurm_array_parallelism=c.slurm_array_parallelism or 256)
-            if c.slurm_partition:
-                params["slurm_partition"] = c.slurm_partition
-            if c.slurm_gpus_per_task:
-                params["slurm_gpus_per_task"] = c.slurm_gpus_per_task
+            optional = {"slurm_partition": c.slurm_partition, "slurm_gpus_per_task": c.slurm_gpus_per_task}
+            params.update({k: v for k, v in optional.items() if v},  # unset: the cluster's default
+                          slurm_array_parallelism=c.slurm_array_parallelism or 256)
         self.executor.update_parameters(**params)
 
     def capacity(self) -> int:

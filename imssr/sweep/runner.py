@@ -22,11 +22,14 @@ from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.files import disk_full_as_error, open_append
 from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir, as_run_dir
 
-# Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
-# second signal (or one before its handlers were in place) ended it; it resumes either way.
 STOP_GRACE_S = 30
 """Seconds a stopped training has to finish its agent step and checkpoint before SIGKILL."""
+# Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
+# second signal (or one before its handlers were in place) ended it; it resumes either way.
 INTERRUPTED_STATUSES = (INTERRUPTED_EXIT, -signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM)
+WRITER_WAIT_S = STOP_GRACE_S
+"""Seconds an attempt waits for a process that still holds its run's lock (a training of a killed
+sweep, stopping with its checkpoint) before it starts and lets the training refuse in one line."""
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
@@ -98,7 +101,10 @@ class RunAttempt:
         # of a killed sweep may still be stopping here, writing the checkpoint this one resumes.
         # A packed process resumes when every run has a checkpoint; before that (a batch stopped
         # during its first one) it starts afresh, which clears what that left.
-        wait_for_writers(self.runs)
+        deadline = time.monotonic() + WRITER_WAIT_S
+        for r in self.runs:
+            while r.in_use() and time.monotonic() < deadline:
+                time.sleep(0.2)
         self.resumed = all(r.has_checkpoint() for r in self.runs)
         what = ["--config", run.config_path, "--out", run.path] if len(self.runs) == 1 else \
             ["--runs", *(r.path for r in self.runs)]
@@ -206,19 +212,6 @@ class RunAttempt:
             except (ImssrError, OSError):  # a full disk: the result still says what happened
                 pass
         return result
-
-
-WRITER_WAIT_S = STOP_GRACE_S
-"""Seconds an attempt waits for a process that still holds its run's lock (a training of a killed
-sweep, stopping with its checkpoint) before it starts and lets the training refuse in one line."""
-
-
-def wait_for_writers(runs: list[RunDir]) -> None:
-    """Wait, up to :data:`WRITER_WAIT_S` seconds in all, until no process holds the lock of any of ``runs``."""
-    deadline = time.monotonic() + WRITER_WAIT_S
-    for run in runs:
-        while run.in_use() and time.monotonic() < deadline:
-            time.sleep(0.2)
 
 
 def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
