@@ -233,10 +233,12 @@ class SweepDir:
             statuses = self._rows(self.status_path, "sweep status", status)
         except (ImssrError, OSError):
             return {}
-        failed = [st for st in statuses
-                  if st is not None and st.state == "failed" and st.run.run_dir.read_done() is None]
-        return {os.path.abspath(st.run.dir): (st.errors[-1] if st.errors else "").removeprefix("imssr: error: ")
-                or "no error recorded" for st in failed}
+        out = {}
+        for st in statuses:
+            if st is not None and st.state == "failed" and st.run.run_dir.read_done() is None:
+                last = st.errors[-1] if st.errors else ""
+                out[os.path.abspath(st.run.dir)] = last.removeprefix("imssr: error: ") or "no error recorded"
+        return out
 
 
 def _iso(t: float) -> str:

@@ -262,9 +262,7 @@ def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
     items = text if isinstance(text, list) else str(text).split(",")
     seeds: list[int] = []
     for item in items:
-        if isinstance(item, bool):
-            raise ImssrError(f"bad seed {item!r}")
-        part = str(item).strip()  # an integer of a JSON list too
+        part = str(item).strip()  # an integer of a JSON list too (true is "True": a bad seed)
         if not part:
             # 1,,2 or 1,2, is a seed left out or a typo: which one is not ours to guess.
             raise ImssrError(f"bad seeds {text!r}: an empty item between commas; "
@@ -274,10 +272,7 @@ def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
         if match is None:
             raise ImssrError(f"bad seeds {part!r}: expected integers like 1,2,3 or a range like 1-5")
         a = _seed(int(match[1]))
-        if match[2] is None:
-            seeds.append(a)
-            continue
-        b = _seed(int(match[2]))
+        b = a if match[2] is None else _seed(int(match[2]))  # a seed is the range a-a
         if a > b:
             raise ImssrError(f"bad seed range {part!r}: {a} > {b}")
         # Checked before the list is built: a typo like 5-3000000000 would fill memory.

@@ -147,7 +147,7 @@ class RayLauncher(Launcher):
 
     def start(self) -> None:
         cfg = self.cfg
-        self.ray = ray = _import_ray(cfg)
+        ray = _import_ray(cfg)
         # Workers' output goes to each run's sweep.log, not to the driver's terminal.
         common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
                       configure_logging=True)
@@ -175,8 +175,8 @@ class RayLauncher(Launcher):
             ray.shutdown()
             raise ImssrError(f"the local Ray took {node_ip} as its address instead of loopback, so it would "
                              f"listen beyond this machine; it was shut down before running anything")
-        self.task = ray.remote(execute_runs).options(num_cpus=cfg.cpus_per_run, num_gpus=cfg.gpus_per_run,
-                                                     max_retries=0)
+        self.ray, self.task = ray, ray.remote(execute_runs).options(num_cpus=cfg.cpus_per_run,
+                                                                    num_gpus=cfg.gpus_per_run, max_retries=0)
 
     def capacity(self) -> int:
         """Runs that fit at once in the cluster's CPUs (and GPUs when runs need them)."""

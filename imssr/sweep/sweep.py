@@ -228,13 +228,14 @@ def pack(queued: list[RunStatus], runs_per_process: int) -> list[list[RunStatus]
     groups: list[list[RunStatus]] = []
     open_groups: dict[tuple, list[tuple[list[RunStatus], list]]] = {}
     for st in queued:
-        run_dir = st.run.run_dir
-        alone = runs_per_process == 1 or agent_refusal(st.config.agent)
-        steps = [] if alone else run_dir.checkpoint_steps() if run_dir.has_checkpoint() else [0]
-        if not steps:  # alone, or a checkpoint without a numbered copy: its step is not known here
+        if runs_per_process == 1 or agent_refusal(st.config.agent):
             groups.append([st])
             continue
         shared, own = batch_key(st.config)
+        steps = st.run.run_dir.checkpoint_steps() if st.run.run_dir.has_checkpoint() else [0]
+        if not steps:  # a checkpoint without a numbered copy: its step is not known here
+            groups.append([st])
+            continue
         key = (shared, steps[-1], st.steps)
         for group, owns in open_groups.get(key, []):
             if (runs_per_process == 0 or len(group) < runs_per_process) and (own is None or owns[0] in (None, own)):
