@@ -186,7 +186,7 @@ class SweepDir:
 
         return self._rows(self.plan_path, "sweep plan", planned)
 
-    def _rows(self, path: str, what: str, read: Callable[[Any, str], Any] = lambda row, _: row) -> list:
+    def _rows(self, path: str, what: str, read: Callable[[Any, str], Any]) -> list:
         """``read(row, "run N")`` of each row of the file's ``runs`` ([] when there is no file); a
         one-line error naming the file as ``what`` when it is damaged."""
         if not os.path.exists(path):
@@ -223,20 +223,21 @@ class SweepDir:
     def failed_runs(self) -> dict[str, str]:
         """The runs the last sweep gave up on and that have not finished since: run directory
         (absolute) -> the last attempt's error line.  An unreadable file or row lists none."""
+        def status(row: Any, what: str) -> Optional[RunStatus]:
+            try:
+                return RunStatus.from_dict(row, self.path, what)
+            except ValueError:
+                return None
+
         try:
-            rows = self._rows(self.status_path, "sweep status")
+            statuses = self._rows(self.status_path, "sweep status", status)
         except (ImssrError, OSError):
             return {}
         out = {}
-        for i, row in enumerate(rows):
-            try:
-                st = RunStatus.from_dict(row, self.path, f"run {i + 1}")
-            except ValueError:
-                continue
-            if st.state != "failed" or st.run.run_dir.read_done() is not None:
-                continue
-            last = st.errors[-1] if st.errors else ""
-            out[os.path.abspath(st.run.dir)] = last.removeprefix("imssr: error: ") or "no error recorded"
+        for st in statuses:
+            if st is not None and st.state == "failed" and st.run.run_dir.read_done() is None:
+                last = st.errors[-1] if st.errors else ""
+                out[os.path.abspath(st.run.dir)] = last.removeprefix("imssr: error: ") or "no error recorded"
         return out
 
 

@@ -86,16 +86,6 @@ class SweepConfig:
     """Every run's ``imssr train --logger`` (e.g. ``csv,tensorboard,wandb``); empty: train's default.  With
     ``wandb``, runs are grouped under the root's name in W&B and tagged with their algo, task, seed and beta_0."""
 
-    @property
-    def gpus(self) -> float:
-        """GPUs each run gets from its launcher."""
-        return self.slurm_gpus_per_task if self.launcher == "slurm" else self.gpus_per_run
-
-    @property
-    def wandb_group(self) -> str:
-        """The W&B group of the sweep's runs: the root directory's name."""
-        return os.path.basename(os.path.abspath(self.root))
-
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "SweepConfig":
         """A sweep from a JSON object whose keys are the CLI's (:func:`setting_key`: ``set`` for
@@ -117,31 +107,14 @@ class SweepConfig:
         cfg.root = os.path.expanduser(cfg.root)
         return cfg
 
-    def grid_fields(self) -> dict[str, str]:
-        """The run settings the grid gives each run, which an override would silently replace:
-        field -> the sweep setting that sets it."""
-        fields = {"algo": "--algos", "env.task": "--tasks", "train.seed": "--seeds"}
-        if self.beta0:
-            fields["intrinsic.beta0"] = "--beta0"
-        if self.steps is not None or self.frames is not None:
-            fields.update({"train.steps": "--steps/--frames", "train.frames": "--steps/--frames"})
-        return fields
-
     def validate(self) -> "SweepConfig":
-        if not self.algos:
-            raise ImssrError("a sweep needs --algos (see imssr algos)")
-        if not self.tasks:
-            raise ImssrError("a sweep needs --tasks (see imssr tasks)")
-        if not self.seeds:
-            raise ImssrError("a sweep needs --seeds")
-        for algo in self.algos:
-            get_algo(algo)
-        for task in self.tasks:
-            get_task(task)
         checks = [
-            (bool(self.root.strip()), 'the sweep\'s root is empty: give --root DIR (or "root" in the sweep file)'),
             (self.steps is None or self.frames is None,
              "give the budget as --steps (agent steps) or --frames, not both"),
+            (bool(self.algos), "a sweep needs --algos (see imssr algos)"),
+            (bool(self.tasks), "a sweep needs --tasks (see imssr tasks)"),
+            (bool(self.seeds), "a sweep needs --seeds"),
+            (bool(self.root.strip()), 'the sweep\'s root is empty: give --root DIR (or "root" in the sweep file)'),
             (self.steps is None or self.steps >= 1, "--steps must be >= 1"),
             (self.frames is None or self.frames >= 1, "--frames must be >= 1"),
             (self.retries >= 0, "--retries must be >= 0"),
@@ -165,16 +138,24 @@ class SweepConfig:
         for ok, message in checks:
             if not ok:
                 raise ImssrError(message)
-        for override in self.overrides:
-            key = override.partition("=")[0].strip()
-            if key in self.grid_fields():
-                raise ImssrError(f"--set {key} is set by the sweep's grid for every run ({self.grid_fields()[key]}); "
+        for algo in self.algos:
+            get_algo(algo)
+        for task in self.tasks:
+            get_task(task)
+        # The run settings the grid gives each run, which an override would silently replace: field -> its setting.
+        grid = {"algo": "--algos", "env.task": "--tasks", "train.seed": "--seeds"}
+        if self.beta0:
+            grid["intrinsic.beta0"] = "--beta0"
+        if self.steps is not None or self.frames is not None:
+            grid.update(dict.fromkeys(("train.steps", "train.frames"), "--steps/--frames"))
+        for key in (override.partition("=")[0].strip() for override in self.overrides):
+            if key in grid:
+                raise ImssrError(f"--set {key} is set by the sweep's grid for every run ({grid[key]}); "
                                  "leave it out of --set")
         if self.logger:
             logger_fields(self.logger)
-        if self.beta0:
-            if not any(ALGOS[a].intrinsic_enabled for a in self.algos):
-                raise ImssrError("--beta0 needs an algo with an intrinsic reward (im-X, X+rnd, X+re3)")
+        if self.beta0 and not any(ALGOS[a].intrinsic_enabled for a in self.algos):
+            raise ImssrError("--beta0 needs an algo with an intrinsic reward (im-X, X+rnd, X+re3)")
         return self
 
 
@@ -205,11 +186,6 @@ class Run:
         beta = "" if self.beta0 is None else f" beta0={beta_label(self.beta0)}"
         return f"{self.algo} {self.task}{beta} seed {self.seed}"
 
-    def on_gpu(self, cfg: SweepConfig) -> bool:
-        """Whether the run trains on ``cuda`` because the sweep gives it a GPU (an override of
-        ``train.device`` wins)."""
-        return cfg.gpus > 0 and not any(o.startswith("train.device=") for o in cfg.overrides)
-
     def resolved_config(self, cfg: SweepConfig) -> RunConfig:
         """The run's whole config, which the sweep writes to its ``config.json``: the preset of its
         algo and task (a run with a checkpoint: its own ``config.json``), then the sweep's seed,
@@ -219,15 +195,16 @@ class Run:
                                   "train.torch_threads": max(1, int(cfg.cpus_per_run))}
         if cfg.steps is not None:
             values["train.steps"] = cfg.steps
-        if self.on_gpu(cfg):
+        gpus = cfg.slurm_gpus_per_task if cfg.launcher == "slurm" else cfg.gpus_per_run  # from its launcher
+        if gpus > 0 and not any(o.startswith("train.device=") for o in cfg.overrides):  # the override wins
             values["train.device"] = "cuda"
-        if 0 < cfg.gpus < 1:
+        if 0 < gpus < 1:
             # Runs share a GPU: each places its replay frames within its share of the memory.
-            values["train.gpu_share"] = cfg.gpus
+            values["train.gpu_share"] = gpus
         if cfg.logger:
             values.update(logger_fields(cfg.logger))
-            if values["train.wandb"]:
-                values["train.wandb_group"] = cfg.wandb_group
+            if values["train.wandb"]:  # grouped under the root directory's name
+                values["train.wandb_group"] = os.path.basename(os.path.abspath(cfg.root))
         # Planned as `imssr train [--resume]` plans it (no torch: the trainer is not loaded).
         from imssr.training.entry import TrainRequest, plan
 
@@ -285,12 +262,7 @@ def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
     items = text if isinstance(text, list) else str(text).split(",")
     seeds: list[int] = []
     for item in items:
-        if isinstance(item, bool):
-            raise ImssrError(f"bad seed {item!r}")
-        if isinstance(item, int):
-            seeds.append(_seed(item))
-            continue
-        part = str(item).strip()
+        part = str(item).strip()  # an integer of a JSON list too (true is "True": a bad seed)
         if not part:
             # 1,,2 or 1,2, is a seed left out or a typo: which one is not ours to guess.
             raise ImssrError(f"bad seeds {text!r}: an empty item between commas; "
@@ -300,10 +272,7 @@ def parse_seeds(text: Any, repeats: bool = True) -> list[int]:
         if match is None:
             raise ImssrError(f"bad seeds {part!r}: expected integers like 1,2,3 or a range like 1-5")
         a = _seed(int(match[1]))
-        if match[2] is None:
-            seeds.append(a)
-            continue
-        b = _seed(int(match[2]))
+        b = a if match[2] is None else _seed(int(match[2]))  # a seed is the range a-a
         if a > b:
             raise ImssrError(f"bad seed range {part!r}: {a} > {b}")
         # Checked before the list is built: a typo like 5-3000000000 would fill memory.
@@ -401,8 +370,6 @@ def sweep_config(values: dict[str, Any], file: Optional[str] = None) -> SweepCon
     """The sweep ``imssr sweep`` describes, not yet validated: the sweep file's settings (no file:
     the defaults), then ``values`` over them, a field's name -> the value of its flag for each flag
     given.  ``overrides`` add to the file's, and a budget in either unit replaces the file's."""
-    if values.get("steps") is not None and values.get("frames") is not None:
-        raise ImssrError("give the budget as --steps (agent steps) or --frames, not both")
     cfg = load_sweep_file(file) if file else SweepConfig()
     if "steps" in values or "frames" in values:
         cfg.steps = cfg.frames = None

@@ -32,11 +32,6 @@ LOCAL_RAY_ENV = {
     # this when it is imported; its processes inherit it.
     "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",
 }
-LOCAL_RAY_DEFAULT_ENV = {
-    # The token authentication Ray gives a new local cluster anyway, stated: Ray announces the
-    # mode on the sweep's output only when it chose it itself.  A mode the user set stays.
-    "RAY_AUTH_MODE": "token",
-}
 SLURM_DEFAULT_MINUTES = 24 * 60
 """A SLURM job's time limit when ``--slurm-time`` is not given."""
 
@@ -53,8 +48,10 @@ class Attempt:
     attempt: int
     """The attempt's number (1 for the first of this sweep)."""
 
-    def failed(self, error: str) -> list[dict]:
-        """The result of each run when the attempt itself failed with ``error``."""
+    def failed(self, what: str, exc: BaseException) -> list[dict]:
+        """The result of each run when the attempt itself failed (``what``: the task or job) with ``exc``."""
+        text = str(exc).strip().splitlines()
+        error = f"{what} failed: {text[0] if text else type(exc).__name__}"
         return [{"ok": False, "error": error} for _ in self.run_dirs]
 
 
@@ -149,12 +146,51 @@ class RayLauncher(Launcher):
         _import_ray(self.cfg)
 
     def start(self) -> None:
-        self.ray = _init_ray(self.cfg)
-        self.task = self.ray.remote(execute_runs).options(num_cpus=self.cfg.cpus_per_run,
-                                                         num_gpus=self.cfg.gpus_per_run, max_retries=0)
+        cfg = self.cfg
+        ray = _import_ray(cfg)
+        # Workers' output goes to each run's sweep.log, not to the driver's terminal.
+        common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                      configure_logging=True)
+        try:
+            if cfg.address:
+                _check_reachable(cfg.address)
+                ray.init(address=cfg.address, **common)
+            else:
+                # "local": always a fresh instance of our own, never a cluster that happens to run
+                # on this machine (ray.init() with no address would attach to it).
+                ray.init(address="local", object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            first = str(exc).splitlines()[0] if str(exc) else repr(exc)
+            if not cfg.address:
+                raise ImssrError(f"could not start a local Ray: {first}") from None
+            # A head started by `ray start` (Ray >= 2.59) requires its token, but a driver that
+            # connects by address only sends one with RAY_AUTH_MODE=token: say so in the error.
+            hint = "" if os.environ.get("RAY_AUTH_MODE") == "token" else \
+                " (is it running? a head started by `ray start` needs RAY_AUTH_MODE=token here too)"
+            raise ImssrError(f"could not connect to the Ray cluster at {cfg.address}: {first}{hint}") from None
+        # Ray binds its servers to loopback only when the node's address is loopback: a Ray that
+        # took another address is stopped before it runs anything.
+        node_ip = None if cfg.address else ray.util.get_node_ip_address()
+        if node_ip is not None and not _is_loopback(node_ip):
+            ray.shutdown()
+            raise ImssrError(f"the local Ray took {node_ip} as its address instead of loopback, so it would "
+                             f"listen beyond this machine; it was shut down before running anything")
+        self.ray, self.task = ray, ray.remote(execute_runs).options(num_cpus=cfg.cpus_per_run,
+                                                                    num_gpus=cfg.gpus_per_run, max_retries=0)
 
     def capacity(self) -> int:
-        return _capacity(self.ray, self.cfg)
+        """Runs that fit at once in the cluster's CPUs (and GPUs when runs need them)."""
+        cfg, resources = self.cfg, self.ray.cluster_resources()
+        fits = int(resources.get("CPU", 1) // cfg.cpus_per_run)
+        if cfg.gpus_per_run > 0:
+            gpus = resources.get("GPU", 0)
+            if gpus < cfg.gpus_per_run:
+                raise ImssrError(f"--gpus-per-run {cfg.gpus_per_run} but the Ray cluster has {gpus:g} GPUs")
+            fits = min(fits, int(gpus // cfg.gpus_per_run))
+        if fits < 1:
+            raise ImssrError(f"--cpus-per-run {cfg.cpus_per_run} exceeds the Ray cluster's "
+                             f"{resources.get('CPU', 0):g} CPUs")
+        return min(fits, cfg.max_parallel) if cfg.max_parallel else fits
 
     def submit(self, attempts: list[Attempt]) -> list[Any]:
         handles = [self.task.remote(list(a.run_dirs), a.steps, a.attempt, sweep_niceness(self.cfg)) for a in attempts]
@@ -170,8 +206,7 @@ class RayLauncher(Launcher):
         try:
             return self.ray.get(handle)
         except self.ray.exceptions.RayError as exc:
-            text = str(exc).strip().splitlines()
-            return attempt.failed(f"Ray task failed: {text[0] if text else type(exc).__name__}")
+            return attempt.failed("Ray task", exc)
 
     def stop(self, handles: list[Any]) -> None:
         # Each training gets one SIGTERM and checkpoints where it is; wait for that before
@@ -216,16 +251,14 @@ class SlurmLauncher(Launcher):
     def start(self) -> None:
         submitit = require("submitit", "slurm")
         c = self.cfg
-        folder = os.path.join(SweepDir(c.root).submitit_dir, "%j")
-        self.executor = submitit.AutoExecutor(folder=folder, cluster=self.cluster)
+        self.executor = submitit.AutoExecutor(folder=os.path.join(SweepDir(c.root).submitit_dir, "%j"),
+                                              cluster=self.cluster)
         params: dict[str, Any] = dict(name="imssr", timeout_min=c.slurm_time or SLURM_DEFAULT_MINUTES,
                                       cpus_per_task=max(1, math.ceil(c.cpus_per_run)), tasks_per_node=1, nodes=1)
         if self.cluster == "slurm":
-            params.update(slurm_array_parallelism=c.slurm_array_parallelism or 256)
-            if c.slurm_partition:
-                params["slurm_partition"] = c.slurm_partition
-            if c.slurm_gpus_per_task:
-                params["slurm_gpus_per_task"] = c.slurm_gpus_per_task
+            optional = {"slurm_partition": c.slurm_partition, "slurm_gpus_per_task": c.slurm_gpus_per_task}
+            params.update({k: v for k, v in optional.items() if v},  # unset: the cluster's default
+                          slurm_array_parallelism=c.slurm_array_parallelism or 256)
         self.executor.update_parameters(**params)
 
     def capacity(self) -> int:
@@ -247,8 +280,7 @@ class SlurmLauncher(Launcher):
         try:
             return handle.result()
         except Exception as exc:  # noqa: BLE001 - a job SLURM lost, cancelled or timed out
-            text = str(exc).strip().splitlines()
-            return attempt.failed(f"SLURM job {handle.job_id} failed: {text[0] if text else type(exc).__name__}")
+            return attempt.failed(f"SLURM job {handle.job_id}", exc)
 
     def stop(self, handles: list[Any]) -> None:
         for job in handles:
@@ -279,60 +311,22 @@ def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
 
 
 def _import_ray(cfg: SweepConfig):
-    """``import ray``, with the environment the sweep's Ray needs set first (Ray reads it when
-    it is imported, and its processes inherit it)."""
+    """``import ray``, with the environment the sweep's Ray needs set first (Ray reads it when it is
+    imported, and its processes inherit it): a local Ray gets :data:`LOCAL_RAY_ENV`, and a process
+    that imported ray without it fails in one line, since that ray would listen on every interface."""
     # No usage-stats prompt or upload from a batch job (and none on machines without network).
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     if not cfg.address:
-        _confine_local_ray()
-    return require("ray", "sweep")
-
-
-def _confine_local_ray() -> None:
-    """Set :data:`LOCAL_RAY_ENV` (and :data:`LOCAL_RAY_DEFAULT_ENV`) for a local Ray; fail in one
-    line if this process imported ray without it, since that ray would listen on every interface."""
-    missing = {k: v for k, v in LOCAL_RAY_ENV.items() if os.environ.get(k) != v}
-    if sys.modules.get("ray") is not None:  # (None: an import of ray that is blocked)
-        if missing:
-            settings = " ".join(f"{k}={v}" for k, v in missing.items())
-            raise ImssrError(f"a local sweep keeps Ray on loopback, which needs {settings} before ray is "
+        missing = " ".join(f"{k}={v}" for k, v in LOCAL_RAY_ENV.items() if os.environ.get(k) != v)
+        if sys.modules.get("ray") is None:  # (None too: an import of ray that is blocked)
+            # The token authentication Ray gives a new local cluster anyway, stated: Ray announces the
+            # mode on the sweep's output only when it chose it itself.  A mode the user set stays.
+            os.environ.setdefault("RAY_AUTH_MODE", "token")
+            os.environ.update(LOCAL_RAY_ENV)
+        elif missing:  # ray has read its settings: set now, they would differ in the driver and Ray's processes
+            raise ImssrError(f"a local sweep keeps Ray on loopback, which needs {missing} before ray is "
                              f"imported, but this process imported ray without it: set it in the environment")
-        return  # ray has read its settings: a mode set now would differ between the driver and Ray's processes
-    for key, value in LOCAL_RAY_DEFAULT_ENV.items():
-        os.environ.setdefault(key, value)
-    os.environ.update(LOCAL_RAY_ENV)
-
-
-def _init_ray(cfg: SweepConfig):
-    ray = _import_ray(cfg)
-    # Workers' output goes to each run's sweep.log, not to the driver's terminal.
-    common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING, configure_logging=True)
-    try:
-        if cfg.address:
-            _check_reachable(cfg.address)
-            ray.init(address=cfg.address, **common)
-        else:
-            # "local": always a fresh instance of our own, never a cluster that happens to run
-            # on this machine (ray.init() with no address would attach to it).
-            ray.init(address="local", object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common)
-    except (ConnectionError, RuntimeError, ValueError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else repr(exc)
-        if not cfg.address:
-            raise ImssrError(f"could not start a local Ray: {first}") from None
-        # A head started by `ray start` (Ray >= 2.59) requires its token, but a driver that
-        # connects by address only sends one with RAY_AUTH_MODE=token: say so in the error.
-        hint = "" if os.environ.get("RAY_AUTH_MODE") == "token" else \
-            " (is it running? a head started by `ray start` needs RAY_AUTH_MODE=token here too)"
-        raise ImssrError(f"could not connect to the Ray cluster at {cfg.address}: {first}{hint}") from None
-    if not cfg.address:
-        # Ray binds its servers to loopback only when the node's address is loopback: a Ray that
-        # took another address is stopped before it runs anything.
-        node_ip = ray.util.get_node_ip_address()
-        if not _is_loopback(node_ip):
-            ray.shutdown()
-            raise ImssrError(f"the local Ray took {node_ip} as its address instead of loopback, so it would "
-                             f"listen beyond this machine; it was shut down before running anything")
-    return ray
+    return require("ray", "sweep")
 
 
 def _is_loopback(host: str) -> bool:
@@ -340,18 +334,3 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return host == "localhost"
-
-
-def _capacity(ray, cfg: SweepConfig) -> int:
-    """Runs that fit at once in the cluster's CPUs (and GPUs when runs need them)."""
-    resources = ray.cluster_resources()
-    fits = int(resources.get("CPU", 1) // cfg.cpus_per_run)
-    if cfg.gpus_per_run > 0:
-        gpus = resources.get("GPU", 0)
-        if gpus < cfg.gpus_per_run:
-            raise ImssrError(f"--gpus-per-run {cfg.gpus_per_run} but the Ray cluster has {gpus:g} GPUs")
-        fits = min(fits, int(gpus // cfg.gpus_per_run))
-    if fits < 1:
-        raise ImssrError(f"--cpus-per-run {cfg.cpus_per_run} exceeds the Ray cluster's "
-                         f"{resources.get('CPU', 0):g} CPUs")
-    return min(fits, cfg.max_parallel) if cfg.max_parallel else fits

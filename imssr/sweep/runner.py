@@ -22,11 +22,14 @@ from imssr.errors import DIVERGED_PREFIX, INTERRUPTED_EXIT, ImssrError
 from imssr.files import disk_full_as_error, open_append
 from imssr.rundir import DIVERGED, FAILED, FINISHED, INTERRUPTED, RunDir, as_run_dir
 
-# Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
-# second signal (or one before its handlers were in place) ended it; it resumes either way.
 STOP_GRACE_S = 30
 """Seconds a stopped training has to finish its agent step and checkpoint before SIGKILL."""
+# Exit statuses of a training stopped by a signal: its own (it checkpointed), or the signal's when a
+# second signal (or one before its handlers were in place) ended it; it resumes either way.
 INTERRUPTED_STATUSES = (INTERRUPTED_EXIT, -signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM)
+WRITER_WAIT_S = STOP_GRACE_S
+"""Seconds an attempt waits for a process that still holds its run's lock (a training of a killed
+sweep, stopping with its checkpoint) before it starts and lets the training refuse in one line."""
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
@@ -98,52 +101,45 @@ class RunAttempt:
         # of a killed sweep may still be stopping here, writing the checkpoint this one resumes.
         # A packed process resumes when every run has a checkpoint; before that (a batch stopped
         # during its first one) it starts afresh, which clears what that left.
-        wait_for_writers(self.runs)
+        deadline = time.monotonic() + WRITER_WAIT_S
+        for r in self.runs:
+            while r.in_use() and time.monotonic() < deadline:
+                time.sleep(0.2)
         self.resumed = all(r.has_checkpoint() for r in self.runs)
-        if len(self.runs) == 1:
-            cmd = [sys.executable, "-m", "imssr", "train", "--config", run.config_path, "--out", run.path]
-        else:
-            cmd = [sys.executable, "-m", "imssr", "train", "--runs", *(r.path for r in self.runs)]
-        if self.resumed:
-            cmd.append("--resume")
+        what = ["--config", run.config_path, "--out", run.path] if len(self.runs) == 1 else \
+            ["--runs", *(r.path for r in self.runs)]
+        cmd = [sys.executable, "-m", "imssr", "train", *what] + (["--resume"] if self.resumed else [])
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         # One thread pool per reserved CPU (the config's train.torch_threads, which the sweep sets
         # from --cpus-per-run) for every library, not torch's alone: the default (every core) makes
         # parallel runs spin against each other, 10x slower on a shared 2-core machine.
         threads = _torch_threads(run)
         if threads:
-            for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-                env[var] = str(threads)
+            env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
         self.log_path = run.sweep_log
         self.start = time.time()
         self.proc: Optional[subprocess.Popen] = None
         self.error = ""
-        if not self.resumed:
-            # An earlier attempt that failed before its first checkpoint left logs that nothing
-            # continues; `imssr train` refuses to start over them, so the sweep clears them (and
-            # nothing else: a finished run, a training still running there, fail the attempt).
-            try:
+        doing = f"clear {run.path} for a fresh attempt"
+        try:
+            if not self.resumed:
+                # An earlier attempt that failed before its first checkpoint left logs that nothing
+                # continues; `imssr train` refuses to start over them, so the sweep clears them (and
+                # nothing else: a finished run, a training still running there, fail the attempt).
                 for r in self.runs:
                     r.discard_unresumable()
-            except ImssrError as exc:
-                self.error = str(exc)
-                return
-            except OSError as exc:
-                self.error = f"cannot clear {run.path} for a fresh attempt: {exc.strerror or exc}"
-                return
-        header = (f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
-                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
-        try:
+            doing = f"write {self.log_path}"
             for other in self.runs[1:]:
                 _open_log(other.sweep_log, f"==> attempt {attempt}: trained in one process with "
                                            f"{len(self.runs) - 1} other run(s); its output is in {self.log_path}\n"
                           ).close()
-            log = _open_log(self.log_path, header)
-        except ImssrError as exc:  # a full disk, a link: the attempt fails in one line, nothing started
+            log = _open_log(self.log_path, f"==> attempt {attempt} ({'resume' if self.resumed else 'fresh'}) at "
+                                           f"{time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
+        except ImssrError as exc:  # a full disk, a link, a run not ours to clear: one line, nothing started
             self.error = str(exc)
             return
         except OSError as exc:  # a directory in its place, no permission
-            self.error = f"cannot write {self.log_path}: {exc.strerror or exc}"
+            self.error = f"cannot {doing}: {exc.strerror or exc}"
             return
         with log:
             self.offset = log.tell()
@@ -218,19 +214,6 @@ class RunAttempt:
         return result
 
 
-WRITER_WAIT_S = STOP_GRACE_S
-"""Seconds an attempt waits for a process that still holds its run's lock (a training of a killed
-sweep, stopping with its checkpoint) before it starts and lets the training refuse in one line."""
-
-
-def wait_for_writers(runs: list[RunDir]) -> None:
-    """Wait, up to :data:`WRITER_WAIT_S` seconds in all, until no process holds the lock of any of ``runs``."""
-    deadline = time.monotonic() + WRITER_WAIT_S
-    for run in runs:
-        while run.in_use() and time.monotonic() < deadline:
-            time.sleep(0.2)
-
-
 def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[int] = None) -> list[dict]:
     """Train (or resume) the runs in ``run_dirs`` (each its ``config.json``; several in one process:
     ``imssr train --runs``) to ``steps`` agent steps and wait; one result per run (the body of a Ray task or a
@@ -242,16 +225,14 @@ def execute_runs(run_dirs: list, steps: int, attempt: int, niceness: Optional[in
     retry), ``final_step`` and ``final_frame`` (of the last evaluation), ``seconds``.  ``niceness``:
     as in :class:`RunAttempt`.
     """
-    attempt_ = None
+    attempt_ = RunAttempt(list(run_dirs), steps, attempt, niceness)
     try:
-        attempt_ = RunAttempt(list(run_dirs), steps, attempt, niceness)
         # In steps: a Ray cancel interrupts the main thread between bytecodes, which a
         # blocking wait for the child never returns to.
         while not attempt_.ended:
             time.sleep(0.5)
     finally:
-        if attempt_ is not None:
-            attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
+        attempt_.stop()  # interrupted while waiting (task cancelled): nothing outlives it
     return attempt_.finish_all()
 
 

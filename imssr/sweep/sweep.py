@@ -20,6 +20,7 @@ from tqdm import tqdm
 from imssr.config import RunConfig
 from imssr.errors import INTERRUPTED_EXIT, ImssrError
 from imssr.rundir import SWEEP_LOG, RunDir
+from imssr.rundir.layout import some
 from imssr.sweep.directory import STATES, PlannedRun, RunStatus, SweepDir
 from imssr.sweep.grid import SweepConfig, expand
 from imssr.sweep.launchers import Attempt, Launcher, make_launcher
@@ -33,9 +34,8 @@ MAX_INTERRUPTIONS = 10
 def plan_runs(cfg: SweepConfig) -> list[RunStatus]:
     """Expand and validate the grid (one-line errors before any run starts) and classify runs."""
     cfg.validate()
-    runs = expand(cfg)
     statuses = []
-    for run in runs:
+    for run in expand(cfg):
         # Each run's whole config, as its worker will train it: a bad override fails here, once,
         # instead of N times on the workers.
         run_cfg = run.resolved_config(cfg)
@@ -66,10 +66,8 @@ def config_conflict(run: RunDir, cfg: RunConfig) -> str:
     except ImssrError as exc:
         return f"its config.json is unreadable ({exc})"
     diff = cfg.resume_conflicts(saved.to_dict())
-    if not diff:
-        return ""
-    return (f"{run.path} holds a run made with a different config ({', '.join(diff[:5])}"
-            f"{', ...' if len(diff) > 5 else ''}); resume it with its own settings or choose another --root")
+    return (f"{run.path} holds a run made with a different config ({some(diff, 5)}); resume it with its own "
+            "settings or choose another --root") if diff else ""
 
 
 def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
@@ -87,12 +85,9 @@ def format_plan(statuses: list[RunStatus], cfg: SweepConfig) -> str:
         lines += ["  " + " ".join(os.path.relpath(s.run.dir, root) for s in g) for g in groups]
     elif groups:
         lines.append(f"{len(groups)} runs to train, each in a process of its own")
-    if statuses:
-        run = statuses[0].run.run_dir
-        lines.append(f"each run trains the config the sweep writes to its directory, e.g. "
-                     f"imssr train --config {run.config_path} --out {run.path}")
-    else:
-        lines.append("")
+    run = statuses[0].run.run_dir  # a validated grid has a run
+    lines.append(f"each run trains the config the sweep writes to its directory, e.g. "
+                 f"imssr train --config {run.config_path} --out {run.path}")
     return "\n".join(lines)
 
 
@@ -122,9 +117,6 @@ class _Progress:
             print(text, flush=True)
         else:
             self.bar.write(text)
-
-    def close(self) -> None:
-        self.bar.close()
 
 
 def run_sweep(cfg: SweepConfig, progress: bool = True, poll_s: float = 2.0,
@@ -220,7 +212,7 @@ def _run_sweep(cfg: SweepConfig, launcher: Launcher, progress: bool, poll_s: flo
         raise
     finally:
         if ui is not None:
-            ui.close()
+            ui.bar.close()
         launcher.shutdown()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
@@ -307,7 +299,6 @@ def summarize(statuses: list[RunStatus]) -> tuple[str, int]:
         return (f"{interrupted} of {len(statuses)} runs interrupted, {done} done; re-running the same "
                 "`imssr sweep` resumes them"), INTERRUPTED_EXIT
     if failed:
-        names = ", ".join(s.run.name for s in failed[:3]) + (" ..." if len(failed) > 3 else "")
-        return (f"{len(failed)} of {len(statuses)} runs failed after retries ({names}); "
+        return (f"{len(failed)} of {len(statuses)} runs failed after retries ({some(s.run.name for s in failed)}); "
                 f"{done} done; see sweep_status.json and each run's {SWEEP_LOG}"), 1
     return f"all {len(statuses)} runs done", 0
