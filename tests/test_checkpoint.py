@@ -218,12 +218,15 @@ def test_resume_drops_a_partially_written_log_line(tmp_path):
     from imssr.training.logger import CSVLog, TRAIN_COLUMNS
 
     log = CSVLog(str(tmp_path / "train.csv"), TRAIN_COLUMNS)
-    log.write({"frame": 1000, "step": 125, "episode": 0})
+    log.write({"frame": 1000, "step": 125, "episode": 0, "critic_loss": 0.5})
+    first = (tmp_path / "train.csv").read_bytes()
     log.write({"frame": 2000, "step": 250, "episode": 1})
     with open(tmp_path / "train.csv", "a") as fh:
         fh.write("3000,37")  # killed mid-line
     log.truncate_after(1000)
     assert [r["frame"] for r in read_csv(tmp_path / "train.csv")] == ["1000"]
+    # The file a resume rewrites is byte for byte the one the run wrote, one line ending throughout.
+    assert (tmp_path / "train.csv").read_bytes() == first and b"\r" not in first
 
 
 def test_resume_with_changed_intervals_and_without_buffer(tmp_path):

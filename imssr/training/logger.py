@@ -43,7 +43,8 @@ class CSVLog:
     def write(self, row: dict) -> None:
         # A line cut short by a full disk is dropped on resume (truncate_after).
         with disk_full_as_error(self.path), open_append(self.path, newline="") as fh:
-            csv.DictWriter(fh, self.columns, extrasaction="ignore").writerow(
+            # Lines end in "\n", as the header and a resume's rewrite do (csv's default is "\r\n").
+            csv.DictWriter(fh, self.columns, extrasaction="ignore", lineterminator="\n").writerow(
                 {k: _fmt(row.get(k)) for k in self.columns})
             fh.flush()
 
@@ -100,7 +101,7 @@ def append_locked(path: str, columns: list[str], rows: list[dict]) -> None:
         _drop_torn_line(path)
         if fh.seek(0, os.SEEK_END) == 0:
             fh.write(",".join(columns) + "\n")
-        writer = csv.DictWriter(fh, columns, extrasaction="ignore")
+        writer = csv.DictWriter(fh, columns, extrasaction="ignore", lineterminator="\n")
         writer.writerows({k: _fmt(r.get(k)) for k in columns} for r in rows)
         fh.flush()
 
