@@ -35,14 +35,11 @@ def _flat_dim(net: nn.Module, channels: int, size: int) -> int:
 class RND(IntrinsicSignal):
     name = "rnd"
 
-    @classmethod
-    def build(cls, cfg: RNDSettings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None) -> "RND":
-        return cls(obs_shape[0], agent_cfg.crop_size, cfg)
-
-    def __init__(self, channels: int, size: int, cfg: RNDSettings):
-        super().__init__()
+    def __init__(self, cfg: RNDSettings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None):
+        super().__init__(cfg, obs_shape, agent_cfg, aux)
+        channels = obs_shape[0]
         conv_t, conv_p = rnd_convs(channels), rnd_convs(channels)
-        flat = _flat_dim(conv_t, channels, size)
+        flat = _flat_dim(conv_t, channels, agent_cfg.crop_size)
         self.target = nn.Sequential(conv_t, nn.Linear(flat, cfg.rnd_dim))
         self.predictor = nn.Sequential(conv_p, nn.Linear(flat, 512), nn.ReLU(),
                                        nn.Linear(512, 512), nn.ReLU(), nn.Linear(512, cfg.rnd_dim))

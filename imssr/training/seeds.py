@@ -178,7 +178,9 @@ class SeedsTrainer:
                 self._each(Trainer.finish)
                 self._commit()
         except BaseException as exc:
-            self._unstage()
+            # A run that could not stage its checkpoint (a full disk): the others' staged ones go.
+            for t in self.trainers:
+                t.checkpoints.unstage()
             state = INTERRUPTED if isinstance(exc, (KeyboardInterrupt, TrainingInterrupted)) else FAILED
             for t in self._active():
                 _record(t, state, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
@@ -248,12 +250,6 @@ class SeedsTrainer:
             t.run_dir.promote_checkpoint()
         for t in staged:
             t.run_dir.prune_checkpoints(t.cfg.train.keep_checkpoints)
-
-    def _unstage(self) -> None:
-        """After a failure (a run that could not stage its checkpoint, a full disk): the others'
-        staged checkpoints are removed (:meth:`Checkpointer.unstage`)."""
-        for t in self.trainers:
-            t.checkpoints.unstage()
 
     def _interrupted(self) -> TrainingInterrupted:
         return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
