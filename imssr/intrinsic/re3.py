@@ -27,8 +27,7 @@ class RE3(IntrinsicSignal):
                           channels_last=agent_cfg.channels_last, final_relu=agent_cfg.final_relu)
         self.encoder = nn.Sequential(trunk, Projection(trunk.out_dim, cfg.re3_dim))
         self.encoder.apply(weight_init)
-        for p in self.encoder.parameters():
-            p.requires_grad_(False)
+        self.encoder.requires_grad_(False)
         self.k = cfg.re3_k
 
     @torch.no_grad()

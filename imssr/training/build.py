@@ -96,7 +96,7 @@ def build_training(cfg: RunConfig, device: torch.device, replay_placement, frame
         for mode in cfg.train.eval_mode_list(e.mode):
             eval_envs[mode] = make(seed=cfg.train.seed + TRAINING_EVAL_SEED_OFFSET, mode=mode, footage_split="test")
         if torch.cuda.is_available() and not cfg.train.env_workers:
-            # On a GPU machine, MuJoCo's EGL rendering on the CPU (llvmpipe)
+            # On a GPU machine, a warning when MuJoCo renders through EGL on the CPU (llvmpipe).
             warning = software_rendering_warning(os.environ.get("MUJOCO_GL", "egl"), gl_renderer(env.physics),
                                                  gpu=True)
             if warning:
