@@ -46,18 +46,14 @@ class CURL(AuxiliaryTask):
         # W first: the order in which checkpoints hold CURL's optimiser state.
         return [*self.own_parameters(), *self.shared_parameters()]
 
-    def logits(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
-        with full_precision(z_query):
-            # Float32 under any autocast: the positive's logit competes with B - 1 others that
-            # differ from it in the last bits bfloat16 would drop (its loss is IM-CURL's r_int).
-            logits = upcast(z_query) @ (self.W @ upcast(z_key).T)
-            # Subtracting the row max leaves the softmax unchanged and keeps exp() finite.
-            return logits - logits.max(dim=1, keepdim=True).values
-
     def loss_from_latents(self, z_query: torch.Tensor, z_key: torch.Tensor) -> torch.Tensor:
         labels = torch.arange(z_query.shape[0], device=z_query.device)
-        logits = self.logits(z_query, z_key)
-        with full_precision(logits):  # log-softmax in float32
+        with full_precision(z_query):
+            # Float32 under any autocast, the log-softmax too: the positive's logit competes with B - 1
+            # others that differ from it in the last bits bfloat16 would drop (its loss is IM-CURL's r_int).
+            logits = upcast(z_query) @ (self.W @ upcast(z_key).T)
+            # Subtracting the row max leaves the softmax unchanged and keeps exp() finite.
+            logits = logits - logits.max(dim=1, keepdim=True).values
             return F.cross_entropy(logits, labels, reduction="none")
 
     def per_sample_loss(self, batch: Batch, enc: Optional[Encoding] = None) -> torch.Tensor:

@@ -37,9 +37,7 @@ class PAD(AuxiliaryTask):
         super().__init__(shared, cfg, agent_cfg)
         trunk = shared.encoder.trunk
         # Its own head layers on the shared features, laid out as the critic's head.
-        self.head = conv_stack(trunk.filters, trunk.head_layers)
-        if trunk.final_relu:
-            self.head.append(nn.ReLU(inplace=trunk.head_layers > 0))
+        self.head = conv_stack(trunk.filters, trunk.head_layers, trunk.final_relu)
         self.projection = Projection(trunk.out_dim, agent_cfg.feature_dim, agent_cfg.projection_tanh)
         self.mlp = mlp(2 * agent_cfg.feature_dim, agent_cfg.hidden_dim, shared.action_dim)
         self.apply(weight_init)

@@ -9,15 +9,13 @@ functions load on first use.
 import importlib
 
 from imssr.intrinsic.registry import INTRINSIC_SIGNALS, SIGNAL_PLUGINS, make_signal
-from imssr.intrinsic.ssl_spec import FORMS
-from imssr.settings import NORMALIZATIONS, SCHEDULES
 
 _LAZY = {"IntrinsicSignal": "base", "SSLSignal": "ssl", "RND": "rnd", "RE3": "re3", "BetaSchedule": "reward",
          "IntrinsicReward": "reward", "normalize": "reward"}
 """Name -> the module of this package that defines it."""
 
 __all__ = ["BetaSchedule", "IntrinsicReward", "IntrinsicSignal", "SSLSignal", "RND", "RE3", "INTRINSIC_SIGNALS",
-           "SIGNAL_PLUGINS", "FORMS", "NORMALIZATIONS", "SCHEDULES", "make_signal", "normalize"]
+           "SIGNAL_PLUGINS", "make_signal", "normalize"]
 
 
 def __getattr__(name: str):

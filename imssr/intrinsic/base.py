@@ -21,12 +21,10 @@ class IntrinsicSignal(ModuleWithOptimizer, abc.ABC):
 
     name: ClassVar[str]
 
-    @classmethod
-    @abc.abstractmethod
-    def build(cls, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
-              aux: Any = None) -> "IntrinsicSignal":
+    def __init__(self, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None):
         """The signal for an agent of ``agent_cfg`` on observations of ``obs_shape``, with the ``intrinsic`` section
         ``cfg`` (which holds the signal's own settings) and the agent's auxiliary task ``aux`` (None without one)."""
+        super().__init__()
 
     @property
     def label(self) -> str:

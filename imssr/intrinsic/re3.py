@@ -21,18 +21,13 @@ from imssr.settings import AgentConfig
 class RE3(IntrinsicSignal):
     name = "re3"
 
-    @classmethod
-    def build(cls, cfg: RE3Settings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None) -> "RE3":
-        return cls(obs_shape[0], agent_cfg, cfg)
-
-    def __init__(self, channels: int, agent_cfg: AgentConfig, cfg: RE3Settings):
-        super().__init__()
-        trunk = ConvTrunk(channels, agent_cfg.crop_size, agent_cfg.encoder_layers, agent_cfg.encoder_filters,
+    def __init__(self, cfg: RE3Settings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None):
+        super().__init__(cfg, obs_shape, agent_cfg, aux)
+        trunk = ConvTrunk(obs_shape[0], agent_cfg.crop_size, agent_cfg.encoder_layers, agent_cfg.encoder_filters,
                           channels_last=agent_cfg.channels_last, final_relu=agent_cfg.final_relu)
         self.encoder = nn.Sequential(trunk, Projection(trunk.out_dim, cfg.re3_dim))
         self.encoder.apply(weight_init)
-        for p in self.encoder.parameters():
-            p.requires_grad_(False)
+        self.encoder.requires_grad_(False)
         self.k = cfg.re3_k
 
     @torch.no_grad()

@@ -20,8 +20,8 @@ INTRINSIC_SIGNALS = Implementations(SIGNAL_PLUGINS)
 
 def make_signal(cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
                 aux: Any = None) -> IntrinsicSignal:
-    """The signal named by ``cfg.source`` (:meth:`IntrinsicSignal.build
-    <imssr.intrinsic.base.IntrinsicSignal.build>`); ``aux`` is the agent's auxiliary task, if any."""
+    """The signal named by ``cfg.source`` (:class:`~imssr.intrinsic.base.IntrinsicSignal`); ``aux`` is the
+    agent's auxiliary task, if any."""
     if cfg.source not in SIGNAL_PLUGINS:
         raise ImssrError(f"unknown intrinsic source {cfg.source!r}; valid: {', '.join(SIGNAL_PLUGINS)}")
-    return INTRINSIC_SIGNALS[cfg.source].build(cfg, obs_shape, agent_cfg, aux)
+    return INTRINSIC_SIGNALS[cfg.source](cfg, obs_shape, agent_cfg, aux)

@@ -15,9 +15,6 @@ from imssr.errors import ImssrError
 from imssr.precision import full_precision, upcast
 from imssr.settings import NORMALIZATIONS, SCHEDULES, IntrinsicCore
 
-STAT_KEYS = ("r_int_mean", "r_int_std", "r_int_raw", "r_int_raw_std", "bonus_std", "beta")
-"""The metrics :class:`IntrinsicReward` adds to an update's (a run without it logs none)."""
-
 
 def normalize(losses: torch.Tensor, method: str = "zscore", eps: float = 0.0, unbiased: bool = True,
               rtol: float = 1e-5) -> torch.Tensor:

@@ -27,22 +27,15 @@ def rnd_convs(channels: int) -> nn.Sequential:
                          nn.Conv2d(64, 64, 3, stride=1), nn.LeakyReLU(), nn.Flatten())
 
 
-def _flat_dim(net: nn.Module, channels: int, size: int) -> int:
-    with torch.no_grad():
-        return net(torch.zeros(1, channels, size, size)).shape[1]
-
-
 class RND(IntrinsicSignal):
     name = "rnd"
 
-    @classmethod
-    def build(cls, cfg: RNDSettings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None) -> "RND":
-        return cls(obs_shape[0], agent_cfg.crop_size, cfg)
-
-    def __init__(self, channels: int, size: int, cfg: RNDSettings):
-        super().__init__()
+    def __init__(self, cfg: RNDSettings, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None):
+        super().__init__(cfg, obs_shape, agent_cfg, aux)
+        channels = obs_shape[0]
         conv_t, conv_p = rnd_convs(channels), rnd_convs(channels)
-        flat = _flat_dim(conv_t, channels, size)
+        with torch.no_grad():
+            flat = conv_t(torch.zeros(1, channels, agent_cfg.crop_size, agent_cfg.crop_size)).shape[1]
         self.target = nn.Sequential(conv_t, nn.Linear(flat, cfg.rnd_dim))
         self.predictor = nn.Sequential(conv_p, nn.Linear(flat, 512), nn.ReLU(),
                                        nn.Linear(512, 512), nn.ReLU(), nn.Linear(512, cfg.rnd_dim))
@@ -50,8 +43,7 @@ class RND(IntrinsicSignal):
             if isinstance(m, (nn.Conv2d, nn.Linear)):
                 nn.init.orthogonal_(m.weight, gain=2 ** 0.5)
                 nn.init.zeros_(m.bias)
-        for p in self.target.parameters():
-            p.requires_grad_(False)
+        self.target.requires_grad_(False)
         self.optimizer = torch.optim.Adam(self.predictor.parameters(), lr=cfg.rnd_lr)
 
     def error(self, obs: torch.Tensor) -> torch.Tensor:

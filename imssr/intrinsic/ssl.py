@@ -16,18 +16,13 @@ class SSLSignal(IntrinsicSignal):
 
     name = "ssl"
 
-    @classmethod
-    def build(cls, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig,
-              aux: Any = None) -> "SSLSignal":
+    def __init__(self, cfg: IntrinsicCore, obs_shape: tuple[int, ...], agent_cfg: AgentConfig, aux: Any = None):
+        super().__init__(cfg, obs_shape, agent_cfg, aux)
         if aux is None:
             raise ImssrError("intrinsic.source=ssl needs an auxiliary task")
-        return cls(aux.intrinsic_loss, aux.name)
-
-    def __init__(self, task_loss: Callable[[NextObsContext], torch.Tensor], task_name: str):
-        super().__init__()
         # The task's bound ``intrinsic_loss``, not the task: the agent owns and saves the task.
-        self.task_loss = task_loss
-        self.task_name = task_name
+        self.task_loss: Callable[[NextObsContext], torch.Tensor] = aux.intrinsic_loss
+        self.task_name = aux.name
 
     @property
     def label(self) -> str:

@@ -7,6 +7,7 @@ gradients stopped and trains only its own projection.
 from __future__ import annotations
 
 import contextlib
+import functools
 import weakref
 from typing import Iterator
 
@@ -17,12 +18,12 @@ from imssr.precision import FP32LayerNorm
 from imssr.settings import conv_output_size
 
 
-def conv_stack(filters: int, num_layers: int) -> nn.Sequential:
+def conv_stack(filters: int, num_layers: int, final_relu: bool = False) -> nn.Sequential:
     """``num_layers`` stride-1 3x3 convolutions of ``filters`` channels, each after a ReLU.
 
     The ReLU comes first (DMC-GB's layout): a stack continues a convolution's output, so
-    ReLUs stand between convolutions and none follows the last one; whether the encoder's
-    output gets one is :class:`ConvTrunk`'s ``final_relu``.
+    ReLUs stand between convolutions and none follows the last one unless ``final_relu``
+    (:class:`ConvTrunk`'s, for the encoder's output).
     """
     layers: list[nn.Module] = []
     for i in range(num_layers):
@@ -31,6 +32,8 @@ def conv_stack(filters: int, num_layers: int) -> nn.Sequential:
         # the stack's input may have other readers (PAD's head and the critic's read the
         # same shared features).
         layers += [nn.ReLU(inplace=i > 0), nn.Conv2d(filters, filters, 3, stride=1)]
+    if final_relu:
+        layers.append(nn.ReLU(inplace=num_layers > 0))
     return nn.Sequential(*layers)
 
 
@@ -41,9 +44,6 @@ an entry lives as long as its frames (a finaliser removes it)."""
 ONE_PASS_DEVICES = {"cuda"}
 """Device types whose conversion runs in :func:`one_pass`, where it is bound by its bytes; a
 CPU runs :func:`three_passes`, which is faster there (``bench/pixels_speed.py``)."""
-
-_DIVISORS: dict[torch.dtype, torch.Tensor] = {}
-"""255 as a 0-dim CPU tensor of each float dtype (:func:`one_pass`'s divisor)."""
 
 
 def pixels(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format, reuse: bool = True) -> torch.Tensor:
@@ -81,12 +81,11 @@ def one_pass(obs: torch.Tensor, dtype: torch.dtype, fmt: torch.memory_format) ->
     return torch.div(obs, _divisor(dtype), out=out)
 
 
+@functools.cache
 def _divisor(dtype: torch.dtype) -> torch.Tensor:
     """255 as a 0-dim CPU tensor of ``dtype`` (to a CUDA kernel, a scalar: no copy), on the CPU
-    whatever torch's default device."""
-    if dtype not in _DIVISORS:
-        _DIVISORS[dtype] = torch.tensor(255.0, dtype=dtype, device="cpu")
-    return _DIVISORS[dtype]
+    whatever torch's default device; made once per dtype."""
+    return torch.tensor(255.0, dtype=dtype, device="cpu")
 
 
 class ConvTrunk(nn.Module):
@@ -119,9 +118,7 @@ class ConvTrunk(nn.Module):
             raise ValueError(f"head_layers must be in [0, {num_layers}), got {head_layers}")
         self.convs = nn.Sequential(nn.Conv2d(in_channels, filters, 3, stride=2),
                                    *conv_stack(filters, num_layers - 1 - head_layers))
-        self.head = conv_stack(filters, head_layers)
-        if final_relu:
-            self.head.append(nn.ReLU(inplace=head_layers > 0))
+        self.head = conv_stack(filters, head_layers, final_relu)
         self.filters, self.head_layers, self.final_relu = filters, head_layers, final_relu
         self.channels_last = channels_last
         self.out_dim = filters * out * out

@@ -61,22 +61,18 @@ class Actor(nn.Module):
             # The tanh-Gaussian in float32: log pi subtracts nearly equal terms and
             # log(1 - tanh^2) needs the squashed action's small distance to +-1; the noise is drawn
             # in float32 too, so both precisions draw the same noise.
-            return self._gaussian(*upcast(out).chunk(2, dim=-1), generator, sample)
-
-    def _gaussian(self, mu: torch.Tensor, log_std: torch.Tensor, generator: Optional[torch.Generator],
-                  sample: bool) -> PolicyOutput:
-        log_std = torch.tanh(log_std)
-        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1)
-        if not sample:
-            mean = torch.tanh(mu)
-            return PolicyOutput(mean=mean, action=mean, log_prob=None, log_std=log_std)
-        noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
-        pi = mu + noise * log_std.exp()
-        log_pi = (-0.5 * noise.pow(2) - log_std).sum(-1, keepdim=True) \
-            - 0.5 * math.log(2 * math.pi) * mu.shape[-1]
-        mu, pi = torch.tanh(mu), torch.tanh(pi)
-        log_pi = log_pi - torch.log(torch.relu(1 - pi.pow(2)) + 1e-6).sum(-1, keepdim=True)
-        return PolicyOutput(mean=mu, action=pi, log_prob=log_pi, log_std=log_std)
+            mu, log_std = upcast(out).chunk(2, dim=-1)
+            log_std = torch.tanh(log_std)
+            log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (log_std + 1)
+            if not sample:
+                mean = torch.tanh(mu)
+                return PolicyOutput(mean=mean, action=mean, log_prob=None, log_std=log_std)
+            noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+            pi = mu + noise * log_std.exp()
+            log_pi = (-0.5 * noise.pow(2) - log_std).sum(-1, keepdim=True) - 0.5 * math.log(2 * math.pi) * mu.shape[-1]
+            mu, pi = torch.tanh(mu), torch.tanh(pi)
+            log_pi = log_pi - torch.log(torch.relu(1 - pi.pow(2)) + 1e-6).sum(-1, keepdim=True)
+            return PolicyOutput(mean=mu, action=pi, log_prob=log_pi, log_std=log_std)
 
 
 class QHeads(nn.Module):

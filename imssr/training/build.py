@@ -31,15 +31,8 @@ from imssr.training.state import RunState
 def resolve_device(name: str) -> torch.device:
     """The torch device of ``train.device``; on CUDA, MuJoCo's EGL renders on the same GPU
     (:func:`imssr._gl.pin_egl_device`, before any env is made)."""
-    device = _torch_device(name)
-    if device.type == "cuda":
-        pin_egl_device(device.index if device.index is not None else torch.cuda.current_device())
-    return device
-
-
-def _torch_device(name: str) -> torch.device:
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        name = "cuda" if torch.cuda.is_available() else "cpu"
     try:
         device = torch.device(name)
     except RuntimeError:
@@ -48,6 +41,8 @@ def _torch_device(name: str) -> torch.device:
         raise ImssrError(f"device {name!r} requested but CUDA is not available; use --device cpu")
     if device.type not in ("cpu", "cuda"):
         raise ImssrError(f"unsupported device {name!r}; use cpu, cuda, cuda:N or auto")
+    if device.type == "cuda":
+        pin_egl_device(device.index if device.index is not None else torch.cuda.current_device())
     return device
 
 
@@ -83,8 +78,8 @@ class TrainingParts:
             self.replay.close()
 
 
-def build_training(cfg: RunConfig, device: torch.device, replay_placement,
-                   frames_file: Optional[str] = None, reserve_slots: int = 0) -> TrainingParts:
+def build_training(cfg: RunConfig, device: torch.device, replay_placement, frames_file: str,
+                   reserve_slots: int) -> TrainingParts:
     """The envs, the agent, the replay buffer (where ``replay_placement`` says; frames on disk go
     in ``frames_file``, with disk space set aside for ``reserve_slots`` of them) and the loop's
     state of a training at agent step 0, in the order their random draws have always had (the
@@ -101,7 +96,7 @@ def build_training(cfg: RunConfig, device: torch.device, replay_placement,
         for mode in cfg.train.eval_mode_list(e.mode):
             eval_envs[mode] = make(seed=cfg.train.seed + TRAINING_EVAL_SEED_OFFSET, mode=mode, footage_split="test")
         if torch.cuda.is_available() and not cfg.train.env_workers:
-            # On a GPU machine, MuJoCo's EGL rendering on the CPU (llvmpipe)
+            # On a GPU machine, a warning when MuJoCo renders through EGL on the CPU (llvmpipe).
             warning = software_rendering_warning(os.environ.get("MUJOCO_GL", "egl"), gl_renderer(env.physics),
                                                  gpu=True)
             if warning:
@@ -117,8 +112,6 @@ def build_training(cfg: RunConfig, device: torch.device, replay_placement,
             print(replay_placement.reason, flush=True)
         # Each frame's physics state goes in too (float64 qpos and qvel: 32 bytes for cartpole,
         # 144 for walker): `imssr analyze` renders it again.
-        if replay_placement.disk and frames_file is None:
-            raise ValueError("frames on disk need a frames file")
         replay = make_replay_buffer(replay_placement.device, cfg.train.replay_capacity,
                                     (3, e.image_size, e.image_size), action_dim, e.frame_stack,
                                     seed=replay_seq, physics_dim=env.physics_state_dim,

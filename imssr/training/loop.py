@@ -40,8 +40,7 @@ from imssr.training.progress import PROGRESS_EVERY_S, Phase, Progress, eval_summ
 from imssr.training.state import Episode
 from imssr.training.stop import StopRequest, TrainingInterrupted
 
-__all__ = ["Start", "Trainer", "StopRequest", "TrainingInterrupted", "check_start", "checked_configs",
-           "no_update_warning"]
+__all__ = ["Start", "Trainer", "StopRequest", "TrainingInterrupted", "checked_configs", "no_update_warning"]
 
 
 class Trainer:
@@ -58,7 +57,7 @@ class Trainer:
             empty buffer refilled by random actions (not an exact resume) instead of failing.
         stop: the SIGTERM / SIGINT request the CLI installed (:class:`StopRequest`, see :meth:`train`).
         start: the run's checked start (:class:`Start`; a batch checks its runs together); None:
-            :func:`check_start` of ``cfg``, ``run`` and ``resume``.
+            :meth:`Start.take` of ``cfg``, ``run`` and ``resume``.
         plan: the memory plan that placed the replay frames (:func:`~imssr.training.memory.memory_plan`);
             None: the plan of this run alone.
         batch: its place in a batch of runs (:class:`~imssr.training.checkpointing.BatchPlace`).
@@ -71,7 +70,7 @@ class Trainer:
                  stop: Optional[StopRequest] = None, *, start: Optional[Start] = None,
                  plan: Optional[MemoryPlan] = None, batch: Optional[BatchPlace] = None):
         # A second process on the same directory fails here, before anything is checked or written.
-        self._start = start = start or check_start(cfg, run, resume)
+        self._start = start = start or Start.take(cfg, run, resume)
         self.run_dir, self.cfg, self.stop = start.run, start.cfg, stop or StopRequest()  # uninstalled: never set
         self.logger, self.episode, self.obs, self.action, self._burst_done = None, None, None, None, 0
         try:
@@ -330,7 +329,7 @@ class Trainer:
 class Start:
     """A training's start as checked before anything is written: its validated config, its run
     directory, held (:meth:`RunDir.open`), and the checkpoint it resumes from (None: a fresh
-    start).  :func:`check_start` makes one for a run alone; a batch checks its runs together
+    start).  :meth:`take` makes one; a batch checks its runs' checkpoints together
     (:class:`~imssr.training.seeds.SeedsTrainer`)."""
 
     cfg: RunConfig
@@ -345,35 +344,29 @@ class Start:
     as it begins (:meth:`RunDir.return_to`)."""
 
     @classmethod
-    def take(cls, cfg: RunConfig, run: Union[RunDir, str], new_run: bool, checked: bool = False) -> "Start":
-        """``run`` locked (a second writer fails at once) with ``cfg`` validated (:func:`_checked`;
-        ``checked``: already, :func:`checked_configs`) and no link in place of its provenance."""
+    def take(cls, cfg: RunConfig, run: Union[RunDir, str], resume: bool, in_batch: bool = False) -> "Start":
+        """``run`` locked (a second writer fails at once) with ``cfg`` validated (:func:`_checked`) and no link in
+        place of its provenance, then its resume point (:func:`resume_point`) or, for a fresh start, a directory
+        that holds no run (:meth:`RunDir.refuse_fresh_start`); the lock is released when a check fails.
+        ``in_batch``: the batch validated ``cfg`` already (:func:`checked_configs`) and checks its runs'
+        checkpoints together."""
         run_dir = as_run_dir(run)
         if os.path.exists(run_dir.path) and not os.path.isdir(run_dir.path):
             raise ImssrError(f"--out {run_dir.path} is a file, not a directory")
         lock = run_dir.open()
         try:
             run_dir.refuse_linked_provenance()
-            return cls(cfg if checked else _checked(cfg, new_run), run_dir, lock)
+            start = cls(cfg if in_batch else _checked(cfg, new_run=not resume), run_dir, lock)
+            if in_batch:
+                return start
+            if resume:
+                start.found = resume_point(run_dir, start.cfg)
+            else:
+                run_dir.refuse_fresh_start()
+            return start
         except BaseException:
             lock.release()
             raise
-
-
-def check_start(cfg: RunConfig, run: Union[RunDir, str], resume: bool) -> Start:
-    """The checked start of a run alone: locked and validated (:meth:`Start.take`), then its resume
-    point (:func:`resume_point`) or, for a fresh start, a directory that holds no run
-    (:meth:`RunDir.refuse_fresh_start`); the lock is released when a check fails."""
-    start = Start.take(cfg, run, new_run=not resume)
-    try:
-        if resume:
-            start.found = resume_point(start.run, start.cfg)
-        else:
-            start.run.refuse_fresh_start()
-    except BaseException:
-        start.lock.release()
-        raise
-    return start
 
 
 def checked_configs(cfgs: Sequence[RunConfig], new_run: bool) -> list[RunConfig]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from typing import Callable, Optional, Sequence, Union
+from typing import Callable, NoReturn, Optional, Sequence, Union
 
 import numpy as np
 
@@ -46,8 +46,7 @@ class SeedsTrainer:
                  stop: Optional[StopRequest] = None, plan: Optional[MemoryPlan] = None):
         if len(cfgs) != len(runs) or not cfgs:
             raise ImssrError("one run directory per seed")
-        refusal = batch_refusal(cfgs)
-        if refusal:
+        if refusal := batch_refusal(cfgs):
             raise ImssrError(refusal)
         self.stop = stop or StopRequest()
         self.trainers: list[Trainer] = []
@@ -69,11 +68,11 @@ class SeedsTrainer:
         try:
             try:
                 for i, (start, label) in enumerate(zip(starts, self.labels)):
-                    self._stop_if_asked(len(cfgs))
+                    self._stop_if_asked()
                     with member_lines(label, held[label]):
                         self.trainers.append(Trainer(start.cfg, start.run, stop=self.stop, start=start, plan=plan,
                                                      batch=self._place(i)))
-                self._stop_if_asked(len(cfgs))
+                self._stop_if_asked()
             finally:  # a run that failed to start: each line with its run, the error after them
                 say_held(held, once=len(self.trainers) == len(cfgs))
             if len({t.state.learning_starts for t in self.trainers}) > 1:
@@ -93,13 +92,13 @@ class SeedsTrainer:
             self.close()
             raise
 
-    def _stop_if_asked(self, n: int) -> None:
+    def _stop_if_asked(self) -> None:
         """A stop request while the batch is being built ends it there: building every member of a
         large batch takes minutes, and nothing is trained or written before the batch begins."""
         if self.stop.signal_name is not None:
-            raise TrainingInterrupted(f"stopped by {self.stop.signal_name} as the batch started "
-                                      f"({len(self.trainers)} of {n} runs built), before any training; the runs "
-                                      "are as they were: run the same command again", 0, None)
+            raise TrainingInterrupted(f"stopped by {self.stop.signal_name} as the batch started ({len(self.trainers)} "
+                                      f"of {len(self.labels)} runs built), before any training; the runs are as they "
+                                      "were: run the same command again", 0, None)
 
     @property
     def step(self) -> int:
@@ -172,13 +171,13 @@ class SeedsTrainer:
                     self._step()
                     self._commit()
                     if self.stop.signal_name is not None and any(t.stop_due() for t in self._active()):
-                        self._each(Trainer.save_for_stop)
-                        self._commit()
-                        raise self._interrupted()
+                        self._stop_every_seed(Trainer.save_for_stop)
                 self._each(Trainer.finish)
                 self._commit()
         except BaseException as exc:
-            self._unstage()
+            # After a failure (a run that could not stage its checkpoint, a full disk), no staged checkpoint stays.
+            for t in self.trainers:
+                t.checkpoints.unstage()
             state = INTERRUPTED if isinstance(exc, (KeyboardInterrupt, TrainingInterrupted)) else FAILED
             for t in self._active():
                 _record(t, state, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
@@ -203,7 +202,8 @@ class SeedsTrainer:
             return
         for t in active:
             t.send_ahead()
-        active[0].learn(self._update, self._stop_in_burst, f"burst of updates of {len(active)} seeds")
+        active[0].learn(self._update, lambda done: self._stop_every_seed(lambda t: t.save_in_burst(done)),
+                        f"burst of updates of {len(active)} seeds")
         self._each(Trainer.end_step)
 
     def _update(self) -> None:
@@ -212,12 +212,14 @@ class SeedsTrainer:
         for t, m in zip(self._active(), [m for m, failed in zip(metrics, self.failed) if failed is None]):
             t.episode.add_metrics(m)
 
-    def _stop_in_burst(self, done: int) -> None:
-        """A stop request after ``done`` updates of the burst: every training seed's checkpoint with
-        the count (:meth:`Trainer.save_in_burst`), then :class:`TrainingInterrupted`."""
-        self._each(lambda t: t.save_in_burst(done))
+    def _stop_every_seed(self, save: Callable[[Trainer], None]) -> NoReturn:
+        """A stop request: every training seed's checkpoint by ``save`` (:meth:`Trainer.save_for_stop`, or in a
+        burst :meth:`Trainer.save_in_burst`), committed together, then :class:`TrainingInterrupted`."""
+        self._each(save)
         self._commit()
-        raise self._interrupted()
+        cfgs, runs = [t.cfg for t in self.trainers], [t.run_dir for t in self.trainers]
+        raise TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
+                                  f"{resume_command(cfgs, runs)}", self.step, seeds_root(cfgs, runs))
 
     def _each(self, fn: Callable[[Trainer], None]) -> None:
         """``fn(trainer)`` for the trainer of every training seed (:meth:`_guarded`)."""
@@ -248,17 +250,6 @@ class SeedsTrainer:
             t.run_dir.promote_checkpoint()
         for t in staged:
             t.run_dir.prune_checkpoints(t.cfg.train.keep_checkpoints)
-
-    def _unstage(self) -> None:
-        """After a failure (a run that could not stage its checkpoint, a full disk): the others'
-        staged checkpoints are removed (:meth:`Checkpointer.unstage`)."""
-        for t in self.trainers:
-            t.checkpoints.unstage()
-
-    def _interrupted(self) -> TrainingInterrupted:
-        return TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
-                                   f"{self.resume_command()}", self.step,
-                                   seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers]))
 
     def resume_command(self) -> str:
         """The command that continues these runs (:func:`resume_command`)."""
@@ -299,23 +290,21 @@ def _check_starts(cfgs: Sequence[RunConfig], runs: Sequence[Union[RunDir, str]],
     starts: list[Start] = []
     try:
         for cfg, run in zip(cfgs, runs):
-            starts.append(Start.take(cfg, run, new_run=not resume, checked=True))
+            starts.append(Start.take(cfg, run, resume, in_batch=True))
         dirs = [start.run for start in starts]
         if resume:
             for start, found in zip(starts, batch_checkpoints(dirs, cfgs[0].train.steps)):
                 start.found, start.rewind = resume_point(start.run, start.cfg, found), True
-            return starts
-        leftovers = first_set_leftovers(dirs)
-        if leftovers is not None:
+        elif (leftovers := first_set_leftovers(dirs)) is not None:
             held = [run.path for run, parts in zip(dirs, leftovers) if parts]
             more = f" and {len(held) - 1} more run(s)" if len(held) > 1 else ""
             print(f"imssr: {held[0]}{more}: clearing what a batch stopped before its first checkpoint was complete "
                   "left, to start afresh", flush=True)
             for start, parts in zip(starts, leftovers):
                 start.leftovers = parts
-            return starts
-        for run in dirs:
-            run.refuse_fresh_start()
+        else:
+            for run in dirs:
+                run.refuse_fresh_start()
         return starts
     except BaseException:
         for start in starts:
