@@ -516,6 +516,16 @@ def test_a_runs_files_are_not_private(stopped):
         assert stat.S_IMODE(os.stat(os.path.join(stopped, name)).st_mode) == 0o666 & ~umask, name
 
 
+def test_a_missing_tensorboard_keeps_the_csv_logs_and_says_so_in_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)  # its import fails as when not installed
+    log = Logger(RunDir(str(tmp_path / "run")), tensorboard=True)
+    log.log_train({"frame": 8, "step": 1, "episode_return": 1.0})
+    log.close()
+    assert log.tb is None and not os.path.exists(tmp_path / "run" / "tb")
+    assert [r["episode_return"] for r in read_csv(str(tmp_path / "run" / "train.csv"))] == ["1"]
+    assert capsys.readouterr().out == "imssr: warning: TensorBoard is not installed: train.csv and eval.csv keep every row\n"
+
+
 def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
     """TensorBoard's writer thread and the sweep's log append each give the one disk-full line:
     a warning that turns TensorBoard off (the CSV logs go on), and the attempt's error."""

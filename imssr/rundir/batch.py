@@ -89,9 +89,10 @@ class BatchCheckpoints(RunLayout):
         step, replay_file = found.checkpoint.step, found.checkpoint.replay_file
         if found.path != self.latest:
             checkpoint_file.copy_checkpoint(found.path, self.latest)
-        for later in self.checkpoint_steps():
-            if later > step:
-                os.unlink(self.numbered(later))
+        for path in self.numbered_checkpoints():
+            later = os.path.basename(path)[len("step-"):-len(".pt")]
+            if later.isdigit() and int(later) > step:
+                os.unlink(path)
         if not replay_file or all(os.path.exists(p) for p in self.replay_files(replay_file)):
             self.remove_unnamed_replay_files(replay_file)
         self._kept_replay = replay_file

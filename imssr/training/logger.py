@@ -140,8 +140,12 @@ class Logger:
         self.tb = None
         self._tb_video: Optional[bool] = None  # whether TensorBoard can take videos (moviepy)
         if tensorboard:
-            from torch.utils.tensorboard import SummaryWriter
-
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+            except ImportError:  # tensorboard is a dependency, but an install without it keeps its CSV logs
+                print("imssr: warning: TensorBoard is not installed: train.csv and eval.csv keep every row",
+                      flush=True)
+                return
             _quiet_tensorboard_disk_full()
             # purge_step drops events newer than the checkpoint on resume.
             with disk_full_as_error(run.tb_dir):
