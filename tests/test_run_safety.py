@@ -523,7 +523,8 @@ def test_a_missing_tensorboard_keeps_the_csv_logs_and_says_so_in_one_line(tmp_pa
     log.close()
     assert log.tb is None and not os.path.exists(tmp_path / "run" / "tb")
     assert [r["episode_return"] for r in read_csv(str(tmp_path / "run" / "train.csv"))] == ["1"]
-    assert capsys.readouterr().out == "imssr: warning: TensorBoard is not installed: train.csv and eval.csv keep every row\n"
+    assert capsys.readouterr().out == \
+        "imssr: warning: TensorBoard is not installed: train.csv and eval.csv keep every row\n"
 
 
 def test_tensorboard_and_sweep_log_on_a_full_file_system(tiny_fs, capfd):
