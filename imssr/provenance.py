@@ -111,9 +111,9 @@ def _package_modules(top: str) -> set[str]:
             for f in files if f.endswith(".py")}
 
 
-def write_stamp(top: Optional[str] = None) -> str:
-    """Write the source stamp :data:`SOURCE_STAMP` into the checkout ``top`` (default: the one imssr is imported
-    from); returns its path."""
+def write_stamp(top: Optional[str] = None, path: Optional[str] = None) -> str:
+    """Write the source stamp of the checkout ``top`` (default: the one imssr is imported from)
+    into ``path`` (default: :data:`SOURCE_STAMP` in ``top``); returns its path."""
     top = top or _checkout()
     commit, clean = _git(top) if os.path.exists(os.path.join(top, ".git")) else (None, None)
     if commit is None:
@@ -121,7 +121,7 @@ def write_stamp(top: Optional[str] = None) -> str:
     listed = subprocess.run(["git", "-C", top, "ls-files", "-z", "--", "imssr"], capture_output=True, text=True,
                             timeout=30, check=True).stdout
     files = {name: _sha256(os.path.join(top, name)) for name in sorted(listed.split("\0")) if name}
-    path = os.path.join(top, SOURCE_STAMP)
+    path = path or os.path.join(top, SOURCE_STAMP)
     atomic_write_text(path, json.dumps({"commit": commit, "clean": clean, "files": files}, indent=1) + "\n")
     return path
 
