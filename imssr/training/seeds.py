@@ -217,9 +217,9 @@ class SeedsTrainer:
         burst :meth:`Trainer.save_in_burst`), committed together, then :class:`TrainingInterrupted`."""
         self._each(save)
         self._commit()
-        cfgs, runs = [t.cfg for t in self.trainers], [t.run_dir for t in self.trainers]
         raise TrainingInterrupted(f"stopped at agent step {self.step} by {self.stop.signal_name}; continue with: "
-                                  f"{resume_command(cfgs, runs)}", self.step, seeds_root(cfgs, runs))
+                                  f"{self.resume_command()}", self.step,
+                                  seeds_root([t.cfg for t in self.trainers], [t.run_dir for t in self.trainers]))
 
     def _each(self, fn: Callable[[Trainer], None]) -> None:
         """``fn(trainer)`` for the trainer of every training seed (:meth:`_guarded`)."""
